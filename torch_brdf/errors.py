@@ -1,0 +1,41 @@
+"""One exception hierarchy for bad input.
+
+Every error that torch_brdf raises because of what it was given derives from
+:class:`TorchBRDFError`, so callers can catch the package's complaints in one place
+and still tell them apart. Messages name the offending thing (file, argument, object)
+and say what was expected and what came.
+"""
+
+from __future__ import annotations
+
+
+class TorchBRDFError(Exception):
+    """Base class of every bad-input error raised by torch_brdf."""
+
+
+class ShapeError(TorchBRDFError, ValueError):
+    """A tensor has the wrong shape or dtype for a public entry point."""
+
+
+class ValueRangeError(TorchBRDFError, ValueError):
+    """A value is NaN/Inf, negative where it must not be, or outside its range."""
+
+
+class FileFormatError(TorchBRDFError, ValueError):
+    """A file is missing, truncated, corrupt, or not in the expected layout."""
+
+
+class MeshError(TorchBRDFError, ValueError):
+    """A mesh is unusable: NaN vertices, no faces, or only degenerate faces."""
+
+
+class SceneError(TorchBRDFError, ValueError):
+    """A scene description is inconsistent (unknown material, duplicate name, ...)."""
+
+
+class CameraError(TorchBRDFError, ValueError):
+    """A camera is degenerate (parallel up/forward, zero field of view, ...)."""
+
+
+class DataNotFoundError(TorchBRDFError, FileNotFoundError):
+    """Optional shared data (meshes, env maps, MERL) is not where it was looked for."""

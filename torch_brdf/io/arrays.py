@@ -1,0 +1,105 @@
+"""Versioned, checksummed array files (``.npz``, never pickle).
+
+Every file we write for later reading (checkpoints, precomputed tensors, visibility
+records) goes through :func:`save_arrays`: the arrays plus a JSON header with the
+format name, a ``kind`` (what the file holds), the format version, user metadata and a
+SHA-256 checksum over every array's name, dtype, shape and bytes. The write is atomic
+(temporary file in the same folder, then ``os.replace``), so an interrupted run leaves
+either the old file or the new one. :func:`load_arrays` refuses object arrays (no
+pickle), a wrong kind, a newer version or a checksum mismatch, with a clear error.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FileFormatError
+
+FORMAT = "torch_brdf-arrays"
+VERSION = 1
+_HEADER = "__header__"
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_arrays(
+    path: str | Path,
+    arrays: dict[str, np.ndarray],
+    kind: str,
+    meta: dict[str, Any] | None = None,
+    compress: bool = False,
+) -> Path:
+    """Write ``arrays`` with a header (format, kind, version, meta, checksum) atomically.
+
+    Args:
+        path: destination (``.npz``).
+        arrays: name -> numeric array (no object dtype).
+        kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
+        meta: JSON-serialisable metadata (settings, progress).
+        compress: zip-deflate the arrays.
+    """
+    path = Path(path)
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    for k, a in arrays.items():
+        if a.dtype == object or k == _HEADER:
+            raise FileFormatError(f"array {k!r} cannot be stored (object dtype or reserved name)")
+    header = {"format": FORMAT, "kind": kind, "version": VERSION, "meta": meta or {}, "checksum": _checksum(arrays)}
+    blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            (np.savez_compressed if compress else np.savez)(f, **arrays, **{_HEADER: blob})
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_arrays(path: str | Path, kind: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read a file written by :func:`save_arrays` and verify it.
+
+    Returns:
+        (arrays, meta).
+    Raises:
+        FileFormatError: missing, not an array file, wrong kind, newer version, corrupt.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"array file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise FileFormatError(f"{path} is not a readable torch_brdf array file: {exc}") from exc
+    if _HEADER not in data:
+        raise FileFormatError(f"{path} has no torch_brdf header")
+    try:
+        header = json.loads(data.pop(_HEADER).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FileFormatError(f"{path}: corrupt header") from exc
+    if header.get("format") != FORMAT:
+        raise FileFormatError(f"{path}: format {header.get('format')!r}, expected {FORMAT!r}")
+    if int(header.get("version", -1)) > VERSION:
+        raise FileFormatError(f"{path}: format version {header.get('version')} is newer than this reader ({VERSION})")
+    if kind is not None and header.get("kind") != kind:
+        raise FileFormatError(f"{path} holds {header.get('kind')!r}, expected {kind!r}")
+    if _checksum(data) != header.get("checksum"):
+        raise FileFormatError(f"{path}: checksum mismatch (file corrupt or modified)")
+    return data, header.get("meta", {})

@@ -1,0 +1,37 @@
+"""Functions on the sphere: sampling warps with pdfs and lat-long map geometry."""
+
+from .latlong import (
+    direction_to_latlong,
+    direction_to_texel,
+    latlong_to_direction,
+    row_cos_bounds,
+    texel_centers,
+    texel_solid_angles,
+)
+from .warps import (
+    cosine_hemisphere_pdf,
+    square_to_cosine_hemisphere,
+    square_to_uniform_disk_concentric,
+    square_to_uniform_hemisphere,
+    square_to_uniform_sphere,
+    square_to_uniform_triangle,
+    uniform_hemisphere_pdf,
+    uniform_sphere_pdf,
+)
+
+__all__ = [
+    "cosine_hemisphere_pdf",
+    "direction_to_latlong",
+    "direction_to_texel",
+    "latlong_to_direction",
+    "row_cos_bounds",
+    "square_to_cosine_hemisphere",
+    "square_to_uniform_disk_concentric",
+    "square_to_uniform_hemisphere",
+    "square_to_uniform_sphere",
+    "square_to_uniform_triangle",
+    "texel_centers",
+    "texel_solid_angles",
+    "uniform_hemisphere_pdf",
+    "uniform_sphere_pdf",
+]
