@@ -1,0 +1,31 @@
+"""Scenes: meshes, embree ray tracing, camera, lights and built-in scenes."""
+
+from .builtin import BUILTIN_SCENES, bunny_plane, cornell_box, ring, teatray
+from .camera import Camera
+from .envmap import EnvironmentMap, PointLightSet
+from .lights import AreaLight, DirectionalLight, Light, LightSample
+from .mesh import DegenerateFacesWarning, load_mesh, mesh_from_arrays
+from .raytrace import Hits, RayTracer
+from .scene import Scene, SceneObject
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "AreaLight",
+    "Camera",
+    "DegenerateFacesWarning",
+    "DirectionalLight",
+    "EnvironmentMap",
+    "Hits",
+    "Light",
+    "LightSample",
+    "PointLightSet",
+    "RayTracer",
+    "Scene",
+    "SceneObject",
+    "bunny_plane",
+    "cornell_box",
+    "load_mesh",
+    "mesh_from_arrays",
+    "ring",
+    "teatray",
+]

@@ -1,0 +1,245 @@
+"""Built-in scenes, each a function of the image resolution.
+
+They need no data files: the Cornell box uses the published coordinates, the other
+scenes use procedural stand-ins where the shared meshes (``TORCH_BRDF_DATA``) are absent.
+Materials are lambert dicts or named models of the BRDF layer (with a ``diffuse``
+albedo that the Lambert-only renderer uses until that layer resolves them).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import trimesh
+
+from ..data import data_path
+from .camera import Camera
+from .envmap import EnvironmentMap
+from .lights import AreaLight, DirectionalLight
+from .mesh import load_mesh, mesh_from_arrays
+from .scene import Scene, SceneObject
+
+Resolution = int | tuple[int, int]
+
+# The Cornell box as published by the Cornell Program of Computer Graphics
+# (millimetres, y up): each part is a list of quads, vertices in published order.
+_CORNELL_QUADS: dict[str, list[list[tuple[float, float, float]]]] = {
+    "floor": [[(552.8, 0, 0), (0, 0, 0), (0, 0, 559.2), (549.6, 0, 559.2)]],
+    "ceiling": [[(556.0, 548.8, 0), (556.0, 548.8, 559.2), (0, 548.8, 559.2), (0, 548.8, 0)]],
+    "back": [[(549.6, 0, 559.2), (0, 0, 559.2), (0, 548.8, 559.2), (556.0, 548.8, 559.2)]],
+    "left": [[(552.8, 0, 0), (549.6, 0, 559.2), (556.0, 548.8, 559.2), (556.0, 548.8, 0)]],
+    "right": [[(0, 0, 559.2), (0, 0, 0), (0, 548.8, 0), (0, 548.8, 559.2)]],
+    "short_box": [
+        [(130.0, 165.0, 65.0), (82.0, 165.0, 225.0), (240.0, 165.0, 272.0), (290.0, 165.0, 114.0)],
+        [(290.0, 0.0, 114.0), (290.0, 165.0, 114.0), (240.0, 165.0, 272.0), (240.0, 0.0, 272.0)],
+        [(130.0, 0.0, 65.0), (130.0, 165.0, 65.0), (290.0, 165.0, 114.0), (290.0, 0.0, 114.0)],
+        [(82.0, 0.0, 225.0), (82.0, 165.0, 225.0), (130.0, 165.0, 65.0), (130.0, 0.0, 65.0)],
+        [(240.0, 0.0, 272.0), (240.0, 165.0, 272.0), (82.0, 165.0, 225.0), (82.0, 0.0, 225.0)],
+    ],
+    "tall_box": [
+        [(423.0, 330.0, 247.0), (265.0, 330.0, 296.0), (314.0, 330.0, 456.0), (472.0, 330.0, 406.0)],
+        [(423.0, 0.0, 247.0), (423.0, 330.0, 247.0), (472.0, 330.0, 406.0), (472.0, 0.0, 406.0)],
+        [(472.0, 0.0, 406.0), (472.0, 330.0, 406.0), (314.0, 330.0, 456.0), (314.0, 0.0, 456.0)],
+        [(314.0, 0.0, 456.0), (314.0, 330.0, 456.0), (265.0, 330.0, 296.0), (265.0, 0.0, 296.0)],
+        [(265.0, 0.0, 296.0), (265.0, 330.0, 296.0), (423.0, 330.0, 247.0), (423.0, 0.0, 247.0)],
+    ],
+    # The light is coplanar with the ceiling in the published data; like Mitsuba's
+    # reference scene we lower it by 0.5 mm so it is not hidden by the ceiling.
+    "light": [[(343.0, 548.3, 227.0), (343.0, 548.3, 332.0), (213.0, 548.3, 332.0), (213.0, 548.3, 227.0)]],
+}
+
+#: Linear-sRGB reflectances and light radiance derived from the published Cornell box
+#: spectra (CIE 1931 2 deg, equal-energy illuminant, Bradford to D65), as in
+#: shared/data/meshes/cornell/materials.json.
+CORNELL_RGB = {
+    "white": (0.738, 0.737, 0.735),
+    "red": (0.529, 0.048, 0.051),
+    "green": (0.051, 0.397, 0.086),
+    "light": (17.98, 11.50, 3.15),
+}
+
+
+def _size(resolution: Resolution) -> tuple[int, int]:
+    if isinstance(resolution, int):
+        return resolution, resolution
+    w, h = resolution
+    return int(w), int(h)
+
+
+def _oriented_quads(quads, facing: Callable[[np.ndarray, np.ndarray], bool], name: str) -> trimesh.Trimesh:
+    """Triangulate quads (each split along v0-v2) and flip each so ``facing`` holds."""
+    verts, faces = [], []
+    for q in quads:
+        q = np.asarray(q, dtype=np.float64)
+        n = np.cross(q[1] - q[0], q[2] - q[0])
+        order = [0, 1, 2, 3] if facing(q.mean(0), n) else [0, 3, 2, 1]
+        base = len(verts)
+        verts.extend(q[order])
+        faces.extend([[base, base + 1, base + 2], [base, base + 2, base + 3]])
+    return mesh_from_arrays(verts, faces, name)
+
+
+def cornell_box_meshes() -> dict[str, trimesh.Trimesh]:
+    """The eight Cornell box parts as meshes: walls face into the box, blocks outwards,
+    the light downwards. Block faces do not share vertices (flat shading)."""
+    inside = np.array([278.0, 274.4, 279.6])
+    out = {}
+    for name, quads in _CORNELL_QUADS.items():
+        if name == "light":
+            facing = lambda c, n: n[1] < 0  # noqa: E731
+        elif name.endswith("_box"):
+            centre = np.asarray(quads, dtype=np.float64).reshape(-1, 3).mean(0)
+            centre[1] = np.asarray(quads, dtype=np.float64)[..., 1].max() / 2
+            facing = lambda c, n, centre=centre: np.dot(n, c - centre) > 0  # noqa: E731
+        else:
+            facing = lambda c, n: np.dot(n, inside - c) > 0  # noqa: E731
+        out[name] = _oriented_quads(quads, facing, name)
+    return out
+
+
+def cornell_box(resolution: Resolution = 256) -> Scene:
+    """The Cornell box: 8 objects (walls, two blocks, light), Lambert materials from the
+    published spectra, an area light, and the published camera (39.3 deg vertical fov).
+
+    Args:
+        resolution: image width = height, or (width, height).
+    """
+    w, h = _size(resolution)
+    meshes = cornell_box_meshes()
+    mat = {
+        "floor": "white",
+        "ceiling": "white",
+        "back": "white",
+        "left": "red",
+        "right": "green",
+        "short_box": "white",
+        "tall_box": "white",
+        "light": "light",
+    }
+    objects = [SceneObject(n, m, mat[n]) for n, m in meshes.items()]
+    objects[-1].editable = False
+    materials = {k: {"type": "lambert", "albedo": CORNELL_RGB[k]} for k in ("white", "red", "green")}
+    materials["light"] = {"type": "lambert", "albedo": (0.0, 0.0, 0.0)}
+    light_id = len(objects) - 1
+    lights = [AreaLight(meshes["light"].vertices, meshes["light"].faces, CORNELL_RGB["light"], object_id=light_id)]
+    cam = Camera((278.0, 273.0, -800.0), (278.0, 273.0, 0.0), (0.0, 1.0, 0.0), 39.3, w, h)
+    return Scene(objects, materials, lights, cam, name="cornell_box")
+
+
+def _ground(size: float, y: float = 0.0, name: str = "plane") -> trimesh.Trimesh:
+    s = size / 2
+    v = [(-s, y, -s), (-s, y, s), (s, y, s), (s, y, -s)]
+    return mesh_from_arrays(v, [[0, 1, 2], [0, 2, 3]], name)
+
+
+def _default_sky() -> EnvironmentMap:
+    """The procedural sky of the built-in scenes: sun irradiance about 1.3 (relative
+    units), so a white Lambert surface in the sun has radiance of order 0.5."""
+    return EnvironmentMap.sky(sun_radiance=(600.0, 570.0, 520.0))
+
+
+def _teapot_stand_in() -> trimesh.Trimesh:
+    """A procedural teapot-like body of revolution with a spout (when no data is present):
+    base at y = 0, about 2 units wide and 1 tall like the Utah teapot of the shared data."""
+    t = np.linspace(0, np.pi, 33)
+    profile = np.stack((0.7 * np.sin(t) + 0.01, 0.45 * (1 - np.cos(t))), -1)
+    profile[0, 0] = profile[-1, 0] = 0.0
+    body = trimesh.creation.revolve(profile, sections=48)
+    # revolve spins about z; make y the axis
+    body.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    spout = trimesh.creation.cylinder(radius=0.09, height=0.6, sections=16)
+    spout.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [0, 0, 1]))
+    spout.apply_translation([-0.8, 0.55, 0.0])
+    m = trimesh.util.concatenate([body, spout])
+    return mesh_from_arrays(m.vertices, m.faces, "teapot")
+
+
+def teatray(resolution: Resolution = 256, envmap: EnvironmentMap | None = None) -> Scene:
+    """A teapot on a glossy tray under an environment map (the seed's teatray).
+
+    The teapot comes from the shared data (``meshes/teapot.obj``) when present, else a
+    procedural stand-in. The environment defaults to the procedural sky with a sun.
+    """
+    w, h = _size(resolution)
+    p = data_path("meshes", "teapot.obj", required=False)
+    teapot = load_mesh(p, "teapot") if p is not None else _teapot_stand_in()
+    lo, hi = teapot.bounds
+    teapot.apply_translation([-(lo[0] + hi[0]) / 2, 0.02 - lo[1], -(lo[2] + hi[2]) / 2])
+    tray = trimesh.creation.box(extents=(3.2, 0.04, 2.4))
+    tray.apply_translation([0, 0.0, 0])
+    objects = [
+        SceneObject("teapot", teapot, "teapot", smooth=True),
+        SceneObject("tray", mesh_from_arrays(tray.vertices, tray.faces, "tray"), "tray"),
+        SceneObject("floor", _ground(40.0, -0.02, "floor"), "floor", editable=False),
+    ]
+    materials = {
+        "teapot": {"type": "lambert", "albedo": (0.6, 0.45, 0.3)},
+        "tray": {"type": "blinn_phong", "diffuse": (0.15, 0.15, 0.17), "specular": (0.6, 0.6, 0.6), "exponent": 200.0},
+        "floor": {"type": "lambert", "albedo": (0.4, 0.4, 0.4)},
+    }
+    env = envmap if envmap is not None else _default_sky()
+    cam = Camera((0.0, 2.0, -4.0), (0.0, 0.35, 0.0), (0.0, 1.0, 0.0), 35.0, w, h)
+    return Scene(objects, materials, [env], cam, name="teatray")
+
+
+def ring(resolution: Resolution = 256) -> Scene:
+    """A metal torus ring lying on a diffuse plane under a low sun: the caustic case."""
+    w, h = _size(resolution)
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.12, major_sections=96, minor_sections=24)
+    torus.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    torus.apply_translation([0, 0.12, 0])
+    objects = [
+        SceneObject("ring", mesh_from_arrays(torus.vertices, torus.faces, "ring"), "metal", smooth=True),
+        SceneObject("plane", _ground(20.0, 0.0), "plane"),
+    ]
+    materials = {
+        "metal": {
+            "type": "blinn_phong",
+            "diffuse": (0.02, 0.02, 0.02),
+            "specular": (0.95, 0.8, 0.45),
+            "exponent": 2000.0,
+        },
+        "plane": {"type": "lambert", "albedo": (0.7, 0.7, 0.7)},
+    }
+    sun = (-math.cos(math.radians(25)), math.sin(math.radians(25)), 0.3)
+    lights = [DirectionalLight(sun, 3.0), EnvironmentMap.constant(0.05)]
+    cam = Camera((0.0, 3.2, -3.2), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 40.0, w, h)
+    return Scene(objects, materials, lights, cam, name="ring")
+
+
+def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = None) -> Scene:
+    """The Stanford bunny (shared data; an icosphere stand-in otherwise) on a plane under
+    an environment map (procedural sky by default)."""
+    w, h = _size(resolution)
+    p = data_path("meshes", "bunny.ply", required=False)
+    if p is not None:
+        bunny = load_mesh(p, "bunny")
+        bunny.apply_scale(10.0)
+    else:
+        bunny = trimesh.creation.icosphere(subdivisions=4, radius=0.8)
+        bunny.apply_scale([1.0, 0.9, 1.2])
+        bunny = mesh_from_arrays(bunny.vertices, bunny.faces, "bunny")
+    lo, hi = bunny.bounds
+    bunny.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1], -(lo[2] + hi[2]) / 2])
+    objects = [
+        SceneObject("bunny", bunny, "bunny", smooth=True),
+        SceneObject("plane", _ground(30.0, 0.0), "plane"),
+    ]
+    materials = {
+        "bunny": {"type": "lambert", "albedo": (0.7, 0.7, 0.7)},
+        "plane": {"type": "lambert", "albedo": (0.5, 0.5, 0.5)},
+    }
+    env = envmap if envmap is not None else _default_sky()
+    cam = Camera((0.0, 2.2, -4.5), (0.0, 0.7, 0.0), (0.0, 1.0, 0.0), 40.0, w, h)
+    return Scene(objects, materials, [env], cam, name="bunny_plane")
+
+
+#: name -> builder, for the CLI and tests.
+BUILTIN_SCENES: dict[str, Callable[..., Scene]] = {
+    "cornell_box": cornell_box,
+    "teatray": teatray,
+    "ring": ring,
+    "bunny_plane": bunny_plane,
+}

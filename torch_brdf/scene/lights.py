@@ -1,0 +1,185 @@
+r"""Lights: the common interface, a directional light and emissive-triangle area lights.
+
+Every light answers two questions for a batch of shading points:
+
+* ``sample(points, generator)`` -> :class:`LightSample`: a direction towards the light
+  (unit, world space), the distance to the sampled point (``inf`` for distant lights),
+  the solid-angle pdf of that direction (``inf`` for delta lights) and ``weight`` =
+  incident radiance / pdf (for delta lights: the irradiance carried along the direction),
+  so that a one-sample estimate of :math:`\int L_i f \cos\theta\,d\omega` is
+  ``weight * f * cos`` times the shadow test.
+* ``eval_miss(directions)``: the radiance seen along rays that leave the scene (non-zero
+  only for environment maps; see :mod:`torch_brdf.scene.envmap`).
+
+Environment maps live in :mod:`torch_brdf.scene.envmap`; they implement the same
+interface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from .._checks import check_rgb, check_vectors
+from ..errors import MeshError, ValueRangeError
+
+
+@dataclass(frozen=True)
+class LightSample:
+    """One light sample per shading point.
+
+    Attributes:
+        direction: (P, 3) unit vector from the point towards the light.
+        distance: (P,) distance to the sampled light point; ``inf`` for distant lights.
+        weight: (P, 3) incident radiance divided by ``pdf`` (irradiance for delta lights).
+        pdf: (P,) solid-angle density of ``direction``; ``inf`` for delta lights and 0
+            where the sample is invalid (then ``weight`` is 0).
+    """
+
+    direction: torch.Tensor
+    distance: torch.Tensor
+    weight: torch.Tensor
+    pdf: torch.Tensor
+
+
+class Light(nn.Module):
+    """Base class of all lights. Subclasses set ``is_delta`` and ``is_infinite``."""
+
+    is_delta: bool = False
+    is_infinite: bool = False
+
+    def sample(self, points: torch.Tensor, generator: torch.Generator | None = None) -> LightSample:
+        """Sample one direction towards the light per point.
+
+        Args:
+            points: (P, 3) shading positions.
+            generator: random source (tests pass a seeded one).
+        Returns:
+            :class:`LightSample` with (P, ...) fields in ``points.dtype``.
+        """
+        raise NotImplementedError
+
+    def eval_miss(self, directions: torch.Tensor) -> torch.Tensor:
+        """Radiance (P, 3) along rays (P, 3) that leave the scene; zero by default."""
+        return directions.new_zeros(directions.shape)
+
+    def power_estimate(self) -> float:
+        """A rough scalar power used to choose between lights (luminance-weighted)."""
+        raise NotImplementedError
+
+
+def luminance(rgb: torch.Tensor) -> torch.Tensor:
+    """Rec. 709 / sRGB luminance of linear RGB ``(..., 3)`` -> ``(...)``."""
+    w = torch.tensor([0.2126, 0.7152, 0.0722], dtype=rgb.dtype, device=rgb.device)
+    return rgb @ w
+
+
+class DirectionalLight(Light):
+    """A distant light from one direction (a delta light, e.g. a sun without a disk).
+
+    Args:
+        direction: 3 numbers, the direction *towards* the light (normalised here).
+        irradiance: RGB irradiance on a surface facing the light (scalar or 3 values).
+    """
+
+    is_delta = True
+    is_infinite = True
+
+    def __init__(self, direction, irradiance):
+        super().__init__()
+        d = check_vectors(torch.as_tensor(direction, dtype=torch.float64).reshape(1, 3), "direction")
+        n = float(d.norm())
+        if n == 0.0:
+            raise ValueRangeError("DirectionalLight direction must be non-zero")
+        self.register_buffer("direction", (d[0] / n).to(torch.float32))
+        self.register_buffer("irradiance", torch.tensor(check_rgb(irradiance, "irradiance"), dtype=torch.float32))
+
+    def sample(self, points, generator=None):
+        p = points.shape[0]
+        d = self.direction.to(points.dtype).expand(p, 3)
+        return LightSample(
+            direction=d,
+            distance=points.new_full((p,), float("inf")),
+            weight=self.irradiance.to(points.dtype).expand(p, 3),
+            pdf=points.new_full((p,), float("inf")),
+        )
+
+    def power_estimate(self) -> float:
+        return float(luminance(self.irradiance.double()))
+
+
+class AreaLight(Light):
+    r"""Emissive triangles with constant radiance, emitting from their front side.
+
+    The front side is the one the counter-clockwise normal :math:`(v_1-v_0)\times(v_2-v_0)`
+    points to. Sampling picks a triangle with probability proportional to its area and a
+    uniform point on it, so the area pdf is ``1 / total_area``; the solid-angle pdf is
+    :math:`p_A\,r^2/|\cos\theta_l|`.
+
+    Args:
+        vertices: (V, 3) positions.
+        faces: (F, 3) vertex indices.
+        radiance: RGB emitted radiance (scalar or 3 values).
+        object_id: the scene object these triangles belong to (-1 if none), so that a
+            renderer can recognise hits on the emitter.
+    """
+
+    def __init__(self, vertices, faces, radiance, object_id: int = -1):
+        super().__init__()
+        v = check_vectors(torch.as_tensor(np.asarray(vertices), dtype=torch.float64), "vertices")
+        f = torch.as_tensor(np.asarray(faces), dtype=torch.int64)
+        if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+            raise MeshError(f"AreaLight faces must have shape (F, 3) with F > 0; got {tuple(f.shape)}")
+        tri = v[f]  # (F, 3, 3)
+        cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = 0.5 * cross.norm(dim=-1)
+        if not bool((area > 0).any()):
+            raise MeshError("AreaLight has no triangle with non-zero area")
+        keep = area > 0
+        tri, cross, area = tri[keep], cross[keep], area[keep]
+        self.register_buffer("triangles", tri.to(torch.float32))
+        self.register_buffer("normals", (cross / (2 * area[:, None])).to(torch.float32))
+        self.register_buffer("cdf", torch.cumsum(area / area.sum(), 0).to(torch.float64))
+        self.total_area = float(area.sum())
+        self.register_buffer("radiance", torch.tensor(check_rgb(radiance, "radiance"), dtype=torch.float32))
+        self.object_id = int(object_id)
+
+    def sample_points(self, n: int, generator=None, dtype=torch.float32):
+        """Uniform points on the emitter: (n, 3) positions and (n, 3) normals."""
+        u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+        idx = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp_max(len(self.cdf) - 1)
+        s = u[:, 1].sqrt()
+        b1, b2 = 1 - s, u[:, 2] * s  # uniform barycentrics
+        tri = self.triangles[idx].to(torch.float64)
+        p = tri[:, 0] + b1[:, None] * (tri[:, 1] - tri[:, 0]) + b2[:, None] * (tri[:, 2] - tri[:, 0])
+        return p.to(dtype), self.normals[idx].to(dtype)
+
+    def sample(self, points, generator=None):
+        y, n_l = self.sample_points(points.shape[0], generator, dtype=points.dtype)
+        d = y - points
+        dist2 = (d * d).sum(-1)
+        dist = dist2.sqrt()
+        w = d / dist.clamp_min(torch.finfo(points.dtype).tiny)[:, None]
+        cos_l = -(w * n_l).sum(-1)  # > 0 when the point sees the front side
+        valid = (cos_l > 0) & (dist > 0)
+        pdf = torch.where(valid, dist2 / (cos_l.clamp_min(1e-12) * self.total_area), torch.zeros_like(dist))
+        weight = torch.where(
+            valid[:, None], self.radiance.to(points.dtype) / pdf.clamp_min(1e-30)[:, None], torch.zeros_like(d)
+        )
+        return LightSample(direction=w, distance=dist, weight=weight, pdf=pdf)
+
+    def emitted(self, directions, normals):
+        """Radiance (P, 3) leaving the emitter towards ``-directions`` at points with ``normals``.
+
+        Args:
+            directions: (P, 3) directions of the rays that hit the emitter.
+            normals: (P, 3) geometric normals at the hits.
+        """
+        front = (directions * normals).sum(-1) < 0
+        return torch.where(front[:, None], self.radiance.to(directions.dtype), directions.new_zeros(()))
+
+    def power_estimate(self) -> float:
+        return float(luminance(self.radiance.double())) * self.total_area * float(np.pi)

@@ -1,0 +1,304 @@
+"""The scene: named objects with materials, lights and a camera, traced with embree.
+
+A scene is built in Python (:class:`Scene` from :class:`SceneObject` s) or from a small
+description, a dict or TOML file (:meth:`Scene.from_dict`, :meth:`Scene.from_toml`)::
+
+    [camera]
+    origin = [278, 273, -800]
+    target = [278, 273, 0]
+    fov_deg = 39.3
+    width = 256
+    height = 256
+
+    [materials.white]
+    type = "lambert"
+    albedo = [0.74, 0.74, 0.74]
+
+    [[objects]]
+    name = "floor"
+    mesh = "floor.obj"          # relative to the TOML file; or vertices = [...], faces = [...]
+    material = "white"
+    editable = true             # false: a fixed object (its BRDF is never edited)
+    smooth = false              # shading normals: interpolated (true) or per face (false)
+    # optional placement: scale = 1.0, rotate_y_deg = 0.0, translate = [0, 0, 0]
+
+    [[lights]]
+    type = "area"               # or "envmap" (file = ... | procedural = "sky" | "constant")
+    object = "light"            #    or "directional" (direction, irradiance)
+    radiance = [17.98, 11.5, 3.15]
+
+Materials are plain dicts with a ``type`` (``"lambert"`` with ``albedo``, or a model
+name of the BRDF layer with its parameters) until the BRDF library resolves them.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import trimesh
+
+from .._checks import check_rgb
+from ..errors import SceneError, TorchBRDFError
+from .camera import Camera
+from .envmap import EnvironmentMap
+from .lights import AreaLight, DirectionalLight, Light
+from .mesh import load_mesh, mesh_from_arrays, validate_mesh
+from .raytrace import Hits, RayTracer
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+@dataclass
+class SceneObject:
+    """One named object of a scene.
+
+    Attributes:
+        name: unique within the scene.
+        mesh: validated triangle mesh (see :mod:`torch_brdf.scene.mesh`).
+        material: key into :attr:`Scene.materials`.
+        editable: False marks a fixed object whose BRDF is never edited (its full BRDF
+            can be baked into precomputed path weights).
+        smooth: interpolate vertex normals for shading (True) or use face normals.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    material: str
+    editable: bool = True
+    smooth: bool = False
+
+
+@dataclass
+class Scene:
+    """Objects, materials, lights and a camera, with embree ray tracing.
+
+    The object id of ``objects[i]`` is ``i``; :class:`Hits` report it.
+    """
+
+    objects: list[SceneObject]
+    materials: dict[str, dict[str, Any]]
+    lights: list[Light]
+    camera: Camera
+    name: str = "scene"
+    _tracer: RayTracer | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if not self.objects:
+            raise SceneError("a scene needs at least one object")
+        names = [o.name for o in self.objects]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise SceneError(f"duplicate object names: {dup}")
+        for o in self.objects:
+            if o.material not in self.materials:
+                raise SceneError(
+                    f"object {o.name!r} uses unknown material {o.material!r}; known: {sorted(self.materials)}"
+                )
+        for key, mat in self.materials.items():
+            _check_material(key, mat)
+        for light in self.lights:
+            if not isinstance(light, Light):
+                raise SceneError(f"lights must be torch_brdf Light modules; got {type(light).__name__}")
+        if sum(isinstance(li, EnvironmentMap) for li in self.lights) > 1:
+            raise SceneError("a scene holds at most one environment map")
+        self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects])
+
+    # -- lookups ---------------------------------------------------------------------------
+    def object_id(self, name: str) -> int:
+        """Index of the object called ``name``."""
+        for i, o in enumerate(self.objects):
+            if o.name == name:
+                return i
+        raise SceneError(f"no object called {name!r}; objects: {[o.name for o in self.objects]}")
+
+    def material_of(self, object_id: int) -> dict[str, Any]:
+        """The material dict of object ``object_id``."""
+        return self.materials[self.objects[object_id].material]
+
+    @property
+    def environment(self) -> EnvironmentMap | None:
+        """The scene's environment map light, if any."""
+        return next((li for li in self.lights if isinstance(li, EnvironmentMap)), None)
+
+    @property
+    def area_lights(self) -> dict[int, AreaLight]:
+        """Emissive objects: object id -> its :class:`AreaLight`."""
+        return {li.object_id: li for li in self.lights if isinstance(li, AreaLight) and li.object_id >= 0}
+
+    @property
+    def ray_epsilon(self) -> float:
+        """Offset used by :meth:`spawn` against self-intersection (scene-scale dependent)."""
+        return self._tracer.ray_epsilon
+
+    @property
+    def tracer(self) -> RayTracer:
+        """The underlying :class:`RayTracer` (vertex/face tables for gathers)."""
+        return self._tracer
+
+    # -- ray queries -----------------------------------------------------------------------
+    def trace(self, origins, directions) -> Hits:
+        """Closest hits, see :meth:`RayTracer.trace`. origins, directions: (P, 3)."""
+        return self._tracer.trace(origins, directions)
+
+    def occluded(self, origins, directions, t_max) -> torch.Tensor:
+        """(P,) bool: anything within ``(0, t_max)`` along each ray (:meth:`RayTracer.occluded`)."""
+        return self._tracer.occluded(origins, directions, t_max)
+
+    def spawn(self, position, geometric_normal, directions) -> torch.Tensor:
+        """Origins offset off the surface for rays leaving along ``directions``."""
+        return self._tracer.spawn(position, geometric_normal, directions)
+
+    def visible(self, position, geometric_normal, directions, distance) -> torch.Tensor:
+        """(P,) bool: the segment from a surface point along ``directions`` is free for
+        ``distance`` (less twice the ray epsilon, so the target surface does not count)."""
+        o = self.spawn(position, geometric_normal, directions)
+        t_max = torch.as_tensor(distance, dtype=torch.float32) - 2 * self.ray_epsilon
+        return ~self.occluded(o, directions, t_max)
+
+    # -- derived scenes and statistics -----------------------------------------------------
+    def with_resolution(self, width: int, height: int | None = None) -> Scene:
+        """The same scene rendered at another image size (geometry is shared)."""
+        out = copy.copy(self)
+        out.camera = self.camera.with_size(width, height if height is not None else width)
+        return out
+
+    def info(self) -> dict[str, Any]:
+        """Statistics for ``torch-brdf info``: objects, triangles, bounds, lights, camera."""
+        lo, hi = self._tracer.bbox
+        return {
+            "name": self.name,
+            "objects": [
+                {
+                    "id": i,
+                    "name": o.name,
+                    "material": o.material,
+                    "type": self.materials[o.material].get("type"),
+                    "editable": o.editable,
+                    "triangles": len(o.mesh.faces),
+                    "vertices": len(o.mesh.vertices),
+                }
+                for i, o in enumerate(self.objects)
+            ],
+            "triangles": int(sum(len(o.mesh.faces) for o in self.objects)),
+            "bounds": [lo.tolist(), hi.tolist()],
+            "lights": [type(li).__name__ for li in self.lights],
+            "camera": {
+                "origin": self.camera.origin,
+                "target": self.camera.target,
+                "fov_deg": self.camera.fov_deg,
+                "size": [self.camera.width, self.camera.height],
+            },
+        }
+
+    # -- descriptions ----------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Scene:
+        """Build a scene from a TOML description (see the module docstring)."""
+        path = Path(path)
+        try:
+            desc = tomllib.loads(path.read_text())
+        except FileNotFoundError as exc:
+            raise SceneError(f"scene file not found: {path}") from exc
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"scene file {path} is not valid TOML: {exc}") from exc
+        desc.setdefault("name", path.stem)
+        return cls.from_dict(desc, base_dir=path.parent)
+
+    @classmethod
+    def from_dict(cls, desc: dict[str, Any], base_dir: str | Path = ".") -> Scene:
+        """Build a scene from a description dict (the TOML layout of the module docstring).
+
+        Args:
+            desc: with keys ``camera``, ``materials``, ``objects``, ``lights``, ``name``.
+            base_dir: folder that relative mesh and EXR paths are resolved against.
+        """
+        base_dir = Path(base_dir)
+        for key in ("camera", "materials", "objects"):
+            if key not in desc:
+                raise SceneError(f"scene description lacks {key!r}")
+        try:
+            camera = Camera(**desc["camera"])
+        except TypeError as exc:
+            raise SceneError(f"bad camera description {desc['camera']!r}: {exc}") from exc
+        objects = [_object_from_dict(o, base_dir) for o in desc["objects"]]
+        materials = {str(k): dict(v) for k, v in desc["materials"].items()}
+        names = [o.name for o in objects]
+        lights = [_light_from_dict(li, base_dir, names, objects) for li in desc.get("lights", [])]
+        return cls(objects, materials, lights, camera, name=str(desc.get("name", "scene")))
+
+
+def _check_material(key: str, mat: dict[str, Any]) -> None:
+    if not isinstance(mat, dict) or not isinstance(mat.get("type"), str):
+        raise SceneError(f"material {key!r} must be a dict with a string 'type'; got {mat!r}")
+    for k in ("albedo", "diffuse", "specular"):
+        if k in mat:
+            try:
+                check_rgb(mat[k], f"material {key!r} {k}")
+            except TorchBRDFError as exc:
+                raise SceneError(str(exc)) from exc
+
+
+def _placed(mesh: trimesh.Trimesh, d: dict[str, Any], name: str) -> trimesh.Trimesh:
+    m = mesh.copy()
+    if "scale" in d:
+        m.apply_scale(float(d["scale"]))
+    if "rotate_y_deg" in d:
+        m.apply_transform(trimesh.transformations.rotation_matrix(math.radians(float(d["rotate_y_deg"])), [0, 1, 0]))
+    if "translate" in d:
+        m.apply_translation(np.asarray(d["translate"], dtype=np.float64).reshape(3))
+    return validate_mesh(m, name)
+
+
+def _object_from_dict(d: dict[str, Any], base_dir: Path) -> SceneObject:
+    if "name" not in d or "material" not in d:
+        raise SceneError(f"object description needs 'name' and 'material'; got keys {sorted(d)}")
+    name = str(d["name"])
+    if "mesh" in d:
+        mesh = load_mesh(base_dir / d["mesh"], name)
+    elif "vertices" in d and "faces" in d:
+        mesh = mesh_from_arrays(d["vertices"], d["faces"], name)
+    else:
+        raise SceneError(f"object {name!r} needs 'mesh' (a file) or 'vertices' and 'faces'")
+    mesh = _placed(mesh, d, name)
+    return SceneObject(name, mesh, str(d["material"]), bool(d.get("editable", True)), bool(d.get("smooth", False)))
+
+
+def _light_from_dict(d: dict[str, Any], base_dir: Path, names: list[str], objects: list[SceneObject]) -> Light:
+    kind = d.get("type")
+    if kind == "area":
+        obj = d.get("object")
+        if obj not in names:
+            raise SceneError(f"area light refers to unknown object {obj!r}; objects: {names}")
+        i = names.index(obj)
+        m = objects[i].mesh
+        return AreaLight(m.vertices, m.faces, d.get("radiance", 1.0), object_id=i)
+    if kind == "directional":
+        return DirectionalLight(d["direction"], d.get("irradiance", 1.0))
+    if kind == "envmap":
+        return _envmap_from_dict(d, base_dir)
+    raise SceneError(f"unknown light type {kind!r}; expected 'area', 'directional' or 'envmap'")
+
+
+def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
+    extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg")}
+    if "file" in d:
+        env = EnvironmentMap.from_exr(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
+    elif d.get("procedural") == "constant":
+        env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
+    elif d.get("procedural") == "sky":
+        env = EnvironmentMap.sky(**extra)
+    else:
+        raise SceneError("envmap light needs 'file' or procedural = 'sky' | 'constant'")
+    if d.get("rotation_deg"):
+        env = env.rotated(math.radians(float(d["rotation_deg"])))
+    return env
