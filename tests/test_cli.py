@@ -1,0 +1,60 @@
+"""The torch-brdf command line (typer's test runner, small images)."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from torch_brdf.cli import app
+from torch_brdf.io import read_exr, read_png
+
+runner = CliRunner()
+
+
+def test_info_builtin():
+    res = runner.invoke(app, ["info", "cornell_box"])
+    assert res.exit_code == 0, res.output
+    info = json.loads(res.stdout)
+    assert info["name"] == "cornell_box" and len(info["objects"]) == 8 and info["triangles"] == 32
+
+
+def test_demo_writes_exr_and_png(tmp_path):
+    out = tmp_path / "sub" / "cb"
+    res = runner.invoke(app, ["demo", "--out", str(out), "--resolution", "16", "--spp", "1", "--bounces", "2"])
+    assert res.exit_code == 0, res.output
+    img = read_exr(out.with_suffix(".exr"))
+    assert img.shape == (16, 16, 3) and float(img.mean()) > 0
+    assert read_png(out.with_suffix(".png")).shape == (16, 16, 3)
+    assert json.loads(res.stdout.strip().splitlines()[-1])["spp"] == 1
+
+
+def test_render_toml_and_errors(tmp_path):
+    toml = tmp_path / "s.toml"
+    toml.write_text(
+        """
+name = "tri"
+[camera]
+origin = [0, 0, -3]
+target = [0, 0, 0]
+width = 8
+height = 8
+[materials.m]
+type = "lambert"
+albedo = 0.5
+[[objects]]
+name = "quad"
+material = "m"
+vertices = [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]
+faces = [[0, 1, 2], [0, 2, 3]]
+[[lights]]
+type = "envmap"
+procedural = "constant"
+radiance = 1.0
+"""
+    )
+    res = runner.invoke(app, ["render", str(toml), "--out", str(tmp_path / "r"), "--spp", "2", "--no-resume"])
+    assert res.exit_code == 0, res.output
+    assert read_exr(tmp_path / "r.exr").shape == (8, 8, 3)
+    bad = runner.invoke(app, ["render", "no_such_scene"])
+    assert bad.exit_code == 2 and "unknown scene" in bad.output

@@ -1,0 +1,104 @@
+"""The ``torch-brdf`` command line: ``demo``, ``render`` and ``info``."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import typer
+
+from .errors import SceneError, TorchBRDFError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="torch_brdf: BRDF design in the final scene.")
+
+
+def load_scene(spec: str, resolution: int | None = None):
+    """A built-in scene by name (``cornell_box``, ``teatray``, ``ring``, ``bunny_plane``) or
+    a TOML scene file; ``resolution`` overrides the image size (square)."""
+    from .scene import BUILTIN_SCENES, Scene
+
+    if spec in BUILTIN_SCENES:
+        return BUILTIN_SCENES[spec](resolution or 256)
+    if spec.endswith(".toml") or Path(spec).is_file():
+        scene = Scene.from_toml(spec)
+        return scene.with_resolution(resolution) if resolution else scene
+    raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
+
+
+def _render_to(scene, out: Path, spp: int, bounces: int, seed: int, exposure: float, checkpoint: bool) -> dict:
+    from .io import write_exr, write_png
+    from .transport.pathtrace import path_trace
+
+    out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
+    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt)
+    seconds = time.perf_counter() - t0
+    write_exr(out.with_suffix(".exr"), image)
+    write_png(out.with_suffix(".png"), image, exposure=exposure)
+    if ckpt is not None and ckpt.exists():
+        ckpt.unlink()
+    return {
+        "exr": str(out.with_suffix(".exr")),
+        "png": str(out.with_suffix(".png")),
+        "seconds": round(seconds, 3),
+        "spp": spp,
+        "max_bounces": bounces,
+        "size": [scene.camera.width, scene.camera.height],
+    }
+
+
+def _fail(exc: TorchBRDFError) -> None:
+    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code=2)
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("out/cornell_box"), help="Output path without suffix (.exr and .png are written)."),
+    resolution: int = typer.Option(256, min=8, help="Image width = height."),
+    spp: int = typer.Option(16, min=1, help="Samples per pixel."),
+    bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0, help="Random seed."),
+):
+    """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
+    try:
+        scene = load_scene("cornell_box", resolution)
+        info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False)
+    except TorchBRDFError as exc:
+        _fail(exc)
+    typer.echo(json.dumps(info))
+
+
+@app.command()
+def render(
+    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
+    resolution: int = typer.Option(None, min=8, help="Override the image size (square)."),
+    spp: int = typer.Option(16, min=1),
+    bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0),
+    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
+):
+    """Path-trace a scene (Lambert materials) to EXR and PNG."""
+    try:
+        info = _render_to(load_scene(scene, resolution), out, spp, bounces, seed, exposure, checkpoint=resume)
+    except TorchBRDFError as exc:
+        _fail(exc)
+    typer.echo(json.dumps(info))
+
+
+@app.command()
+def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file.")):
+    """Print scene statistics as JSON: objects, triangles, bounds, lights, camera."""
+    try:
+        typer.echo(json.dumps(load_scene(scene).info(), indent=2))
+    except TorchBRDFError as exc:
+        _fail(exc)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()
