@@ -290,15 +290,18 @@ def _light_from_dict(d: dict[str, Any], base_dir: Path, names: list[str], object
 
 
 def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
-    extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg")}
-    if "file" in d:
-        env = EnvironmentMap.from_exr(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
-    elif d.get("procedural") == "constant":
-        env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
-    elif d.get("procedural") == "sky":
-        env = EnvironmentMap.sky(**extra)
-    else:
-        raise SceneError("envmap light needs 'file' or procedural = 'sky' | 'constant'")
+    extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg", "radiance")}
+    try:
+        if "file" in d:
+            env = EnvironmentMap.from_exr(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
+        elif d.get("procedural") == "constant":
+            env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
+        elif d.get("procedural") == "sky":
+            env = EnvironmentMap.sky(**extra)
+        else:
+            raise SceneError("envmap light needs 'file' or procedural = 'sky' | 'constant'")
+    except TypeError as exc:  # unknown keyword in the description
+        raise SceneError(f"bad envmap light description {sorted(d)}: {exc}") from exc
     if d.get("rotation_deg"):
         env = env.rotated(math.radians(float(d["rotation_deg"])))
     return env
