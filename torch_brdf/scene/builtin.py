@@ -101,7 +101,8 @@ def cornell_box_meshes() -> dict[str, trimesh.Trimesh]:
 
 def cornell_box(resolution: Resolution = 256) -> Scene:
     """The Cornell box: 8 objects (walls, two blocks, light), Lambert materials from the
-    published spectra, an area light, and the published camera (39.3 deg vertical fov).
+    published spectra, an area light, and the published camera (35 mm lens, 25 mm film:
+    39.31 deg vertical fov). Like the published data the blocks have no bottom face.
 
     Args:
         resolution: image width = height, or (width, height).
@@ -124,7 +125,9 @@ def cornell_box(resolution: Resolution = 256) -> Scene:
     materials["light"] = {"type": "lambert", "albedo": (0.0, 0.0, 0.0)}
     light_id = len(objects) - 1
     lights = [AreaLight(meshes["light"].vertices, meshes["light"].faces, CORNELL_RGB["light"], object_id=light_id)]
-    cam = Camera((278.0, 273.0, -800.0), (278.0, 273.0, 0.0), (0.0, 1.0, 0.0), 39.3, w, h)
+    # the published camera: focal length 35 mm, film 25 mm x 25 mm
+    fov = math.degrees(2 * math.atan(12.5 / 35.0))
+    cam = Camera((278.0, 273.0, -800.0), (278.0, 273.0, 0.0), (0.0, 1.0, 0.0), fov, w, h)
     return Scene(objects, materials, lights, cam, name="cornell_box")
 
 

@@ -4,7 +4,8 @@ Policy for bad meshes (documented here and in the README):
 
 * NaN/Inf vertex coordinates, face indices out of range, or no faces at all raise
   :class:`~torch_brdf.errors.MeshError` naming the mesh: there is no safe repair.
-* Zero-area (degenerate) faces are dropped with a :class:`DegenerateFacesWarning` that
+* Zero-area (degenerate) faces — repeated or collinear vertices, judged on the float32
+  coordinates that embree traces — are dropped with a :class:`DegenerateFacesWarning` that
   says how many; if every face is degenerate, :class:`MeshError` is raised. Dropping keeps
   the remaining triangle ids dense, so ``prim_id`` indexes the cleaned mesh.
 """
@@ -39,7 +40,7 @@ def load_mesh(path: str | Path, name: str | None = None) -> trimesh.Trimesh:
         raise FileFormatError(f"mesh file not found: {path}")
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
-    except (ValueError, KeyError, IndexError, OSError, TypeError) as exc:
+    except (ValueError, KeyError, IndexError, OSError, TypeError, NotImplementedError) as exc:
         raise FileFormatError(f"cannot read mesh {path}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):
         raise FileFormatError(f"mesh file {path} holds no triangle mesh (got {type(loaded).__name__})")
@@ -66,10 +67,12 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
         raise MeshError(f"mesh {name!r}: {int(bad.sum())} vertices have NaN/Inf coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"mesh {name!r}: face indices outside [0, {len(v)}) (min {f.min()}, max {f.max()})")
-    tri = v[f]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    scale = max(float(np.abs(v).max()), 1e-30)
-    degenerate = area2 <= (1e-12 * scale) ** 2
+    # judged on the float32 coordinates embree traces: a face is degenerate when its edges
+    # are (numerically) parallel, |e1 x e2| <= 1e-7 |e1| |e2|, so its normal is undefined
+    tri = v.astype(np.float32).astype(np.float64)[f]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    cross = np.linalg.norm(np.cross(e1, e2), axis=1)
+    degenerate = cross <= 1e-7 * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
     if degenerate.all():
         raise MeshError(f"mesh {name!r}: all {len(f)} faces have zero area")
     if degenerate.any():
@@ -84,8 +87,13 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
 
 def mesh_from_arrays(vertices, faces, name: str = "mesh") -> trimesh.Trimesh:
     """Build and validate a mesh from (V, 3) vertices and (F, 3) faces."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"mesh {name!r}: vertices and faces must be numeric arrays: {exc}") from exc
     if v.ndim != 2 or v.shape[-1] != 3:
         raise MeshError(f"mesh {name!r}: vertices must have shape (V, 3); got {v.shape}")
+    if f.size % 3 or f.size == 0:
+        raise MeshError(f"mesh {name!r}: faces must hold 3 indices per triangle; got {f.size} indices")
     return validate_mesh(trimesh.Trimesh(vertices=v, faces=f.reshape(-1, 3), process=False), name)
