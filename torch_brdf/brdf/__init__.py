@@ -1,5 +1,79 @@
-"""BRDFs as torch modules: one base class, constrained parameters, a string registry."""
+"""BRDFs as torch modules: one base class, constrained parameters, a string registry.
 
+Importing this package registers every model: ``create("blinn_phong", exponent=100)`` or
+``create({"type": "lambert", "albedo": 0.7})`` (a scene material dict).
+"""
+
+from .analytic import (
+    AshikhminShirley,
+    BlinnDistribution,
+    BlinnPhong,
+    DistributionBased,
+    HalfVectorDistribution,
+    Phong,
+    TabulatedDistribution,
+    Ward,
+    WardAniso,
+)
+from .band_albedo import EquivalentAlbedoCacheWarning, band_albedos, equivalent_albedo
+from .bands import (
+    AnisotropicLobe,
+    BandBasis,
+    Factored1D,
+    FresnelFactored1D,
+    PairQuadrature,
+    Quotient,
+    SchlickFresnel,
+    SmithQuotient,
+    band_edges,
+    make_quotient,
+    project,
+    projection_error,
+)
 from .base import BRDF, Clamped, Lambert, Positive, available, create, register
+from .measured import NBRDF, MERLTabulated, tabulate_nbrdf
+from .microfacet import CookTorrance
+from .srbf import SRBFBasis, SRBFDistribution, hemicube_centers, lambda_from_sigma, sigma_from_lambda
 
-__all__ = ["BRDF", "Clamped", "Lambert", "Positive", "available", "create", "register"]
+__all__ = [
+    "BRDF",
+    "NBRDF",
+    "AnisotropicLobe",
+    "AshikhminShirley",
+    "BandBasis",
+    "BlinnDistribution",
+    "BlinnPhong",
+    "Clamped",
+    "CookTorrance",
+    "DistributionBased",
+    "EquivalentAlbedoCacheWarning",
+    "Factored1D",
+    "FresnelFactored1D",
+    "HalfVectorDistribution",
+    "Lambert",
+    "MERLTabulated",
+    "PairQuadrature",
+    "Phong",
+    "Positive",
+    "Quotient",
+    "SRBFBasis",
+    "SRBFDistribution",
+    "SchlickFresnel",
+    "SmithQuotient",
+    "TabulatedDistribution",
+    "Ward",
+    "WardAniso",
+    "available",
+    "band_albedos",
+    "band_edges",
+    "create",
+    "equivalent_albedo",
+    "hemicube_centers",
+    "lambda_from_sigma",
+    "make_quotient",
+    "project",
+    "projection_error",
+    "register",
+    "sigma_from_lambda",
+    "tabulate_nbrdf",
+]
