@@ -3,13 +3,21 @@ r"""Ray tracing on torch tensors with embreex.
 :class:`RayTracer` puts every scene object into one embree scene as its own geometry,
 so embree's ``geomID`` is the object id and ``primID`` the triangle index inside that
 object. Rays go in and :class:`Hits` come out as torch tensors; the per-ray work after
-embree (positions, normals) is a handful of batched gathers, no Python loop per ray.
+embree (positions, normals) is a handful of batched numpy gathers, no Python loop per ray.
 
 Embree traces in float32. Positions are interpolated from the triangle's vertices with
 the hit's barycentrics (more accurate on the surface than ``o + t d``), geometric normals
 are the counter-clockwise face normals :math:`\mathrm{normalize}((v_1-v_0)\times(v_2-v_0))`
 (trimesh's convention, *not* flipped towards the ray), shading normals interpolate the
 vertex normals of smooth objects and equal the geometric normal on flat ones.
+
+The numpy side (embree calls and the per-hit gathers, in chunks) lives in
+:mod:`torch_brdf.scene.parallel`; this module checks and converts tensors, in numpy too
+(a torch op waits for torch's thread pool, milliseconds whenever another process holds a
+core). Batches of at least :data:`PARALLEL_MIN_RAYS` rays are traced by ``workers``
+processes (the caller plus forked children, see
+:class:`~torch_brdf.scene.parallel.TracePool`) with bitwise the same results as by one.
+``benchmarks/raytrace.py`` measures both against embreex called directly.
 """
 
 from __future__ import annotations
@@ -22,11 +30,15 @@ import torch
 import trimesh
 from embreex import mesh_construction, rtcore_scene
 
-from .._checks import check_vectors
-from ..errors import ShapeError
+from .._checks import as_float_tensor, check_finite
+from ..errors import ShapeError, ValueRangeError
+from .parallel import CHUNK, HitArrays, TraceKernel, TracePool, default_workers
 
-#: embree leaves ``tfar`` at this value on a miss (we report ``inf`` instead).
+#: largest ``t_max`` handed to embree for occlusion (embreex's own default far distance).
 _EMBREE_FAR = 1e37
+#: smallest batch traced by several processes: two chunks (one per process on 2 cores, 1.4x
+#: faster at 32k rays); a single chunk is traced by one process anyway.
+PARALLEL_MIN_RAYS = 2 * CHUNK
 
 
 @dataclass(frozen=True)
@@ -60,17 +72,30 @@ class Hits:
         return self.t.shape[0]
 
 
+def _ray_array(x, name: str) -> tuple[np.ndarray, torch.dtype]:
+    """(N, 3) float32 C-contiguous copy (or view) of ``x`` and ``x``'s float dtype."""
+    x = as_float_tensor(x, name)
+    if x.ndim != 2 or x.shape[-1] != 3:
+        raise ShapeError(f"Expected {name} to have shape (N, 3); got {tuple(x.shape)}")
+    a = (x if x.dtype in (torch.float32, torch.float64) else x.float()).detach().cpu().numpy()
+    if not np.isfinite(a).all():
+        check_finite(x, name)  # raises, with counts
+    return np.ascontiguousarray(a, dtype=np.float32), x.dtype
+
+
 def _rays_to_numpy(origins, directions) -> tuple[np.ndarray, np.ndarray, torch.dtype]:
-    o = check_vectors(origins, "origins")
-    d = check_vectors(directions, "directions")
+    o, dtype = _ray_array(origins, "origins")
+    d, _ = _ray_array(directions, "directions")
     if o.shape != d.shape:
-        raise ShapeError(
-            f"Expected origins and directions of the same shape; got {tuple(o.shape)} and {tuple(d.shape)}"
-        )
-    dtype = o.dtype
-    o_np = np.ascontiguousarray(o.detach().to(torch.float32).cpu().numpy())
-    d_np = np.ascontiguousarray(d.detach().to(torch.float32).cpu().numpy())
-    return o_np, d_np, dtype
+        raise ShapeError(f"Expected origins and directions of the same shape; got {o.shape} and {d.shape}")
+    return o, d, dtype
+
+
+def _tensor(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    """``a`` (float32) as a tensor of ``dtype`` (converted in numpy)."""
+    if dtype == torch.float64:
+        a = a.astype(np.float64)
+    return torch.from_numpy(a).to(dtype)
 
 
 class RayTracer:
@@ -80,11 +105,17 @@ class RayTracer:
         meshes: the objects' meshes, in object-id order.
         smooth: per mesh, whether shading normals interpolate vertex normals (True) or
             equal the face normal (False).
+        workers: processes that trace batches of at least :data:`PARALLEL_MIN_RAYS` rays,
+            this one included; ``None`` = :func:`~torch_brdf.scene.parallel.default_workers`
+            (the usable cores, at most 2), 1 = never fork. Children are forked on first use
+            and stopped by :meth:`close` (or garbage collection, or exit).
     """
 
-    def __init__(self, meshes: Sequence[trimesh.Trimesh], smooth: Sequence[bool]):
+    def __init__(self, meshes: Sequence[trimesh.Trimesh], smooth: Sequence[bool], workers: int | None = None):
         if len(meshes) == 0:
             raise ShapeError("RayTracer needs at least one mesh")
+        if workers is not None and int(workers) < 1:
+            raise ValueRangeError(f"workers must be >= 1 (or None for the default); got {workers}")
         self._scene = rtcore_scene.EmbreeScene()
         verts, faces, vnormals, fnormals = [], [], [], []
         offsets_v, offsets_f = [0], [0]
@@ -110,6 +141,16 @@ class RayTracer:
         self.smooth = torch.tensor([bool(s) for s in smooth], dtype=torch.bool)
         if len(self.smooth) != len(meshes):
             raise ShapeError(f"smooth has {len(self.smooth)} flags for {len(meshes)} meshes")
+        # per triangle: 3 x (vertex, vertex normal), face normal; flat objects' normals are unused
+        table = np.zeros((offsets_f[-1] + 1, 7, 3), np.float32)
+        fv = self.faces.numpy()
+        table[:-1, 0:6:2] = self.vertices.numpy()[fv]
+        table[:-1, 1:6:2] = self.vertex_normals.numpy()[fv]
+        table[:-1, 6] = self.face_normals.numpy()
+        self._kernel = TraceKernel(self._scene, table.reshape(-1, 21), self.face_offsets.numpy(), self.smooth.numpy())
+        #: processes that trace large batches, this one included.
+        self.workers = default_workers() if workers is None else int(workers)
+        self._pool = TracePool(self._kernel, self.workers) if self.workers > 1 else None
         lo, hi = self.vertices.min(0).values.double(), self.vertices.max(0).values.double()
         self.bbox = (lo, hi)
         extent = float((hi - lo).norm())
@@ -128,8 +169,15 @@ class RayTracer:
             :class:`Hits` with fields in the dtype of ``origins``.
         """
         o_np, d_np, dtype = _rays_to_numpy(origins, directions)
-        res = self._scene.run(o_np, d_np, output=1)
-        return self._hits_from_embree(res, dtype)
+        out = HitArrays.empty(len(o_np))
+        if self._parallel(len(o_np)):
+            self._pool.trace(o_np, d_np, out)
+        else:
+            self._kernel.trace(o_np, d_np, out)
+        t, obj, prim, *vectors = out.fields()
+        return Hits(
+            _tensor(t, dtype), torch.from_numpy(obj), torch.from_numpy(prim), *(_tensor(a, dtype) for a in vectors)
+        )
 
     def occluded(self, origins, directions, t_max) -> torch.Tensor:
         """Whether anything lies on each ray within ``(0, t_max)``.
@@ -140,10 +188,21 @@ class RayTracer:
             (P,) bool tensor.
         """
         o_np, d_np, _ = _rays_to_numpy(origins, directions)
-        tm = torch.as_tensor(t_max, dtype=torch.float32).expand(o_np.shape[0])
-        tm_np = np.ascontiguousarray(tm.clamp(max=_EMBREE_FAR).detach().cpu().numpy())
-        res = self._scene.run(o_np, d_np, dists=tm_np, query="OCCLUDED")
-        return torch.from_numpy(res != -1)
+        if isinstance(t_max, torch.Tensor):
+            t_max = t_max.detach().cpu()
+            t_max = t_max if t_max.dtype in (torch.float32, torch.float64) else t_max.float()
+        tm = np.asarray(t_max)
+        try:
+            tm = np.broadcast_to(tm.astype(np.float32), len(o_np))
+        except ValueError:
+            raise ShapeError(f"Expected t_max of shape ({len(o_np)},) or a scalar; got {tm.shape}") from None
+        tm_np = np.minimum(tm, np.float32(_EMBREE_FAR))
+        out = np.empty(len(o_np), bool)
+        if self._parallel(len(o_np)):
+            self._pool.occluded(o_np, d_np, tm_np, out)
+        else:
+            self._kernel.occluded(o_np, d_np, tm_np, out)
+        return torch.from_numpy(out)
 
     def spawn(self, position, geometric_normal, directions) -> torch.Tensor:
         """Ray origins pushed off a surface to the side ``directions`` leave towards.
@@ -157,31 +216,11 @@ class RayTracer:
         side = torch.where((directions * geometric_normal).sum(-1, keepdim=True) >= 0, 1.0, -1.0)
         return position + (side * self.ray_epsilon).to(position.dtype) * geometric_normal
 
+    def close(self) -> None:
+        """Stop the worker processes, if any (the next large batch starts them again)."""
+        if self._pool is not None:
+            self._pool.close()
+
     # -- internals -------------------------------------------------------------------------
-    def _hits_from_embree(self, res: dict, dtype: torch.dtype) -> Hits:
-        geom = torch.from_numpy(res["geomID"]).long()
-        hit = geom >= 0
-        g = geom.clamp_min(0)
-        prim = torch.where(hit, torch.from_numpy(res["primID"]).long(), -1)
-        gface = torch.where(hit, self.face_offsets[g] + prim, 0)
-        u = torch.from_numpy(res["u"])
-        v = torch.from_numpy(res["v"])
-        tri = self.faces[gface]  # (P, 3)
-        w = torch.stack((1 - u - v, u, v), -1)  # (P, 3)
-        pos = torch.einsum("pk,pkc->pc", w, self.vertices[tri])
-        ng = self.face_normals[gface]
-        ns = torch.einsum("pk,pkc->pc", w, self.vertex_normals[tri])
-        ns = torch.where(self.smooth[g][:, None], ns, ng)
-        ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        m = hit[:, None]
-        zero = pos.new_zeros(())
-        t = torch.where(hit, torch.from_numpy(res["tfar"]), float("inf"))
-        return Hits(
-            t=t.to(dtype),
-            object_id=torch.where(hit, geom, -1),
-            prim_id=prim,
-            barycentrics=torch.where(m, torch.stack((u, v), -1), zero).to(dtype),
-            position=torch.where(m, pos, zero).to(dtype),
-            geometric_normal=torch.where(m, ng, zero).to(dtype),
-            normal=torch.where(m, ns, zero).to(dtype),
-        )
+    def _parallel(self, n: int) -> bool:
+        return self._pool is not None and n >= PARALLEL_MIN_RAYS
