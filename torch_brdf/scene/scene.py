@@ -82,7 +82,9 @@ class SceneObject:
 class Scene:
     """Objects, materials, lights and a camera, with embree ray tracing.
 
-    The object id of ``objects[i]`` is ``i``; :class:`Hits` report it.
+    The object id of ``objects[i]`` is ``i``; :class:`Hits` report it. ``workers`` is the
+    number of processes that trace large batches (see :class:`RayTracer`): ``None`` picks
+    the usable cores up to 2, 1 never forks; results are the same either way.
     """
 
     objects: list[SceneObject]
@@ -90,6 +92,7 @@ class Scene:
     lights: list[Light]
     camera: Camera
     name: str = "scene"
+    workers: int | None = None
     _tracer: RayTracer | None = field(default=None, repr=False)
 
     def __post_init__(self):
@@ -111,7 +114,7 @@ class Scene:
                 raise SceneError(f"lights must be torch_brdf Light modules; got {type(light).__name__}")
         if sum(isinstance(li, EnvironmentMap) for li in self.lights) > 1:
             raise SceneError("a scene holds at most one environment map")
-        self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects])
+        self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects], self.workers)
 
     # -- lookups ---------------------------------------------------------------------------
     def object_id(self, name: str) -> int:
@@ -231,6 +234,10 @@ class Scene:
         except TypeError as exc:
             raise SceneError(f"bad camera description {desc['camera']!r}: {exc}") from exc
         objects = [_object_from_dict(o, base_dir) for o in desc["objects"]]
+        if not isinstance(desc["materials"], dict):
+            raise SceneError(f"'materials' must be a table of name -> material; got {desc['materials']!r}")
+        for k, v in desc["materials"].items():
+            _check_material(str(k), v)
         materials = {str(k): dict(v) for k, v in desc["materials"].items()}
         names = [o.name for o in objects]
         lights = [_light_from_dict(li, base_dir, names, objects) for li in desc.get("lights", [])]
@@ -255,7 +262,10 @@ def _placed(mesh: trimesh.Trimesh, d: dict[str, Any], name: str) -> trimesh.Trim
     if "rotate_y_deg" in d:
         m.apply_transform(trimesh.transformations.rotation_matrix(math.radians(float(d["rotate_y_deg"])), [0, 1, 0]))
     if "translate" in d:
-        m.apply_translation(np.asarray(d["translate"], dtype=np.float64).reshape(3))
+        t = np.asarray(d["translate"], dtype=np.float64)
+        if t.shape != (3,):
+            raise SceneError(f"object {name!r}: translate must be 3 numbers; got {d['translate']!r}")
+        m.apply_translation(t)
     return validate_mesh(m, name)
 
 
@@ -275,6 +285,8 @@ def _object_from_dict(d: dict[str, Any], base_dir: Path) -> SceneObject:
 
 def _light_from_dict(d: dict[str, Any], base_dir: Path, names: list[str], objects: list[SceneObject]) -> Light:
     kind = d.get("type")
+    if kind == "directional" and "direction" not in d:
+        raise SceneError("directional light needs 'direction' (towards the light)")
     if kind == "area":
         obj = d.get("object")
         if obj not in names:
