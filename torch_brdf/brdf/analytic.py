@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from ..errors import ShapeError, ValueRangeError
-from .base import BRDF, Clamped, Positive, register
+from .base import BRDF, Clamped, ConstrainedModule, Positive, register
 from .microfacet import (
     ALPHA_MIN,
     _floor,
@@ -478,7 +478,7 @@ class AshikhminShirley(BRDF):
 
 
 # -- distribution-based BRDF -----------------------------------------------------------------
-class HalfVectorDistribution(nn.Module):
+class HalfVectorDistribution(ConstrainedModule):
     r"""Base class (and protocol) for the half-vector distributions :math:`p(h)` of
     :class:`DistributionBased`.
 
@@ -497,30 +497,6 @@ class HalfVectorDistribution(nn.Module):
 
     #: False if p depends on h only through theta_h (then the BRDF needs no tangent frame).
     anisotropic: bool = True
-
-    def __init__(self):
-        super().__init__()
-        self._constraints: dict[str, Positive | Clamped] = {}
-
-    def register_constrained(self, name: str, value, transform: Positive | Clamped, shape=()) -> None:
-        """As :meth:`BRDF.register_constrained`: Parameter ``raw_<name>`` read as ``self.<name>``."""
-        v = torch.as_tensor(value, dtype=torch.get_default_dtype())
-        if not bool(torch.isfinite(v).all()):
-            raise ValueRangeError(f"{type(self).__name__}.{name} must be finite; got {value!r}")
-        try:
-            v = v.expand(shape).clone() if shape else v.reshape(())
-        except RuntimeError as exc:
-            raise ShapeError(
-                f"{type(self).__name__}.{name}: expected a scalar or shape {shape}; got {value!r}"
-            ) from exc
-        self._constraints[name] = transform
-        self.register_parameter("raw_" + name, nn.Parameter(transform.inverse(v)))
-
-    def __getattr__(self, name: str):
-        cons = self.__dict__.get("_constraints")
-        if cons is not None and name in cons:
-            return cons[name].forward(super().__getattr__("raw_" + name))
-        return super().__getattr__(name)
 
 
 class BlinnDistribution(HalfVectorDistribution):

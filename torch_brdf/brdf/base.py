@@ -105,16 +105,11 @@ def _check_dirs(w: torch.Tensor, name: str) -> torch.Tensor:
     return w
 
 
-class BRDF(nn.Module):
-    """Base class of every BRDF model (see the module docstring for the conventions).
-
-    Subclasses implement :meth:`eval_local` and, for importance sampling,
-    :meth:`sample_local` and :meth:`pdf_local` (the default samples the cosine lobe).
-    """
-
-    model_name: str = "brdf"
-    #: True if f depends on the azimuth of the half vector (needs a tangent frame).
-    anisotropic: bool = False
+class ConstrainedModule(nn.Module):
+    """An ``nn.Module`` whose constrained parameters are stored raw behind a transform:
+    :meth:`register_constrained` makes the Parameter ``raw_<name>`` that is read as
+    ``self.<name>`` (gpytorch's ``raw_lengthscale`` pattern). BRDFs and half-vector
+    distributions share it."""
 
     def __init__(self):
         super().__init__()
@@ -145,6 +140,21 @@ class BRDF(nn.Module):
     def params(self, dtype: torch.dtype) -> dict[str, torch.Tensor]:
         """The constrained parameters as tensors of ``dtype`` (for the math)."""
         return {k: getattr(self, k).to(dtype) for k in self._constraints}
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={getattr(self, k).detach().tolist()}" for k in self._constraints)
+
+
+class BRDF(ConstrainedModule):
+    """Base class of every BRDF model (see the module docstring for the conventions).
+
+    Subclasses implement :meth:`eval_local` and, for importance sampling,
+    :meth:`sample_local` and :meth:`pdf_local` (the default samples the cosine lobe).
+    """
+
+    model_name: str = "brdf"
+    #: True if f depends on the azimuth of the half vector (needs a tangent frame).
+    anisotropic: bool = False
 
     # -- the interface ---------------------------------------------------------------------
     def eval_local(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
@@ -196,9 +206,6 @@ class BRDF(nn.Module):
         f = self.eval_local(wi, wo_b)
         w = torch.where(pdf > 0, wi[..., 2].clamp_min(0) / pdf.clamp_min(torch.finfo(wo.dtype).tiny), 0.0)
         return (f * w.unsqueeze(-1)).mean(-2)
-
-    def extra_repr(self) -> str:
-        return ", ".join(f"{k}={getattr(self, k).detach().tolist()}" for k in self._constraints)
 
 
 def lambert_value(albedo: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:

@@ -9,10 +9,7 @@ the old file as it was.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import uuid
-from collections.abc import Iterator
 
 import numpy as np
 import OpenEXR
@@ -20,6 +17,7 @@ import torch
 
 from .._checks import as_float_tensor
 from ..errors import FileFormatError, ShapeError
+from .atomic import replacing
 
 __all__ = ["read_exr", "write_exr"]
 
@@ -101,27 +99,5 @@ def write_exr(path: str | os.PathLike, image, half: bool = False) -> None:
     pixels = img.detach().to("cpu", torch.float16 if half else torch.float32).contiguous()
     # A fresh header each time: OpenEXR.File fills in (mutates) the dict it is given.
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with _replacing(path) as tmp, OpenEXR.File(header, {"RGB": pixels.numpy()}) as f:
+    with replacing(path) as tmp, OpenEXR.File(header, {"RGB": pixels.numpy()}) as f:
         f.write(tmp)
-
-
-@contextlib.contextmanager
-def _replacing(path: str | os.PathLike) -> Iterator[str]:
-    """Yield a temporary path next to ``path``; on success move it over ``path``.
-
-    The temporary file is created by the caller (so it gets the usual permissions from
-    the umask) in the same directory, which makes :func:`os.replace` atomic. On any
-    error it is removed and ``path`` is left untouched. Shared by the PNG writer.
-    """
-    path = os.fspath(path)
-    head, tail = os.path.split(path)
-    if not os.path.isdir(head or "."):
-        raise FileNotFoundError(f"Cannot write {path}: directory {head} does not exist")
-    tmp = os.path.join(head, f".{tail}.{uuid.uuid4().hex[:12]}.tmp")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        raise

@@ -42,12 +42,10 @@ one bin low (e.g. :math:`\theta_d` index 19 in float64); address a bin by its ce
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import uuid
 import zipfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -56,6 +54,7 @@ import numpy as np
 import torch
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
+from .atomic import replacing
 
 #: grid resolution of a MERL table: (theta_h, theta_d, phi_d) bins
 MERL_RES: tuple[int, int, int] = (90, 90, 180)
@@ -232,21 +231,6 @@ def read_merl_binary(path: str | os.PathLike, *, scaled: bool = True) -> torch.T
     return torch.from_numpy(np.ascontiguousarray(table))
 
 
-@contextlib.contextmanager
-def _replacing(path: Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success move it over ``path`` atomically."""
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"Cannot write {path}: directory {path.parent} does not exist")
-    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        raise
-
-
 def write_merl_binary(path: str | os.PathLike, brdf, *, scaled: bool = True) -> Path:
     r"""Write a MERL ``.binary`` file (header int32 (90, 90, 180) little-endian, then float64
     R, G, B blocks), atomically (temporary file in the same folder, then ``os.replace``).
@@ -283,7 +267,7 @@ def write_merl_binary(path: str | os.PathLike, brdf, *, scaled: bool = True) -> 
         raise ValueRangeError(f"brdf holds {int((~np.isfinite(a)).sum())} non-finite values; MERL files cannot")
     raw = a / _scale_array() if scaled else a
     header = np.asarray(MERL_RES, dtype="<i4").tobytes()
-    with _replacing(path) as tmp, open(tmp, "wb") as f:
+    with replacing(path) as tmp, open(tmp, "wb") as f:
         f.write(header)
         f.write(np.ascontiguousarray(raw, dtype="<f8").tobytes())
     return path
@@ -488,7 +472,7 @@ def write_merl_table(
         "scale": np.asarray(MERL_SCALE, dtype=np.float64),
         "source": np.array(source),
     }
-    with _replacing(path) as tmp, open(tmp, "wb") as f:
+    with replacing(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
     return path
 
