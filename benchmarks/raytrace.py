@@ -56,12 +56,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per call (default 1M)")
     ap.add_argument("--quick", action="store_true", help="200k rays, 3 repeats")
-    ap.add_argument("--repeats", type=int, default=5, help="timed runs of each variant; the best counts")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs of each variant, the best counts (5)")
     ap.add_argument("--workers", type=int, default=2, help="processes of the parallel variant")
     ap.add_argument("--mesh", default=None, help="mesh file instead of the procedural icosphere")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    n, repeats = (200_000, min(args.repeats, 3)) if args.quick else (args.rays, args.repeats)
+    n = 200_000 if args.quick else args.rays
+    repeats = args.repeats or (3 if args.quick else 5)
 
     mesh = load_mesh(args.mesh) if args.mesh else trimesh.creation.icosphere(subdivisions=6)
     o, d = make_rays(mesh, n, args.seed)
