@@ -83,7 +83,7 @@ def render(
     exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
     resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
 ):
-    """Path-trace a scene (Lambert materials) to EXR and PNG."""
+    """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
     try:
         info = _render_to(load_scene(scene, resolution), out, spp, bounces, seed, exposure, checkpoint=resume)
     except TorchBRDFError as exc:

@@ -2,8 +2,8 @@
 
 They need no data files: the Cornell box uses the published coordinates, the other
 scenes use procedural stand-ins where the shared meshes (``TORCH_BRDF_DATA``) are absent.
-Materials are lambert dicts or named models of the BRDF layer (with a ``diffuse``
-albedo that the Lambert-only renderer uses until that layer resolves them).
+Materials are dicts ``{"type": model, **parameters}`` of the BRDF layer
+(:func:`torch_brdf.brdf.create`).
 """
 
 from __future__ import annotations
@@ -179,7 +179,7 @@ def teatray(resolution: Resolution = 256, envmap: EnvironmentMap | None = None) 
     ]
     materials = {
         "teapot": {"type": "lambert", "albedo": (0.6, 0.45, 0.3)},
-        "tray": {"type": "blinn_phong", "diffuse": (0.15, 0.15, 0.17), "specular": (0.6, 0.6, 0.6), "exponent": 200.0},
+        "tray": {"type": "blinn_phong", "kd": (0.15, 0.15, 0.17), "ks": (0.6, 0.6, 0.6), "exponent": 200.0},
         "floor": {"type": "lambert", "albedo": (0.4, 0.4, 0.4)},
     }
     env = envmap if envmap is not None else _default_sky()
@@ -200,8 +200,8 @@ def ring(resolution: Resolution = 256) -> Scene:
     materials = {
         "metal": {
             "type": "blinn_phong",
-            "diffuse": (0.02, 0.02, 0.02),
-            "specular": (0.95, 0.8, 0.45),
+            "kd": (0.02, 0.02, 0.02),
+            "ks": (0.95, 0.8, 0.45),
             "exponent": 2000.0,
         },
         "plane": {"type": "lambert", "albedo": (0.7, 0.7, 0.7)},

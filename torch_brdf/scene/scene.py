@@ -27,8 +27,10 @@ description, a dict or TOML file (:meth:`Scene.from_dict`, :meth:`Scene.from_tom
     object = "light"            #    or "directional" (direction, irradiance)
     radiance = [17.98, 11.5, 3.15]
 
-Materials are plain dicts with a ``type`` (``"lambert"`` with ``albedo``, or a model
-name of the BRDF layer with its parameters) until the BRDF library resolves them.
+Materials are dicts with a ``type`` — a model name of the BRDF layer — and that model's
+parameters (``{"type": "lambert", "albedo": ...}``, ``{"type": "blinn_phong", "kd": ...,
+"ks": ..., "exponent": ...}``); renderers turn them into modules with
+:func:`torch_brdf.brdf.create`.
 """
 
 from __future__ import annotations
@@ -247,7 +249,7 @@ class Scene:
 def _check_material(key: str, mat: dict[str, Any]) -> None:
     if not isinstance(mat, dict) or not isinstance(mat.get("type"), str):
         raise SceneError(f"material {key!r} must be a dict with a string 'type'; got {mat!r}")
-    for k in ("albedo", "diffuse", "specular"):
+    for k in ("albedo", "kd", "ks"):
         if k in mat:
             try:
                 check_rgb(mat[k], f"material {key!r} {k}")

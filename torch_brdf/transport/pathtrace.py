@@ -1,15 +1,16 @@
-r"""A plain wavefront path tracer with Lambert materials and next-event estimation.
+r"""A plain wavefront path tracer with the full BRDFs and next-event estimation.
 
-This is the foundation's renderer (``torch-brdf render`` / ``demo``): unbiased for
-Lambertian scenes, direct lighting when ``max_bounces == 1``. Materials of other types
-are shaded with their ``diffuse`` albedo (a warning says so) until the BRDF layer lands.
+The renderer of ``torch-brdf render`` / ``demo``; direct lighting when
+``max_bounces == 1``. Each object's material dict becomes a BRDF module of
+:mod:`torch_brdf.brdf` (:func:`~torch_brdf.brdf.create`).
 
 Estimator. A path is traced from the eye; at every surface vertex each light is sampled
-once (next-event estimation, with a shadow ray), then the path continues in a
-cosine-distributed direction with throughput ``*= albedo`` (the exact ratio
-:math:`f\cos\theta/p` for a Lambert BRDF). Emission is counted only where NEE cannot
-see it: the environment and emitters seen directly from the eye. Surfaces are two-sided:
-normals are flipped to face the arriving ray.
+once (next-event estimation, with a shadow ray), then the path continues in a direction
+drawn by the BRDF's own importance sampling with throughput ``*= f cos / pdf``. Emission
+is counted only where NEE cannot see it: the environment and emitters seen directly
+from the eye. So the estimator is unbiased for every BRDF, but noisy where a sharp lobe
+reflects a bright, large light (no MIS yet). Surfaces are two-sided: normals are flipped
+to face the arriving ray; shading frames come from the shading normal.
 
 Reproducibility: every sample pass ``s`` uses its own generator seeded from
 ``(seed, s)``, so a render interrupted after ``k`` passes and resumed from its
@@ -18,39 +19,40 @@ checkpoint equals the uninterrupted render bit for bit.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..errors import ValueRangeError
-from ..frame import to_world
+from ..brdf import BRDF, create
+from ..errors import SceneError, TorchBRDFError, ValueRangeError
+from ..frame import Frame
 from ..io.arrays import load_arrays, save_arrays
 from ..scene.scene import Scene
-from ..sphere.warps import square_to_cosine_hemisphere
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
 
 
-def diffuse_albedo_table(scene: Scene, dtype=torch.float32) -> torch.Tensor:
-    """(num_objects, 3) Lambert albedo per object: ``albedo``, else ``diffuse``.
-
-    Warns once per material that is not ``lambert`` (its non-diffuse part is ignored).
-    """
-    rows = []
+def material_brdfs(scene: Scene) -> list[BRDF]:
+    """One BRDF module per object (index = object id), from the scene's material dicts."""
+    cache: dict[str, BRDF] = {}
     for obj in scene.objects:
-        mat = scene.materials[obj.material]
-        if mat["type"] != "lambert":
-            warnings.warn(
-                f"material {obj.material!r} of type {mat['type']!r}: rendered with its diffuse albedo only "
-                "(the BRDF layer is not available to this renderer)",
-                stacklevel=3,
-            )
-        rgb = mat.get("albedo", mat.get("diffuse", (0.5, 0.5, 0.5)))
-        rows.append(torch.as_tensor(rgb, dtype=dtype).expand(3))
-    return torch.stack(rows)
+        if obj.material not in cache:
+            try:
+                cache[obj.material] = create(scene.materials[obj.material])
+            except TorchBRDFError as exc:
+                raise SceneError(f"material {obj.material!r}: {exc}") from exc
+    return [cache[o.material] for o in scene.objects]
+
+
+def _grouped(oid: torch.Tensor, fn, width: int) -> torch.Tensor:
+    """Apply ``fn(object_id, mask) -> (m, width)`` to each object's rows of a batch."""
+    out = torch.zeros(oid.numel(), width)
+    for o in oid.unique().tolist():
+        m = oid == o
+        out[m] = fn(o, m)
+    return out
 
 
 def _pass_generator(seed: int, pass_index: int) -> torch.Generator:
@@ -59,7 +61,8 @@ def _pass_generator(seed: int, pass_index: int) -> torch.Generator:
     return g
 
 
-def _radiance(scene: Scene, origins, directions, albedo, max_bounces: int, gen) -> torch.Tensor:
+@torch.no_grad()
+def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces: int, gen) -> torch.Tensor:
     """One path per ray: (P, 3) radiance estimates (float32)."""
     p = origins.shape[0]
     out = torch.zeros(p, 3)
@@ -84,7 +87,8 @@ def _radiance(scene: Scene, origins, directions, albedo, max_bounces: int, gen) 
         flip = torch.where((d_in * ng).sum(-1, keepdim=True) > 0, -1.0, 1.0)
         ng, ns = ng * flip, ns * flip
         ns = torch.where((ns * ng).sum(-1, keepdim=True) > 0, ns, ng)
-        beta = beta * albedo[oid]
+        frame = Frame.from_normal(ns)
+        wo = frame.to_local(-d_in)
         for light in scene.lights:
             ls = light.sample(pos, gen)
             cos = (ls.direction * ns).sum(-1)
@@ -92,12 +96,23 @@ def _radiance(scene: Scene, origins, directions, albedo, max_bounces: int, gen) 
             if k.numel() == 0:
                 continue
             k = k[scene.visible(pos[k], ng[k], ls.direction[k], ls.distance[k])]
-            out.index_add_(0, idx[k], beta[k] * ls.weight[k] * (cos[k, None] / torch.pi))
+            wi_k, wo_k = frame.to_local(ls.direction)[k], wo[k]
+            f = _grouped(oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k: brdfs[o].eval_local(wi_k[m], wo_k[m]), 3)
+            out.index_add_(0, idx[k], beta[k] * f * ls.weight[k] * cos[k, None])
         if bounce == max_bounces - 1:
             break
-        # continue the path: cosine sampling makes f cos / pdf = albedo (applied above)
-        wi = to_world(square_to_cosine_hemisphere(torch.rand(idx.numel(), 2, generator=gen)), ns)
-        ok = torch.nonzero((wi * ng).sum(-1) > 0).squeeze(1)
+        # continue the path by the BRDF's own importance sampling: beta *= f cos / pdf
+        u = torch.rand(idx.numel(), 2, generator=gen)
+
+        def step(o, m, u=u, wo=wo):
+            wi_l, pdf = brdfs[o].sample_local(wo[m], u[m])
+            f = brdfs[o].eval_local(wi_l, wo[m])
+            w = torch.where(pdf > 0, wi_l[:, 2].clamp_min(0) / pdf.clamp_min(1e-30), 0.0)
+            return torch.cat((wi_l, f * w[:, None]), -1)
+
+        res = _grouped(oid, step, 6)
+        wi, beta = frame.to_world(res[:, :3]), beta * res[:, 3:]
+        ok = torch.nonzero(((wi * ng).sum(-1) > 0) & (beta.amax(-1) > 0)).squeeze(1)
         sub = scene.trace(scene.spawn(pos[ok], ng[ok], wi[ok]), wi[ok])
         keep = ok[sub.hit]
         idx, beta, d_in = idx[keep], beta[keep], wi[keep]
@@ -131,7 +146,7 @@ def path_trace(
         raise ValueRangeError(f"spp and max_bounces must be >= 1; got spp={spp}, max_bounces={max_bounces}")
     cam = scene.camera
     h, w = cam.height, cam.width
-    albedo = diffuse_albedo_table(scene)
+    brdfs = material_brdfs(scene)
     settings = {"scene": scene.name, "width": w, "height": h, "spp": spp, "max_bounces": max_bounces, "seed": seed}
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
@@ -146,7 +161,7 @@ def path_trace(
         o, d = cam.generate_rays(jitter=True, generator=gen)
         for a in range(0, h * w, chunk):
             sl = slice(a, min(a + chunk, h * w))
-            total[sl] += _radiance(scene, o[sl], d[sl], albedo, max_bounces, gen).double()
+            total[sl] += _radiance(scene, o[sl], d[sl], brdfs, max_bounces, gen).double()
         done = s + 1
         if checkpoint is not None and (done % checkpoint_every == 0 or done == spp):
             save_arrays(
