@@ -85,8 +85,25 @@ def _as_index(x, name: str, res: int) -> torch.Tensor:
     return t
 
 
+class _IsotropicMeasured(BRDF):
+    """Shared evaluation of isotropic measured BRDFs given on Rusinkiewicz angles: the
+    angles are computed in float64 and passed to :meth:`eval_angles`."""
+
+    def eval_angles(self, theta_h: torch.Tensor, theta_d: torch.Tensor, phi_d: torch.Tensor) -> torch.Tensor:
+        """f_r (*B, 3) float64 at half/difference angles (*B,) each."""
+        raise NotImplementedError
+
+    def eval_local(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """f_r (*B, 3) for local unit directions wi, wo (*B, 3); 0 at/below the horizon."""
+        wi, wo = torch.broadcast_tensors(wi, wo)
+        theta_h, _, theta_d, phi_d = half_diff_angles(wi.to(torch.float64), wo.to(torch.float64))
+        f = self.eval_angles(theta_h, theta_d, phi_d).to(wi.dtype)
+        up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+        return torch.where(up.unsqueeze(-1), f, torch.zeros((), dtype=wi.dtype))
+
+
 @register("merl")
-class MERLTabulated(BRDF):
+class MERLTabulated(_IsotropicMeasured):
     r"""A tabulated MERL BRDF (RGB, 1/sr), looked up in half/difference angles.
 
     Lookup (``interpolation``):
@@ -209,6 +226,10 @@ class MERLTabulated(BRDF):
         return self.source == "nbrdf"
 
     # -- lookup -------------------------------------------------------------------------------
+    def eval_angles(self, theta_h: torch.Tensor, theta_d: torch.Tensor, phi_d: torch.Tensor) -> torch.Tensor:
+        """The table value (see :meth:`lookup`)."""
+        return self.lookup(theta_h, theta_d, phi_d)
+
     def lookup(self, theta_h: torch.Tensor, theta_d: torch.Tensor, phi_d: torch.Tensor) -> torch.Tensor:
         r"""Table value at half/difference angles (no horizon test).
 
@@ -243,14 +264,6 @@ class MERLTabulated(BRDF):
         num = (w * v.clamp_min(0)).sum(1)  # ... and the rest is renormalised
         out = torch.where(den > 0, num / den.clamp_min(torch.finfo(torch.float64).tiny), torch.zeros_like(num))
         return out.t().to(dtype).reshape(*shape, 3)
-
-    def eval_local(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        """f_r (*B, 3) for local unit directions wi, wo (*B, 3); 0 at/below the horizon."""
-        wi, wo = torch.broadcast_tensors(wi, wo)
-        theta_h, _, theta_d, phi_d = half_diff_angles(wi.to(torch.float64), wo.to(torch.float64))
-        f = self.lookup(theta_h, theta_d, phi_d).to(wi.dtype)
-        up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
-        return torch.where(up.unsqueeze(-1), f, torch.zeros((), dtype=wi.dtype))
 
     def extra_repr(self) -> str:
         s = (
@@ -308,7 +321,7 @@ def _default_weights() -> Path:
 
 
 @register("nbrdf")
-class NBRDF(BRDF):
+class NBRDF(_IsotropicMeasured):
     r"""A neural BRDF (NBRDF, Sztrajman et al. 2021): an **approximation** of one MERL
     material by a 6-21-21-3 MLP, not measured data.
 
@@ -374,14 +387,6 @@ class NBRDF(BRDF):
             phi_d = merl_fold_phi_d(phi_d)
         x = nbrdf_input(theta_h, theta_d, phi_d)
         return nbrdf_mlp(x, *(getattr(self, k).to(x.dtype) for k in _WEIGHT_KEYS)).clamp_min(0)
-
-    def eval_local(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        """f_r (*B, 3) for local unit directions wi, wo (*B, 3); 0 at/below the horizon."""
-        wi, wo = torch.broadcast_tensors(wi, wo)
-        theta_h, _, theta_d, phi_d = half_diff_angles(wi.to(torch.float64), wo.to(torch.float64))
-        f = self.eval_angles(theta_h, theta_d, phi_d).to(wi.dtype)
-        up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
-        return torch.where(up.unsqueeze(-1), f, torch.zeros((), dtype=wi.dtype))
 
     def extra_repr(self) -> str:
         return f"material={self.material!r}, fold_phi_d={self.fold_phi_d}, APPROXIMATION of MERL (NBRDF), not measured"

@@ -238,9 +238,8 @@ class Scene:
         objects = [_object_from_dict(o, base_dir) for o in desc["objects"]]
         if not isinstance(desc["materials"], dict):
             raise SceneError(f"'materials' must be a table of name -> material; got {desc['materials']!r}")
-        for k, v in desc["materials"].items():
-            _check_material(str(k), v)
-        materials = {str(k): dict(v) for k, v in desc["materials"].items()}
+        # copies of the tables; Scene.__post_init__ validates each one
+        materials = {str(k): dict(v) if isinstance(v, dict) else v for k, v in desc["materials"].items()}
         names = [o.name for o in objects]
         lights = [_light_from_dict(li, base_dir, names, objects) for li in desc.get("lights", [])]
         return cls(objects, materials, lights, camera, name=str(desc.get("name", "scene")))
