@@ -39,3 +39,12 @@ class CameraError(TorchBRDFError, ValueError):
 
 class DataNotFoundError(TorchBRDFError, FileNotFoundError):
     """Optional shared data (meshes, env maps, MERL) is not where it was looked for."""
+
+
+class NumericalError(TorchBRDFError, ArithmeticError):
+    """A computation cannot be carried out stably (e.g. a Cholesky factorisation still fails
+    at the largest allowed jitter); the message names the quantity and the limit reached."""
+
+
+class InfeasibleError(TorchBRDFError, ValueError):
+    """Constraints admit no solution (e.g. energy conservation with diffuse albedo >= 1)."""
