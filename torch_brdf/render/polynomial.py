@@ -1,0 +1,377 @@
+r"""Interactive rendering of the multibounce polynomial (Ben-Artzi et al. 2008, Sec. 5.2).
+
+Full evaluation (Eq. 26 / Eq. 29, batched einsum per tensor block):
+
+.. math:: B(x) = E(x) + \sum_N\sum_j\sum_t T^N_{jt}(x)\,c_j\,g_t, \qquad
+          g_t = \hat c_{w_t}\prod_m d_m^{\,n_m(t)}.
+
+Object freezing (Eq. 27-28): while one object :math:`i` is edited, every other object's
+coefficients are constants, so each pixel reduces to a polynomial in :math:`d_i` (and, with
+a low-frequency second bounce, linear in :math:`\hat c_i`; the seed's :math:`F_{jkn}` with
+:math:`k` and :math:`n` merged into one axis :math:`k'`, Sec. 5.2):
+
+.. math:: B(x) = E(x) + \sum_{k'} g'_{k'}\sum_j c_j F_{jk'}(x) \quad\text{(pixels of } i\text{)},\qquad
+          B(x) = E(x) + \sum_{k'} g'_{k'} V_{k'}(x) \quad\text{(other pixels)},
+
+with :math:`g'_{(\varnothing, n)} = d_i^n` and :math:`g'_{(k, n)} = \hat c_{i,k} d_i^n`. ``F`` is
+stored ``(C, J, K'·P)`` with the coefficient axis first, so a frame is two batched matrix
+products that stream ``F`` once (../shared/FACTS.md: 16x faster than ``einsum('pjn,j->pn')``).
+
+Materials: :meth:`PolynomialRenderer.set_material` accepts any BRDF of the library (or a
+scene material dict): ``c`` by cosine-weighted projection onto the object's bands
+(:func:`~torch_brdf.brdf.bands.project`; a :class:`~torch_brdf.brdf.bands.Factored1D` on the
+same bands is used as is, keeping gradients), ``d = (1/pi) sum_j c_j e_j`` (App. B, Eq. 37)
+and the second-bounce ``c_hat`` by the albedo-weighted coarsening of Sec. 4.1. Everything is
+RGB and differentiable in ``c``, ``c_hat`` and ``d``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import nn
+
+from .._checks import as_float_tensor, check_finite
+from ..brdf import BRDF, Lambert, create
+from ..brdf.band_albedo import band_albedos
+from ..brdf.bands import Factored1D, FresnelFactored1D, project
+from ..errors import SceneError, ShapeError, ValueRangeError
+from ..transport.polynomial import ObjectBasis, PolynomialTensors
+
+
+def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None) -> torch.Tensor:
+    r""":math:`\prod_m d_m^{n_m(t)}` (T, C) by repeated products (no ``pow``: exact, and
+    gradients stay finite at :math:`d = 0`). ``skip`` leaves one object out."""
+    t = counts.shape[0]
+    g = torch.ones(t, d.shape[1], dtype=d.dtype)
+    if t == 0:
+        return g
+    top = int(counts.max()) if counts.numel() else 0
+    for m in range(counts.shape[1]):
+        if m == skip:
+            continue
+        cm = counts[:, m]
+        for k in range(1, top + 1):
+            sel = (cm >= k)[:, None]
+            if bool(sel.any()):
+                g = g * torch.where(sel, d[m], torch.ones_like(d[m]))
+    return g
+
+
+class PolynomialRenderer(nn.Module):
+    """Renders :class:`~torch_brdf.transport.polynomial.PolynomialTensors` for edited BRDFs.
+
+    Args:
+        tensors: the precomputed tensors.
+        materials: initial materials, object name -> BRDF or material dict (e.g. the scene's
+            ``{o.name: scene.materials[o.material] for o in scene.objects}``); editable
+            objects not given start as Lambert of albedo 0.5.
+        dtype: dtype of the tensors and coefficients (float32 default; float64 for tests).
+        max_bounces: render only bounces 1..max_bounces (default all precomputed).
+    """
+
+    def __init__(
+        self,
+        tensors: PolynomialTensors,
+        materials: dict[str, Any] | None = None,
+        dtype: torch.dtype = torch.float32,
+        max_bounces: int | None = None,
+    ):
+        super().__init__()
+        self.tensors = tensors
+        self.dtype = dtype
+        self.height, self.width = tensors.height, tensors.width
+        nb = tensors.series.bounces
+        self.max_bounces = nb if max_bounces is None else int(max_bounces)
+        if not 1 <= self.max_bounces <= nb:
+            raise ValueRangeError(f"max_bounces must lie in [1, {nb}] (precomputed); got {max_bounces}")
+        self.register_buffer("emission", tensors.emission.to(dtype))
+        self.blocks = [b for b in tensors.blocks if b.bounce <= self.max_bounces]
+        for i, b in enumerate(self.blocks):
+            self.register_buffer(f"block{i}", b.values.to(dtype), persistent=False)
+        self.offsets = tensors.second_offsets()
+        self.two_level = tensors.series.two_level
+        m = tensors.num_objects
+        self.c: list[torch.Tensor | None] = [None] * m
+        self.c_hat: list[torch.Tensor | None] = [None] * m
+        self.d: list[torch.Tensor] = [torch.zeros(3, dtype=dtype) for _ in range(m)]
+        self.weight_maps: dict[int, torch.Tensor] = {}
+        self._albedo_weights: dict[int, list[torch.Tensor]] = {}
+        self._frozen: dict[str, Any] | None = None
+        materials = dict(materials or {})
+        for k, b in enumerate(tensors.bases):
+            if b is None:
+                continue
+            name = tensors.object_names[k]
+            self.set_material(name, materials.get(name, {"type": "lambert", "albedo": 0.5}))
+        unknown = sorted(set(materials) - set(tensors.object_names))
+        if unknown:
+            raise SceneError(f"materials for unknown objects: {unknown}")
+
+    # -- materials --------------------------------------------------------------------------
+    def _basis(self, obj) -> tuple[int, ObjectBasis]:
+        m = self.tensors.object_id(obj)
+        b = self.tensors.bases[m]
+        if b is None:
+            raise SceneError(
+                f"object {self.tensors.object_names[m]!r} is fixed: its BRDF was baked in at precomputation"
+            )
+        return m, b
+
+    def albedo_weights(self, obj) -> list[torch.Tensor]:
+        """Per layer, the band albedos :math:`e_j` (J, C) float64 of the object's basis (App. B)."""
+        m, b = self._basis(obj)
+        if m not in self._albedo_weights:
+            basis = b.band_basis()
+            out = []
+            for q in b.quotients():
+                e = band_albedos(basis, q, progress=False)
+                out.append((e[:, None].expand(-1, 3) if e.ndim == 1 else e).to(torch.float64))
+            self._albedo_weights[m] = out
+        return self._albedo_weights[m]
+
+    def set_material(self, obj, brdf: BRDF | dict, f0=None) -> None:
+        """Give an editable object a new BRDF (any model of the library or a material dict).
+
+        Args:
+            obj: object name or id.
+            brdf: a :class:`~torch_brdf.brdf.BRDF` or ``{"type": ..., **params}``. A
+                :class:`Factored1D` on exactly this object's bands keeps its coefficients
+                (and their gradients); anything else is projected (float64, no gradient).
+            f0: for objects precomputed with ``fresnel=True``: the normal-incidence
+                reflectance that splits the projection into the two Fresnel layers.
+
+        The coefficients keep the autograd graph of the BRDF's parameters (Lambert albedo,
+        Factored1D curve); in an optimisation loop call ``set_material`` every step, as a
+        graph is used by one ``backward``.
+        """
+        m, b = self._basis(obj)
+        if isinstance(brdf, dict):
+            brdf = create(brdf)
+        if not isinstance(brdf, BRDF):
+            raise ShapeError(f"set_material expects a BRDF module or a material dict; got {type(brdf).__name__}")
+        basis = b.band_basis()
+        same = isinstance(brdf, Factored1D) and torch.equal(brdf.basis.edges, basis.edges)
+        if b.fresnel:
+            if isinstance(brdf, FresnelFactored1D) and same:
+                layers = [lay.coefficients for lay in brdf.layers()]
+            else:
+                ff = FresnelFactored1D.from_brdf(brdf, basis, b.quotient, f0=0.04 if f0 is None else f0)
+                layers = [lay.coefficients.detach() for lay in ff.layers()]
+            c = torch.cat(layers, 0)
+        elif same and type(brdf) is Factored1D:
+            c = brdf.coefficients
+        elif type(brdf) is Lambert and b.quotient == "one":
+            # exact: a constant projects onto box bands with a constant quotient as itself
+            c = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.size, 3)
+        else:
+            c = project(brdf, basis, b.quotient)
+        self.set_coefficients(m, c)
+
+    def set_coefficients(self, obj, c, d=None, c_hat=None) -> None:
+        """Set an object's band coefficients directly (e.g. an edited 1-D curve).
+
+        Args:
+            c: (J·layers, C) eye-vertex coefficients (or (J·layers,) grey).
+            d: (C,) diffuse equivalent; default :math:`\\frac1\\pi\\sum_j c_j e_j` (Eq. 37).
+            c_hat: (second·layers, C) second-bounce coefficients; default the albedo-weighted
+                coarsening of ``c`` (Sec. 4.1).
+        Gradients flow from the image to every tensor given (and to what produced them).
+        """
+        m, b = self._basis(obj)
+        c = as_float_tensor(c, "c")
+        if c.ndim == 1:
+            c = c[:, None].expand(-1, 3)
+        if c.shape != (b.size, 3):
+            raise ShapeError(
+                f"Expected c of shape ({b.size}, 3) for object {self.tensors.object_names[m]!r}; got {tuple(c.shape)}"
+            )
+        check_finite(c, "c")
+        c = c.to(self.dtype)
+        es = self.albedo_weights(m)
+        if d is None:
+            d = sum((c[k * b.J : (k + 1) * b.J] * e.to(c)).sum(0) for k, e in enumerate(es)) / math.pi
+        d = as_float_tensor(d, "d").to(self.dtype).reshape(-1).expand(3)
+        check_finite(d, "d")
+        if self.two_level:
+            if c_hat is None:
+                g = b.band_basis().groups(b.second)
+                parts = []
+                for k, e in enumerate(es):
+                    ck, ek = c[k * b.J : (k + 1) * b.J], e.to(c)
+                    num = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ck * ek)
+                    den = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ek)
+                    cnt = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, torch.ones_like(ck))
+                    plain = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ck) / cnt
+                    parts.append(torch.where(den > 0, num / den.clamp_min(1e-300), plain))
+                c_hat = torch.cat(parts, 0)
+            c_hat = as_float_tensor(c_hat, "c_hat").to(self.dtype)
+            if c_hat.shape != (b.second_size, 3):
+                raise ShapeError(f"Expected c_hat of shape ({b.second_size}, 3); got {tuple(c_hat.shape)}")
+        self.c[m], self.c_hat[m], self.d[m] = c, c_hat, d
+        if self._frozen is not None and self._frozen["object"] != m:
+            self._frozen = None  # another object's constants changed: freeze again on demand
+
+    def set_weight_map(self, obj, weights) -> None:
+        """Modulate the directly seen pixels of ``obj`` by a texture / weight map (H, W) or
+        (H, W, C); later bounces see the object's diffuse equivalent times the map's mean
+        over its pixels (Sec. 5.3)."""
+        m = self.tensors.object_id(obj)
+        w = as_float_tensor(weights, "weights").to(self.dtype)
+        if w.ndim == 2:
+            w = w[..., None].expand(-1, -1, 3)
+        if w.shape != (self.height, self.width, 3):
+            raise ShapeError(f"Expected a weight map of shape ({self.height}, {self.width}[, 3]); got {tuple(w.shape)}")
+        check_finite(w, "weights")
+        self.weight_maps[m] = w.reshape(-1, 3)
+        self._frozen = None
+
+    def _map_mean(self, m: int) -> torch.Tensor:
+        w = self.weight_maps.get(m)
+        if w is None:
+            return torch.ones(3, dtype=self.dtype)
+        pix = torch.cat([b.pixels for b in self.blocks if b.object_id == m] or [torch.zeros(0, dtype=torch.long)])
+        return w[pix.unique()].mean(0) if pix.numel() else w.mean(0)
+
+    # -- coefficient vectors -------------------------------------------------------------------
+    def _d_all(self) -> torch.Tensor:
+        return torch.stack([self.d[m] * self._map_mean(m) for m in range(self.tensors.num_objects)])
+
+    def _c_hat_ext(self) -> torch.Tensor:
+        parts = [self.c_hat[m] for m, b in enumerate(self.tensors.bases) if b is not None and self.two_level]
+        return torch.cat(parts + [torch.ones(1, 3, dtype=self.dtype)], 0)
+
+    def _eye(self, m: int) -> torch.Tensor:
+        return torch.ones(1, 3, dtype=self.dtype) if self.c[m] is None else self.c[m]
+
+    def _pixel_weights(self, m: int, pixels: torch.Tensor) -> torch.Tensor | None:
+        w = self.weight_maps.get(m)
+        return None if w is None else w[pixels].T  # (C, P)
+
+    # -- full evaluation ------------------------------------------------------------------------
+    def evaluate(self, per_bounce: bool = False) -> torch.Tensor | list[torch.Tensor]:
+        """Full evaluation of Eq. 26/29: (H, W, C); with ``per_bounce`` the list
+        ``[E, B^1, ..., B^N]`` of (H, W, C) images (their sum is the image)."""
+        d = self._d_all()
+        ch = self._c_hat_ext()
+        g = {}
+        for n, table in self.tensors.terms.items():
+            w = torch.where(table.w >= 0, table.w, ch.shape[0] - 1)
+            g[n] = ch[w] * _term_factors(table.counts, d)
+        hw = self.height * self.width
+        out = [torch.zeros(3, hw, dtype=self.dtype) for _ in range(self.max_bounces + 1)]
+        out[0] = out[0] + self.emission
+        for i, b in enumerate(self.blocks):
+            vals = getattr(self, f"block{i}")
+            contrib = torch.einsum("cjzp,jc,zc->cp", vals, self._eye(b.object_id), g[b.bounce][b.terms])
+            pw = self._pixel_weights(b.object_id, b.pixels)
+            if pw is not None:
+                contrib = contrib * pw
+            out[b.bounce] = out[b.bounce].index_add(1, b.pixels, contrib)
+        imgs = [o.T.reshape(self.height, self.width, 3) for o in out]
+        return imgs if per_bounce else sum(imgs[1:], imgs[0])
+
+    # -- object freezing ------------------------------------------------------------------------
+    def freeze(self, obj) -> None:
+        """Precompute :math:`F_{jk'}` (Eq. 27, §5.2) for the pixels of ``obj`` and the
+        polynomials :math:`V_{k'}` of all other pixels, so that :meth:`forward` while only
+        ``obj``'s material changes costs two batched matrix products."""
+        i, b = self._basis(obj)
+        nb = self.max_bounces
+        slots = b.second_size if self.two_level else 0
+        K = (slots + 1) * nb
+        d = self._d_all()
+        ch = self._c_hat_ext()
+        off = self.offsets[i]
+        amat = {}
+        for n, table in self.tensors.terms.items():
+            t = table.size
+            w = table.w
+            own = (w >= off) & (w < off + slots)
+            s = torch.where(own, w - off + 1, 0)
+            k = s * nb + table.counts[:, i]
+            phi = _term_factors(table.counts, d, skip=i)
+            wc = torch.where(w >= 0, w, ch.shape[0] - 1)
+            phi = phi * torch.where(own[:, None], torch.ones_like(ch[wc]), ch[wc])
+            a = torch.zeros(3, t, K, dtype=self.dtype)
+            if t:
+                a[:, torch.arange(t), k] = phi.T
+            amat[n] = a
+        mine = [(q, bl) for q, bl in enumerate(self.blocks) if bl.object_id == i]
+        rest = [(q, bl) for q, bl in enumerate(self.blocks) if bl.object_id != i]
+        pix_i = torch.cat([bl.pixels for _, bl in mine] or [torch.zeros(0, dtype=torch.long)]).unique()
+        pix_r = torch.cat([bl.pixels for _, bl in rest] or [torch.zeros(0, dtype=torch.long)]).unique()
+        F = torch.zeros(3, b.size, K, pix_i.numel(), dtype=self.dtype)
+        for q, bl in mine:
+            vals = getattr(self, f"block{q}")
+            cols = torch.searchsorted(pix_i, bl.pixels)
+            F.index_add_(3, cols, torch.einsum("cjzp,czk->cjkp", vals, amat[bl.bounce][:, bl.terms]))
+        V = torch.zeros(3, K, pix_r.numel(), dtype=self.dtype)
+        for q, bl in rest:
+            vals = getattr(self, f"block{q}")
+            cols = torch.searchsorted(pix_r, bl.pixels)
+            contrib = torch.einsum("cjzp,jc,czk->ckp", vals, self._eye(bl.object_id), amat[bl.bounce][:, bl.terms])
+            pw = self._pixel_weights(bl.object_id, bl.pixels)
+            if pw is not None:
+                contrib = contrib * pw[:, None, :]
+            V.index_add_(2, cols, contrib)
+        self._frozen = {
+            "object": i,
+            "F": F.reshape(3, b.size, K * pix_i.numel()),
+            "V": V,
+            "pix_i": pix_i,
+            "pix_r": pix_r,
+            "K": K,
+            "slots": slots,
+        }
+
+    @property
+    def frozen_object(self) -> str | None:
+        return None if self._frozen is None else self.tensors.object_names[self._frozen["object"]]
+
+    def _frozen_frame(self) -> torch.Tensor:
+        fz = self._frozen
+        i, nb, K = fz["object"], self.max_bounces, fz["K"]
+        di = self.d[i] * self._map_mean(i)
+        powers = [torch.ones(3, dtype=self.dtype)]
+        for _ in range(1, nb):
+            powers.append(powers[-1] * di)
+        pw = torch.stack(powers)  # (nb, C)
+        slot = [torch.ones(1, 3, dtype=self.dtype)]
+        if fz["slots"]:
+            slot.append(self.c_hat[i])
+        sv = torch.cat(slot, 0)  # (slots + 1, C)
+        g = (sv[:, None, :] * pw[None, :, :]).reshape(K, 3).T  # (C, K)
+        p_i = fz["pix_i"].numel()
+        u = torch.bmm(self.c[i].T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
+        own = torch.bmm(g.unsqueeze(1), u).squeeze(1)  # (C, P_i)
+        w = self._pixel_weights(i, fz["pix_i"])
+        if w is not None:
+            own = own * w
+        other = torch.bmm(g.unsqueeze(1), fz["V"]).squeeze(1)
+        img = self.emission.index_add(1, fz["pix_i"], own).index_add(1, fz["pix_r"], other)
+        return img.T.reshape(self.height, self.width, 3)
+
+    def forward(self) -> torch.Tensor:
+        """The current image (H, W, C): the frozen fast path when an object is frozen and only
+        its material changed since (Eq. 28), else the full evaluation."""
+        if self._frozen is not None:
+            return self._frozen_frame()
+        return self.evaluate()
+
+    def stream(self) -> torch.Tensor:
+        """One pass over the frozen tensor (its sum): the memory-bandwidth floor of a frame."""
+        if self._frozen is None:
+            raise ValueRangeError("nothing is frozen; call freeze(object) first")
+        return self._frozen["F"].sum() + self._frozen["V"].sum()
+
+    @property
+    def frozen_nbytes(self) -> int:
+        if self._frozen is None:
+            return 0
+        return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
+
+
+__all__ = ["PolynomialRenderer"]
