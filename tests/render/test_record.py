@@ -35,7 +35,8 @@ def test_gradients_and_module(gen):
 
 def test_save_load_roundtrip_and_float16(tmp_path, gen):
     _, _, _, rec = _record(gen, dtype=torch.float32)
-    rec = BasisImage(rec.values, rec.pixels, rec.height, rec.width, rec.constant, rec.values.square(), rec.basis, {"spp": 4})
+    var = rec.values.square()
+    rec = BasisImage(rec.values, rec.pixels, rec.height, rec.width, rec.constant, var, rec.basis, {"spp": 4})
     back = BasisImage.load(rec.save(tmp_path / "r.npz"))
     assert torch.equal(back.values, rec.values) and torch.equal(back.variance, rec.variance)
     assert back.meta == {"spp": 4} and back.basis == "test:5"

@@ -333,6 +333,7 @@ def test_object_id_lookup():
 #: objects that a 16 x 16 primary-ray image of each built-in must show
 _VISIBLE = {
     "cornell_box": {"floor", "ceiling", "back", "left", "right", "short_box", "tall_box"},
+    "cornell_box_glossy": {"floor", "ceiling", "back", "left", "right", "short_box", "tall_box"},
     "teatray": {"teapot", "tray"},
     "ring": {"ring", "plane"},
     "bunny_plane": {"bunny", "plane"},

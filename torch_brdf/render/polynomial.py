@@ -148,7 +148,8 @@ class PolynomialRenderer(nn.Module):
         graph is used by one ``backward``.
         """
         m, b = self._basis(obj)
-        if isinstance(brdf, dict):
+        from_dict = isinstance(brdf, dict)
+        if from_dict:
             brdf = create(brdf)
         if not isinstance(brdf, BRDF):
             raise ShapeError(f"set_material expects a BRDF module or a material dict; got {type(brdf).__name__}")
@@ -168,7 +169,7 @@ class PolynomialRenderer(nn.Module):
             c = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.size, 3)
         else:
             c = project(brdf, basis, b.quotient)
-        self.set_coefficients(m, c)
+        self.set_coefficients(m, c.detach() if from_dict else c)
 
     def set_coefficients(self, obj, c, d=None, c_hat=None) -> None:
         """Set an object's band coefficients directly (e.g. an edited 1-D curve).
@@ -374,4 +375,55 @@ class PolynomialRenderer(nn.Module):
         return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
 
 
-__all__ = ["PolynomialRenderer"]
+def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    r"""Relative RMSE :math:`\sqrt{\sum (I - R)^2 / \sum R^2}` over pixels (and channels) where
+    ``mask`` (H, W) holds (default all). Images (H, W, C)."""
+    if image.shape != reference.shape:
+        raise ShapeError(f"image {tuple(image.shape)} and reference {tuple(reference.shape)} differ in shape")
+    a, b = image.detach().double(), reference.detach().double()
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    den = float((b * b).sum())
+    if not den > 0:
+        raise ValueRangeError("the reference is zero where compared; relative RMSE is undefined")
+    return math.sqrt(float(((a - b) ** 2).sum()) / den)
+
+
+def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:
+    """(H, W) bool: pixels that see no emitter directly (the emission term is zero there and
+    in their ``dilate``-pixel neighbourhood). Emitters seen through a pixel are the same in
+    every method but their jittered edges dominate Monte Carlo noise; comparisons exclude them."""
+    e = tensors.emission.abs().sum(0).reshape(1, 1, tensors.height, tensors.width) > 0
+    if dilate:
+        e = torch.nn.functional.max_pool2d(e.float(), 2 * dilate + 1, stride=1, padding=dilate) > 0
+    return ~e[0, 0]
+
+
+def series_approximations(
+    scene, series="64,1,1,1", spp: int = 64, seed: int = 0, progress: bool = False
+) -> dict[str, Any]:
+    """The three approximations of the seed's Fig. 6(b)/7 for ``scene``'s materials.
+
+    Returns a dict with images (H, W, C) ``"series"`` (the given series: full BRDF at the eye
+    vertex, diffuse equivalents after), ``"diffuse_indirect"`` (full BRDF for direct lighting
+    plus indirect light from a series of 1-band bases: Fig. 7a) and ``"direct"`` (direct
+    lighting only: Fig. 7b), the two :class:`PolynomialTensors` and their precompute seconds.
+    """
+    from ..transport.polynomial import Series, precompute_polynomial
+
+    s = Series.parse(series)
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    full = precompute_polynomial(scene, s, spp=spp, seed=seed, progress=progress)
+    ones = Series((1,) * s.bounces)
+    flat = {o.name: {"J": 1, "spacing": "uniform"} for o in scene.objects if o.editable}
+    diffuse = precompute_polynomial(scene, ones, spp=spp, seed=seed + 1, bases=flat, progress=progress)
+    parts = PolynomialRenderer(full, mats).evaluate(per_bounce=True)
+    dparts = PolynomialRenderer(diffuse, mats).evaluate(per_bounce=True)
+    direct = parts[0] + parts[1]
+    return {
+        "series": sum(parts[1:], parts[0]),
+        "diffuse_indirect": sum(dparts[2:], direct),
+        "direct": direct,
+        "tensors": full,
+        "diffuse_tensors": diffuse,
+    }

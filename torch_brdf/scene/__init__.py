@@ -1,6 +1,6 @@
 """Scenes: meshes, embree ray tracing, camera, lights and built-in scenes."""
 
-from .builtin import BUILTIN_SCENES, bunny_plane, cornell_box, ring, teatray
+from .builtin import BUILTIN_SCENES, bunny_plane, cornell_box, cornell_box_glossy, ring, teatray
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
 from .lights import AreaLight, DirectionalLight, Light, LightSample
@@ -24,6 +24,7 @@ __all__ = [
     "SceneObject",
     "bunny_plane",
     "cornell_box",
+    "cornell_box_glossy",
     "load_mesh",
     "mesh_from_arrays",
     "ring",

@@ -240,8 +240,23 @@ def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = No
 
 
 #: name -> builder, for the CLI and tests.
+def cornell_box_glossy(resolution: Resolution = 128, exponent: float = 100.0) -> Scene:
+    """The Cornell box of Ben-Artzi et al. 2008, Fig. 6(b): a glossy Blinn-Phong back wall
+    (``kd`` 0.25, ``ks`` 0.6, exponent ``exponent``) and coloured blocks (a yellow short
+    block, a blue tall block); everything else as :func:`cornell_box`."""
+    sc = cornell_box(resolution)
+    sc.materials["glossy_back"] = {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": float(exponent)}
+    sc.materials["yellow"] = {"type": "lambert", "albedo": (0.75, 0.62, 0.08)}
+    sc.materials["blue"] = {"type": "lambert", "albedo": (0.10, 0.22, 0.65)}
+    for name, mat in (("back", "glossy_back"), ("short_box", "yellow"), ("tall_box", "blue")):
+        sc.objects[sc.object_id(name)].material = mat
+    sc.name = "cornell_box_glossy"
+    return sc
+
+
 BUILTIN_SCENES: dict[str, Callable[..., Scene]] = {
     "cornell_box": cornell_box,
+    "cornell_box_glossy": cornell_box_glossy,
     "teatray": teatray,
     "ring": ring,
     "bunny_plane": bunny_plane,

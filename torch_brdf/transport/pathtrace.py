@@ -133,7 +133,7 @@ def path_trace(
     """Render ``scene`` from its camera: (H, W, 3) float32 linear radiance.
 
     Args:
-        scene: the scene (Lambert materials; see the module docstring).
+        scene: the scene (any BRDFs of the library; see the module docstring).
         spp: samples (paths) per pixel, each through a jittered point of the pixel.
         max_bounces: surface vertices per path; 1 is direct lighting only.
         seed: the render is a deterministic function of (scene, spp, max_bounces, seed).
@@ -171,3 +171,19 @@ def path_trace(
                 meta={"settings": settings, "passes_done": done},
             )
     return (total / spp).to(torch.float32).reshape(h, w, 3)
+
+
+def reference_path_trace(scene: Scene, spp: int = 256, max_bounces: int = 4, seed: int = 0, **kwargs) -> torch.Tensor:
+    """The unbiased reference of the multibounce editor: :func:`path_trace` with every
+    object's full BRDF, BRDF importance sampling and next-event estimation (see the module
+    docstring), to measure what a BRDF series, diffuse equivalents and band projections cost.
+
+    Args:
+        scene, spp, max_bounces, seed: as :func:`path_trace`; ``max_bounces`` counts surface
+            vertices, so it matches a series of that length (Mitsuba's ``max_depth`` is
+            ``max_bounces + 1``).
+        kwargs: ``chunk``, ``checkpoint``, ``checkpoint_every``, ``progress``.
+    Returns:
+        (H, W, 3) float32 linear radiance.
+    """
+    return path_trace(scene, spp=spp, max_bounces=max_bounces, seed=seed, **kwargs)

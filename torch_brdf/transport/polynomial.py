@@ -386,12 +386,18 @@ class PolynomialTensors:
                 off += b.second_size
         return out
 
-    def memory_per_bounce(self) -> dict[int, int]:
-        """Bytes of tensor values (and variances) per bounce, like the seed's Table II."""
+    def memory_per_bounce(self, variance: bool = False) -> dict[int, int]:
+        """Bytes of tensor values per bounce (float32, in memory), like the seed's Table II;
+        with ``variance`` also the per-entry variances kept beside them."""
         out = {n: 0 for n in range(1, self.series.bounces + 1)}
         for b in self.blocks:
-            out[b.bounce] += b.nbytes
+            out[b.bounce] += b.nbytes if variance else b.values.numel() * b.values.element_size()
         return out
+
+    @property
+    def num_entries(self) -> int:
+        """Stored tensor entries (all blocks, channels included)."""
+        return sum(b.values.numel() for b in self.blocks)
 
     def first_order(self, obj: str | int) -> BasisImage:
         """The direct-lighting term of the pixels that see ``obj``: a :class:`BasisImage`
@@ -621,7 +627,9 @@ class _Tracer:
         B_i = torch.full((k, 1), -1, dtype=torch.long)  # second-bounce slots (n, L2)
         B_w = torch.ones(k, 1, 3)
         counts = torch.zeros(k, self.num_objects, dtype=torch.int8)
-        rec_p = {"wi1": None, "wo1": None, "wi2": None, "wo2": None, "m2": None, "objs": []} if paths is not None else None
+        rec_p = None
+        if paths is not None:
+            rec_p = {"wi1": None, "wo1": None, "wi2": None, "wo2": None, "m2": None, "objs": []}
         for v in range(1, nb + 1):
             if idx.numel() == 0:
                 break

@@ -1,0 +1,220 @@
+"""BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
+
+    python benchmarks/polynomial.py [--quick]
+
+Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
+coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
+
+* ``precompute_s``: tensors for 256x256, series (64,1,1,1), 64 spp, 4 bounces (``--quick``:
+  64x64, 8 spp); ``precompute_paths_per_s``; ``rays`` cast (closest-hit, shadow).
+* ``rays_s``: the time embreex alone (one ``EmbreeScene.run`` per batch, one process) takes to
+  trace those rays, measured on the rays of the first tiles recorded during the run and
+  scaled by the total counts; ``precompute_over_rays``: the ratio (the goal is <= 1.5).
+* ``mitsuba_s`` (when mitsuba is installed): Mitsuba 3's path tracer on the same scene,
+  resolution, spp and depth (max_depth 5 = 4 surface vertices), llvm variant when it works
+  here (else scalar_rgb, reported in ``mitsuba_variant``); ``precompute_over_mitsuba``.
+* ``mb_per_bounce`` (float32 values; ``mb_variance_per_bounce`` the variances kept beside).
+* ``freeze_s``, ``frame_s``, ``stream_s`` at 512x512, (64,1,1,1), 4 bounces, M = 7 editable
+  objects, freezing the glossy back wall (``--quick``: 128x128); the tensors for this part use
+  ``freeze_spp`` paths per pixel, and ``freeze_entries`` says how many entries freezing read.
+  ``frame_over_stream``: the goal is <= 3 (memory bandwidth).
+* ``rel_rmse``: relative RMSE against ``reference_path_trace`` (full BRDFs) at
+  ``reference_spp`` on 128x128 (``--quick``: 32x32), pixels seeing the light excluded; keys
+  the seed's teatray series ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16") at 64 spp and the
+  (64,1,1,1) series at "spp16", "spp64", "spp256", each with ``seconds`` and ``mb`` beside.
+* ``approximation_rel_rmse``: (64,1,1,1) vs full-BRDF direct + diffuse indirect (1,1,1,1)
+  (Fig. 7a) vs direct only (Fig. 7b), same reference.
+* ``mitsuba_vs_reference_rel_rmse`` and ``reference_seed_rel_rmse`` (two seeds of our
+  reference at the Mitsuba spp): agreement within noise means the first is about the second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+import torch
+
+from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, relative_rmse, series_approximations
+from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport.pathtrace import reference_path_trace
+from torch_brdf.transport.polynomial import precompute_polynomial
+
+
+def _materials(scene):
+    return {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+
+
+def _record_rays(scene, limit: int):
+    """Wrap the scene's tracer to keep the first ``limit`` closest-hit and shadow rays."""
+    tracer = scene.tracer
+    log = {"closest": [], "shadow": [], "n": {"closest": 0, "shadow": 0}}
+    real_trace, real_occ = tracer.trace, tracer.occluded
+
+    def trace(o, d):
+        if log["n"]["closest"] < limit:
+            log["closest"].append((o.numpy().astype(np.float32), d.numpy().astype(np.float32)))
+            log["n"]["closest"] += o.shape[0]
+        return real_trace(o, d)
+
+    def occluded(o, d, t_max):
+        if log["n"]["shadow"] < limit:
+            tm = t_max.numpy() if isinstance(t_max, torch.Tensor) else np.full(o.shape[0], t_max)
+            log["shadow"].append((o.numpy().astype(np.float32), d.numpy().astype(np.float32), tm.astype(np.float32)))
+            log["n"]["shadow"] += o.shape[0]
+        return real_occ(o, d, t_max)
+
+    tracer.trace, tracer.occluded = trace, occluded
+    return log
+
+
+def _embree_seconds(scene, log, totals) -> float:
+    """Time embreex alone on the recorded rays, scaled to the run's total ray counts."""
+    from embreex import mesh_construction, rtcore_scene
+
+    es = rtcore_scene.EmbreeScene()
+    for obj in scene.objects:
+        v = np.ascontiguousarray(obj.mesh.vertices, dtype=np.float32)
+        f = np.ascontiguousarray(obj.mesh.faces, dtype=np.int32)
+        mesh_construction.TriangleMesh(es, v, f)
+    secs = 0.0
+    for kind in ("closest", "shadow"):
+        n = sum(b[0].shape[0] for b in log[kind])
+        if n == 0:
+            continue
+        t0 = time.perf_counter()
+        for b in log[kind]:
+            if kind == "closest":
+                es.run(b[0], b[1], output=1)
+            else:
+                es.run(b[0], b[1], query="OCCLUDED", dists=np.minimum(b[2], 1e37))
+        secs += (time.perf_counter() - t0) * totals[kind] / n
+    return secs
+
+
+def _mitsuba(scene, spp, max_bounces):
+    try:
+        from torch_brdf.transport import mitsuba as tm
+    except ImportError:
+        return None
+    if not tm.mitsuba_available():
+        return None
+    variant = tm.default_variant()
+    img, secs = tm.render_mitsuba(scene, spp=spp, max_bounces=max_bounces, seed=0, variant=variant, return_seconds=True)
+    return {"image": img, "seconds": secs, "variant": variant}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    args = ap.parse_args()
+    q = args.quick
+    out: dict = {"quick": q}
+
+    # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
+    res, spp = (64, 8) if q else (256, 64)
+    sc = cornell_box_glossy(res)
+    log = _record_rays(sc, limit=1 << 20 if q else 1 << 22)
+    t0 = time.perf_counter()
+    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True)
+    out["precompute_s"] = time.perf_counter() - t0
+    out["precompute_resolution"], out["precompute_spp"] = res, spp
+    out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
+    out["rays"] = T.meta["rays"]
+    out["rays_s"] = _embree_seconds(sc, log, T.meta["rays"])
+    out["precompute_over_rays"] = out["precompute_s"] / out["rays_s"]
+    out["mb_per_bounce"] = {str(k): v / 2**20 for k, v in T.memory_per_bounce().items()}
+    out["mb_variance_per_bounce"] = {
+        str(k): (v - T.memory_per_bounce()[k]) / 2**20 for k, v in T.memory_per_bounce(variance=True).items()
+    }
+    print(f"precompute {out['precompute_s']:.1f} s, rays alone {out['rays_s']:.1f} s", flush=True)
+    mi = _mitsuba(sc, spp, 4)
+    if mi is not None:
+        out["mitsuba_s"], out["mitsuba_variant"] = mi["seconds"], mi["variant"]
+        out["precompute_over_mitsuba"] = out["precompute_s"] / mi["seconds"]
+        print(f"mitsuba {mi['seconds']:.2f} s ({mi['variant']})", flush=True)
+    del T
+
+    # -- freezing and frames at 512^2 ------------------------------------------------------------
+    fres, fspp = (128, 2) if q else (512, 4)
+    sc5 = cornell_box_glossy(fres)
+    T5 = precompute_polynomial(sc5, "64,1,1,1", spp=fspp, seed=1, progress=True)
+    R = PolynomialRenderer(T5, _materials(sc5))
+    out["freeze_resolution"], out["freeze_spp"] = fres, fspp
+    out["freeze_entries"] = T5.num_entries
+    t0 = time.perf_counter()
+    R.freeze("back")
+    out["freeze_s"] = time.perf_counter() - t0
+    c = R.c[T5.object_id("back")].clone()
+    frames, streams = [], []
+    for k in range(5):
+        R.set_coefficients("back", c * (1 + 0.1 * k))
+        t0 = time.perf_counter()
+        R()
+        frames.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        R.stream()
+        streams.append(time.perf_counter() - t0)
+    out["frame_s"], out["stream_s"] = min(frames), min(streams)
+    out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
+    out["frozen_mb"] = R.frozen_nbytes / 2**20
+    t0 = time.perf_counter()
+    R.evaluate()
+    out["full_evaluation_s"] = time.perf_counter() - t0
+    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
+    del R, T5
+
+    # -- accuracy against the full-BRDF reference --------------------------------------------
+    ares, rspp = (32, 128) if q else (128, 1024)
+    sca = cornell_box_glossy(ares)
+    t0 = time.perf_counter()
+    ref = reference_path_trace(sca, spp=rspp, max_bounces=4, seed=123, progress=True)
+    out["reference_s"], out["reference_spp"], out["accuracy_resolution"] = time.perf_counter() - t0, rspp, ares
+    apx = series_approximations(sca, "64,1,1,1", spp=64, seed=0)
+    mask = emitter_mask(apx["tensors"])
+    out["approximation_rel_rmse"] = {
+        "64,1,1,1": relative_rmse(apx["series"], ref, mask),
+        "diffuse_indirect_1,1,1,1": relative_rmse(apx["diffuse_indirect"], ref, mask),
+        "direct_only": relative_rmse(apx["direct"], ref, mask),
+    }
+    print("ordering", out["approximation_rel_rmse"], flush=True)
+    rel = {}
+    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
+    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
+    for series, n, key in runs:
+        t0 = time.perf_counter()
+        Tk = precompute_polynomial(sca, series, spp=n, seed=2, progress=False)
+        secs = time.perf_counter() - t0
+        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
+        bounces = Tk.series.bounces
+        r = ref
+        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
+            r = reference_path_trace(sca, spp=rspp // 4, max_bounces=bounces, seed=124, progress=False)
+        rel[key] = {
+            "rel_rmse": relative_rmse(img, r, mask),
+            "seconds": secs,
+            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
+            "bounces": bounces,
+        }
+        print(key, rel[key], flush=True)
+    out["rel_rmse"] = rel
+
+    # -- our reference against Mitsuba ---------------------------------------------------------
+    mi = _mitsuba(sca, 256 if not q else 64, 4)
+    if mi is not None:
+        n = 256 if not q else 64
+        ours_a = reference_path_trace(sca, spp=n, max_bounces=4, seed=5, progress=False)
+        ours_b = reference_path_trace(sca, spp=n, max_bounces=4, seed=6, progress=False)
+        # both at n spp: Mitsuba vs ours should differ about as much as two seeds of ours
+        out["mitsuba_vs_reference_rel_rmse"] = relative_rmse(mi["image"], ours_a, mask)
+        out["reference_seed_rel_rmse"] = relative_rmse(ours_b, ours_a, mask)
+        out["mitsuba_mean_ratio"] = float(mi["image"][mask].mean() / ours_a[mask].mean())
+    out = {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
