@@ -58,3 +58,20 @@ radiance = 1.0
     assert read_exr(tmp_path / "r.exr").shape == (8, 8, 3)
     bad = runner.invoke(app, ["render", "no_such_scene"])
     assert bad.exit_code == 2 and "unknown scene" in bad.output
+
+
+def test_precompute_writes_loadable_tensors(tmp_path):
+    from torch_brdf.transport.polynomial import PolynomialTensors
+
+    out = tmp_path / "t.npz"
+    args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--spp", "2", "--series", "4,1", "--out", str(out)]
+    res = runner.invoke(app, [*args, "--bases", '{"left": {"J": 2}}', "--storage", "float16"])
+    assert res.exit_code == 0, res.output
+    info = json.loads(next(ln for ln in res.output.splitlines() if ln.startswith("{")))
+    assert set(info["mb_per_bounce"]) == {"1", "2"}
+    T = PolynomialTensors.load(out)
+    assert T.bases[T.object_id("left")].J == 2 and not (tmp_path / "t.tiles").exists()
+    bad = runner.invoke(app, [*args, "--bases", "{not json"])
+    assert bad.exit_code == 2 and "JSON" in bad.output
+    bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
+    assert bad.exit_code == 2

@@ -165,5 +165,6 @@ def test_approximation_ordering_on_the_glossy_cornell_box():
     back = (sc.trace(o, d).object_id == sc.object_id("back")).reshape(res, res)
     on_back = (torch.nn.functional.avg_pool2d(back[None, None].float(), k)[0, 0] == 1) & keep
     for mask in (keep, on_back):
-        err = {name: relative_rmse(pool(ap[name]), pool(ref), mask) for name in ("series", "diffuse_indirect", "direct")}
+        names = ("series", "diffuse_indirect", "direct")
+        err = {name: relative_rmse(pool(ap[name]), pool(ref), mask) for name in names}
         assert err["series"] < err["diffuse_indirect"] < err["direct"], err
