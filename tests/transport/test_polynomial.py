@@ -48,7 +48,9 @@ def _oracle(sc, T, paths, c, c_hat, d, spp):
             else:
                 basis = b.band_basis() if level == 1 else b.second_basis()
                 coef = c[o] if level == 1 else c_hat[o]
-                out[m] = Factored1D(basis, coef, b.quotient).eval_local(wi[m].double(), wo[m].double())
+                for k, q in enumerate(b.quotients()):  # one layer, or two with Fresnel (Eq. 32)
+                    part = coef[k * basis.J : (k + 1) * basis.J]
+                    out[m] += Factored1D(basis, part, q).eval_local(wi[m].double(), wo[m].double())
         return out
 
     for r in paths["rows"]:  # one row per light sample batch
@@ -69,12 +71,16 @@ def _oracle(sc, T, paths, c, c_hat, d, spp):
     return (img / spp + T.emission.double().T).reshape(T.height, T.width, 3)
 
 
-@pytest.mark.parametrize("series", ["8,1,1,1", "8,4,1"])
-def test_tensors_equal_explicit_path_tracer_on_the_same_paths(series, gen):
+@pytest.mark.parametrize("series,fresnel", [("8,1,1,1", False), ("8,4,1", False), ("8,4,1", True)])
+def test_tensors_equal_explicit_path_tracer_on_the_same_paths(series, fresnel, gen):
     sc = glossy_box()
     paths: dict = {}
     spp = 4
-    T = precompute_polynomial(sc, series, spp=spp, seed=3, tile_rows=sc.camera.height, progress=False, paths=paths)
+    over = {"back": {"fresnel": True}} if fresnel else None
+    T = precompute_polynomial(
+        sc, series, spp=spp, seed=3, bases=over, tile_rows=sc.camera.height, progress=False, paths=paths
+    )
+    assert T.bases[T.object_id("back")].fresnel == fresnel
     assert paths["rows"]
     R = PolynomialRenderer(T, dtype=torch.float64)
     for _ in range(3):  # coefficients that were not known at precomputation
@@ -253,3 +259,23 @@ def test_bad_input():
         R.set_material("nope", create("lambert"))
     with pytest.raises(ValueRangeError):
         R.stream()
+
+
+def test_fresnel_layers_follow_f0():
+    """A Fresnel-layered object (Eq. 31-32): f0 = 1 renders the BRDF as given, lower f0 dims
+    normal incidence more than grazing angles, and f0 outside [0, 1] is refused."""
+    sc = glossy_box(8)
+    T = precompute_polynomial(sc, "8,1", spp=2, seed=0, bases={"back": {"fresnel": True}}, progress=False)
+    plain = precompute_polynomial(sc, "8,1", spp=2, seed=0, progress=False)
+    mat = {"type": "blinn_phong", "kd": 0.0, "ks": 1.0, "exponent": 50.0}
+    R, P = PolynomialRenderer(T, dtype=torch.float64), PolynomialRenderer(plain, dtype=torch.float64)
+    R.set_material("back", mat)
+    P.set_material("back", mat)
+    torch.testing.assert_close(R.evaluate(), P.evaluate(), rtol=1e-6, atol=1e-9)
+    R.set_material("back", mat, f0=0.04)
+    dim = R.evaluate()
+    assert float(dim.sum()) < float(P.evaluate().sum())
+    with pytest.raises(ValueRangeError):
+        R.set_material("back", mat, f0=1.5)
+    with pytest.raises(ValueRangeError):
+        P.set_material("back", mat, f0=0.5)

@@ -140,8 +140,10 @@ class PolynomialRenderer(nn.Module):
             brdf: a :class:`~torch_brdf.brdf.BRDF` or ``{"type": ..., **params}``. A
                 :class:`Factored1D` on exactly this object's bands keeps its coefficients
                 (and their gradients); anything else is projected (float64, no gradient).
-            f0: for objects precomputed with ``fresnel=True``: the normal-incidence
-                reflectance that splits the projection into the two Fresnel layers.
+            f0: for objects precomputed with ``fresnel=True`` (App. A, Eq. 31-32): the
+                normal-incidence reflectance :math:`F_0` (scalar or RGB in [0, 1]) of the Schlick
+                factor :math:`F_0 + (1 - F_0)(1 - \\cos\\theta_d)^5` that multiplies the BRDF's
+                projected curve; None (default) is 1, the BRDF as given.
 
         The coefficients keep the autograd graph of the BRDF's parameters (Lambert albedo,
         Factored1D curve); in an optimisation loop call ``set_material`` every step, as a
@@ -155,20 +157,29 @@ class PolynomialRenderer(nn.Module):
             raise ShapeError(f"set_material expects a BRDF module or a material dict; got {type(brdf).__name__}")
         basis = b.band_basis()
         same = isinstance(brdf, Factored1D) and torch.equal(brdf.basis.edges, basis.edges)
-        if b.fresnel:
-            if isinstance(brdf, FresnelFactored1D) and same:
-                layers = [lay.coefficients for lay in brdf.layers()]
-            else:
-                ff = FresnelFactored1D.from_brdf(brdf, basis, b.quotient, f0=0.04 if f0 is None else f0)
-                layers = [lay.coefficients.detach() for lay in ff.layers()]
-            c = torch.cat(layers, 0)
-        elif same and type(brdf) is Factored1D:
-            c = brdf.coefficients
-        elif type(brdf) is Lambert and b.quotient == "one":
-            # exact: a constant projects onto box bands with a constant quotient as itself
-            c = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.size, 3)
+        if b.fresnel and isinstance(brdf, FresnelFactored1D) and same:
+            c = torch.cat([lay.coefficients for lay in brdf.layers()], 0)
         else:
-            c = project(brdf, basis, b.quotient)
+            if same and type(brdf) is Factored1D:
+                base = brdf.coefficients
+            elif type(brdf) is Lambert and b.quotient == "one":
+                # exact: a constant projects onto box bands with a constant quotient as itself
+                base = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.J, 3)
+            else:
+                base = project(brdf, basis, b.quotient)
+            if b.fresnel:
+                # Eq. 32: f1 = F f, f2 = (1 - F) f with the user's F0 (default 1: no Fresnel)
+                f = torch.as_tensor(1.0 if f0 is None else f0, dtype=base.dtype).reshape(-1).expand(3)
+                if bool(((f < 0) | (f > 1)).any()):
+                    raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
+                c = torch.cat([base * f, base * (1 - f)], 0)
+            else:
+                if f0 is not None:
+                    raise ValueRangeError(
+                        f"object {self.tensors.object_names[m]!r} was precomputed without a Fresnel layer; "
+                        "precompute with bases={name: {'fresnel': True}} to edit f0"
+                    )
+                c = base
         self.set_coefficients(m, c.detach() if from_dict else c)
 
     def set_coefficients(self, obj, c, d=None, c_hat=None) -> None:
