@@ -28,10 +28,11 @@ Mapping (each point checked by ``tests/transport/test_mitsuba.py``):
   invisible mesh of its own (black ``diffuse``).
   :class:`~torch_brdf.scene.lights.DirectionalLight` becomes ``directional`` (Mitsuba's
   ``direction`` is the direction of travel: minus ours).
-  :class:`~torch_brdf.scene.envmap.EnvironmentMap` becomes ``envmap`` from the radiance
-  bitmap with ``filter_type = "nearest"`` (our lookup is nearest-texel; Mitsuba's default
-  is bilinear) and ``to_world = rotate_y(rotation_y)``; both use the same lat-long
-  convention, so no other transform is needed.
+  :class:`~torch_brdf.scene.envmap.EnvironmentMap` becomes ``envmap`` with
+  ``to_world = rotate_y(rotation_y)``; the direction convention is the same (row 0 = +y,
+  :math:`\phi = \operatorname{atan2}(x, -z)`), but Mitsuba's rows are vertex-centred and
+  bilinearly interpolated where ours are cell-centred, nearest-texel, so the bitmap is our
+  map upsampled to match (:func:`_envmap_bitmap`).
 * **Meshes** are ``mi.Mesh`` objects filled through ``mi.traverse`` (no temporary files);
   smooth objects carry trimesh's vertex normals, flat ones none (face normals), as in
   :class:`~torch_brdf.scene.raytrace.RayTracer`.
@@ -309,6 +310,36 @@ def _bsdf_dict(key: str, material: dict[str, Any], mi) -> dict[str, Any]:
     return {"type": "twosided", "bsdf": inner}
 
 
+def _envmap_bitmap(radiance: torch.Tensor, max_width: int = 2048) -> np.ndarray:
+    r"""Our nearest-texel lat-long map resampled for Mitsuba's ``envmap``.
+
+    Mitsuba 3.9 interpolates its bitmap bilinearly, with columns cell-centred like ours
+    (column :math:`j` at :math:`\phi = (j + \tfrac12)\,2\pi/W`) but rows *vertex*-centred
+    (row :math:`i` at :math:`\theta = i\pi/(H-1)`, row 0 at the pole), and it has no
+    nearest-neighbour option. So the map is upsampled by an integer factor :math:`k`
+    (the largest with :math:`kW \le` ``max_width``, at least 1): :math:`kW` columns and :math:`kH + 1` rows
+    whose values are our texels at those positions, rows that fall on one of our row
+    boundaries taking the mean of the two rows. Bilinear blending is then confined to
+    bands one fine texel wide around our texel edges, and symmetric about them.
+
+    Args:
+        radiance: (H, W, 3) our map.
+        max_width: largest width of the result.
+    Returns:
+        (kH + 1, kW, 3) float32 array.
+    """
+    L = radiance.detach().double().cpu().numpy()
+    H, W = L.shape[:2]
+    k = max(1, max_width // W)
+    cols = L[:, np.arange(k * W) // k]  # (H, kW, 3)
+    i = np.arange(k * H + 1)
+    lo, hi = np.clip((i - 1) // k, 0, H - 1), np.clip(i // k, 0, H - 1)
+    boundary = (i % k == 0)[:, None, None]
+    rows = np.where(boundary, 0.5 * (cols[lo] + cols[hi]), cols[hi])
+    rows[0], rows[-1] = cols[0], cols[-1]  # the poles
+    return np.ascontiguousarray(rows, dtype=np.float32)
+
+
 def _mesh(mi, name: str, vertices, faces, normals, bsdf, emitter=None):
     """An ``mi.Mesh`` with the given arrays: vertices (V, 3), faces (F, 3), normals (V, 3) or None."""
     props = mi.Properties()
@@ -407,8 +438,7 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
         elif isinstance(light, EnvironmentMap):
             out[key] = {
                 "type": "envmap",
-                "bitmap": mi.Bitmap(light.radiance.double().numpy().astype(np.float32)),
-                "filter_type": "nearest",
+                "bitmap": mi.Bitmap(_envmap_bitmap(light.radiance)),
                 "to_world": mi.ScalarTransform4f().rotate([0.0, 1.0, 0.0], math.degrees(light.rotation_y)),
             }
         else:
