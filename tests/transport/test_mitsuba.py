@@ -155,6 +155,7 @@ def test_unsupported_material_raises_scene_error():
 
 def test_dict_maps_depth_camera_and_seed():
     scene = cornell_box((24, 16))
+    assert tbm.mitsuba_available()
     desc = tbm.to_mitsuba_dict(scene, spp=3, max_bounces=4, seed=5, variant="scalar_rgb")
     assert desc["integrator"]["max_depth"] == 5  # Mitsuba counts the camera segment
     sensor = desc["sensor"]
@@ -285,7 +286,9 @@ def test_llvm_variant_agrees_with_scalar():
     """The vectorised path (llvm_ad_rgb runs the Python BSDF on whole wavefronts) renders the
     glossy Cornell box like scalar_rgb: block means within 4 standard errors, 95% of them."""
     if not tbm.llvm_available():  # probed in a subprocess: a bad LLVM aborts the renderer
+        assert tbm.default_variant() == "scalar_rgb"
         pytest.skip("llvm_ad_rgb failed its subprocess probe (needs libllvm19)")
+    assert tbm.default_variant() == "llvm_ad_rgb"
     scene = _glossy_cornell(32)
     K, spp = 4, 16
     a = torch.stack([tbm.render_mitsuba(scene, spp, 3, seed=s, variant="llvm_ad_rgb") for s in range(K)]).double()

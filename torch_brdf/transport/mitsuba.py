@@ -84,7 +84,7 @@ SUPPORTED_MATERIALS = ("lambert", "blinn_phong")
 _LLVM_OK: bool | None = None  # probe result, cached per process
 _REGISTERED: set[str] = set()  # variants with the Python BSDF registered
 
-# A tiny scene rendered by the llvm probe: a diffuse triangle under a constant environment.
+# A tiny scene rendered by the llvm probe: a diffuse sphere under a constant environment.
 _PROBE = """
 import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
@@ -104,8 +104,14 @@ print("OK", float(mi.TensorXf(img).numpy().mean()))
 
 # -------------------------------------------------------------------------- availability
 def mitsuba_available() -> bool:
-    """True if ``import mitsuba`` can succeed (the package is installed)."""
-    return importlib.util.find_spec("mitsuba") is not None
+    """True if ``import mitsuba`` succeeds (installed and loadable); no variant is set."""
+    if importlib.util.find_spec("mitsuba") is None:
+        return False
+    try:
+        import mitsuba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _import_mitsuba():
