@@ -495,6 +495,15 @@ class PolynomialTensors:
 # --------------------------------------------------------------------------------------------
 # path tracing with symbolic bookkeeping
 # --------------------------------------------------------------------------------------------
+def _by_object(oid: torch.Tensor) -> list[tuple[int, torch.Tensor]]:
+    """Rows of each object id: [(object, row indices)], by one stable sort (not a mask per object)."""
+    if oid.numel() == 0:
+        return []
+    order = torch.argsort(oid, stable=True)
+    ids, counts = torch.unique_consecutive(oid[order], return_counts=True)
+    return list(zip(ids.tolist(), torch.split(order, counts.tolist()), strict=True))
+
+
 class _Layers:
     """Band index and quotient weight of every (object, layer) at a banded vertex."""
 
@@ -518,16 +527,16 @@ class _Layers:
         idx = torch.full((n, L), -1 if self.level == 2 else 0, dtype=torch.long)
         wgt = torch.zeros(n, L, 3, dtype=wi.dtype)
         up = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).to(wi.dtype)[:, None]
-        for o in oid.unique().tolist():
-            m = oid == o
+        for o, m in _by_object(oid):
             spec = self.per_object[o]
+            wim, wom = wi[m], wo[m]
             if spec is None:
-                wgt[m, 0] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
+                wgt[m, 0] = self.brdfs[o].eval_local(wim, wom).to(wi.dtype)
                 continue
             basis, quotients, J, off = spec
-            band = basis.index(basis.gamma(wi[m], wo[m]))
+            band = basis.index(basis.gamma(wim, wom))
             for layer, q in enumerate(quotients):
-                qv = q(wi[m], wo[m]).to(wi.dtype)
+                qv = q(wim, wom).to(wi.dtype)
                 qv = qv[:, None].expand(-1, 3) if qv.ndim == 1 else qv
                 idx[m, layer] = off + layer * J + band
                 wgt[m, layer] = qv * up[m]
@@ -588,10 +597,11 @@ class _Tracer:
         return self.scene.trace(o, d)
 
     def _fixed_f(self, oid, wi, wo):
-        out = torch.zeros(oid.numel(), 3, dtype=wi.dtype)
-        for o in oid.unique().tolist():
-            m = oid == o
-            out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
+        """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""
+        out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
+        for o, m in _by_object(oid):
+            if not self.editable[o]:
+                out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
         return out
 
     @torch.no_grad()
@@ -691,7 +701,7 @@ class _Tracer:
                 if rec_p is not None:
                     rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
             else:
-                f = torch.where(ed[:, None], torch.ones(1, 3), self._fixed_f(oid, wi, wo))
+                f = self._fixed_f(oid, wi, wo)
                 raw = raw * f * cosw[:, None]
                 counts = counts.clone()
                 counts[ed, oid[ed]] += 1
@@ -735,7 +745,7 @@ class _Tracer:
             ]
             extra = None
         else:
-            f = torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))
+            f = torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))  # D = cos/pi
             cnt = cnt.clone()
             cnt[ed, ob[ed]] += 1
             scale = math.pi ** -(cnt.sum(-1).double() - ed.double()).float()  # 1/pi of earlier D vertices
@@ -792,6 +802,20 @@ def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
     return key
 
 
+def _multiset_ids(counts: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Dense ids of the distinct rows of ``counts`` (n, M) int8: one exact int64 code per row
+    (base = max count + 1) when it fits in 62 bits, else ``unique(dim=0)``."""
+    m = counts.shape[1]
+    base = int(counts.max()) + 1 if counts.numel() else 1
+    if m * math.log2(max(base, 2)) < 62:
+        powers = base ** torch.arange(m, dtype=torch.long)
+        code = (counts.long() * powers).sum(-1)
+        uniq, zid = torch.unique(code, return_inverse=True)
+        return zid, uniq.numel()
+    uniq, zid = torch.unique(counts, dim=0, return_inverse=True)
+    return zid, uniq.shape[0]
+
+
 def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) -> dict[str, torch.Tensor]:
     """Sum rows with equal (record, object, bounce, j, w, counts[, path]) keys.
 
@@ -799,14 +823,14 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
     when ``by_path``; otherwise ``sq`` is summed from the input's ``sq``)."""
     if not d:
         return {}
-    z_rows, zid = torch.unique(d["counts"], dim=0, return_inverse=True)
+    zid, nz = _multiset_ids(d["counts"])
     cols = [
         (d["rec"], sizes["rec"]),
         (d["obj"], sizes["obj"]),
         (d["bounce"], sizes["bounce"]),
         (d["j"], sizes["j"]),
         (d["w"] + 1, sizes["w"] + 1),
-        (zid, z_rows.shape[0]),
+        (zid, nz),
     ]
     if by_path:
         cols.append((d["path"], sizes["path"]))
@@ -891,11 +915,15 @@ def _blocks_from_entries(
         upix, prow = torch.unique(rec, return_inverse=True)
         table = term_index.setdefault(bounce, {})
         tw, tc = red["w"][m], red["counts"][m]
-        pairs = torch.cat((tw[:, None], tc.long()), 1)
-        upairs, pinv = torch.unique(pairs, dim=0, return_inverse=True)
+        zid, nz = _multiset_ids(tc)
+        pid = (tw + 1) * nz + zid
+        upid, pinv = torch.unique(pid, return_inverse=True)
+        first = torch.full((upid.numel(),), pid.numel(), dtype=torch.long).scatter_reduce(
+            0, pinv, torch.arange(pid.numel()), reduce="amin"
+        )
         gids = []
-        for row in upairs.tolist():
-            t = tuple(row)
+        for w_, row in zip(tw[first].tolist(), tc[first].tolist(), strict=True):
+            t = (w_, *row)
             if t not in table:
                 table[t] = len(table)
             gids.append(table[t])
@@ -905,13 +933,13 @@ def _blocks_from_entries(
         rank[order] = torch.arange(order.numel())
         tid = rank[pinv]
         J = 1 if bases[obj] is None else bases[obj].size
-        vals = torch.zeros(3, J, upairs.shape[0], upix.numel(), dtype=torch.float64)
-        vv = torch.zeros_like(vals)
-        jj = red["j"][m]
-        for c in range(3):
-            vals[c].index_put_((jj, tid, prow), mean[m, c], accumulate=True)
-            vv[c].index_put_((jj, tid, prow), var[m, c], accumulate=True)
-        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], vals.float(), vv.float()))
+        z, p = upid.numel(), upix.numel()
+        flat = (red["j"][m] * z + tid) * p + prow  # unique per row: plain assignment
+        vals = torch.zeros(3, J * z * p)
+        vv = torch.zeros(3, J * z * p)
+        vals[:, flat] = mean[m].T.float()
+        vv[:, flat] = var[m].T.float()
+        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], vals.view(3, J, z, p), vv.view(3, J, z, p)))
     return out
 
 
