@@ -1,6 +1,6 @@
 r"""Interactive rendering of the multibounce polynomial (Ben-Artzi et al. 2008, Sec. 5.2).
 
-Full evaluation (Eq. 26 / Eq. 29, batched einsum per tensor block):
+Full evaluation (Eq. 26 / Eq. 29, batched matrix products per tensor block):
 
 .. math:: B(x) = E(x) + \sum_N\sum_j\sum_t T^N_{jt}(x)\,c_j\,g_t, \qquad
           g_t = \hat c_{w_t}\prod_m d_m^{\,n_m(t)}.
@@ -58,6 +58,21 @@ def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None
             if bool(sel.any()):
                 g = g * torch.where(sel, d[m], torch.ones_like(d[m]))
     return g
+
+
+def _contract_eye(vals: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    r""":math:`\sum_j c_{jc} T_{cjzp}` -> (C, Z, P): one matrix-vector product per channel over
+    the contiguous (J, Z·P) view (no permuted copy of the block)."""
+    ch, j, z, p = vals.shape
+    return torch.bmm(c.T.unsqueeze(1), vals.reshape(ch, j, z * p)).reshape(ch, z, p)
+
+
+def _contract_terms(vals: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    r""":math:`\sum_z A_{czk} T_{c\ldots zp}`: vals (C, ..., Z, P), a (C, Z, K) -> (C, ..., K, P),
+    as broadcast matrix products :math:`A^T (K, Z) @ (Z, P)` over the leading axes."""
+    if vals.ndim == 4:
+        return torch.matmul(a.transpose(1, 2).unsqueeze(1), vals)
+    return torch.matmul(a.transpose(1, 2), vals)
 
 
 class PolynomialRenderer(nn.Module):
@@ -277,7 +292,8 @@ class PolynomialRenderer(nn.Module):
         out[0] = out[0] + self.emission
         for i, b in enumerate(self.blocks):
             vals = getattr(self, f"block{i}")
-            contrib = torch.einsum("cjzp,jc,zc->cp", vals, self._eye(b.object_id), g[b.bounce][b.terms])
+            gz = g[b.bounce][b.terms].T  # (C, Z)
+            contrib = torch.bmm(gz.unsqueeze(1), _contract_eye(vals, self._eye(b.object_id))).squeeze(1)
             pw = self._pixel_weights(b.object_id, b.pixels)
             if pw is not None:
                 contrib = contrib * pw
@@ -319,12 +335,12 @@ class PolynomialRenderer(nn.Module):
         for q, bl in mine:
             vals = getattr(self, f"block{q}")
             cols = torch.searchsorted(pix_i, bl.pixels)
-            F.index_add_(3, cols, torch.einsum("cjzp,czk->cjkp", vals, amat[bl.bounce][:, bl.terms]))
+            F.index_add_(3, cols, _contract_terms(vals, amat[bl.bounce][:, bl.terms]))
         V = torch.zeros(3, K, pix_r.numel(), dtype=self.dtype)
         for q, bl in rest:
             vals = getattr(self, f"block{q}")
             cols = torch.searchsorted(pix_r, bl.pixels)
-            contrib = torch.einsum("cjzp,jc,czk->ckp", vals, self._eye(bl.object_id), amat[bl.bounce][:, bl.terms])
+            contrib = _contract_terms(_contract_eye(vals, self._eye(bl.object_id)), amat[bl.bounce][:, bl.terms])
             pw = self._pixel_weights(bl.object_id, bl.pixels)
             if pw is not None:
                 contrib = contrib * pw[:, None, :]
