@@ -387,3 +387,48 @@ def fit_pca(z: torch.Tensor, q: int, weights: torch.Tensor | None = None) -> PCA
     mean = zw.mean(0)
     _, _, vh = torch.linalg.svd(zw - mean, full_matrices=False)
     return PCABasis(mean, vh[:q].contiguous(), w)
+
+
+# -- a synthetic family (tests, notebook, --quick benchmark) ------------------------------------------
+def analytic_rows(params: torch.Tensor, grid: MERLGrid) -> torch.Tensor:
+    r"""Rows of a 2-parameter family of analytic isotropic BRDFs on ``grid`` (no data needed).
+
+    :math:`\rho = k_d/\pi + k_s\,\frac{n+2}{2\pi}\cos^n\theta_h\,F(\theta_d)` with Schlick's
+    :math:`F = F_0 + (1 - F_0)(1 - \cos\theta_d)^5`, :math:`n = 10^{1 + 2 t_1}`,
+    :math:`k_d = (0.05 + 0.5 t_2)\,(1, 0.8, 0.6)`, :math:`k_s = 0.5`, :math:`F_0 = 0.04`. Reciprocal
+    and non-negative; a smooth 2-D manifold in :math:`(t_1, t_2) \in [0, 1]^2`.
+
+    Args:
+        params: (N, 2) values of :math:`(t_1, t_2)`.
+    Returns:
+        (N, 3 * B) float64 rows (RGB blocks over ``grid``'s valid bins).
+    """
+    params = torch.as_tensor(params, dtype=torch.float64)
+    if params.ndim != 2 or params.shape[1] != 2:
+        raise ShapeError(f"Expected params of shape (N, 2); got {tuple(params.shape)}")
+    th, td, _ = merl_index_to_angles(*grid.indices, at="lower", dtype=torch.float64)
+    TH, TD = torch.meshgrid(th, td, indexing="ij")
+    v = grid.valid()
+    ch = TH.cos()[..., None].expand(*grid.shape)[v]
+    cd = TD.cos()[..., None].expand(*grid.shape)[v]
+    fres = 0.04 + 0.96 * (1 - cd) ** 5
+    n = 10 ** (1 + 2 * params[:, :1])
+    spec = 0.5 * (n + 2) / (2 * math.pi) * ch[None] ** n * fres[None]
+    tint = torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)
+    kd = (0.05 + 0.5 * params[:, 1:])[:, :, None] * tint[None, :, None]  # (N, 1, 3) -> per channel
+    rows = kd.reshape(-1, 3, 1) / math.pi + spec[:, None, :]
+    return rows.reshape(params.shape[0], -1)
+
+
+def analytic_observations(
+    n: int = 30, grid: MERLGrid | None = None, generator: torch.Generator | None = None
+) -> tuple[Observations, torch.Tensor]:
+    """``n`` random members of :func:`analytic_rows` (parameters uniform in [0, 1]^2, seeded).
+
+    Returns:
+        (observations with source ``"analytic"``, params (n, 2)).
+    """
+    grid = grid or MERLGrid.strided(9, 9, 18)
+    params = torch.rand(n, 2, generator=generator, dtype=torch.float64)
+    z = analytic_rows(params, grid).to(torch.float32)
+    return Observations(z, tuple(f"analytic-{i:03d}" for i in range(n)), grid, "analytic"), params

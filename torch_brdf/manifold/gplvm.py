@@ -85,7 +85,7 @@ def gram(
     s = None
     d = 0
     for blk in blocks:
-        blk = _check_matrix(blk, "z")
+        blk = _check_matrix(blk, "z").detach()
         if weights is not None:
             if not isinstance(z, torch.Tensor | np.ndarray):
                 raise ShapeError("weights are only supported with a single (N, d) matrix")
@@ -114,7 +114,7 @@ def _check_gram(s: torch.Tensor, d: int) -> torch.Tensor:
         raise ValueRangeError("Gram matrix S holds NaN/Inf")
     if int(d) < 1:
         raise ValueRangeError(f"d (number of columns of Z) must be >= 1; got {d}")
-    return s.to(torch.float64)
+    return s.detach().to(torch.float64)
 
 
 # -- objective ------------------------------------------------------------------------------------
