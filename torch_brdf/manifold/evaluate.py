@@ -50,7 +50,7 @@ def heldout_reconstruction(
     q: int,
     *,
     fit_weights: torch.Tensor | None = None,
-    starts: int = 8,
+    starts: int = 4,
     generator: torch.Generator | None = None,
     **fit_kwargs,
 ) -> HeldOut:

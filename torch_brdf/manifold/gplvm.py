@@ -738,8 +738,8 @@ class GPLVM(torch.nn.Module):
         return self.blend(xs, self.z, chunk)
 
     def project(
-        self, target_gram: torch.Tensor, target_cross: torch.Tensor, target_sq: float = 0.0, starts: int = 8,
-        max_iter: int = 200,
+        self, target_gram: torch.Tensor, target_cross: torch.Tensor, target_sq: float = 0.0, starts: int = 4,
+        max_iter: int = 100,
     ) -> tuple[torch.Tensor, float]:  # fmt: skip
         r"""Out-of-sample latent of a new BRDF: :math:`x_* = \arg\min_x \lVert W(b(x)^\top Z - z)\rVert^2`.
 
@@ -759,6 +759,11 @@ class GPLVM(torch.nn.Module):
         n = self.latents.shape[0]
         if g_mat.shape != (n, n) or g_vec.shape != (n,):
             raise ShapeError(f"Expected G ({n}, {n}) and g ({n},); got {tuple(g_mat.shape)}, {tuple(g_vec.shape)}")
+        with small_matrix_mode(n):
+            return self._project(g_mat, g_vec, float(target_sq), starts, max_iter)
+
+    def _project(self, g_mat, g_vec, target_sq: float, starts: int, max_iter: int) -> tuple[torch.Tensor, float]:
+        n = self.latents.shape[0]
         at_data = torch.diagonal(g_mat) - 2 * g_vec
         order = torch.argsort(at_data)[: max(1, min(starts, n))]
         best_x, best_e = None, math.inf
