@@ -91,7 +91,8 @@ class LatentPath:
     """A best path between two latent points.
 
     Attributes:
-        waypoints: (K, Q) latents from start to end (exact endpoints, grid nodes between).
+        waypoints: (K, Q) latents: the exact start, the grid nodes of the Dijkstra path (the
+            start's and end's nearest nodes included), the exact end.
         weights: (K, N) blending weights b of each waypoint (z = weights @ Z).
         variance: (K,) predictive variance at the waypoints.
         length: Euclidean latent length. max_variance: largest waypoint variance.
@@ -166,7 +167,7 @@ def best_path(
     while chain[-1] != s_node:
         chain.append(int(pred[chain[-1]]))
     chain.reverse()
-    pts = [a, *[nodes[k] for k in chain[1:-1]], b] if len(chain) > 1 else [a, b]
+    pts = [a, *[nodes[k] for k in chain], b]
     way = torch.stack(pts)
     variance = model.variance(way)
     return LatentPath(
