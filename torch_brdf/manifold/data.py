@@ -432,3 +432,43 @@ def analytic_observations(
     params = torch.rand(n, 2, generator=generator, dtype=torch.float64)
     z = analytic_rows(params, grid).to(torch.float32)
     return Observations(z, tuple(f"analytic-{i:03d}" for i in range(n)), grid, "analytic"), params
+
+
+def nbrdf_column_blocks(
+    weights_path: str | os.PathLike,
+    grid: MERLGrid,
+    names: Sequence[str] | None = None,
+    theta_h_per_block: int = 3,
+    cosine_weighted: bool = True,
+    progress: bool = True,
+) -> Iterator[torch.Tensor]:
+    """Stream the NBRDF observation matrix on ``grid`` (e.g. the FULL grid) in column blocks.
+
+    Each block holds the valid bins of ``theta_h_per_block`` theta_h indices for every material
+    (RGB), optionally multiplied by the clipped cosine map, so ``gram(nbrdf_column_blocks(...))``
+    is the (weighted) Gram matrix of the full-resolution ``Z`` with one block in memory at a
+    time (the full grid: 100 x 4.4 M values would be 1.7 GB in float32). Column order differs
+    from :func:`nbrdf_observations` (theta_h-major here), which the Gram matrix does not see.
+    """
+    from ..brdf.measured import NBRDF, tabulate_nbrdf
+    from ..io.merl import load_nbrdf_weights
+
+    w = load_nbrdf_weights(weights_path)
+    names = tuple(names) if names is not None else w.names
+    models = [NBRDF(n, w) for n in names]
+    th_all = grid.theta_h_index
+    valid = grid.valid()
+    wi, wo = grid.directions()
+    cos = (wi[..., 2] * wo[..., 2]).clamp(0.01, 1.0)
+    steps = range(0, len(th_all), theta_h_per_block)
+    for a in tqdm(steps, desc="NBRDF Gram blocks", disable=not progress):
+        sl = slice(a, a + theta_h_per_block)
+        idx = (th_all[sl], grid.theta_d_index, grid.phi_d_index)
+        v = valid[sl]
+        rows = []
+        for m in models:
+            t = tabulate_nbrdf(m, *idx, mask_horizon=False)  # (3, th, Td, Tp)
+            if cosine_weighted:
+                t = t * cos[sl]
+            rows.append(t[:, v].reshape(-1))
+        yield torch.stack(rows)

@@ -479,7 +479,7 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
         hist.append(f)
         if callback is not None:
             callback(it, f)
-        bar.set_postfix(loglik=f"{f:.6g}")
+        bar.set_postfix(loglik=f"{f:.6g}", refresh=False)
         if done:
             break
     return x, hist, rejected, jitter
@@ -618,7 +618,7 @@ def _fit_hooke_jeeves(x0, s, d, ell, mu, jitter, max_iter, tol, step, progress, 
         hist.append(max(st.loglik, hist[-1]))
         if callback is not None:
             callback(it, hist[-1])
-        bar.set_postfix(loglik=f"{hist[-1]:.6g}", step=f"{step:.2g}")
+        bar.set_postfix(loglik=f"{hist[-1]:.6g}", step=f"{step:.2g}", refresh=False)
         if done or step < min_step:
             break
     return torch.from_numpy(st.x.copy()), hist, rejected, jitter
