@@ -20,7 +20,16 @@ Prints progress lines, then one JSON object as the LAST line:
   ``predict_rows_per_s``: full interpolated rows z* = bᵀZ per second.
 * ``heldout_logrmse``, ``pca_heldout_logrmse`` (q = 5), ``..._q2`` and cosine-weighted RMSEs:
   mean over the 20 held-out materials of ``datasets/merl_split.txt``.
-* ``blend_fps_512``: blended 512x512 RGB frames per second from a 100-material record.
+* ``blend_fps_512``: blended 512x512 RGB frames per second from a 100-material record (random
+  values: the speed of ``BasisImage.image`` does not depend on them).
+* the seed's limitation: ``path_*`` along the best path chrome -> silver-paint (q = 2, variance
+  weight 10) and ``slice_*`` over a 2-D slice: fraction of negative BRDF values (max / mean over
+  interpolants, share of slice points with any) and the maximum directional albedo of
+  interpolants (``training_max_albedo`` for the measured rows themselves).
+* ``gi_blend_rel_l1/_rmse``: seed Eq. 12, blended GI renders (3 bounces) of a few materials vs a
+  GI render of the interpolated BRDF at the midpoint of their best path (sphere on a plane
+  under the sky); ``direct_blend_*`` the same with direct light only (exact up to the clamp of
+  negative values, ``gi_midpoint_negative_fraction``).
 * ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM; Adam as in
   their GPLVM tutorial), q = 2, same normalised data: seconds, their iterations, and Eq. 6
   evaluated by our code at their final latents (same objective, so directly comparable);
@@ -51,7 +60,8 @@ from torch_brdf.manifold.data import (
 )
 from torch_brdf.manifold.evaluate import heldout_reconstruction
 from torch_brdf.manifold.gplvm import GPLVM, fit_gplvm, gram, log_likelihood, pca_latents
-from torch_brdf.manifold.render import random_record
+from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from torch_brdf.manifold.render import blend, gi_blend_error, material_record, random_record, render_rows, sphere_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -171,6 +181,63 @@ def blend_fps(n: int, size: int, repeats: int) -> float:
     return repeats / (time.perf_counter() - t0)
 
 
+def limitation(model: GPLVM, obs: Observations, ends: tuple, quick: bool) -> dict:
+    """Negative values and max directional albedo of interpolants along a best path and across a slice."""
+    alb = directional_albedo(obs.z, obs.grid)
+    path = best_path(model, *ends, variance_weight=10.0)
+    dp = interpolant_diagnostics(path.weights, obs.z, alb)
+    sl = latent_slice(model, resolution=12 if quick else 24)
+    ds = interpolant_diagnostics(model.weights(sl.points.reshape(-1, model.q)), obs.z, alb)
+    train_max = float(alb.flatten(1).max(-1).values.max())
+    return {
+        "path_ends": list(ends) if isinstance(ends[0], str) else [int(e) for e in ends],
+        "path_waypoints": len(path.waypoints),
+        "path_max_variance": path.max_variance,
+        "path_negative_fraction_max": float(dp.negative_fraction.max()),
+        "path_negative_fraction_mean": float(dp.negative_fraction.mean()),
+        "path_max_albedo": float(dp.max_albedo.max()),
+        "slice_points_with_negatives": float((ds.negative_fraction > 0).double().mean()),
+        "slice_negative_fraction_mean": float(ds.negative_fraction.mean()),
+        "slice_max_albedo": float(ds.max_albedo.max()),
+        "training_max_albedo": train_max,
+    }
+
+
+def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
+    """Seed Eq. 12: blend GI renders of k materials; compare with a GI render of the interpolated BRDF.
+
+    k materials (the two ends and their nearest neighbours by Gram distance), a GPLVM on them, the
+    midpoint of their best path; renders share their random numbers (same seed), so the difference
+    is the L2+ paths (and the clamp of negative values), not independent noise.
+    """
+    k = 4 if quick else 6
+    z = obs.z.double()
+    i0 = obs.names.index(ends[0]) if isinstance(ends[0], str) else int(ends[0])
+    i1 = obs.names.index(ends[1]) if isinstance(ends[1], str) else int(ends[1])
+    dist = torch.cdist(z, z[[i0, i1]]).min(1).values
+    sub = sorted(set([i0, i1] + dist.argsort()[: k + 2].tolist()))[:k]
+    if i1 not in sub:
+        sub[-1] = i1
+    zk = z[sub]
+    s, d = gram(zk, obs.cosine_weights())
+    model = GPLVM(fit_gplvm(s, d, 2, max_iter=300, generator=torch.Generator().manual_seed(0)), zk)
+    path = best_path(model, sub.index(i0), sub.index(i1), variance_weight=10.0, resolution=24)
+    w = path.weights[len(path.weights) // 2]
+    scene = sphere_scene(24 if quick else 48)
+    out = {"gi_materials": [obs.names[i] for i in sub]}
+    for bounces in (1, 3):
+        spp = 2 if quick else 8
+        rows = torch.cat([zk, torch.zeros_like(zk[:1])])  # the last render: a black material
+        imgs = render_rows(scene, "sample", rows, obs.grid, spp=spp, max_bounces=bounces, progress=False)
+        rec = material_record(imgs[:-1], constant=imgs[-1])
+        ref = render_rows(scene, "sample", (w @ zk)[None], obs.grid, spp=spp, max_bounces=bounces, progress=False)[0]
+        err = gi_blend_error(blend(rec, w), ref)
+        tag = "direct" if bounces == 1 else "gi"
+        out[f"{tag}_blend_rel_l1"], out[f"{tag}_blend_rel_rmse"] = err["rel_l1"], err["rel_rmse"]
+    out["gi_midpoint_negative_fraction"] = float(((w @ zk) < 0).double().mean())
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small grid and short fits")
@@ -205,6 +272,14 @@ def main(argv=None) -> dict:
     _log(f"Hooke-Jeeves q=2: {hj['loglik']:.6g} in {hj['seconds']:.2f} s")
     rate, rows = interp_rate(model2, obs.z, quick)
     out["interp_per_s"], out["predict_rows_per_s"] = round(rate), round(rows, 1)
+    ends = ("chrome", "silver-paint") if obs.source == "nbrdf" else (0, 5)
+    out.update(limitation(model2, obs, ends, quick))
+    _log(
+        f"limitation: path max negative fraction {out['path_negative_fraction_max']:.3f}, "
+        f"max albedo {out['path_max_albedo']:.3g}"
+    )
+    out.update(gi_experiment(obs, ends, quick))
+    _log(f"GI blend vs render: rel L1 {out['gi_blend_rel_l1']:.3g} (direct light: {out['direct_blend_rel_l1']:.2g})")
     split_file = ROOT / "datasets" / "merl_split.txt"
     train, test = read_split(split_file) if obs.source == "nbrdf" else split_names(obs.names)
     out["split"] = str(split_file.relative_to(ROOT)) if obs.source == "nbrdf" else "split_names (every 5th)"

@@ -108,19 +108,36 @@ def render_rows(
     return torch.stack(out)
 
 
-def material_record(images: torch.Tensor, names: Sequence[str] = (), meta: dict | None = None) -> BasisImage:
+def material_record(
+    images: torch.Tensor, names: Sequence[str] = (), constant: torch.Tensor | None = None, meta: dict | None = None
+) -> BasisImage:
     """The per-material images as one :class:`BasisImage` (``J = N`` materials, ``values (C, N, P)``).
+
+    The image is *affine* in the BRDF (seed Sec. 3.3: paths that never meet the material do not
+    depend on it). With ``constant`` = the render with a black material (all-zero row), the record
+    holds ``I_i - constant`` and ``constant``, so ``record.image(b) = constant + sum_i b_i (I_i -
+    constant)`` is exact for any weights; without it, ``sum_i b_i I_i`` (seed Eq. 8) is exact only
+    when ``sum_i b_i = 1`` or nothing but the material is visible.
 
     Args:
         images: (N, H, W, C) one image per training material (in the fit's row order).
         names: material names (recorded in the basis label's digest and ``meta``).
+        constant: (H, W, C) render with the material set to zero, or None.
     """
     images = torch.as_tensor(images)
     if images.ndim != 4:
         raise ShapeError(f"Expected images of shape (N, H, W, C); got {tuple(images.shape)}")
     digest = hashlib.sha256("\n".join(names).encode()).hexdigest()[:8] if names else "unnamed"
+    if constant is not None:
+        constant = torch.as_tensor(constant).to(images.dtype)
+        if constant.shape != images.shape[1:]:
+            raise ShapeError(f"Expected constant of shape {tuple(images.shape[1:])}; got {tuple(constant.shape)}")
+        images = images - constant
     return BasisImage.from_dense(
-        images, basis=f"materials:{images.shape[0]}:{digest}", meta={**(meta or {}), "names": list(names)}
+        images,
+        constant=constant,
+        basis=f"materials:{images.shape[0]}:{digest}",
+        meta={**(meta or {}), "names": list(names), "affine": constant is not None},
     )
 
 
