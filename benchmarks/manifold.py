@@ -29,7 +29,8 @@ Prints progress lines, then one JSON object as the LAST line:
 * ``gi_blend_rel_l1/_rmse``: seed Eq. 12, blended GI renders (3 bounces) of a few materials vs a
   GI render of the interpolated BRDF at the midpoint of their best path (sphere on a plane
   under the sky); ``direct_blend_*`` the same with direct light only (exact up to the clamp of
-  negative values, ``gi_midpoint_negative_fraction``).
+  negative values, ``gi_midpoint_negative_fraction``); ``gi_weights`` the blending weights used and
+  ``gi_convex_blend_rel_l1`` the GI error of the uniform convex blend of the same renders.
 * ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM; Adam as in
   their GPLVM tutorial), q = 2, same normalised data: seconds, their iterations, and Eq. 6
   evaluated by our code at their final latents (same objective, so directly comparable);
@@ -235,6 +236,11 @@ def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
         tag = "direct" if bounces == 1 else "gi"
         out[f"{tag}_blend_rel_l1"], out[f"{tag}_blend_rel_rmse"] = err["rel_l1"], err["rel_rmse"]
     out["gi_midpoint_negative_fraction"] = float(((w @ zk) < 0).double().mean())
+    out["gi_weights"] = [round(float(v), 4) for v in w]  # L2+ is quadratic in rho: large cancelling weights hurt
+    # control: a convex blend (weights 1/k) of the same renders, where Eq. 12 should hold up to L2+
+    wc = torch.full((len(sub),), 1.0 / len(sub), dtype=torch.float64)
+    ref = render_rows(scene, "sample", (wc @ zk)[None], obs.grid, spp=spp, max_bounces=3, progress=False)[0]
+    out["gi_convex_blend_rel_l1"] = gi_blend_error(blend(rec, wc), ref)["rel_l1"]
     return out
 
 
