@@ -87,6 +87,14 @@ def test_fit_is_monotone_and_improves(method):
     assert abs(again - fit.final_loglik) <= 1e-8 * abs(again)
 
 
+def test_lbfgs_with_autograd_gradients_follows_the_same_path():
+    obs, _ = small_family(12)
+    s, d = gram(obs.z)
+    a = fit_gplvm(s, d, 2, max_iter=15, generator=torch.Generator().manual_seed(1))
+    b = fit_gplvm(s, d, 2, max_iter=15, autograd=True, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(a.loglik, b.loglik, rtol=1e-6, atol=0)
+
+
 def test_rank_one_updates_match_refactorisation(gen):
     x = torch.randn(10, 2, generator=gen, dtype=torch.float64).numpy()
     z = torch.randn(10, 6, generator=gen, dtype=torch.float64)
