@@ -52,9 +52,13 @@ def se_kernel(x1: torch.Tensor, x2: torch.Tensor, lengthscale: float = 1.0) -> t
         raise ShapeError(f"Expected x1 (M, Q) and x2 (N, Q) with the same Q; got {tuple(x1.shape)}, {tuple(x2.shape)}")
     if not lengthscale > 0:
         raise ValueRangeError(f"lengthscale must be > 0; got {lengthscale}")
-    # differences instead of the expanded form: exact 0 on coincident points, smooth gradients
-    diff = x1[:, None, :] - x2[None, :, :]
-    return torch.exp(-(diff * diff).sum(-1) / (2 * lengthscale**2))
+    # differences instead of the expanded form: exact 0 on coincident points, smooth gradients;
+    # accumulated per latent axis (a reduction over a last axis of size 2..5 is slow in torch)
+    sq = None
+    for k in range(x1.shape[1]):
+        diff = x1[:, k, None] - x2[None, :, k]
+        sq = diff * diff if sq is None else sq + diff * diff
+    return torch.exp(sq * (-0.5 / lengthscale**2))
 
 
 def kernel_matrix(x: torch.Tensor, lengthscale: float = 1.0, mu: float = 1e-6) -> torch.Tensor:
