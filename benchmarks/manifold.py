@@ -1,0 +1,316 @@
+"""BRDF manifold benchmark: GPLVM fits, interpolation, held-out reconstruction vs PCA, blending.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/manifold.py [--quick] [--cache PATH] [--no-peer]
+
+Data: the 100 NBRDF fits of the MERL materials (an APPROXIMATION of MERL, shared data)
+tabulated on the default grid (theta_h / theta_d every 3rd index, phi_d every 6th; valid bins
+only; 63,339 columns) and cached (``$TORCH_BRDF_CACHE`` or ``~/.cache/torch_brdf``). With
+``--quick`` the grid is coarser (every 9th / 9th / 18th index) and fits are shorter; without
+the shared data, the analytic family of :func:`torch_brdf.manifold.data.analytic_rows`
+(100 members) stands in and ``"data"`` says so.
+
+Prints progress lines, then one JSON object as the LAST line:
+
+* ``fit_s_q2``, ``fit_s_q5``, ``loglik_q2``, ``loglik_q5``: fits on all materials (cosine
+  weights, normalised data, L-BFGS from PCA; log-likelihood of Eq. 6 without its constant);
+  ``loglik_curve_q2/_q5``: every 10th value of the history; ``monotone_q2/_q5``;
+  ``repro_rel_err_q2/_q5``: max relative error reproducing the rows at the training latents.
+* ``hj_fit_s_q2``, ``hj_loglik_q2``: the seed's Hooke–Jeeves search on the same data.
+* ``interp_per_s``: blending weights b(x*) per second (batches of 10k random latents);
+  ``predict_rows_per_s``: full interpolated rows z* = bᵀZ per second.
+* ``heldout_logrmse``, ``pca_heldout_logrmse`` (q = 5), ``..._q2`` and cosine-weighted RMSEs:
+  mean over the 20 held-out materials of ``datasets/merl_split.txt``.
+* ``blend_fps_512``: blended 512x512 RGB frames per second from a 100-material record (random
+  values: the speed of ``BasisImage.image`` does not depend on them).
+* the seed's limitation: ``path_*`` along the best path chrome -> silver-paint (q = 2, variance
+  weight 10) and ``slice_*`` over a 2-D slice: fraction of negative BRDF values (max / mean over
+  interpolants, share of slice points with any) and the maximum directional albedo of
+  interpolants (``training_max_albedo`` for the measured rows themselves).
+* ``gi_blend_rel_l1/_rmse``: seed Eq. 12, blended GI renders (3 bounces) of a few materials vs a
+  GI render of the interpolated BRDF at the midpoint of their best path (sphere on a plane
+  under the sky); ``direct_blend_*`` the same with direct light only (exact up to the clamp of
+  negative values, ``gi_midpoint_negative_fraction``); ``gi_weights`` the blending weights used and
+  ``gi_convex_blend_rel_l1`` the GI error of the uniform convex blend of the same renders.
+* ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM; Adam as in
+  their GPLVM tutorial), q = 2, same normalised data: seconds, their iterations, and Eq. 6
+  evaluated by our code at their final latents (same objective, so directly comparable);
+  ``time_ratio_gpytorch_over_ours`` and ``loglik_ours_minus_gpytorch``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from torch_brdf.data import data_path
+from torch_brdf.manifold.data import (
+    MERLGrid,
+    Observations,
+    analytic_rows,
+    default_grid,
+    nbrdf_observations,
+    read_split,
+    split_names,
+)
+from torch_brdf.manifold.evaluate import heldout_reconstruction
+from torch_brdf.manifold.gplvm import GPLVM, fit_gplvm, gram, log_likelihood, pca_latents
+from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from torch_brdf.manifold.render import blend, gi_blend_error, material_record, random_record, render_rows, sphere_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("TORCH_BRDF_CACHE")
+    p = Path(env) if env else Path.home() / ".cache" / "torch_brdf"
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def load_data(quick: bool, cache: Path | None) -> tuple[Observations, str]:
+    grid = MERLGrid.strided(9, 9, 18) if quick else default_grid()
+    weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
+    if weights is None:
+        g = torch.Generator().manual_seed(0)
+        params = torch.rand(100, 2, generator=g, dtype=torch.float64)
+        z = analytic_rows(params, grid).float()
+        names = tuple(f"analytic-{i:03d}" for i in range(100))
+        return Observations(z, names, grid, "analytic"), "analytic family (no shared NBRDF data)"
+    cache = cache or _cache_dir() / f"merl_nbrdf_{'quick' if quick else 'default'}_{grid.digest()[:8]}.npz"
+    obs = nbrdf_observations(weights, grid, cache=cache, progress=True)
+    return obs, f"NBRDF approximation of MERL, grid {grid.describe()}, {obs.z.shape[1]} columns"
+
+
+def fit_all(obs: Observations, q: int, max_iter: int, method: str = "lbfgs") -> dict:
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(
+        s, d, q, max_iter=max_iter, method=method, names=obs.names, generator=torch.Generator().manual_seed(0)
+    )
+    model = GPLVM(fit, obs.z.double())
+    z = obs.z.double()
+    pred = model.predict(model.latents)
+    repro = float(((pred - z).abs().max(1).values / z.abs().max(1).values.clamp_min(1e-300)).max())
+    ll = fit.loglik
+    return {
+        "fit": fit,
+        "model": model,
+        "seconds": fit.seconds,
+        "loglik": fit.final_loglik,
+        "curve": [round(float(v), 3) for v in ll[::10].tolist()] + [round(float(ll[-1]), 3)],
+        "monotone": bool((ll[1:] >= ll[:-1]).all()),
+        "repro": repro,
+        "iterations": fit.iterations,
+    }
+
+
+def gpytorch_peer(obs: Observations, q: int, iters: int) -> dict | None:
+    try:
+        import gpytorch
+    except ImportError:
+        return None
+    s, d = gram(obs.z, obs.cosine_weights())
+    scale = float(torch.diagonal(s).sum()) / (s.shape[0] * d)
+    y = (obs.z.double() * obs.cosine_weights()).T.contiguous() / math.sqrt(scale)  # (d, N), same data as ours
+
+    class LatentExactGP(gpytorch.models.ExactGP):
+        def __init__(self, x, y, lik):
+            super().__init__(x, y, lik)
+            self.mean = gpytorch.means.ZeroMean()
+            self.cov = gpytorch.kernels.RBFKernel()
+            self.cov.lengthscale = 1.0
+            self.cov.raw_lengthscale.requires_grad_(False)
+
+        def forward(self, x):
+            return gpytorch.distributions.MultivariateNormal(self.mean(x), self.cov(x))
+
+    lik = gpytorch.likelihoods.GaussianLikelihood(noise_constraint=gpytorch.constraints.GreaterThan(0.0))
+    lik.noise = 1e-6
+    lik.raw_noise.requires_grad_(False)
+    x = torch.nn.Parameter(pca_latents(s / scale, q).clone())
+    model = LatentExactGP(x, y, lik).double()
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(lik, model)
+    model.train()
+    lik.train()
+    opt = torch.optim.Adam([x], lr=0.05)
+    t0 = time.perf_counter()
+    with gpytorch.settings.max_cholesky_size(10**6):
+        for _ in range(iters):
+            opt.zero_grad()
+            model.set_train_data(inputs=x, strict=False)
+            loss = -mll(model(x), model.train_targets).sum()
+            loss.backward()
+            opt.step()
+    seconds = time.perf_counter() - t0
+    ll = float(log_likelihood(x.detach(), s / scale, d, 1.0, 1e-6))
+    return {"seconds": seconds, "iterations": iters, "loglik": ll}
+
+
+def interp_rate(model: GPLVM, z: torch.Tensor, quick: bool) -> tuple[float, float]:
+    g = torch.Generator().manual_seed(1)
+    lo, hi = model.latents.min(0).values, model.latents.max(0).values
+    xs = lo + (hi - lo) * torch.rand(10_000, model.q, generator=g, dtype=torch.float64)
+    best = math.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        model.weights(xs)
+        best = min(best, time.perf_counter() - t0)
+    m = 20 if quick else 100
+    t0 = time.perf_counter()
+    model.blend(xs[:m], z)
+    rows = m / (time.perf_counter() - t0)
+    return xs.shape[0] / best, rows
+
+
+def blend_fps(n: int, size: int, repeats: int) -> float:
+    rec = random_record(n, size, size, generator=torch.Generator().manual_seed(2))
+    w = torch.rand(n, generator=torch.Generator().manual_seed(3))
+    rec.image(w)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        rec.image(w)
+    return repeats / (time.perf_counter() - t0)
+
+
+def limitation(model: GPLVM, obs: Observations, ends: tuple, quick: bool) -> dict:
+    """Negative values and max directional albedo of interpolants along a best path and across a slice."""
+    alb = directional_albedo(obs.z, obs.grid)
+    path = best_path(model, *ends, variance_weight=10.0)
+    dp = interpolant_diagnostics(path.weights, obs.z, alb)
+    sl = latent_slice(model, resolution=12 if quick else 24)
+    ds = interpolant_diagnostics(model.weights(sl.points.reshape(-1, model.q)), obs.z, alb)
+    train_max = float(alb.flatten(1).max(-1).values.max())
+    return {
+        "path_ends": list(ends) if isinstance(ends[0], str) else [int(e) for e in ends],
+        "path_waypoints": len(path.waypoints),
+        "path_max_variance": path.max_variance,
+        "path_negative_fraction_max": float(dp.negative_fraction.max()),
+        "path_negative_fraction_mean": float(dp.negative_fraction.mean()),
+        "path_max_albedo": float(dp.max_albedo.max()),
+        "slice_points_with_negatives": float((ds.negative_fraction > 0).double().mean()),
+        "slice_negative_fraction_mean": float(ds.negative_fraction.mean()),
+        "slice_max_albedo": float(ds.max_albedo.max()),
+        "training_max_albedo": train_max,
+    }
+
+
+def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
+    """Seed Eq. 12: blend GI renders of k materials; compare with a GI render of the interpolated BRDF.
+
+    k materials (the two ends and their nearest neighbours by Gram distance), a GPLVM on them, the
+    midpoint of their best path; renders share their random numbers (same seed), so the difference
+    is the L2+ paths (and the clamp of negative values), not independent noise.
+    """
+    k = 4 if quick else 6
+    z = obs.z.double()
+    i0 = obs.names.index(ends[0]) if isinstance(ends[0], str) else int(ends[0])
+    i1 = obs.names.index(ends[1]) if isinstance(ends[1], str) else int(ends[1])
+    dist = torch.cdist(z, z[[i0, i1]]).min(1).values
+    sub = sorted(set([i0, i1] + dist.argsort()[: k + 2].tolist()))[:k]
+    if i1 not in sub:
+        sub[-1] = i1
+    zk = z[sub]
+    s, d = gram(zk, obs.cosine_weights())
+    model = GPLVM(fit_gplvm(s, d, 2, max_iter=300, generator=torch.Generator().manual_seed(0)), zk)
+    path = best_path(model, sub.index(i0), sub.index(i1), variance_weight=10.0, resolution=24)
+    w = path.weights[len(path.weights) // 2]
+    scene = sphere_scene(24 if quick else 48)
+    out = {"gi_materials": [obs.names[i] for i in sub]}
+    for bounces in (1, 3):
+        spp = 2 if quick else 8
+        rows = torch.cat([zk, torch.zeros_like(zk[:1])])  # the last render: a black material
+        imgs = render_rows(scene, "sample", rows, obs.grid, spp=spp, max_bounces=bounces, progress=False)
+        rec = material_record(imgs[:-1], constant=imgs[-1])
+        ref = render_rows(scene, "sample", (w @ zk)[None], obs.grid, spp=spp, max_bounces=bounces, progress=False)[0]
+        err = gi_blend_error(blend(rec, w), ref)
+        tag = "direct" if bounces == 1 else "gi"
+        out[f"{tag}_blend_rel_l1"], out[f"{tag}_blend_rel_rmse"] = err["rel_l1"], err["rel_rmse"]
+    out["gi_midpoint_negative_fraction"] = float(((w @ zk) < 0).double().mean())
+    out["gi_weights"] = [round(float(v), 4) for v in w]  # L2+ is quadratic in rho: large cancelling weights hurt
+    # control: a convex blend (weights 1/k) of the same renders, where Eq. 12 should hold up to L2+
+    wc = torch.full((len(sub),), 1.0 / len(sub), dtype=torch.float64)
+    ref = render_rows(scene, "sample", (wc @ zk)[None], obs.grid, spp=spp, max_bounces=3, progress=False)[0]
+    out["gi_convex_blend_rel_l1"] = gi_blend_error(blend(rec, wc), ref)["rel_l1"]
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small grid and short fits")
+    ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
+    ap.add_argument("--max-iter", type=int, default=None, help="GPLVM iterations (default 1000, quick 200)")
+    ap.add_argument("--no-peer", action="store_true", help="skip the GPyTorch comparison")
+    args = ap.parse_args(argv)
+    quick = args.quick
+    max_iter = args.max_iter or (200 if quick else 1000)
+    out: dict = {"quick": quick, "threads": torch.get_num_threads()}
+    obs, desc = load_data(quick, args.cache)
+    out["data"] = desc
+    out["n_materials"], out["d"] = obs.z.shape
+    for q in (2, 5):
+        r = fit_all(obs, q, max_iter)
+        _log(f"q={q}: loglik {r['loglik']:.6g} in {r['seconds']:.3f} s ({r['iterations']} it), repro {r['repro']:.2e}")
+        out[f"fit_s_q{q}"] = round(r["seconds"], 4)
+        out[f"loglik_q{q}"] = r["loglik"]
+        out[f"iterations_q{q}"] = r["iterations"]
+        out[f"monotone_q{q}"] = r["monotone"]
+        out[f"repro_rel_err_q{q}"] = r["repro"]
+        out[f"loglik_curve_q{q}"] = r["curve"]
+        if q == 2:
+            model2 = r["model"]
+            ours_q2 = r
+    hj = fit_all(obs, 2, 30 if quick else 100, method="hooke-jeeves")
+    out["hj_fit_s_q2"], out["hj_loglik_q2"], out["hj_sweeps_q2"] = (
+        round(hj["seconds"], 3),
+        hj["loglik"],
+        hj["iterations"],
+    )
+    _log(f"Hooke-Jeeves q=2: {hj['loglik']:.6g} in {hj['seconds']:.2f} s")
+    rate, rows = interp_rate(model2, obs.z, quick)
+    out["interp_per_s"], out["predict_rows_per_s"] = round(rate), round(rows, 1)
+    ends = ("chrome", "silver-paint") if obs.source == "nbrdf" else (0, 5)
+    out.update(limitation(model2, obs, ends, quick))
+    _log(
+        f"limitation: path max negative fraction {out['path_negative_fraction_max']:.3f}, "
+        f"max albedo {out['path_max_albedo']:.3g}"
+    )
+    out.update(gi_experiment(obs, ends, quick))
+    _log(f"GI blend vs render: rel L1 {out['gi_blend_rel_l1']:.3g} (direct light: {out['direct_blend_rel_l1']:.2g})")
+    split_file = ROOT / "datasets" / "merl_split.txt"
+    train, test = read_split(split_file) if obs.source == "nbrdf" else split_names(obs.names)
+    out["split"] = str(split_file.relative_to(ROOT)) if obs.source == "nbrdf" else "split_names (every 5th)"
+    for q in (2, 5):
+        h = heldout_reconstruction(obs, train, test, q, max_iter=max_iter, generator=torch.Generator().manual_seed(0))
+        sm = h.summary()
+        _log(f"held-out q={q}: {sm}")
+        suffix = "" if q == 5 else "_q2"
+        for k in ("heldout_logrmse", "pca_heldout_logrmse", "heldout_cosrmse", "pca_heldout_cosrmse"):
+            out[k + suffix] = sm[k]
+        out[f"heldout_wins_vs_pca{suffix}"] = int((h.gplvm_logrmse < h.pca_logrmse).sum())
+    out["blend_fps_512"] = round(blend_fps(obs.z.shape[0], 512, 5 if quick else 20), 2)
+    _log(f"blend 512x512 x {obs.z.shape[0]} materials: {out['blend_fps_512']} fps")
+    if not args.no_peer:
+        peer = gpytorch_peer(obs, 2, 20 if quick else 100)
+        if peer is not None:
+            out["gpytorch_s_q2"] = round(peer["seconds"], 3)
+            out["gpytorch_iterations_q2"] = peer["iterations"]
+            out["gpytorch_loglik_q2"] = peer["loglik"]
+            out["time_ratio_gpytorch_over_ours"] = round(peer["seconds"] / max(ours_q2["seconds"], 1e-9), 2)
+            out["loglik_ours_minus_gpytorch"] = ours_q2["loglik"] - peer["loglik"]
+            _log(f"GPyTorch q=2: {peer['loglik']:.6g} in {peer['seconds']:.2f} s")
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""Non-linear manifold of measured BRDFs (Soler, Subr, Nowrouzezahrai 2017, INRIA RR-9069).
+
+A GPLVM places the materials in a q-dimensional latent space; any latent point x* gives the
+BRDF z* = b(x*)ᵀ Z, a linear combination of the measured rows, so images, ZH coefficients
+and other linear functionals of the BRDF blend with the same weights b.
+
+* :mod:`.kernel`: shifted SE kernel (Eq. 5), Cholesky with jitter escalation.
+* :mod:`.gplvm`: Gram-matrix fit (Eq. 6), :class:`GPLVM` interpolation / variance / projection.
+* :mod:`.data`: MERL grids, observation matrices (NBRDF, ``.binary``), split, metrics, PCA.
+* :mod:`.evaluate`: held-out reconstruction against PCA.
+* :mod:`.paths`: latent slices, best paths, limitation diagnostics.
+* :mod:`.render`: blending per-material images (fixed view, GI).
+* :mod:`.zh`: real SH / rotated ZH shading of interpolated materials.
+"""
+
+from .data import (
+    MERLGrid,
+    Observations,
+    analytic_observations,
+    cosine_weighted_rmse,
+    default_grid,
+    fit_pca,
+    log_relative_rmse,
+    nbrdf_observations,
+    read_split,
+    split_names,
+)
+from .evaluate import HeldOut, heldout_reconstruction
+from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms
+from .kernel import JitterWarning, cholesky_jitter, kernel_matrix
+from .paths import LatentPath, LatentSlice, best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from .render import blend, material_record, render_rows, sphere_scene
+from .zh import ZHCoefficients, env_sh, rows_brdf, zh_coefficients, zh_shade
+
+__all__ = [
+    "GPLVM",
+    "GPLVMFit",
+    "HeldOut",
+    "JitterWarning",
+    "LatentPath",
+    "LatentSlice",
+    "MERLGrid",
+    "Observations",
+    "ZHCoefficients",
+    "analytic_observations",
+    "best_path",
+    "blend",
+    "cholesky_jitter",
+    "cosine_weighted_rmse",
+    "default_grid",
+    "directional_albedo",
+    "env_sh",
+    "fit_gplvm",
+    "fit_pca",
+    "gram",
+    "heldout_reconstruction",
+    "interpolant_diagnostics",
+    "kernel_matrix",
+    "latent_slice",
+    "log_likelihood",
+    "log_relative_rmse",
+    "material_record",
+    "nbrdf_observations",
+    "projection_terms",
+    "read_split",
+    "render_rows",
+    "rows_brdf",
+    "sphere_scene",
+    "split_names",
+    "zh_coefficients",
+    "zh_shade",
+]

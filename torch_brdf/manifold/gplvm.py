@@ -1,0 +1,830 @@
+r"""GPLVM over an observation matrix, fitted through its Gram matrix.
+
+Seed: Soler, Subr, Nowrouzezahrai 2017 (INRIA RR-9069), Sec. 3.1. The latents
+:math:`X \in \mathbb{R}^{N \times Q}` maximise (Eq. 6)
+
+.. math:: L(X) = -\frac{d}{2}\log|K| - \frac{1}{2}\operatorname{tr}(K^{-1} Z Z^\top),
+
+with :math:`K_{ij} = c(x_i, x_j)` the shifted SE kernel (Eq. 5). ``L`` depends on ``Z`` only
+through the Gram matrix :math:`S = Z Z^\top` (N x N) and the width ``d``, so every optimiser
+here takes ``(S, d)``: a step costs :math:`O(N^3)` whatever ``d`` (never :math:`O(N^2 d)`, never
+a d x d matrix). :func:`gram` accumulates ``S`` over column chunks, so the full MERL grid
+never has to be in memory at once.
+
+Two optimisers, both monotone (the log-likelihood never decreases over the recorded
+iterations):
+
+* ``"lbfgs"`` (default): L-BFGS (two-loop recursion) on the exact gradient — closed form
+  :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
+  ``autograd=True`` (equal, tested) — with a backtracking Armijo line search: a step is taken
+  only if it raises ``L``; otherwise the curvature memory is dropped, then the fit stops.
+* ``"adam"``: autograd + Adam, a step that lowers ``L`` is undone and the learning rate halved.
+* ``"hooke-jeeves"``: the seed's derivative-free direct search (Hooke and Jeeves 1961),
+  one latent coordinate at a time, keeping :math:`K^{-1}`, :math:`\log|K|` and
+  :math:`\operatorname{tr}(K^{-1}S)` up to date with two Sherman–Morrison updates and the
+  matrix determinant lemma per trial (:math:`O(N^2)`), refactorised once per sweep.
+
+Data scale: the kernel has unit amplitude, so ``L`` depends on the scale of ``Z``. By
+default (``normalise=True``) ``S`` is divided by its mean diagonal entry per column,
+:math:`s = \operatorname{tr}(S)/(N d)` (``Z`` rescaled to unit mean square); the
+reported log-likelihoods are those of the normalised data. Interpolants do not depend on
+it (they are linear in the raw ``Z``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+import warnings
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ..errors import FileFormatError, NumericalError, ShapeError, ValueRangeError
+from ..io.arrays import load_arrays, save_arrays
+from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
+
+FIT_KIND = "gplvm-fit"
+_METHODS = ("lbfgs", "adam", "hooke-jeeves")
+
+
+# -- Gram matrix ----------------------------------------------------------------------------------
+def _check_matrix(z: torch.Tensor, name: str) -> torch.Tensor:
+    if not isinstance(z, torch.Tensor):
+        z = torch.as_tensor(np.asarray(z))
+    if z.ndim != 2 or z.shape[0] < 2 or z.shape[1] < 1:
+        raise ShapeError(f"Expected {name} to have shape (N, d) with N >= 2; got {tuple(z.shape)}")
+    if not z.is_floating_point():
+        z = z.to(torch.float64)
+    return z
+
+
+def gram(
+    z: torch.Tensor | Iterable[torch.Tensor],
+    weights: torch.Tensor | None = None,
+    chunk: int = 1 << 16,
+) -> tuple[torch.Tensor, int]:
+    r"""Gram matrix :math:`S = (Z W)(Z W)^\top` in float64, accumulated over column chunks.
+
+    Args:
+        z: (N, d) observation matrix, or an iterable of (N, d_k) column blocks (e.g. read
+            from disk one block at a time); rows are materials.
+        weights: (d,) non-negative per-column weights :math:`w` (:math:`W = \mathrm{diag}(w)`),
+            e.g. a cosine map; only for a single matrix ``z``. None = 1.
+        chunk: columns per block when ``z`` is one matrix (memory only).
+    Returns:
+        (S, d): S (N, N) float64 symmetric, d the total number of columns.
+    Raises:
+        ShapeError: wrong shapes. ValueRangeError: NaN/Inf in ``z`` or bad weights.
+    """
+    blocks = [z] if isinstance(z, torch.Tensor | np.ndarray) else z
+    s = None
+    d = 0
+    for blk in blocks:
+        blk = _check_matrix(blk, "z").detach()
+        if weights is not None:
+            if not isinstance(z, torch.Tensor | np.ndarray):
+                raise ShapeError("weights are only supported with a single (N, d) matrix")
+            w = torch.as_tensor(weights, dtype=torch.float64)
+            if w.shape != (blk.shape[1],) or not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+                raise ValueRangeError(f"weights must be finite, >= 0, of shape ({blk.shape[1]},); got {tuple(w.shape)}")
+        for a in range(0, blk.shape[1], chunk):
+            part = blk[:, a : a + chunk].to(torch.float64)
+            if not bool(torch.isfinite(part).all()):
+                raise ValueRangeError(
+                    f"z holds non-finite values (NaN/Inf) in columns {d + a}..{d + a + part.shape[1] - 1}"
+                )
+            if weights is not None:
+                part = part * w[a : a + chunk]
+            s = part @ part.T if s is None else s + part @ part.T
+        d += blk.shape[1]
+    if s is None:
+        raise ShapeError("z has no columns")
+    return s, d
+
+
+def _check_gram(s: torch.Tensor, d: int) -> torch.Tensor:
+    if not isinstance(s, torch.Tensor) or s.ndim != 2 or s.shape[0] != s.shape[1] or s.shape[0] < 2:
+        raise ShapeError(f"Expected a square Gram matrix S (N, N), N >= 2; got {getattr(s, 'shape', type(s))}")
+    if not bool(torch.isfinite(s).all()):
+        raise ValueRangeError("Gram matrix S holds NaN/Inf")
+    if int(d) < 1:
+        raise ValueRangeError(f"d (number of columns of Z) must be >= 1; got {d}")
+    return s.detach().to(torch.float64)
+
+
+# -- objective ------------------------------------------------------------------------------------
+def log_likelihood(
+    x: torch.Tensor, s: torch.Tensor, d: int, lengthscale: float = 1.0, mu: float = 1e-6
+) -> torch.Tensor:
+    r"""GPLVM log-likelihood (seed Eq. 6, without the constant :math:`-\frac{Nd}{2}\log 2\pi`).
+
+    :math:`L = -\frac{d}{2}\log|K| - \frac{1}{2}\operatorname{tr}(K^{-1}S)` via a float64 Cholesky
+    of :math:`K = K_{SE}(X) + \mu I`. Differentiable in ``x``.
+
+    Args:
+        x: (N, Q) latents. s: (N, N) Gram matrix :math:`ZZ^\top`. d: columns of Z.
+        lengthscale, mu: kernel hyperparameters (Eq. 5).
+    Returns:
+        () float64; ``-inf`` when K is not positive definite at this ``mu`` (no jitter here).
+    """
+    k = kernel_matrix(x.to(torch.float64), lengthscale, mu)
+    chol, info = torch.linalg.cholesky_ex(k)
+    if int(info) != 0:
+        return torch.tensor(-math.inf, dtype=torch.float64)
+    logdet = 2 * torch.log(torch.diagonal(chol)).sum()
+    a = torch.cholesky_solve(s, chol)
+    return -0.5 * d * logdet - 0.5 * torch.diagonal(a).sum()
+
+
+def pca_latents(s: torch.Tensor, q: int) -> torch.Tensor:
+    """Truncated linear PCA of the rows of Z from the Gram matrix alone (the seed's start).
+
+    The centred Gram matrix :math:`HSH` (H the centring matrix) has eigenvectors ``U`` and
+    eigenvalues ``λ``; the PCA scores are :math:`U_q \\sqrt{λ_q}`. They are rescaled by one common
+    factor so the first coordinate has unit standard deviation (relative scales kept), i.e. a
+    latent spread of the order of the kernel's unit lengthscale. Deterministic: each
+    eigenvector's sign is fixed so its largest-magnitude entry is positive.
+
+    Args:
+        s: (N, N) Gram matrix. q: latent dimension (<= N - 1).
+    Returns:
+        (N, q) float64.
+    """
+    n = s.shape[0]
+    h = torch.eye(n, dtype=torch.float64) - 1.0 / n
+    sc = h @ s.to(torch.float64) @ h
+    sc = 0.5 * (sc + sc.T)
+    evals, evecs = torch.linalg.eigh(sc)
+    evals, evecs = evals.flip(0)[:q].clamp_min(0), evecs.flip(1)[:, :q]
+    big = evecs.abs().argmax(0)
+    evecs = evecs * torch.sign(evecs[big, torch.arange(q)])[None, :]
+    x = evecs * evals.sqrt()[None, :]
+    sd = x[:, 0].std()
+    return (x / sd if float(sd) > 0 else x).contiguous()
+
+
+# -- the fit record ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GPLVMFit:
+    """Result of :func:`fit_gplvm` (frozen).
+
+    Attributes:
+        latents: (N, Q) float64 optimised latents :math:`X`.
+        lengthscale, mu: kernel hyperparameters used (Eq. 5).
+        jitter: extra diagonal added to K beyond ``mu`` to factorise it (0 when none was needed);
+            interpolation uses :math:`\\mu + \\text{jitter}` consistently.
+        loglik: (T,) float64 log-likelihood after each accepted iteration, starting with the
+            initial latents; non-decreasing.
+        d: number of columns of Z. data_scale: the factor ``S`` was divided by (1 = none).
+        method: optimiser. iterations: accepted iterations. rejected: rejected steps.
+        seconds: wall-clock time of the optimisation (informative only).
+        names: optional row labels (material names).
+    """
+
+    latents: torch.Tensor
+    lengthscale: float
+    mu: float
+    jitter: float
+    loglik: torch.Tensor
+    d: int
+    data_scale: float = 1.0
+    method: str = "lbfgs"
+    iterations: int = 0
+    rejected: int = 0
+    seconds: float = 0.0
+    names: tuple[str, ...] = ()
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def q(self) -> int:
+        return self.latents.shape[1]
+
+    @property
+    def n(self) -> int:
+        return self.latents.shape[0]
+
+    @property
+    def final_loglik(self) -> float:
+        return float(self.loglik[-1])
+
+    @property
+    def mu_effective(self) -> float:
+        """:math:`\\mu` plus the jitter: the diagonal shift of the K that interpolation inverts."""
+        return self.mu + self.jitter
+
+    def save(self, path: str | Path) -> Path:
+        """Write atomically as a versioned, checksummed array file (no pickle)."""
+        meta = {
+            "lengthscale": self.lengthscale, "mu": self.mu, "jitter": self.jitter, "d": self.d,
+            "data_scale": self.data_scale, "method": self.method, "iterations": self.iterations,
+            "rejected": self.rejected, "seconds": self.seconds, "names": list(self.names), "meta": self.meta,
+        }  # fmt: skip
+        arrays = {"latents": self.latents.numpy(), "loglik": self.loglik.numpy()}
+        return save_arrays(path, arrays, kind=FIT_KIND, meta=meta)
+
+    @classmethod
+    def load(cls, path: str | Path) -> GPLVMFit:
+        """Read a file written by :meth:`save` (kind, version and checksum verified)."""
+        arrays, m = load_arrays(path, kind=FIT_KIND)
+        try:
+            x = torch.from_numpy(np.asarray(arrays["latents"], dtype=np.float64))
+            ll = torch.from_numpy(np.asarray(arrays["loglik"], dtype=np.float64))
+            if x.ndim != 2 or not bool(torch.isfinite(x).all()):
+                raise ValueError("latents must be a finite (N, Q) array")
+            return cls(
+                x, float(m["lengthscale"]), float(m["mu"]), float(m["jitter"]), ll, int(m["d"]),
+                float(m["data_scale"]), str(m["method"]), int(m["iterations"]), int(m["rejected"]),
+                float(m["seconds"]), tuple(m.get("names", ())), dict(m.get("meta", {})),
+            )  # fmt: skip
+        except (KeyError, ValueError, TypeError) as exc:
+            raise FileFormatError(f"{path}: not a valid GPLVM fit ({exc})") from exc
+
+
+# -- optimisers ----------------------------------------------------------------------------------
+def _check_hyper(q: int, n: int, lengthscale: float, mu: float) -> None:
+    if not isinstance(q, int) or not 1 <= q <= min(n - 1, 32):
+        raise ValueRangeError(f"latent dimension q must be an int in 1..{min(n - 1, 32)} for N = {n}; got {q!r}")
+    if not (math.isfinite(lengthscale) and lengthscale > 0):
+        raise ValueRangeError(f"lengthscale must be finite and > 0; got {lengthscale}")
+    if not (math.isfinite(mu) and mu >= 0):
+        raise ValueRangeError(f"mu must be finite and >= 0; got {mu}")
+
+
+def _initial_jitter(x: torch.Tensor, lengthscale: float, mu: float, floor: float, cap: float) -> float:
+    _, jitter = cholesky_jitter(kernel_matrix(x, lengthscale, mu), floor, cap, what="GPLVM K", warn=False)
+    return jitter
+
+
+def fit_gplvm(
+    s: torch.Tensor,
+    d: int,
+    q: int = 2,
+    *,
+    lengthscale: float = 1.0,
+    mu: float = 1e-6,
+    method: str = "lbfgs",
+    max_iter: int = 500,
+    tol: float = 1e-10,
+    init: torch.Tensor | None = None,
+    normalise: bool = True,
+    jitter_floor: float = JITTER_FLOOR,
+    jitter_cap: float = JITTER_CAP,
+    lr: float = 0.05,
+    autograd: bool = False,
+    names: Iterable[str] = (),
+    generator: torch.Generator | None = None,
+    progress: bool = False,
+    callback: Callable[[int, float], None] | None = None,
+) -> GPLVMFit:
+    r"""Maximise the GPLVM log-likelihood (seed Eq. 6) over the latents, from a PCA start.
+
+    Args:
+        s: (N, N) Gram matrix :math:`ZZ^\top` (from :func:`gram`, possibly cosine-weighted).
+        d: number of columns of Z (the :math:`d/2\,\log|K|` factor).
+        q: latent dimension (the seed uses 2..5).
+        lengthscale, mu: kernel hyperparameters (Eq. 5; seed: 1 and 1e-6).
+        method: ``"lbfgs"`` (exact gradient, Armijo backtracking, monotone), ``"adam"``
+            (autograd, step halving on a decrease) or ``"hooke-jeeves"`` (the seed's direct search).
+        max_iter: iterations (L-BFGS/Adam steps; Hooke–Jeeves sweeps over all coordinates).
+        tol: stop when an iteration improves L by less than ``tol * |L|``.
+        init: (N, q) starting latents (default :func:`pca_latents`).
+        normalise: divide S by :math:`\operatorname{tr}(S)/(Nd)` (unit mean square entries).
+        jitter_floor, jitter_cap: Cholesky jitter escalation (x10 steps) when :math:`K` is not
+            positive definite at ``mu``; the jitter used is in the result and warned about.
+        lr: Adam learning rate / initial Hooke–Jeeves step (in latent units).
+        autograd: L-BFGS gradients by autograd through the Cholesky (:func:`log_likelihood`)
+            instead of the closed form of :func:`log_likelihood_and_grad` (equal, tested; the
+            closed form is ~5x cheaper). Adam always uses autograd.
+        names: row labels kept in the result.
+        generator: breaks exact ties of a degenerate PCA start (duplicated rows) with a tiny
+            seeded perturbation (1e-6 of the latent spread); None = ``torch.default_generator``.
+        progress: tqdm bar over iterations.
+        callback: called as ``callback(iteration, loglik)`` after every accepted iteration.
+    Returns:
+        :class:`GPLVMFit`.
+    Raises:
+        ValueRangeError: bad q / hyperparameters / non-finite S. NumericalError: K not positive
+            definite even at ``jitter_cap``.
+    """
+    s = _check_gram(s, d)
+    n = s.shape[0]
+    _check_hyper(q, n, lengthscale, mu)
+    if method not in _METHODS:
+        raise ValueRangeError(f"method must be one of {_METHODS}; got {method!r}")
+    scale = float(torch.diagonal(s).sum()) / (n * d) if normalise else 1.0
+    if not scale > 0:
+        raise ValueRangeError("Z is all zeros (tr(S) = 0): nothing to fit")
+    s = s / scale
+    if init is None:
+        x0 = pca_latents(s, q)
+        # duplicated rows give coincident PCA latents, a saddle of L with a symmetric gradient;
+        # a tiny seeded nudge lets the optimiser separate them (it does not change a good start)
+        noise = torch.randn(x0.shape, generator=generator, dtype=torch.float64)
+        x0 = x0 + 1e-6 * noise * float(x0.std().clamp_min(1e-12))
+    else:
+        x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
+        if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
+            raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
+    jitter = _initial_jitter(x0, lengthscale, mu, jitter_floor, jitter_cap)
+    t0 = time.perf_counter()
+    with small_matrix_mode(n):
+        run = {"lbfgs": _fit_lbfgs, "adam": _fit_adam, "hooke-jeeves": _fit_hooke_jeeves}[method]
+        x, hist, rejected, jitter = run(
+            x0, s, d, lengthscale, mu, jitter, max_iter, tol, lr, progress, callback, jitter_floor, jitter_cap, autograd
+        )
+    seconds = time.perf_counter() - t0
+    if not bool(torch.isfinite(x).all()):  # pragma: no cover - guarded by the accept test
+        raise NumericalError("GPLVM latents became non-finite")
+    if jitter > 0:
+        warnings.warn(
+            f"GPLVM fit: K needed diagonal jitter {jitter:.1e} on top of mu = {mu:g}", JitterWarning, stacklevel=2
+        )
+    return GPLVMFit(
+        latents=x.detach().clone(),
+        lengthscale=float(lengthscale),
+        mu=float(mu),
+        jitter=float(jitter),
+        loglik=torch.tensor(hist, dtype=torch.float64),
+        d=int(d),
+        data_scale=scale,
+        method=method,
+        iterations=len(hist) - 1,
+        rejected=rejected,
+        seconds=seconds,
+        names=tuple(names),
+    )
+
+
+@contextlib.contextmanager
+def small_matrix_mode(n: int):
+    """Settings for many small (N x N) float64 factorisations, restored after the block.
+
+    * Subnormal floats are flushed to zero: far-apart latents give kernel entries and
+      Cholesky intermediates in the float64 subnormal range, where x86 arithmetic is ~30x
+      slower; zero is exact enough there (torch's default, off, is restored).
+    * One intra-op thread when N < 512: a 100 x 100 Cholesky is ~10x slower with 2 threads on
+      a loaded 2-core machine (measured 1.2 ms vs 11 ms per objective evaluation).
+    """
+    threads = torch.get_num_threads()
+    torch.set_flush_denormal(True)
+    if n < 512:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(threads)
+
+
+def _converged(old: float, new: float, tol: float) -> bool:
+    return abs(new - old) <= tol * max(1.0, abs(old))
+
+
+def log_likelihood_and_grad(
+    x: torch.Tensor, s: torch.Tensor, d: int, lengthscale: float = 1.0, mu: float = 1e-6
+) -> tuple[float, torch.Tensor | None]:
+    r"""L (seed Eq. 6) and its analytic gradient :math:`\partial L/\partial X` in :math:`O(N^3)`.
+
+    :math:`G = \partial L/\partial K = \tfrac12(K^{-1} S K^{-1} - d K^{-1})`; with
+    :math:`A = G \odot K_{SE}`, :math:`\partial L/\partial x_i = -\frac{2}{\ell^2}\sum_j A_{ij}(x_i - x_j)`.
+    Equal to autograd through :func:`log_likelihood` (tested) at a fraction of the cost.
+
+    Args:
+        x: (N, Q). s: (N, N). d: columns of Z.
+    Returns:
+        (L, grad (N, Q) float64), or (-inf, None) where K is not positive definite.
+    """
+    x = x.detach().to(torch.float64)
+    kse = se_kernel(x, x, lengthscale)
+    k = kse + mu * torch.eye(x.shape[0], dtype=torch.float64)
+    chol, info = torch.linalg.cholesky_ex(k)
+    if int(info) != 0:
+        return -math.inf, None
+    kinv = torch.cholesky_inverse(chol)
+    a = kinv @ s
+    ll = -d * float(torch.log(torch.diagonal(chol)).sum()) - 0.5 * float(torch.diagonal(a).sum())
+    g = 0.5 * (a @ kinv - d * kinv)
+    g = 0.5 * (g + g.T)
+    w = g * kse
+    grad = -(2.0 / lengthscale**2) * (w.sum(1, keepdim=True) * x - w @ x)
+    return ll, grad
+
+
+def _value_and_grad(x: torch.Tensor, s, d, ell, mu, autograd: bool = False) -> tuple[float, torch.Tensor | None]:
+    if not autograd:
+        return log_likelihood_and_grad(x, s, d, ell, mu)
+    xr = x.detach().clone().requires_grad_(True)
+    ll = log_likelihood(xr, s, d, ell, mu)
+    if not bool(torch.isfinite(ll)):
+        return -math.inf, None
+    (g,) = torch.autograd.grad(ll, xr)
+    return float(ll.detach()), g
+
+
+def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
+    """L-BFGS ascent (two-loop recursion) with a backtracking Armijo line search.
+
+    Monotone by construction: a step is taken only if it raises L by at least
+    ``1e-4 * t * g.p``; when no step length passes, the curvature memory is dropped and a
+    gradient step is tried; when that fails too, the fit stops (a local optimum to
+    numerical precision).
+    """
+    x = x0.clone()
+    f, g = _value_and_grad(x, s, d, ell, mu + jitter, autograd)
+    if g is None:  # pragma: no cover - the initial jitter makes K positive definite
+        raise NumericalError("GPLVM K is not positive definite at the start")
+    hist = [f]
+    pairs: list[tuple[torch.Tensor, torch.Tensor, float]] = []
+    rejected = 0
+    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress)
+    for it in bar:
+        # two-loop recursion on the ascent direction of L (descent of -L)
+        qv = g.clone()
+        alphas = []
+        for sk, yk, rho in reversed(pairs):
+            a_k = rho * float((sk * qv).sum())
+            alphas.append(a_k)
+            qv -= a_k * yk
+        if pairs:
+            sk, yk, _ = pairs[-1]
+            qv *= float((sk * yk).sum()) / float((yk * yk).sum())
+        else:
+            qv *= 1.0 / max(float(g.abs().max()), 1e-300) * 0.1  # first step: at most 0.1 latent units
+        for (sk, yk, rho), a_k in zip(pairs, reversed(alphas), strict=True):
+            b_k = rho * float((yk * qv).sum())
+            qv += (a_k - b_k) * sk
+        p = qv
+        slope = float((g * p).sum())
+        if not slope > 0:  # not an ascent direction: fall back to the gradient
+            pairs.clear()
+            p = g / max(float(g.abs().max()), 1e-300) * 0.1
+            slope = float((g * p).sum())
+        t = 1.0
+        accepted = False
+        for _ in range(60):
+            xn = x + t * p
+            fn, gn = _value_and_grad(xn, s, d, ell, mu + jitter, autograd)
+            if gn is not None and fn >= f + 1e-4 * t * slope:
+                accepted = True
+                break
+            rejected += 1
+            t *= 0.5
+        if not accepted:
+            if pairs:  # retry from a pure gradient step with an empty memory
+                pairs.clear()
+                continue
+            break
+        sk, yk = xn - x, g - gn  # curvature of -L
+        sy = float((sk * yk).sum())
+        if sy > 1e-12 * float((yk * yk).sum()) ** 0.5 * float((sk * sk).sum()) ** 0.5:
+            pairs.append((sk, yk, 1.0 / sy))
+            if len(pairs) > memory:
+                pairs.pop(0)
+        done = _converged(f, fn, tol)
+        x, f, g = xn, fn, gn
+        hist.append(f)
+        if callback is not None:
+            callback(it, f)
+        bar.set_postfix(loglik=f"{f:.6g}", refresh=False)
+        if done:
+            break
+    return x, hist, rejected, jitter
+
+
+def _fit_adam(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=True):
+    x = x0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([x], lr=lr)
+    with torch.no_grad():
+        hist = [float(log_likelihood(x, s, d, ell, mu + jitter))]
+    rejected = 0
+    for it in tqdm(range(max_iter), desc="GPLVM Adam", disable=not progress):
+        saved = x.detach().clone()
+        opt.zero_grad()
+        ll_t = log_likelihood(x, s, d, ell, mu + jitter)
+        (-ll_t / (d * x0.shape[0])).backward()
+        opt.step()
+        with torch.no_grad():
+            ll = float(log_likelihood(x, s, d, ell, mu + jitter))
+        if not (math.isfinite(ll) and ll >= hist[-1]):
+            with torch.no_grad():
+                x.copy_(saved)
+            for g in opt.param_groups:
+                g["lr"] *= 0.5
+            rejected += 1
+            if opt.param_groups[0]["lr"] < 1e-8:
+                break
+            continue
+        done = _converged(hist[-1], ll, tol)
+        hist.append(ll)
+        if callback is not None:
+            callback(it, ll)
+        if done:
+            break
+    return x.detach(), hist, rejected, jitter
+
+
+class _RankOneState:
+    """K^{-1}, log|K| and tr(K^{-1}S) of the current latents, updated when one latent moves."""
+
+    def __init__(self, x: np.ndarray, s: np.ndarray, d: int, ell: float, diag: float):
+        self.x, self.s, self.d, self.ell, self.diag = x, s, d, ell, diag
+        self.refactor()
+
+    def column(self, xi: np.ndarray, i: int) -> np.ndarray:
+        c = np.exp(-((self.x - xi) ** 2).sum(1) / (2 * self.ell**2))
+        c[i] = 1.0 + self.diag
+        return c
+
+    def refactor(self) -> None:
+        x = self.x
+        k = np.exp(-((x[:, None, :] - x[None, :, :]) ** 2).sum(-1) / (2 * self.ell**2))
+        k[np.diag_indices_from(k)] = 1.0 + self.diag
+        chol = np.linalg.cholesky(k)
+        self.kinv = np.linalg.inv(k)
+        self.kinv = 0.5 * (self.kinv + self.kinv.T)
+        self.k = k
+        self.logdet = 2 * float(np.log(np.diag(chol)).sum())
+        self.trace = float((self.kinv * self.s).sum())
+
+    @property
+    def loglik(self) -> float:
+        return -0.5 * self.d * self.logdet - 0.5 * self.trace
+
+    def trial(self, i: int, xi: np.ndarray):
+        """L after moving latent i to xi, with what is needed to commit; None if not PD."""
+        u = self.column(xi, i) - self.k[:, i]
+        u[i] = 0.0
+        e = np.zeros_like(u)
+        e[i] = 1.0
+        v1, v2 = (e + u) / math.sqrt(2), (e - u) / math.sqrt(2)
+        w1 = self.kinv @ v1
+        den1 = 1.0 + v1 @ w1
+        w2 = self.kinv @ v2 - w1 * ((w1 @ v2) / den1)
+        den2 = 1.0 - v2 @ w2
+        if not (den1 > 0 and den2 > 0):
+            return None
+        logdet = self.logdet + math.log(den1) + math.log(den2)
+        trace = self.trace - (w1 @ self.s @ w1) / den1 + (w2 @ self.s @ w2) / den2
+        return -0.5 * self.d * logdet - 0.5 * trace, (i, xi, u, w1, den1, w2, den2, logdet, trace)
+
+    def commit(self, info) -> None:
+        i, xi, u, w1, den1, w2, den2, logdet, trace = info
+        self.kinv = self.kinv - np.outer(w1, w1) / den1 + np.outer(w2, w2) / den2
+        self.k[:, i] += u
+        self.k[i, :] += u
+        self.x[i] = xi
+        self.logdet, self.trace = logdet, trace
+
+
+def _fit_hooke_jeeves(x0, s, d, ell, mu, jitter, max_iter, tol, step, progress, callback, floor, cap, autograd=False):
+    st = _RankOneState(x0.numpy().copy(), s.numpy(), d, ell, mu + jitter)
+    hist = [st.loglik]
+    n, q = st.x.shape
+    rejected = 0
+    min_step = 1e-6
+    bar = tqdm(range(max_iter), desc="GPLVM Hooke-Jeeves", disable=not progress)
+    for it in bar:
+        base = st.x.copy()
+        start = st.loglik
+        for i in range(n):
+            for j in range(q):
+                cur = st.loglik
+                for sgn in (1.0, -1.0):
+                    xi = st.x[i].copy()
+                    xi[j] += sgn * step
+                    res = st.trial(i, xi)
+                    if res is not None and res[0] > cur:
+                        st.commit(res[1])
+                        break
+                    rejected += 1
+        try:
+            st.refactor()  # limit the drift of the rank-1 updates
+        except np.linalg.LinAlgError:  # pragma: no cover - the updates kept K PD
+            raise NumericalError("Hooke-Jeeves: K lost positive definiteness") from None
+        if st.loglik > start:
+            # pattern move: X + (X - base), kept only if it improves L
+            keep = st.x.copy()
+            keep_ll = st.loglik
+            st.x = 2 * keep - base
+            try:
+                st.refactor()
+                ok = st.loglik > keep_ll
+            except np.linalg.LinAlgError:
+                ok = False
+            if not ok:
+                st.x = keep
+                st.refactor()
+        else:
+            step *= 0.5
+        if st.loglik < hist[-1]:  # refactorisation rounding only; never record a decrease
+            st.x = base
+            st.refactor()
+            step *= 0.5
+        done = _converged(hist[-1], st.loglik, tol) and step < min_step
+        hist.append(max(st.loglik, hist[-1]))
+        if callback is not None:
+            callback(it, hist[-1])
+        bar.set_postfix(loglik=f"{hist[-1]:.6g}", step=f"{step:.2g}", refresh=False)
+        if done or step < min_step:
+            break
+    return torch.from_numpy(st.x.copy()), hist, rejected, jitter
+
+
+# -- interpolation ---------------------------------------------------------------------------------
+class GPLVM(torch.nn.Module):
+    r"""A fitted GPLVM: interpolation weights, predictions and variance at any latent point.
+
+    Seed Eq. 1-4: :math:`b(x_*) = K^{-1} k(x_*)`, :math:`z_* = b^\top Z`,
+    :math:`\sigma^2(x_*) = c(x_*, x_*) - k(x_*)^\top K^{-1} k(x_*)`, with
+    :math:`c(x_*, x_*) = 1 + \mu`. ``Z`` is kept raw: the interpolant is linear in the
+    measurements, so any linear functional of the BRDF (images, ZH coefficients, band
+    coefficients) interpolates with the same weights :math:`b`. ``K`` uses
+    :math:`\mu + \text{jitter}` from the fit.
+
+    Args:
+        fit: a :class:`GPLVMFit`.
+        z: optional (N, d) raw observations (kept as a buffer for :meth:`predict`); any other
+            (N, ...) per-material quantity can be blended with :meth:`blend`.
+    """
+
+    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None):
+        super().__init__()
+        self.fit = fit
+        x = fit.latents.to(torch.float64)
+        if not bool(torch.isfinite(x).all()):
+            raise ValueRangeError("GPLVM latents hold NaN/Inf")
+        self.register_buffer("latents", x)
+        k = kernel_matrix(x, fit.lengthscale, fit.mu_effective)
+        chol, extra = cholesky_jitter(k, what="GPLVM K (interpolation)")
+        if extra:
+            # keep delta-consistency: the interpolation K must be the Gram of the same kernel
+            self._mu = fit.mu_effective + extra
+        else:
+            self._mu = fit.mu_effective
+        self.register_buffer("chol", chol)
+        if z is not None:
+            z = _check_matrix(z, "z")
+            if z.shape[0] != x.shape[0]:
+                raise ShapeError(f"z has {z.shape[0]} rows but the fit has {x.shape[0]} latents")
+        self.register_buffer("z", z)
+
+    @property
+    def mu(self) -> float:
+        """Diagonal shift :math:`\\mu` (+ jitter) of the K that is inverted."""
+        return self._mu
+
+    @property
+    def q(self) -> int:
+        return self.latents.shape[1]
+
+    def _queries(self, xs) -> tuple[torch.Tensor, bool]:
+        xs = torch.as_tensor(xs, dtype=torch.float64)
+        single = xs.ndim == 1
+        if single:
+            xs = xs[None]
+        if xs.ndim != 2 or xs.shape[1] != self.q:
+            raise ShapeError(f"Expected latent points of shape (M, {self.q}) or ({self.q},); got {tuple(xs.shape)}")
+        if not bool(torch.isfinite(xs).all()):
+            raise ValueRangeError("latent points hold NaN/Inf")
+        return xs, single
+
+    def kvec(self, xs) -> torch.Tensor:
+        """(M, N) covariances :math:`k(x_*)` (seed Eq. 3) of query points (M, Q)."""
+        xs, _ = self._queries(xs)
+        return cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+
+    def weights(self, xs) -> torch.Tensor:
+        r"""Blending weights :math:`b(x_*) = K^{-1} k(x_*)` (seed Eq. 4), batched.
+
+        Args:
+            xs: (M, Q) or (Q,) latent points.
+        Returns:
+            (M, N) or (N,) float64.
+        """
+        xs, single = self._queries(xs)
+        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        b = torch.cholesky_solve(k.T, self.chol).T
+        return b[0] if single else b
+
+    def variance(self, xs) -> torch.Tensor:
+        r"""Predictive variance :math:`\sigma^2(x_*) = 1 + \mu - k^\top K^{-1} k` (seed Eq. 2), >= 0.
+
+        Args:
+            xs: (M, Q) or (Q,). Returns: (M,) or () float64.
+        """
+        xs, single = self._queries(xs)
+        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        b = torch.cholesky_solve(k.T, self.chol).T
+        v = (1.0 + self._mu - (k * b).sum(-1)).clamp_min(0)
+        return v[0] if single else v
+
+    def blend(self, xs, values: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+        """Blend any per-material quantity with :math:`b(x_*)`: ``(M, *F)`` from ``values`` ``(N, *F)``.
+
+        Computed in float64, returned in the dtype of ``values``.
+        """
+        xs, single = self._queries(xs)
+        values = torch.as_tensor(values)
+        if values.shape[0] != self.latents.shape[0]:
+            raise ShapeError(
+                f"Expected values with {self.latents.shape[0]} rows (one per material); got {tuple(values.shape)}"
+            )
+        flat = values.reshape(values.shape[0], -1)
+        out = []
+        for a in range(0, xs.shape[0], chunk):
+            b = self.weights(xs[a : a + chunk])
+            out.append((b @ flat.to(torch.float64)).to(values.dtype))
+        res = torch.cat(out).reshape(xs.shape[0], *values.shape[1:])
+        return res[0] if single else res
+
+    def predict(self, xs, chunk: int = 4096) -> torch.Tensor:
+        """Interpolated observations :math:`z_* = b(x_*)^\\top Z`: (M, d) (or (d,)) from the stored ``z``."""
+        if self.z is None:
+            raise ValueRangeError("this GPLVM holds no observation matrix z; use blend(xs, values)")
+        return self.blend(xs, self.z, chunk)
+
+    def project(
+        self, target_gram: torch.Tensor, target_cross: torch.Tensor, target_sq: float = 0.0, starts: int = 4,
+        max_iter: int = 100,
+    ) -> tuple[torch.Tensor, float]:  # fmt: skip
+        r"""Out-of-sample latent of a new BRDF: :math:`x_* = \arg\min_x \lVert W(b(x)^\top Z - z)\rVert^2`.
+
+        The error is :math:`b^\top G b - 2 b^\top g + c` with :math:`G = Z_o W^2 Z_o^\top`,
+        :math:`g = Z_o W^2 z_o` and :math:`c = z_o^\top W^2 z_o` over the observed columns ``o``
+        (:func:`projection_terms`), so a partially observed BRDF costs nothing more. L-BFGS from
+        the ``starts`` training latents with the smallest error :math:`G_{ii} - 2 g_i`, best kept.
+
+        Args:
+            target_gram: (N, N) :math:`G`. target_cross: (N,) :math:`g`. target_sq: :math:`c`.
+            starts: number of starting points. max_iter: L-BFGS iterations per start.
+        Returns:
+            (x_*, error): (Q,) float64 latent and its squared weighted error.
+        """
+        g_mat = torch.as_tensor(target_gram, dtype=torch.float64)
+        g_vec = torch.as_tensor(target_cross, dtype=torch.float64)
+        n = self.latents.shape[0]
+        if g_mat.shape != (n, n) or g_vec.shape != (n,):
+            raise ShapeError(f"Expected G ({n}, {n}) and g ({n},); got {tuple(g_mat.shape)}, {tuple(g_vec.shape)}")
+        with small_matrix_mode(n):
+            return self._project(g_mat, g_vec, float(target_sq), starts, max_iter)
+
+    def _project(self, g_mat, g_vec, target_sq: float, starts: int, max_iter: int) -> tuple[torch.Tensor, float]:
+        n = self.latents.shape[0]
+        at_data = torch.diagonal(g_mat) - 2 * g_vec
+        order = torch.argsort(at_data)[: max(1, min(starts, n))]
+        best_x, best_e = None, math.inf
+        for i in order.tolist():
+            x = (self.latents[i] + 1e-3).clone().requires_grad_(True)
+            opt = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe")
+
+            def closure(x=x, opt=opt):
+                opt.zero_grad()
+                k = se_kernel(x[None], self.latents, self.fit.lengthscale)[0]
+                b = torch.cholesky_solve(k[:, None], self.chol)[:, 0]
+                e = b @ g_mat @ b - 2 * b @ g_vec
+                e.backward()
+                return e
+
+            opt.step(closure)
+            with torch.no_grad():
+                e = float(self._error(x.detach(), g_mat, g_vec))
+            for cand, ce in ((x.detach(), e), (self.latents[i], float(at_data[i]))):
+                if ce < best_e:
+                    best_x, best_e = cand.clone(), ce
+        return best_x, best_e + float(target_sq)
+
+    def _error(self, x, g_mat, g_vec) -> torch.Tensor:
+        b = self.weights(x)
+        return b @ g_mat @ b - 2 * b @ g_vec
+
+
+def projection_terms(
+    z_train: torch.Tensor, z_new: torch.Tensor, mask: torch.Tensor | None = None, weights: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    r"""The quadratic-form terms of :meth:`GPLVM.project` for a new BRDF ``z_new`` (d,).
+
+    Args:
+        z_train: (N, d) raw training observations. z_new: (d,).
+        mask: (d,) bool, observed entries (default all). weights: (d,) per-entry weights w.
+    Returns:
+        (G (N, N), g (N,), c) with :math:`G = Z_o W^2 Z_o^\top`, :math:`g = Z_o W^2 z_o`,
+        :math:`c = \lVert W z_o \rVert^2`.
+    """
+    z_train = _check_matrix(z_train, "z_train").to(torch.float64)
+    z_new = torch.as_tensor(z_new, dtype=torch.float64)
+    if z_new.shape != (z_train.shape[1],):
+        raise ShapeError(f"Expected z_new of shape ({z_train.shape[1]},); got {tuple(z_new.shape)}")
+    if not bool(torch.isfinite(z_new).all()):
+        raise ValueRangeError("z_new holds NaN/Inf (mark unobserved entries with mask instead)")
+    w = torch.ones_like(z_new) if weights is None else torch.as_tensor(weights, dtype=torch.float64)
+    if mask is not None:
+        w = w * torch.as_tensor(mask, dtype=torch.float64)
+    a = z_train * w
+    return a @ a.T, a @ (z_new * w), float(((z_new * w) ** 2).sum())
