@@ -27,6 +27,7 @@ report gives the iterations, the objective and the largest constraint violation.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -72,6 +73,19 @@ def _chol(K: torch.Tensor) -> torch.Tensor:
     raise NumericalError("interior point: the J x J Newton matrix is not positive definite even with jitter 1e-8")
 
 
+@contextmanager
+def _single_thread():
+    """Run small dense kernels on one intra-op thread: on a shared 2-core machine a 147 x 192
+    matrix-vector product takes ~0.1 ms on one thread and up to ~4 ms on two (thread hand-off
+    under load; cf. OPENBLAS_NUM_THREADS=1 in ../shared/FACTS.md)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
     r"""Solve :math:`\min \frac12 x^\top H x - f^\top x` s.t. :math:`x \ge 0,\ Gx \le h` (see the module).
 
@@ -89,6 +103,11 @@ def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
             non-negative rows, else from diverging iterates).
         NumericalError: no convergence within ``max_iter`` iterations.
     """
+    with _single_thread():
+        return _solve_qp(H, f, G, h, tol, max_iter)
+
+
+def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
     H = torch.as_tensor(H, dtype=torch.float64)
     f = torch.as_tensor(f, dtype=torch.float64)
     G = torch.as_tensor(G, dtype=torch.float64)
@@ -103,9 +122,7 @@ def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
         if not bool(torch.isfinite(t).all()):
             raise ValueRangeError(f"QP data {name} holds NaN or Inf")
     if bool((G >= 0).all()) and bool((h < 0).any()):
-        raise InfeasibleError(
-            f"no x >= 0 satisfies G x <= h: G is non-negative and min(h) = {float(h.min()):.3g} < 0"
-        )
+        raise InfeasibleError(f"no x >= 0 satisfies G x <= h: G is non-negative and min(h) = {float(h.min()):.3g} < 0")
     # scaling: objective to unit size, constraint rows to unit norm
     s_obj = max(float(H.abs().max()), float(f.abs().max()), 1e-300)
     Hs, fs = H / s_obj, f / s_obj
@@ -121,8 +138,10 @@ def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
     def A(v):  # rows: -x >= ... i.e. A = [-I; G]
         return torch.cat((-v, Gs @ v))
 
+    GsT = Gs.T.contiguous()
+
     def At(y):
-        return -y[:J] + Gs.T @ y[J:]
+        return torch.addmv(-y[:J], GsT, y[J:])
 
     norm_b = 1 + float(b.abs().max())
     norm_f = 1 + float(fs.abs().max())
@@ -146,7 +165,7 @@ def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
         K = Hs + torch.diag(d[:J]) + Gs.T @ (d[J:, None] * Gs)
         L = _chol(K)
 
-        def newton(rc, rd=rd, rp=rp, d=d, L=L):
+        def newton(rc, rd=rd, rp=rp, d=d, L=L, s=s, z=z):
             rhs = -rd - At(d * rp - rc / s)
             dx = torch.cholesky_solve(rhs[:, None], L)[:, 0]
             ds = -rp - A(dx)

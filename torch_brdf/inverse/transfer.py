@@ -61,6 +61,7 @@ from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.lights import luminance
 from ..scene.scene import Scene
+from .energy import default_basis
 
 __all__ = [
     "CutOptions",
@@ -72,7 +73,6 @@ __all__ = [
     "split_record",
     "transfer_functions",
 ]
-
 
 
 @dataclass(frozen=True)
@@ -244,7 +244,7 @@ class _LightTree:
                 nxt += [seg[o[:half]], seg[o[half:]]]
             segs = nxt
         self.order = torch.from_numpy(np.concatenate(segs))
-        self.levels = int(round(math.log2(S)))
+        self.levels = S.bit_length() - 1
         dirs = samples.directions[self.order]
         wL = samples.weight[self.order]
         lum = luminance(wL).clamp_min(0)
@@ -262,11 +262,6 @@ class _LightTree:
             self.rep.append(m)
             self.wsum.append(wL.reshape(n, S // n, 3).sum(1))
             self.radius.append(torch.rad2deg(torch.acos(cosang.min(1).values)))
-
-
-def _local(frame: Frame, v: torch.Tensor) -> torch.Tensor:
-    """World vectors (n, 3) into per-row frames (n, 3) -> (n, 3)."""
-    return torch.stack(((v * frame.s).sum(-1), (v * frame.t).sum(-1), (v * frame.n).sum(-1)), -1)
 
 
 def _static_weighted(wi: torch.Tensor, wo: torch.Tensor, f0: torch.Tensor, weight: torch.Tensor):
@@ -291,31 +286,33 @@ def _srbf(basis: SRBFBasis, h: torch.Tensor) -> torch.Tensor:
     return g.exp_()
 
 
-def _accumulate(T, ii, frame: Frame, offset: int, wi, wo_all, weight, f0, basis, chunk: int = 1 << 14) -> None:
+def _accumulate(T, ii, wi, wo, weight, f0, basis, chunk: int = 1 << 14) -> None:
     r"""``T[ii] += s(wi, wo)^T G(h)`` over (pixel, direction) pairs sorted by pixel: T (p, 3, J),
-    ii (n,) pixel indices into T (``offset + ii`` into the frame and ``wo_all``), wi (n, 3) world
-    directions, weight (n, 3) the light weight times :math:`\tilde V`.
+    ii (n,) sorted pixel indices into T, wi, wo (n, 3) local unit directions, weight (n, 3) the
+    light weight times :math:`\tilde V`.
 
-    The sum over pairs is a sparse (3p x n) @ (n x J) product (CSR rows = pixel x channel), which
-    avoids materialising the (n, 3, J) products."""
-    p, J = T.shape[0], basis.K
-    flat = T.view(p * 3, J)
+    The sum over pairs is, per channel, a sparse (p x n) @ (n x J) product (CSR: row p holds the
+    pairs of pixel p, contiguous because ``ii`` is sorted), which avoids materialising the
+    (n, 3, J) products."""
+    p = T.shape[0]
     for a in range(0, ii.numel(), chunk):
         b = min(ii.numel(), a + chunk)
-        n = b - a
-        gi = offset + ii[a:b]
-        fr = Frame(frame.s[gi], frame.t[gi], frame.n[gi])
-        h, s = _static_weighted(_local(fr, wi[a:b]), _local(fr, wo_all[gi]), f0, weight[a:b])
+        h, s = _static_weighted(wi[a:b], wo[a:b], f0, weight[a:b])
         G = _srbf(basis, h)  # (n, J)
-        rows = (ii[a:b, None] * 3 + torch.arange(3)).reshape(-1)  # (3n,) in pair-major order
-        order = torch.argsort(rows, stable=True)
-        cols = torch.arange(n).repeat_interleave(3)[order]
-        crow = torch.zeros(3 * p + 1, dtype=torch.int64)
-        crow[1:] = torch.bincount(rows, minlength=3 * p).cumsum(0)
+        crow = torch.zeros(p + 1, dtype=torch.int64)
+        crow[1:] = torch.bincount(ii[a:b], minlength=p).cumsum(0)
+        cols = torch.arange(b - a)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-            A = torch.sparse_csr_tensor(crow, cols, s.reshape(-1)[order], (3 * p, n))
-            flat += A @ G
+            for c in range(3):
+                A = torch.sparse_csr_tensor(crow, cols, s[:, c].contiguous(), (p, b - a))
+                T[:, c] += A @ G
+
+
+def _frames(normal: torch.Tensor) -> torch.Tensor:
+    """Rows s, t, n of the shading frames (Frame.from_normal): (P, 3, 3); local = F @ world."""
+    f = Frame.from_normal(normal)
+    return torch.stack((f.s, f.t, f.n), -2)
 
 
 def transfer_functions(
@@ -344,7 +341,7 @@ def transfer_functions(
         last is :math:`E` (coefficient :math:`\rho_d`); ``basis = "srbf:J+diffuse"``;
         ``meta`` holds ``f0``, the sample count, the method and (cuts) the mean cut size.
     """
-    basis = basis if basis is not None else SRBFBasis()
+    basis = basis if basis is not None else default_basis()
     P, S = px.count, samples.count
     if visibility.shape != (P, S):
         raise ShapeError(f"Expected visibility of shape ({P}, {S}); got {tuple(visibility.shape)}")
@@ -354,7 +351,8 @@ def transfer_functions(
         raise ValueRangeError(f"f0 must lie in [0, 1]; got {f0t.tolist()}")
     J = basis.K
     vis = visibility.double()
-    frame = Frame.from_normal(px.normal)
+    F = _frames(px.normal)  # (P, 3, 3)
+    wo_l = (F @ px.wo[:, :, None])[..., 0]  # (P, 3)
     T = torch.zeros(P, 3, J, dtype=torch.float64)
     t0 = time.perf_counter()
     info: dict = {}
@@ -364,9 +362,10 @@ def transfer_functions(
             b = min(P, a + step)
             ii, ss = torch.nonzero(vis[a:b] > 0, as_tuple=True)  # zero terms add nothing
             w = samples.weight[ss] * vis[a:b][ii, ss, None]
-            _accumulate(T[a:b], ii, frame, a, samples.directions[ss], px.wo, w, f0t, basis)
+            wi_l = (F[a:b] @ samples.directions.T).permute(0, 2, 1)[ii, ss]  # (n, 3) local
+            _accumulate(T[a:b], ii, wi_l, wo_l[a + ii], w, f0t, basis)
     else:
-        info = _cut_transfer(px, samples, vis, basis, f0t, frame, cuts, T, progress)
+        info = _cut_transfer(samples, vis, basis, f0t, F, wo_l, cuts, T, progress)
     seconds = time.perf_counter() - t0
     # f = 0 unless wo is above the shading horizon too (silhouettes of smoothly shaded meshes)
     front = ((px.wo * px.normal).sum(-1) > 0).to(torch.float64)
@@ -383,7 +382,7 @@ def transfer_functions(
     return BasisImage(values, px.pixels.clone(), px.height, px.width, None, None, f"srbf:{J}+diffuse", m)
 
 
-def _cut_transfer(px, samples, vis, basis, f0t, frame, cuts, T, progress) -> dict:
+def _cut_transfer(samples, vis, basis, f0t, F, wo_l, cuts, T, progress) -> dict:
     tree = _LightTree(samples)
     P, S = vis.shape
     v = vis[:, tree.order]
@@ -415,8 +414,15 @@ def _cut_transfer(px, samples, vis, basis, f0t, frame, cuts, T, progress) -> dic
             covered = (covered | coherent).repeat_interleave(2, dim=1)
         ii, vk, dk, wk = torch.cat(pix), torch.cat(vals), torch.cat(dirs), torch.cat(wsum)
         total_nodes += ii.numel()
-        _accumulate(T[a:b], ii, frame, a, dk, px.wo, wk * vk[:, None], f0t, basis)
-    return {"mean_cut_size": total_nodes / max(P, 1), "cut_tolerance": cuts.tolerance, "cut_max_angle_deg": cuts.max_angle_deg}
+        order = torch.argsort(ii)  # pairs grouped by pixel
+        ii, vk, dk, wk = ii[order], vk[order], dk[order], wk[order]
+        wi_l = (F[a + ii] @ dk[:, :, None])[..., 0]
+        _accumulate(T[a:b], ii, wi_l, wo_l[a + ii], wk * vk[:, None], f0t, basis)
+    return {
+        "mean_cut_size": total_nodes / max(P, 1),
+        "cut_tolerance": cuts.tolerance,
+        "cut_max_angle_deg": cuts.max_angle_deg,
+    }
 
 
 def diffuse_index(record: BasisImage) -> int:
