@@ -27,11 +27,12 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .._checks import as_float_tensor, check_finite
+from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
 from ..errors import InfeasibleError, ShapeError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
+from ._util import f64
 from .energy import EnergyRows, energy_rows
 from .qp import solve_qp
 from .strokes import StrokeTarget
@@ -66,7 +67,7 @@ class NormalEquations:
 
 
 def _rgb(value, name: str) -> torch.Tensor:
-    t = as_float_tensor(value, name, torch.float64).reshape(-1)
+    t = f64(value, name).reshape(-1)
     if t.numel() == 1:
         t = t.expand(3).clone()
     if t.numel() != 3:
@@ -105,8 +106,8 @@ def normal_equations(
     C, J, P = T.shape
     if not isinstance(target, StrokeTarget):
         raise ShapeError(f"target must be a StrokeTarget; got {type(target).__name__}")
-    B = as_float_tensor(target.target, "target", torch.float64)
-    w = as_float_tensor(target.weight, "weights", torch.float64)
+    B = f64(target.target, "target")
+    w = f64(target.weight, "weights")
     if B.shape != (P, C) or w.shape != (P,):
         raise ShapeError(
             f"Expected target ({P}, {C}) and weights ({P},) for the record's pixels; "

@@ -30,9 +30,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._checks import as_float_tensor, check_finite
+from .._checks import check_finite
 from ..errors import ShapeError, ValueRangeError
 from ..render.record import BasisImage
+from ._util import f64
 
 __all__ = ["Brush", "Stroke", "StrokeTarget", "paint", "stroke_distance", "target_from_image"]
 
@@ -54,7 +55,7 @@ class Brush:
     scale: float | None = None
 
     def __post_init__(self):
-        c = as_float_tensor(self.color, "brush color", torch.float64).reshape(-1)
+        c = f64(self.color, "brush color").reshape(-1)
         if c.numel() == 1:
             c = c.expand(3)
         if c.numel() != 3:
@@ -82,7 +83,7 @@ class Stroke:
     brush: Brush = Brush()
 
     def __post_init__(self):
-        p = as_float_tensor(self.points, "stroke points", torch.float64)
+        p = f64(self.points, "stroke points")
         if p.ndim != 2 or p.shape[-1] != 2 or p.shape[0] < 1:
             raise ShapeError(f"Expected stroke points of shape (K, 2) with K >= 1; got {tuple(p.shape)}")
         check_finite(p, "stroke points")
@@ -126,7 +127,7 @@ def _display_xy(record: BasisImage, display_size: tuple[int, int] | None) -> tor
 
 
 def _check_before(before, P: int) -> torch.Tensor:
-    b = as_float_tensor(before, "before", torch.float64)
+    b = f64(before, "before")
     if b.shape != (P, 3):
         raise ShapeError(f"Expected the current radiance 'before' of shape ({P}, 3); got {tuple(b.shape)}")
     check_finite(b, "before")
@@ -191,8 +192,8 @@ def target_from_image(record: BasisImage, before, image, mask, keep_weight: floa
     Returns:
         :class:`StrokeTarget` whose painted pixels' weight is the mask coverage (in (0, 1]).
     """
-    img = as_float_tensor(image, "image", torch.float64)
-    m = as_float_tensor(mask, "mask", torch.float64)
+    img = f64(image, "image")
+    m = f64(mask, "mask")
     if img.ndim != 3 or img.shape[-1] != 3 or m.shape != img.shape[:2]:
         raise ShapeError(f"Expected image (H, W, 3) and mask (H, W); got {tuple(img.shape)} and {tuple(m.shape)}")
     check_finite(img, "target image")
