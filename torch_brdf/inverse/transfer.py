@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .._checks import check_finite
@@ -171,8 +172,10 @@ def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) ->
         height=cam.height,
         width=cam.width,
         position=hits.position[idx].double(),
-        geometric_normal=hits.geometric_normal[idx].double(),
-        normal=hits.normal[idx].double(),
+        # embree's float32 normals renormalised in float64: the shading frames must be orthonormal
+        # to float64 precision, or local directions are off unit length by ~1e-7
+        geometric_normal=F.normalize(hits.geometric_normal[idx].double(), dim=-1),
+        normal=F.normalize(hits.normal[idx].double(), dim=-1),
         wo=-d[idx].double(),
         object_id=oid,
     )
@@ -351,8 +354,8 @@ def transfer_functions(
         raise ValueRangeError(f"f0 must lie in [0, 1]; got {f0t.tolist()}")
     J = basis.K
     vis = visibility.double()
-    F = _frames(px.normal)  # (P, 3, 3)
-    wo_l = (F @ px.wo[:, :, None])[..., 0]  # (P, 3)
+    frames = _frames(px.normal)  # (P, 3, 3)
+    wo_l = (frames @ px.wo[:, :, None])[..., 0]  # (P, 3)
     T = torch.zeros(P, 3, J, dtype=torch.float64)
     t0 = time.perf_counter()
     info: dict = {}
@@ -362,10 +365,10 @@ def transfer_functions(
             b = min(P, a + step)
             ii, ss = torch.nonzero(vis[a:b] > 0, as_tuple=True)  # zero terms add nothing
             w = samples.weight[ss] * vis[a:b][ii, ss, None]
-            wi_l = (F[a:b] @ samples.directions.T).permute(0, 2, 1)[ii, ss]  # (n, 3) local
+            wi_l = (frames[a:b] @ samples.directions.T).permute(0, 2, 1)[ii, ss]  # (n, 3) local
             _accumulate(T[a:b], ii, wi_l, wo_l[a + ii], w, f0t, basis)
     else:
-        info = _cut_transfer(samples, vis, basis, f0t, F, wo_l, cuts, T, progress)
+        info = _cut_transfer(samples, vis, basis, f0t, frames, wo_l, cuts, T, progress)
     seconds = time.perf_counter() - t0
     # f = 0 unless wo is above the shading horizon too (silhouettes of smoothly shaded meshes)
     front = ((px.wo * px.normal).sum(-1) > 0).to(torch.float64)
@@ -382,7 +385,7 @@ def transfer_functions(
     return BasisImage(values, px.pixels.clone(), px.height, px.width, None, None, f"srbf:{J}+diffuse", m)
 
 
-def _cut_transfer(samples, vis, basis, f0t, F, wo_l, cuts, T, progress) -> dict:
+def _cut_transfer(samples, vis, basis, f0t, frames, wo_l, cuts, T, progress) -> dict:
     tree = _LightTree(samples)
     P, S = vis.shape
     v = vis[:, tree.order]
@@ -416,7 +419,7 @@ def _cut_transfer(samples, vis, basis, f0t, F, wo_l, cuts, T, progress) -> dict:
         total_nodes += ii.numel()
         order = torch.argsort(ii)  # pairs grouped by pixel
         ii, vk, dk, wk = ii[order], vk[order], dk[order], wk[order]
-        wi_l = (F[a + ii] @ dk[:, :, None])[..., 0]
+        wi_l = (frames[a + ii] @ dk[:, :, None])[..., 0]
         _accumulate(T[a:b], ii, wi_l, wo_l[a + ii], wk * vk[:, None], f0t, basis)
     return {
         "mean_cut_size": total_nodes / max(P, 1),
