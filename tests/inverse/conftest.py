@@ -39,10 +39,17 @@ def true_coefficients() -> torch.Tensor:
 def direct_render(px, ls, vis, c, kd=KD, f0=F0) -> torch.Tensor:
     """Brute-force oracle: sum over the light samples of f_r (the BRDF module) x L x V cos / pdf."""
     brdf = DistributionBased(SRBFDistribution(default_basis(), c), kd=kd, f0=f0).double()
-    frame = Frame.from_normal(px.normal)
-    out = torch.zeros(px.count, 3, dtype=torch.float64)
+    fr = Frame.from_normal(px.normal)
+    frame = Frame(fr.s[:, None], fr.t[:, None], fr.n[:, None])  # (P, 1, 3): broadcast over samples
+    wi = ls.directions[None].expand(px.count, -1, 3)
+    wo = px.wo[:, None].expand_as(wi)
     with torch.no_grad():
-        for s in range(ls.count):
-            f = brdf.eval(ls.directions[s].expand(px.count, 3), px.wo, frame)
-            out += f * vis[:, s : s + 1] * ls.weight[s]
-    return out
+        f = brdf.eval(wi, wo, frame)  # (P, S, 3), every (pixel, sample) pair
+    return (f * vis[..., None] * ls.weight[None]).sum(1)
+
+
+@pytest.fixture(scope="module")
+def target_render(view):
+    """The direct render of :func:`true_coefficients` with diffuse KD (computed once per module)."""
+    _, px, ls, vis, _ = view
+    return direct_render(px, ls, vis, true_coefficients())

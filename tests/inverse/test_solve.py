@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.inverse.conftest import KD, direct_render, true_coefficients
+from tests.inverse.conftest import KD
 from torch_brdf.errors import FileFormatError, InfeasibleError, ShapeError, ValueRangeError
 from torch_brdf.inverse import (
     Brush,
@@ -45,11 +45,10 @@ def _rel_rmse(a, b):
     return float((a - b).pow(2).mean().sqrt() / b.pow(2).mean().sqrt())
 
 
-def test_recovers_a_known_brdf(view):
+def test_recovers_a_known_brdf(view, target_render):
     """Acceptance: target rendered with a known p(h) in the SRBF span (the BRDF module, same light
     samples), whole object as the stroke region -> <= 1% relative RMSE, constraints to 1e-8."""
-    _, px, ls, vis, rec = view
-    target = direct_render(px, ls, vis, true_coefficients())
+    rec, target = view[-1], target_render
     res = fit(rec, _whole(target), kd=KD)
     img = rec.pixel_values(res.record_coefficients())
     assert _rel_rmse(img, target) <= 0.01
@@ -73,11 +72,11 @@ def test_strokes_make_the_constraints_active(view):
 @pytest.mark.reference
 @pytest.mark.parametrize("solver", ["proxqp", "clarabel"])
 @pytest.mark.parametrize("problem", ["strokes", "recovery", "shared"])
-def test_objective_agrees_with_reference_solver(view, solver, problem):
+def test_objective_agrees_with_reference_solver(view, target_render, solver, problem):
     qpsolvers = pytest.importorskip("qpsolvers")
-    _, px, ls, vis, rec = view
+    rec = view[-1]
     if problem == "recovery":
-        target = _whole(direct_render(px, ls, vis, true_coefficients()))
+        target = _whole(target_render)
     else:
         target = _strokes(rec)
     shared = problem == "shared"

@@ -26,11 +26,9 @@ def test_record_layout(view):
     assert rec.meta["light_samples"] == ls.count and rec.meta["f0"] == list(F0)
 
 
-def test_equals_direct_render_of_the_brdf(view):
+def test_equals_direct_render_of_the_brdf(view, target_render):
     """Same light samples, visibility and BRDF: the record reproduces the module's render to rounding."""
-    _, px, ls, vis, rec = view
-    c = true_coefficients()
-    want = direct_render(px, ls, vis, c)
+    rec, c, want = view[-1], true_coefficients(), target_render
     got = rec.pixel_values(_coeffs(c))
     torch.testing.assert_close(got, want, rtol=RTOL[torch.float64] * 1e-2, atol=1e-15)
     assert float(want.max()) > 0.05  # the highlights are really there
