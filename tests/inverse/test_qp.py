@@ -62,6 +62,9 @@ def test_trivial_and_infeasible(gen):
     assert float(r.x.abs().max()) <= 1e-9
     with pytest.raises(InfeasibleError):
         solve_qp(H, f, G, -h)
+    G2 = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=torch.float64)  # x0 <= 1 and x0 >= 2
+    with pytest.raises(InfeasibleError):
+        solve_qp(torch.eye(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64), G2, torch.tensor([1.0, -2.0]))
     with pytest.raises(ValueRangeError):
         solve_qp(H, f * float("nan"), G, h)
     with pytest.raises(ShapeError):

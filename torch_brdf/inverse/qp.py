@@ -172,7 +172,7 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
         if float(x.abs().max()) > 1e12 / max(tol, 1e-300):
             raise InfeasibleError("interior point iterates diverge: the constraints admit no point")
         d = z / s
-        K = Hs + torch.diag(d[:J]) + Gs.T @ (d[J:, None] * Gs)
+        K = Hs + torch.diag(d[:J]) + GsT @ (d[J:, None] * Gs)
         L = _chol(K)
 
         def newton(rc, rd=rd, rp=rp, d=d, L=L, s=s, z=z):
@@ -203,9 +203,8 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
                 "iterations; the constraints appear infeasible"
             )
         raise NumericalError(f"interior point did not converge in {max_iter} iterations (mu = {mu:.3g})")
-    if converged:
-        x, s, z, it = best
-    x = x.clamp_min(0)
+    x, s, z, it = best
+    x = x.clamp_min(0)  # interior up to rounding
     viol = max(0.0, float((G @ x - h).max()) if M else 0.0)
     objective = 0.5 * float(x @ (H @ x)) - float(f @ x)
     return QPResult(x, z[:J] * s_obj, z[J:] * s_obj / rn, it, objective, viol, converged)
