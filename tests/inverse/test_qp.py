@@ -76,10 +76,13 @@ def test_trivial_and_infeasible(gen):
 @pytest.mark.parametrize("singular", [False, True])
 def test_agrees_with_reference_solvers(gen, solver, singular):
     qpsolvers = pytest.importorskip("qpsolvers")
+    from scipy.sparse import csc_matrix as csc
+
     H, f, G, h = _problem(gen, singular=singular)
     r = solve_qp(H, f, G, h)
     kw = {"eps_abs": 1e-12, "eps_rel": 0.0} if solver == "proxqp" else {}
-    x = qpsolvers.solve_qp(H.numpy(), -f.numpy(), G.numpy(), h.numpy(), lb=np.zeros(H.shape[0]), solver=solver, **kw)
+    args = (csc(H.numpy()), -f.numpy(), csc(G.numpy()), h.numpy())
+    x = qpsolvers.solve_qp(*args, lb=np.zeros(H.shape[0]), solver=solver, **kw)
     x = torch.from_numpy(x)
     ref = 0.5 * float(x @ H @ x) - float(f @ x)
     assert r.objective == pytest.approx(ref, rel=1e-6)

@@ -74,6 +74,8 @@ def test_strokes_make_the_constraints_active(view):
 @pytest.mark.parametrize("problem", ["strokes", "recovery", "shared"])
 def test_objective_agrees_with_reference_solver(view, target_render, solver, problem):
     qpsolvers = pytest.importorskip("qpsolvers")
+    from scipy.sparse import csc_matrix as csc
+
     rec = view[-1]
     if problem == "recovery":
         target = _whole(target_render)
@@ -84,7 +86,7 @@ def test_objective_agrees_with_reference_solver(view, target_render, solver, pro
     ref, total = 0.0, 0.0
     tight = {"proxqp": {"eps_abs": 1e-12, "eps_rel": 0.0}, "clarabel": {"tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12}}
     for pr in normal_equations(rec, target, kd=KD, shared=shared):
-        args = (pr.H.numpy(), -pr.f.numpy(), pr.G.numpy(), pr.h.numpy())
+        args = (csc(pr.H.numpy()), -pr.f.numpy(), csc(pr.G.numpy()), pr.h.numpy())
         x = qpsolvers.solve_qp(*args, lb=np.zeros(147), solver=solver, **tight[solver])
         ref += pr.sum_of_squares(torch.from_numpy(x))
         total += pr.k

@@ -6,9 +6,9 @@ Pipeline::
     px = object_pixels(scene, "teapot", scene.camera.with_size(160, 120))   # solving frame
     ls = LightSamples.from_environment(scene.environment, 1024, generator)
     rec = transfer_functions(px, ls, cosine_visibility(scene, px, ls), f0=0.9)  # BasisImage
-    before = rec.pixel_values(initial.record_coefficients())   # or any current colours
+    before = rec.pixel_values(torch.cat((torch.zeros(147, 3), torch.full((1, 3), 0.3))))  # diffuse only
     target = paint(rec, before, [Stroke(points, Brush((1, 1, 1), 40, 0.02))], display_size=(640, 480))
-    result = fit(rec, target, kd=0.3)                          # c >= 0 and energy rows
+    result = fit(rec, target, kd=0.3)  # c >= 0 and energy rows; result.objective, .violation
     image = rerender(scene, "teapot", result, environment=scene.environment.rotated(1.0))
 """
 
