@@ -182,11 +182,9 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
             dz = -(rc + z * ds) / s
             return dx, ds, dz
 
-        def step(v, dv):
-            neg = dv < 0
-            if not bool(neg.any()):
-                return 1.0
-            return min(1.0, float((-v[neg] / dv[neg]).min()))
+        def step(v, dv):  # largest step in (0, 1] keeping v + step * dv >= 0
+            ratio = torch.where(dv < 0, v / -dv.clamp_max(-1e-300), 1.0)
+            return min(1.0, float(ratio.min()))
 
         dx, ds, dz = newton(s * z)
         a_aff = min(step(s, ds), step(z, dz))

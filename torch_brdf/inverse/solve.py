@@ -34,7 +34,7 @@ from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
 from ._util import f64
 from .energy import EnergyRows, energy_rows
-from .qp import solve_qp
+from .qp import _single_thread, solve_qp
 from .strokes import StrokeTarget
 from .transfer import split_record
 
@@ -213,6 +213,11 @@ def fit(
     """
     if constrained and energy is None:
         energy = energy_rows(basis)  # precomputed once per basis (cached), not part of the solve time
+    with _single_thread():  # small kernels: one thread is faster (see qp._single_thread)
+        return _fit(record, target, kd, constrained, shared, energy, basis, tol)
+
+
+def _fit(record, target, kd, constrained, shared, energy, basis, tol) -> FitResult:
     t0 = time.perf_counter()
     problems = normal_equations(record, target, kd, energy, basis, constrained, shared)
     J = problems[0].H.shape[0]
