@@ -141,5 +141,34 @@ def precompute(
     typer.echo(json.dumps(info))
 
 
+@app.command("fit-strokes")
+def fit_strokes(
+    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    obj: str = typer.Option(..., "--object", help="Object whose BRDF is designed."),
+    strokes: Path = typer.Option(..., help="Strokes JSON file (see torch_brdf.inverse.design)."),
+    out: Path = typer.Option(Path("out/inverse"), help="Output folder."),
+    width: int = typer.Option(640, min=8),
+    height: int = typer.Option(480, min=8),
+    downsample: int = typer.Option(4, min=1, help="Solving frame = display / downsample."),
+    samples: int = typer.Option(1024, min=1, help="Light samples."),
+    kd: float = typer.Option(0.3, help="Diffuse albedo rho_d."),
+    f0: float = typer.Option(0.9, help="Schlick F0."),
+    unconstrained: bool = typer.Option(False, help="Allow physically impossible BRDFs."),
+    cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
+    rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
+    seed: int = typer.Option(0),
+):
+    """Inverse BRDF design: fit SRBF coefficients to painted strokes and re-render (Iwasaki et al.)."""
+    from .inverse.design import DesignConfig, design, load_strokes
+
+    try:
+        sc = load_scene(scene).with_resolution(width, height)
+        st, size = load_strokes(strokes)
+        cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
+        typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size)))
+    except TorchBRDFError as exc:
+        _fail(exc)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -1,0 +1,178 @@
+"""Inverse BRDF design benchmark (Iwasaki et al.): transfer functions, cuts, and the constrained solve.
+
+    python benchmarks/inverse.py [--quick]
+
+The problem: the teapot of the built-in ``teatray`` scene seen in a 640 x 480 view, solved on
+the 160 x 120 frame (~2500 object pixels; ``--quick``: 80 x 60, ~630 pixels), J = 147 SRBFs,
+N_l = 192 energy rows, F0 = 0.9, rho_d = 0.3, S light samples from the procedural sky. Two
+strokes (a bright highlight and a darkening one) are painted on the diffuse-only image; the
+bright one asks for more energy than the constraints allow, so rows are active at the optimum.
+
+Prints progress lines, then one JSON object as the last line:
+
+* ``pixels``, ``light_samples``, ``J``, ``N_l``;
+* ``visibility_s``: shadow rays (P x S, embree), shared by both transfer computations;
+* ``transfer_s``: dense transfer functions (Eq. 6; best of 2, 1 with ``--quick``);
+  ``transfer_cuts_s``: with visibility cuts (Eq. 21, default ``CutOptions``); ``cuts_rel_err``:
+  relative Frobenius error of the cut record against the dense one; ``mean_cut_size``: clusters
+  per pixel (of S);
+* ``normal_equations_s``: forming the three J x J problems from the record;
+* ``solve_s``: our interior point solve of the three per-channel QPs (best of ``repeats``),
+  ``iterations``, ``objective`` (weighted sum of squares), ``violation``, ``active_rows``;
+* ``proxqp_solve_s``, ``proxqp_objective``, ``clarabel_solve_s``, ``clarabel_objective``: the same
+  three QPs through qpsolvers (ProxQP eps_abs 1e-10, Clarabel defaults; best of ``repeats``),
+  and ``solve_over_proxqp`` = solve_s / proxqp_solve_s, ``objective_rel_diff_proxqp``;
+* ``fit_s``: the whole ``fit()`` call (normal equations + solve + report).
+
+The reference solvers need the ``reference`` extra; without it their fields are null.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # ../shared/FACTS.md: scipy inside torch loops
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+import torch
+
+from torch_brdf.inverse import (
+    Brush,
+    CutOptions,
+    LightSamples,
+    Stroke,
+    cosine_visibility,
+    energy_rows,
+    fit,
+    normal_equations,
+    object_pixels,
+    paint,
+    solve_qp,
+    transfer_functions,
+)
+from torch_brdf.scene import teatray
+
+F0, KD = 0.9, 0.3
+
+
+def _best(fn, repeats):
+    best, out = math.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def _strokes(rec):
+    before = rec.pixel_values(torch.cat((torch.zeros(147, 3, dtype=torch.float64), torch.full((1, 3), KD))))
+    k = 640 / rec.width  # display pixels per solving pixel
+    r = torch.div(rec.pixels, rec.width, rounding_mode="floor").double() * k
+    c = (rec.pixels % rec.width).double() * k
+    mid = torch.stack((c.mean(), r.mean()))
+    spread = torch.stack((c.std(), r.std()))
+    strokes = [
+        Stroke(torch.stack((mid - 0.8 * spread, mid + 0.3 * spread)), Brush((4.0, 4.0, 3.6), 40.0, 0.02)),
+        Stroke((mid + torch.tensor([0.6, -0.7]) * spread)[None], Brush((-1.0, -1.0, -1.0), 30.0, 0.0)),
+    ]
+    return paint(rec, before, strokes, display_size=(640, 480))
+
+
+def _reference(problems, solver, repeats):
+    try:
+        import qpsolvers
+    except ImportError:
+        return None, None
+    kw = {"eps_abs": 1e-10, "eps_rel": 0.0} if solver == "proxqp" else {}
+    args = []
+    for pr in problems:
+        if solver == "clarabel":  # sparse inputs, so the conversion is not timed
+            from scipy import sparse
+
+            args.append((sparse.csc_matrix(pr.H.numpy()), -pr.f.numpy(), sparse.csc_matrix(pr.G.numpy()), pr.h.numpy()))
+        else:
+            args.append((pr.H.numpy(), -pr.f.numpy(), pr.G.numpy(), pr.h.numpy()))
+
+    def run():
+        lb = np.zeros(147)
+        return [qpsolvers.solve_qp(*a, lb=lb, solver=solver, **kw) for a in args]
+
+    seconds, xs = _best(run, repeats)
+    obj = sum(pr.sum_of_squares(torch.from_numpy(x)) for pr, x in zip(problems, xs, strict=True))
+    return seconds, obj
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="80x60 solving frame, 128 light samples")
+    ap.add_argument("--samples", type=int, default=None, help="light samples S (power of two)")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    size = (80, 60) if args.quick else (160, 120)
+    S = args.samples or (128 if args.quick else 512)
+    repeats = args.repeats or (3 if args.quick else 5)
+    g = torch.Generator().manual_seed(args.seed)
+
+    scene = teatray((640, 480))
+    px = object_pixels(scene, "teapot", scene.camera.with_size(*size))
+    ls = LightSamples.from_environment(scene.environment, S, g)
+    print(f"teapot: {px.count} pixels at {size[0]}x{size[1]}, {S} light samples", flush=True)
+    t0 = time.perf_counter()
+    vis = cosine_visibility(scene, px, ls)
+    visibility_s = time.perf_counter() - t0
+    energy = energy_rows()  # precomputed once per basis (not timed below)
+
+    tr = 1 if args.quick else 2  # best of 2: the machine is shared
+    transfer_s, rec = _best(lambda: transfer_functions(px, ls, vis, f0=F0), tr)
+    transfer_cuts_s, cut = _best(lambda: transfer_functions(px, ls, vis, f0=F0, cuts=CutOptions()), tr)
+    cuts_rel_err = float((cut.values - rec.values).norm() / rec.values.norm())
+    print(f"transfer dense {transfer_s:.2f} s, cuts {transfer_cuts_s:.2f} s (rel err {cuts_rel_err:.2e})", flush=True)
+
+    target = _strokes(rec)
+    ne_s, problems = _best(lambda: normal_equations(rec, target, kd=KD, energy=energy), repeats)
+    solve_s, results = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h) for p in problems], repeats)
+    objective = sum(p.sum_of_squares(r.x) for p, r in zip(problems, results, strict=True))
+    violation = max(r.violation for r in results)
+    active = sum(int(((p.G @ r.x - p.h) > -1e-7).sum()) for p, r in zip(problems, results, strict=True))
+    print(f"solve {solve_s * 1e3:.1f} ms, objective {objective:.6g}, violation {violation:.2e}", flush=True)
+    fit_s, res = _best(lambda: fit(rec, target, kd=KD, energy=energy), repeats)
+
+    proxqp_s, proxqp_obj = _reference(problems, "proxqp", repeats)
+    clarabel_s, clarabel_obj = _reference(problems, "clarabel", repeats)
+    out = {
+        "pixels": px.count,
+        "light_samples": S,
+        "J": 147,
+        "N_l": int(energy.plain.shape[0]),
+        "visibility_s": round(visibility_s, 4),
+        "transfer_s": round(transfer_s, 4),
+        "transfer_cuts_s": round(transfer_cuts_s, 4),
+        "cuts_rel_err": cuts_rel_err,
+        "mean_cut_size": round(cut.meta["mean_cut_size"], 2),
+        "normal_equations_s": round(ne_s, 5),
+        "solve_s": round(solve_s, 5),
+        "iterations": sum(r.iterations for r in results),
+        "objective": objective,
+        "violation": violation,
+        "active_rows": active,
+        "fit_s": round(fit_s, 5),
+        "fit_objective": res.objective,
+        "proxqp_solve_s": None if proxqp_s is None else round(proxqp_s, 5),
+        "proxqp_objective": proxqp_obj,
+        "clarabel_solve_s": None if clarabel_s is None else round(clarabel_s, 5),
+        "clarabel_objective": clarabel_obj,
+        "solve_over_proxqp": None if proxqp_s is None else round(solve_s / proxqp_s, 3),
+        "objective_rel_diff_proxqp": None if proxqp_obj is None else (objective - proxqp_obj) / proxqp_obj,
+        "quick": bool(args.quick),
+    }
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

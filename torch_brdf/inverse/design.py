@@ -1,0 +1,164 @@
+"""The stroke-fitting driver behind ``trainers/fit_strokes.py`` and ``torch-brdf fit-strokes``.
+
+Strokes file (JSON)::
+
+    {"display_size": [640, 480],
+     "strokes": [{"points": [[300, 200], [340, 230]], "color": [3, 3, 3],
+                  "diameter": 40, "kappa": 0.02},
+                 {"points": [[250, 260]], "color": [-1, -1, -1], "diameter": 30, "kappa": 0}]}
+
+(``"scale": S`` instead of ``"color"`` scales the current colour, Eq. 23.) Steps: the object's
+pixels on the solving frame (display size / ``downsample``), seeded light samples, visibility and
+transfer functions (the record is saved next to the outputs and reused when its settings match,
+so an interrupted run resumes after the expensive part), the strokes on the diffuse-only image,
+the fit, and a re-render at display size under the (optionally rotated) environment.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+
+from ..errors import FileFormatError, TorchBRDFError
+from ..render.record import BasisImage
+from ..scene.scene import Scene
+from .solve import fit, save_fit
+from .strokes import Brush, Stroke, paint
+from .transfer import CutOptions, LightSamples, cosine_visibility, object_pixels, transfer_functions
+
+__all__ = ["DesignConfig", "design", "load_strokes"]
+
+
+def load_strokes(path: str | Path) -> tuple[list[Stroke], tuple[int, int] | None]:
+    """Read a strokes JSON file (module docstring): (strokes, display size or None)."""
+    path = Path(path)
+    try:
+        desc = json.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise FileFormatError(f"strokes file not found: {path}") from exc
+    except json.JSONDecodeError as exc:
+        raise FileFormatError(f"strokes file {path} is not valid JSON: {exc}") from exc
+    items = desc.get("strokes") if isinstance(desc, dict) else None
+    if not isinstance(items, list):
+        raise FileFormatError(f"{path}: expected an object with a list 'strokes'")
+    strokes = []
+    for k, s in enumerate(items):
+        if not isinstance(s, dict) or "points" not in s:
+            raise FileFormatError(f"{path}: strokes[{k}] needs 'points'")
+        brush = Brush(
+            tuple(s.get("color", (1.0, 1.0, 1.0))) if not isinstance(s.get("color"), (int, float)) else s["color"],
+            float(s.get("diameter", 20.0)),
+            float(s.get("kappa", 0.05)),
+            None if s.get("scale") is None else float(s["scale"]),
+        )
+        strokes.append(Stroke(s["points"], brush))
+    size = desc.get("display_size")
+    return strokes, (int(size[0]), int(size[1])) if size else None
+
+
+@dataclass(frozen=True)
+class DesignConfig:
+    """Settings of :func:`design` (see the trainer's ``--help``)."""
+
+    object: str
+    downsample: int = 4
+    light_samples: int = 1024
+    kd: float = 0.3
+    f0: float = 0.9
+    constrained: bool = True
+    cuts: bool = False
+    keep_weight: float = 1.0
+    rotate: float = 0.0
+    render_scale: float = 1.0
+    seed: int = 0
+
+
+def design(
+    scene: Scene, strokes: list[Stroke], config: DesignConfig, out: str | Path, display_size=None, progress: bool = True
+) -> dict:
+    """Run the stroke fit end to end and write ``fit.npz``, ``transfer.npz``, ``render.exr/.png``.
+
+    Args:
+        scene: the scene; its camera is the display view.
+        strokes: the strokes, in display coordinates.
+        config: :class:`DesignConfig`.
+        out: output folder.
+        display_size: (width, height) of the stroke coordinates (default the camera's).
+    Returns:
+        A JSON-serialisable summary (pixels, objective, violation, iterations, timings, files).
+    """
+    from ..io import write_exr, write_png
+
+    if config.downsample < 1 or config.render_scale <= 0:
+        raise TorchBRDFError(f"downsample must be >= 1 and render_scale > 0; got {config}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cam = scene.camera
+    display = display_size or (cam.width, cam.height)
+    solve_cam = cam.with_size(max(1, cam.width // config.downsample), max(1, cam.height // config.downsample))
+    t0 = time.perf_counter()
+    px = object_pixels(scene, config.object, solve_cam)
+    settings = {"scene": scene.name, **asdict(config), "size": [solve_cam.width, solve_cam.height]}
+    cache = out / "transfer.npz"
+    rec = None
+    if cache.exists():
+        try:
+            old = BasisImage.load(cache, dtype=torch.float64)
+            if old.meta.get("settings") == json.loads(json.dumps(settings)):
+                rec = old
+        except FileFormatError:
+            rec = None
+    if rec is None:
+        g = torch.Generator().manual_seed(config.seed)
+        ls = LightSamples.from_environment(scene.environment, config.light_samples, g)
+        vis = cosine_visibility(scene, px, ls, progress=progress)
+        rec = transfer_functions(
+            px,
+            ls,
+            vis,
+            f0=config.f0,
+            cuts=CutOptions() if config.cuts else None,
+            progress=progress,
+            meta={"settings": settings},
+        )
+        rec.save(cache, storage="float64")
+    transfer_s = time.perf_counter() - t0
+    kd3 = torch.full((1, 3), float(config.kd), dtype=torch.float64)
+    before = rec.pixel_values(torch.cat((torch.zeros(rec.num_basis - 1, 3, dtype=torch.float64), kd3)))
+    target = paint(rec, before, strokes, display_size=display, keep_weight=config.keep_weight)
+    result = fit(rec, target, kd=config.kd, constrained=config.constrained)
+    save_fit(out / "fit.npz", result)
+    from .render import rerender
+
+    env = scene.environment.rotated(config.rotate) if config.rotate else scene.environment
+    rcam = cam.with_size(
+        max(1, round(cam.width * config.render_scale)), max(1, round(cam.height * config.render_scale))
+    )
+    g = torch.Generator().manual_seed(config.seed + 1)
+    image = rerender(
+        scene,
+        config.object,
+        result,
+        camera=rcam,
+        environment=env,
+        light_samples=config.light_samples,
+        generator=g,
+        progress=progress,
+    )
+    write_exr(out / "render.exr", image.float())
+    write_png(out / "render.png", image.float())
+    return {
+        "pixels": rec.num_pixels,
+        "painted": int(target.painted.sum()),
+        "objective": result.objective,
+        "violation": result.violation,
+        "iterations": result.iterations,
+        "max_energy": result.max_energy,
+        "solve_s": round(result.seconds, 4),
+        "transfer_s": round(transfer_s, 3),
+        "files": [str(out / n) for n in ("fit.npz", "transfer.npz", "render.exr", "render.png")],
+    }
