@@ -18,7 +18,9 @@ def as_float_tensor(x, name: str, dtype: torch.dtype | None = None) -> torch.Ten
     """
     if not isinstance(x, torch.Tensor):
         try:
-            x = torch.as_tensor(x)
+            # convert straight to the requested dtype: Python floats are doubles, and a detour
+            # through the default float32 would round them (1 - 1e-9 would become 1.0)
+            x = torch.as_tensor(x, dtype=dtype)
         except (TypeError, ValueError, RuntimeError) as exc:
             raise ShapeError(f"{name}: expected a tensor or array of numbers; got {type(x)!r}") from exc
     if dtype is not None:
