@@ -279,3 +279,27 @@ def test_fresnel_layers_follow_f0():
         R.set_material("back", mat, f0=1.5)
     with pytest.raises(ValueRangeError):
         P.set_material("back", mat, f0=0.5)
+
+
+@pytest.mark.parametrize("points", [None, 16])
+def test_environment_lit_scene_bookkeeping_is_exact(points, gen):
+    """The teatray (environment map; a fixed floor): NEE to the map itself or to its K median-cut
+    point lights; same exactness oracle."""
+    from torch_brdf.scene.builtin import teatray
+
+    sc = teatray(10)
+    paths: dict = {}
+    T = precompute_polynomial(
+        sc, "8,1,1", spp=2, seed=1, env_point_lights=points, tile_rows=10, progress=False, paths=paths
+    )
+    R = PolynomialRenderer(T, dtype=torch.float64)
+    c, c_hat, d = {}, {}, torch.zeros(len(sc.objects), 3, dtype=torch.float64)
+    for m, b in enumerate(T.bases):
+        if b is not None:
+            c[m] = torch.rand(b.size, 3, generator=gen, dtype=torch.float64)
+            d[m] = torch.rand(3, generator=gen, dtype=torch.float64)
+            R.set_coefficients(m, c[m], d=d[m])
+    with torch.no_grad():
+        want = _oracle(sc, T, paths, c, c_hat, d, 2)
+    assert float(want.sum()) > 0
+    torch.testing.assert_close(R.evaluate(), want, rtol=1e-4, atol=1e-6 * float(want.abs().max()))
