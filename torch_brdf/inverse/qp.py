@@ -49,7 +49,10 @@ class QPResult:
         iterations: interior point iterations.
         objective: :math:`\\frac12 x^\\top H x - f^\\top x` at ``x``.
         violation: :math:`\\max(0, \\max_l (Gx - h)_l, \\max_j -x_j)`.
-        converged: the stopping tolerances were met.
+        converged: the stopping tolerances were met (ADMM: the residual criteria, or a
+            polished point that satisfies the KKT conditions).
+        method: ``"interior_point"`` or ``"admm"``.
+        polished: ADMM only: the returned point is the polished one (exact active-set solve).
     """
 
     x: torch.Tensor
@@ -59,6 +62,8 @@ class QPResult:
     objective: float
     violation: float
     converged: bool
+    method: str = "interior_point"
+    polished: bool = False
 
 
 def _chol(K: torch.Tensor) -> torch.Tensor:
@@ -87,7 +92,17 @@ def _single_thread():
         torch.set_num_threads(n)
 
 
-def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
+def solve_qp(
+    H,
+    f,
+    G,
+    h,
+    tol: float | None = None,
+    max_iter: int | None = None,
+    method: str = "interior_point",
+    warm_start: QPResult | None = None,
+    polish: bool = True,
+) -> QPResult:
     r"""Solve :math:`\min \frac12 x^\top H x - f^\top x` s.t. :math:`x \ge 0,\ Gx \le h` (see the module).
 
     Args:
@@ -104,11 +119,16 @@ def solve_qp(H, f, G, h, tol: float = 1e-11, max_iter: int = 100) -> QPResult:
             non-negative rows, else from diverging iterates).
         NumericalError: no convergence within ``max_iter`` iterations.
     """
+    if method not in ("interior_point", "admm"):
+        raise ValueRangeError(f"method must be 'interior_point' or 'admm'; got {method!r}")
     with _single_thread():
-        return _solve_qp(H, f, G, h, tol, max_iter)
+        if method == "admm":
+            return _solve_admm(H, f, G, h, 1e-9 if tol is None else tol, max_iter or 4000, warm_start, polish)
+        return _solve_qp(H, f, G, h, 1e-11 if tol is None else tol, max_iter or 100)
 
 
-def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
+def _prepare(H, f, G, h):
+    """Validate and convert the QP data; raise InfeasibleError for the obvious infeasible case."""
     H = torch.as_tensor(H, dtype=torch.float64)
     f = torch.as_tensor(f, dtype=torch.float64)
     G = torch.as_tensor(G, dtype=torch.float64)
@@ -124,6 +144,12 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
             raise ValueRangeError(f"QP data {name} holds NaN or Inf")
     if bool((G >= 0).all()) and bool((h < 0).any()):
         raise InfeasibleError(f"no x >= 0 satisfies G x <= h: G is non-negative and min(h) = {float(h.min()):.3g} < 0")
+    return H, f, G, h
+
+
+def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
+    H, f, G, h = _prepare(H, f, G, h)
+    J = H.shape[0]
     # scaling: objective to unit size, constraint rows to unit norm
     s_obj = max(float(H.abs().max()), float(f.abs().max()), 1e-300)
     Hs, fs = H / s_obj, f / s_obj
@@ -206,3 +232,193 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
     viol = max(0.0, float((G @ x - h).max()) if M else 0.0)
     objective = 0.5 * float(x @ (H @ x)) - float(f @ x)
     return QPResult(x, z[:J] * s_obj, z[J:] * s_obj / rn, it, objective, viol, converged)
+
+
+# ---------------------------------------------------------------------------------------------
+# ADMM (OSQP, Stellato et al. 2020) with exact projection and polishing
+# ---------------------------------------------------------------------------------------------
+
+
+def _normalise(H, f, G, h):
+    """The problem with :math:`\\|H\\|_\\infty = 1` and unit-norm constraint rows (solution unchanged)."""
+    s_obj = max(float(H.abs().max()), float(f.abs().max()), 1e-300)
+    rn = G.norm(dim=1).clamp_min(1e-300)
+    return H / s_obj, f / s_obj, G / rn[:, None], h / rn, s_obj, rn
+
+
+def _ruiz(P, q, A, iters: int = 10):
+    """Modified Ruiz equilibration of OSQP (Stellato et al. 2020, Sec. 5.1): returns D (J,), E (m,)
+    and the cost scale c with :math:`\\bar P = c D P D`, :math:`\\bar q = c D q`, :math:`\\bar A = E A D`."""
+    J, m = P.shape[0], A.shape[0]
+    D = torch.ones(J, dtype=torch.float64)
+    E = torch.ones(m, dtype=torch.float64)
+    c = 1.0
+    Pb, qb, Ab = P.clone(), q.clone(), A.clone()
+
+    def limit(v):
+        return torch.where(v < 1e-4, torch.ones_like(v), v).clamp_max(1e4)
+
+    for _ in range(iters):
+        col = torch.maximum(Pb.abs().amax(0), Ab.abs().amax(0)) if m else Pb.abs().amax(0)
+        dx = 1 / limit(col).sqrt()
+        dz = 1 / limit(Ab.abs().amax(1)).sqrt() if m else E
+        Pb = dx[:, None] * Pb * dx[None]
+        Ab = dz[:, None] * Ab * dx[None]
+        qb = dx * qb
+        D, E = D * dx, E * dz
+        gamma = 1 / max(float(limit(Pb.abs().amax(0)).mean()), float(limit(qb.abs().max()[None])[0]))
+        gamma = min(max(gamma, 1e-4), 1e4)
+        Pb, qb, c = Pb * gamma, qb * gamma, c * gamma
+    return D, E, c, Pb, qb, Ab
+
+
+def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 10):
+    r"""OSQP's solution polishing (Stellato et al. 2020, Sec. 4): solve the equality-constrained QP on
+    the guessed active set (bounds ``x_B = 0``, rows ``G_R x = h_R``) exactly through the reduced KKT
+    system (regularised by 1e-10 with iterative refinement), then -- beyond OSQP -- repair the guess a
+    few times (drop constraints with negative multipliers, add violated ones) until the point
+    satisfies all KKT conditions of the normalised problem.
+
+    Returns:
+        ``(x, mu, y)`` (bound and row multipliers, >= 0) or None when no pass verifies.
+    """
+    J = Hs.shape[0]
+    tol_p, tol_d = 1e-12, 1e-11
+    B, R = bound_active.clone(), row_active.clone()
+    for _ in range(passes):
+        F = ~B
+        fi, ri = F.nonzero()[:, 0], R.nonzero()[:, 0]
+        nf, nr = fi.numel(), ri.numel()
+        GRF = Gs[ri][:, fi]
+        K0 = torch.zeros(nf + nr, nf + nr, dtype=torch.float64)
+        K0[:nf, :nf] = Hs[fi][:, fi]
+        K0[:nf, nf:] = GRF.T
+        K0[nf:, :nf] = GRF
+        rhs = torch.cat((fs[fi], hs[ri]))
+        reg = torch.cat((torch.full((nf,), 1e-10), torch.full((nr,), -1e-10))).double()
+        K0d = K0.clone()
+        K0d.diagonal().add_(reg)
+        LU, piv = torch.linalg.lu_factor(K0d)
+        v = torch.linalg.lu_solve(LU, piv, rhs[:, None])[:, 0]
+        for _ in range(5):
+            v = v + torch.linalg.lu_solve(LU, piv, (rhs - K0 @ v)[:, None])[:, 0]
+        x = torch.zeros(J, dtype=torch.float64)
+        x[fi] = v[:nf]
+        y = torch.zeros(Gs.shape[0], dtype=torch.float64)
+        y[ri] = v[nf:]
+        grad = Hs @ x - fs + Gs.T @ y  # = mu on B, ~0 on F
+        mu = torch.where(B, grad, torch.zeros_like(grad))
+        slack = Gs @ x - hs
+        bad_x = F & (x < -tol_p)
+        bad_row = ~R & (slack > tol_p)
+        bad_y = R & (y < -tol_d)
+        bad_mu = B & (mu < -tol_d)
+        stat = float(grad[F].abs().max()) if nf else 0.0
+        if not (bad_x.any() or bad_row.any() or bad_y.any() or bad_mu.any()) and stat <= 1e-9:
+            return x.clamp_min(0), mu.clamp_min(0), y.clamp_min(0)
+        B = (B & ~bad_mu) | bad_x
+        R = (R & ~bad_y) | bad_row
+    return None
+
+
+def _solve_admm(
+    H, f, G, h, eps: float, max_iter: int, warm_start, polish: bool, sigma=1e-6, alpha=1.6, rho0=0.1, check_every=10
+) -> QPResult:
+    H, f, G, h = _prepare(H, f, G, h)
+    J, M = H.shape[0], G.shape[0]
+    Hs, fs, Gs, hs, s_obj, rn = _normalise(H, f, G, h)
+    # constraints l <= A x <= u with A = [G; I], l = [-inf; 0], u = [h; +inf]
+    A = torch.cat((Gs, torch.eye(J, dtype=torch.float64)))
+    inf = torch.full((M,), math.inf, dtype=torch.float64)
+    lo = torch.cat((-inf, torch.zeros(J, dtype=torch.float64)))
+    up = torch.cat((hs, torch.full((J,), math.inf, dtype=torch.float64)))
+    D, E, c, P, q, Ab = _ruiz(Hs, -fs, A)
+    lb, ub = E * lo, E * up
+    AbT = Ab.T.contiguous()
+    AtA = AbT @ Ab
+    eye = torch.eye(J, dtype=torch.float64)
+    Einv, Dinv = 1 / E, 1 / D
+
+    x = torch.zeros(J, dtype=torch.float64)
+    y = torch.zeros(M + J, dtype=torch.float64)
+    if warm_start is not None:
+        x = torch.as_tensor(warm_start.x, dtype=torch.float64) / D
+        yu = torch.cat((warm_start.row_dual * rn / s_obj, -warm_start.bound_dual / s_obj))
+        y = yu * c / E
+    z = torch.maximum(torch.minimum(Ab @ x, ub), lb)
+
+    rho = rho0
+    L = _chol(P + sigma * eye + rho * AtA)
+    y_prev = y.clone()
+    converged, it, refactors = False, 0, 1
+    qn = float((Dinv * q).abs().max()) / c
+    for it in range(1, max_iter + 1):
+        rhs = sigma * x - q + AbT @ (rho * z - y)
+        xt = torch.cholesky_solve(rhs[:, None], L)[:, 0]
+        zt = Ab @ xt
+        x = alpha * xt + (1 - alpha) * x
+        zr = alpha * zt + (1 - alpha) * z
+        zn = torch.maximum(torch.minimum(zr + y / rho, ub), lb)  # exact projection onto the box
+        y = y + rho * (zr - zn)
+        z = zn
+        if it % check_every and it != max_iter:
+            continue
+        Ax = Ab @ x
+        Px = P @ x
+        Aty = AbT @ y
+        r_prim = float((Einv * (Ax - z)).abs().max())
+        r_dual = float((Dinv * (Px + q + Aty)).abs().max()) / c
+        n_prim = max(float((Einv * Ax).abs().max()), float((Einv * z).abs().max()))
+        n_dual = max(float((Dinv * Px).abs().max()) / c, float((Dinv * Aty).abs().max()) / c, qn)
+        if r_prim <= eps + eps * n_prim and r_dual <= eps + eps * n_dual:
+            converged = True
+            break
+        # primal infeasibility certificate (OSQP Sec. 3.4) on dy projected onto the recession cone
+        dy = y - y_prev
+        y_prev = y.clone()
+        dy = torch.where(torch.isinf(ub), dy.clamp_max(0), dy)
+        dy = torch.where(torch.isinf(lb), dy.clamp_min(0), dy)
+        ndy = float((E * dy).abs().max())
+        if ndy > 1e-12 and r_prim > eps + eps * n_prim:
+            supp = float(torch.where(dy > 0, torch.nan_to_num(ub, posinf=0.0) * dy, torch.zeros_like(dy)).sum())
+            supp += float(torch.where(dy < 0, torch.nan_to_num(lb, neginf=0.0) * dy, torch.zeros_like(dy)).sum())
+            if float((Dinv * (AbT @ dy)).abs().max()) <= 1e-9 * ndy and supp < -1e-9 * ndy:
+                raise InfeasibleError(f"ADMM: primal infeasibility certificate after {it} iterations")
+        # adaptive rho (OSQP Sec. 5.2): balance the relative residuals
+        ratio = (r_prim / max(n_prim, 1e-300)) / max(r_dual / max(n_dual, 1e-300), 1e-300)
+        rho_new = min(max(rho * math.sqrt(ratio), 1e-6), 1e6)
+        if rho_new > 5 * rho or rho_new < rho / 5:
+            rho = rho_new
+            L = _chol(P + sigma * eye + rho * AtA)
+            refactors += 1
+    xu = D * x  # the normalised problem's variables and multipliers
+    zu = Einv * z
+    yu = E * y / c
+    if not converged and r_prim > 1e-6 * (1 + n_prim):
+        raise InfeasibleError(
+            f"ADMM: constraints still violated by {r_prim:.3g} after {max_iter} iterations; "
+            "the constraints appear infeasible"
+        )
+    polished = False
+    xs, mu, yr = xu.clamp_min(0), (-yu[M:]).clamp_min(0), yu[:M].clamp_min(0)
+    obj_admm = 0.5 * float(xs @ (Hs @ xs)) - float(fs @ xs)
+    if polish:
+        row_act = (hs - zu[:M]) < yu[:M]
+        bnd_act = zu[M:] < -yu[M:]
+        pol = _polish(Hs, fs, Gs, hs, bnd_act, row_act)
+        if pol is not None:
+            xp = pol[0]
+            obj_p = 0.5 * float(xp @ (Hs @ xp)) - float(fs @ xp)
+            viol_p = max(0.0, float((G @ xp - h).max()) if M else 0.0)
+            # "not worse": within the ADMM stopping tolerance of the (slightly infeasible) ADMM point
+            if viol_p <= 1e-10 and obj_p <= obj_admm + 10 * eps * (1 + abs(obj_admm)):
+                xs, mu, yr = pol
+                polished = True
+    if not (converged or polished):
+        raise NumericalError(
+            f"ADMM did not converge in {max_iter} iterations (primal residual {r_prim:.3g}, dual {r_dual:.3g}) "
+            "and polishing failed"
+        )
+    viol = max(0.0, float((G @ xs - h).max()) if M else 0.0)
+    objective = 0.5 * float(xs @ (H @ xs)) - float(f @ xs)
+    return QPResult(xs, mu * s_obj, yr * s_obj / rn, it, objective, viol, True, "admm", polished)
