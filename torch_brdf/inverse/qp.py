@@ -247,13 +247,6 @@ def _solve_qp(H, f, G, h, tol: float, max_iter: int) -> QPResult:
 # ---------------------------------------------------------------------------------------------
 
 
-def _normalise(H, f, G, h):
-    """The problem with :math:`\\|H\\|_\\infty = 1` and unit-norm constraint rows (solution unchanged)."""
-    s_obj = max(float(H.abs().max()), float(f.abs().max()), 1e-300)
-    rn = G.norm(dim=1).clamp_min(1e-300)
-    return H / s_obj, f / s_obj, G / rn[:, None], h / rn, s_obj, rn
-
-
 def _ruiz(P, q, A, iters: int = 10):
     """Modified Ruiz equilibration of OSQP (Stellato et al. 2020, Sec. 5.1): returns D (J,), E (m,)
     and the cost scale c with :math:`\\bar P = c D P D`, :math:`\\bar q = c D q`, :math:`\\bar A = E A D`."""
@@ -280,12 +273,13 @@ def _ruiz(P, q, A, iters: int = 10):
     return D, E, c, Pb, qb, Ab
 
 
-def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 10):
+def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 25):
     r"""OSQP's solution polishing (Stellato et al. 2020, Sec. 4): solve the equality-constrained QP on
     the guessed active set (bounds ``x_B = 0``, rows ``G_R x = h_R``) exactly through the reduced KKT
-    system (regularised by 1e-10 with iterative refinement), then -- beyond OSQP -- repair the guess a
-    few times (drop constraints with negative multipliers, add violated ones) until the point
-    satisfies all KKT conditions of the normalised problem.
+    system (regularised by 1e-10 with iterative refinement), then -- beyond OSQP -- repair the guess
+    (add the violated constraints; when none, release the one with the most negative multiplier;
+    changing everything at once cycles) until the point satisfies all KKT conditions of the
+    normalised problem.
 
     Returns:
         ``(x, mu, y)`` (bound and row multipliers, >= 0) or None when no pass verifies.
@@ -324,8 +318,17 @@ def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 10):
         stat = float(grad[F].abs().max()) if nf else 0.0
         if not (bad_x.any() or bad_row.any() or bad_y.any() or bad_mu.any()) and stat <= 1e-9:
             return x.clamp_min(0), mu.clamp_min(0), y.clamp_min(0)
-        B = (B & ~bad_mu) | bad_x
-        R = (R & ~bad_y) | bad_row
+        if bool(bad_x.any()) or bool(bad_row.any()):  # primal repair first: add the violated constraints
+            B, R = B | bad_x, R | bad_row
+        elif bool(bad_mu.any()) or bool(bad_y.any()):  # then release the most negative multiplier only
+            m_mu = float(torch.where(bad_mu, mu, torch.zeros_like(mu)).min())
+            m_y = float(torch.where(bad_y, y, torch.zeros_like(y)).min())
+            if m_mu <= m_y:
+                B = B & (mu != m_mu)
+            else:
+                R = R & (y != m_y)
+        else:
+            return None  # stationarity not met on a consistent active set: give up
     return None
 
 
@@ -346,7 +349,13 @@ def _solve_admm(
 ) -> QPResult:
     H, f, G, h = _prepare(H, f, G, h)
     J, M = H.shape[0], G.shape[0]
-    Hs, fs, Gs, hs, s_obj, rn = _normalise(H, f, G, h)
+    # normalise: unit-norm rows, x in units of the largest right-hand side (so that h ~ 1 also for
+    # rho_d -> 1, where h = 1e-9 would otherwise sit below the absolute tolerances), ||H||_max = 1
+    rn = G.norm(dim=1).clamp_min(1e-300)
+    Gs, hr = G / rn[:, None], h / rn
+    s_x = float(hr.max()) if M and float(hr.max()) > 0 else 1.0
+    s_obj = max(float(H.abs().max()) * s_x * s_x, float(f.abs().max()) * s_x, 1e-300)
+    Hs, fs, hs = H * (s_x * s_x / s_obj), f * (s_x / s_obj), hr / s_x
     # constraints l <= A x <= u with A = [G; I], l = [-inf; 0], u = [h; +inf]
     A = torch.cat((Gs, torch.eye(J, dtype=torch.float64)))
     inf = torch.full((M,), math.inf, dtype=torch.float64)
@@ -362,8 +371,8 @@ def _solve_admm(
     x = torch.zeros(J, dtype=torch.float64)
     y = torch.zeros(M + J, dtype=torch.float64)
     if warm_start is not None:
-        x = torch.as_tensor(warm_start.x, dtype=torch.float64) / D
-        yu = torch.cat((warm_start.row_dual * rn / s_obj, -warm_start.bound_dual / s_obj))
+        x = torch.as_tensor(warm_start.x, dtype=torch.float64) / (s_x * D)
+        yu = torch.cat((warm_start.row_dual * rn, -warm_start.bound_dual)) * (s_x / s_obj)
         y = yu * c / E
     z = torch.maximum(torch.minimum(Ab @ x, ub), lb)
 
@@ -382,9 +391,10 @@ def _solve_admm(
         xa = unscale(x, y)[0]
         obj_a = 0.5 * float(xa @ (Hs @ xa)) - float(fs @ xa)
         obj_p = 0.5 * float(pol[0] @ (Hs @ pol[0])) - float(fs @ pol[0])
-        viol_p = max(0.0, float((G @ pol[0] - h).max()) if M else 0.0)
+        viol_s = max(0.0, float((Gs @ pol[0] - hs).max()) if M else 0.0)  # relative to max(h) = 1
+        viol_p = max(0.0, float((G @ (s_x * pol[0]) - h).max()) if M else 0.0)
         # "not worse": within the current ADMM tolerance of the (slightly infeasible) ADMM point
-        if viol_p <= 1e-10 and obj_p <= obj_a + 10 * tol_obj * (1 + abs(obj_a)):
+        if max(viol_s, viol_p) <= 1e-10 and obj_p <= obj_a + 10 * tol_obj * (1 + abs(obj_a)):
             return pol
         return None
 
@@ -461,6 +471,7 @@ def _solve_admm(
             f"ADMM did not converge in {max_iter} iterations (primal residual {r_prim:.3g}, dual {r_dual:.3g}) "
             "and polishing failed"
         )
+    xs = xs * s_x
     viol = max(0.0, float((G @ xs - h).max()) if M else 0.0)
     objective = 0.5 * float(xs @ (H @ xs)) - float(f @ xs)
-    return QPResult(xs, mu * s_obj, yr * s_obj / rn, it, objective, viol, True, "admm", polished)
+    return QPResult(xs, mu * (s_obj / s_x), yr * (s_obj / s_x) / rn, it, objective, viol, True, "admm", polished)
