@@ -71,7 +71,7 @@ def test_trivial_and_infeasible(gen, method):
     assert bool((r.x == 0).all()) and r.iterations == 0
     f1 = -f.clone()
     f1[5] = 0.01 * float(f.max())  # one lobe pulls: x = 0 except (near) x_5, many bounds active
-    r1, ref = solve_qp(H, f1, G, h, method=method), solve_qp(H, f1, G, h)
+    r1, ref = solve_qp(H, f1, G, h, method=method), solve_qp(H, f1, G, h, method="interior_point")
     assert r1.objective == pytest.approx(ref.objective, rel=1e-6) and bool((r1.x >= 0).all())
     exact = -0.5 * float(f1[5]) ** 2 / float(H[5, 5])  # x = e_5 f_5 / H_55 (the KKT point here)
     assert r1.objective == pytest.approx(exact, rel=1e-7)
@@ -122,8 +122,9 @@ def test_methods_agree_on_random_problems(seed):
     gen = torch.Generator().manual_seed(100 + seed)
     H, f, G, h = _problem(gen, n=200 + 50 * seed, singular=seed % 2 == 1)
     h = h * (0.3 + 0.2 * seed)
-    ip = solve_qp(H, f, G, h)
-    ad = solve_qp(H, f, G, h, method="admm")
+    ip = solve_qp(H, f, G, h, method="interior_point")
+    ad = solve_qp(H, f, G, h)  # the default
+    assert ad.method == "admm"
     assert int(((G @ ip.x - h) > -1e-9).sum()) >= 1  # active energy rows
     assert ad.polished and ad.violation <= 1e-10 and bool((ad.x >= 0).all())
     assert ad.objective == pytest.approx(ip.objective, rel=1e-9)
@@ -134,7 +135,7 @@ def test_admm_without_polishing_and_warm_start(gen):
     """The plain ADMM iterate meets OSQP's residual criteria; a warm start from the solution
     stops at the first check."""
     H, f, G, h = _problem(gen, singular=True)
-    ip = solve_qp(H, f, G, h)
+    ip = solve_qp(H, f, G, h, method="interior_point")
     raw = solve_qp(H, f, G, h, method="admm", polish=False)
     assert raw.converged and not raw.polished and 10 < raw.iterations <= 4000
     assert bool((raw.x >= 0).all()) and raw.violation <= 1e-8
@@ -146,8 +147,9 @@ def test_admm_without_polishing_and_warm_start(gen):
 
 
 def test_fit_with_admm_matches_interior_point(view, target_render):
-    """``fit(method="admm")`` on the recovery problem of test_solve (whole object painted with a
-    known p(h)) and on a few-pixel, near-singular one: same coefficients' objective, exact bounds."""
+    """``fit`` (ADMM by default) against ``method="interior_point"`` on the recovery problem of
+    test_solve (whole object painted with a known p(h)) and on a few-pixel, near-singular one:
+    same objective, exact bounds."""
     rec = view[-1]
     n = target_render.shape[0]
     whole = StrokeTarget(target_render, torch.ones(n, dtype=torch.float64), torch.ones(n, dtype=torch.bool))
@@ -155,8 +157,8 @@ def test_fit_with_admm_matches_interior_point(view, target_render):
     w[:12] = 1  # 12 pixels, 147 unknowns: H of rank <= 12 per channel
     few = StrokeTarget(target_render, w, w > 0)
     for target in (whole, few):
-        ip = fit(rec, target, kd=(0.25, 0.375, 0.125))
-        ad = fit(rec, target, kd=(0.25, 0.375, 0.125), method="admm")
+        ip = fit(rec, target, kd=(0.25, 0.375, 0.125), method="interior_point")
+        ad = fit(rec, target, kd=(0.25, 0.375, 0.125))  # the default
         assert ad.meta["method"] == "admm"
         # (the few-pixel fit is exact: both objectives ~1e-10 of the target's 1e2 sum of squares)
         assert ad.objective == pytest.approx(ip.objective, rel=1e-6, abs=1e-8)

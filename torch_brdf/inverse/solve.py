@@ -7,9 +7,9 @@ the highlight colour -- the paper's "change colors"; ``shared=True`` fits one gr
 .. math:: \min_{x}\ \sum_i w_i\Big(B_{ic} - \rho_{d,c}E_c(x_i) - \sum_j x_j T_{cj}(x_i)\Big)^2
           \quad\text{s.t.}\quad x \ge 0,\ \ \sum_j g_{cj}^l x_j \le 1 - \rho_{d,c}\ (l < N_l),
 
-solved on the normal equations :math:`H = T W T^\top` (J x J), :math:`f = T W b` with the
-interior point method of :func:`~torch_brdf.inverse.qp.solve_qp` in float64 (``method="admm"``:
-the OSQP-style ADMM with projected constraints and polishing, same answer). Without
+solved on the normal equations :math:`H = T W T^\top` (J x J), :math:`f = T W b` in float64 by
+:func:`~torch_brdf.inverse.qp.solve_qp`: by default the OSQP-style ADMM with projected
+constraints and polishing (``method="interior_point"``: Mehrotra's method, same answer). Without
 constraints (``constrained=False``, "physically impossible BRDFs, if the user wants them")
 it is the minimum-norm weighted least-squares solution (``torch.linalg.lstsq``, gelsd).
 
@@ -196,7 +196,7 @@ def fit(
     energy: EnergyRows | None = None,
     basis: SRBFBasis | None = None,
     tol: float | None = None,
-    method: str = "interior_point",
+    method: str = "admm",
 ) -> FitResult:
     """Fit SRBF coefficients to painted targets (Eq. 17-19; see the module docstring).
 
@@ -210,7 +210,8 @@ def fit(
         energy: precomputed :math:`g` rows (default: cached :func:`energy_rows`).
         basis: the record's SRBF basis (default 147 lobes).
         tol: solver tolerance (default: 1e-11 for the interior point method, 1e-9 for ADMM).
-        method: ``"interior_point"`` or ``"admm"`` (see :func:`~torch_brdf.inverse.qp.solve_qp`).
+        method: ``"admm"`` (default: OSQP-style ADMM with projected constraints and polishing)
+            or ``"interior_point"`` (see :func:`~torch_brdf.inverse.qp.solve_qp`).
     Returns:
         :class:`FitResult`.
     """
