@@ -165,3 +165,18 @@ def test_fit_with_admm_matches_interior_point(view, target_render):
         assert ad.violation <= 1e-8 and bool((ad.coefficients >= 0).all())
     with pytest.raises(ValueRangeError):
         fit(rec, whole, method="osqp")
+
+
+@pytest.mark.parametrize("singular", [False, True])
+def test_admm_at_the_albedo_extreme(singular):
+    """rho_d -> 1 leaves h = 1e-9 (a near-LP): ADMM stays feasible relative to h and is at least
+    as good as the interior point method run to a tight tolerance."""
+    gen = torch.Generator().manual_seed(1 if singular else 0)
+    H, f, G, h = _problem(gen, n=150, singular=singular)
+    h = torch.full_like(h, 1e-9)
+    ad = solve_qp(H, f, G, h)
+    ip = solve_qp(H, f, G, h, method="interior_point", tol=1e-14)
+    assert ad.polished and bool((ad.x >= 0).all())
+    assert ad.violation <= 1e-10 * 1e-9
+    assert ad.objective == pytest.approx(ip.objective, rel=1e-6)
+    assert ad.objective <= ip.objective + 1e-9 * abs(ip.objective)
