@@ -46,11 +46,12 @@ the tests' random problems (with singular H and active energy rows) and the reco
 matches the interior point objective to 1e-11 relative (never worse), with violation
 <= 2.2e-16 and :math:`c \ge 0` exactly; on the three benchmark channel QPs it takes 580 ADMM
 iterations and 0.11-0.19 s against the interior point method's 55 iterations and 0.055-0.094 s
-(two runs on a shared machine; ProxQP 0.06-0.22 s). Plain ADMM to :math:`10^{-9}` would need
+(three runs on a shared machine; ProxQP 0.06-0.22 s). Plain ADMM to :math:`10^{-9}` would need
 1000-3000 iterations (0.3-0.6 s per QP); polishing is what makes it exact and fast enough.
-At the :math:`\rho_d \to 1` extreme (:math:`h = 10^{-9}`) it is slower (up to ~2600
-iterations, ~1 s) but exact, where the interior point method at its default tolerance stops up
-to 1e-3 relative above the optimum. Choose ``method="interior_point"`` for the fastest solve.
+On the small design-test problems it is 4-5x slower (0.13 s against 0.03 s per QP); at the
+:math:`\rho_d \to 1` extreme (:math:`h = 10^{-9}`, a near-LP) up to 15x (1400 iterations,
+0.54 s) but exact, where the interior point method at its default tolerance stops up to 1e-3
+relative above the optimum. Choose ``method="interior_point"`` for the fastest solve.
 
 When :math:`f \le 0` and :math:`h \ge 0`, :math:`x = 0` is an exact KKT point and is returned
 without iterating (both methods). The report gives the iterations, the objective and the
