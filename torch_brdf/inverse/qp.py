@@ -447,7 +447,7 @@ def _solve_admm(
     L = _chol(P + sigma * eye + rho * AtA)
     early, next_polish = None, 1e-3
     y_prev = y.clone()
-    converged, it, refactors = False, 0, 1
+    converged, it = False, 0
     qn = float((Dinv * q).abs().max()) / c
     for it in range(1, max_iter + 1):
         rhs = sigma * x - q + AbT @ (rho * z - y)
@@ -500,7 +500,6 @@ def _solve_admm(
         if rho_new > 5 * rho or rho_new < rho / 5:
             rho = rho_new
             L = _chol(P + sigma * eye + rho * AtA)
-            refactors += 1
     if early is not None:
         (xs, mu, yr), polished = early, True
     else:
