@@ -17,12 +17,16 @@ Prints progress lines, then one JSON object as the last line:
   relative Frobenius error of the cut record against the dense one; ``mean_cut_size``: clusters
   per pixel (of S);
 * ``normal_equations_s``: forming the three J x J problems from the record;
-* ``solve_s``: our interior point solve of the three per-channel QPs (best of ``repeats``),
-  ``iterations``, ``objective`` (weighted sum of squares), ``violation``, ``active_rows``;
+* ``solve_s``: our interior point solve (``method="interior_point"``) of the three per-channel
+  QPs (best of ``repeats``), ``iterations``, ``objective`` (weighted sum of squares), ``violation``, ``active_rows``;
+* ``admm_solve_s``, ``admm_iterations``, ``admm_objective``, ``admm_violation``, ``admm_polished``:
+  the same three QPs with ``solve_qp(method="admm")`` (OSQP-style ADMM plus polishing; best of
+  ``repeats``), and ``admm_objective_rel_diff`` against the interior point objective;
 * ``proxqp_solve_s``, ``proxqp_objective``, ``clarabel_solve_s``, ``clarabel_objective``: the same
   three QPs through qpsolvers (ProxQP eps_abs 1e-10, Clarabel defaults; best of ``repeats``),
   and ``solve_over_proxqp`` = solve_s / proxqp_solve_s, ``objective_rel_diff_proxqp``;
-* ``fit_s``: the whole ``fit()`` call (normal equations + solve + report).
+* ``fit_s``: the whole ``fit()`` call (normal equations + solve + report) with the default
+  method (ADMM).
 
 The reference solvers need the ``reference`` extra; without it their fields are null.
 """
@@ -136,11 +140,15 @@ def main() -> None:
 
     target = _strokes(rec)
     ne_s, problems = _best(lambda: normal_equations(rec, target, kd=KD, energy=energy), repeats)
-    solve_s, results = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h) for p in problems], repeats)
+    solve_s, results = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h, method="interior_point") for p in problems], repeats)
     objective = sum(p.sum_of_squares(r.x) for p, r in zip(problems, results, strict=True))
     violation = max(r.violation for r in results)
     active = sum(int(((p.G @ r.x - p.h) > -1e-7).sum()) for p, r in zip(problems, results, strict=True))
     print(f"solve {solve_s * 1e3:.1f} ms, objective {objective:.6g}, violation {violation:.2e}", flush=True)
+    admm_s, admm = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h, method="admm") for p in problems], repeats)
+    admm_obj = sum(p.sum_of_squares(r.x) for p, r in zip(problems, admm, strict=True))
+    admm_viol = max(r.violation for r in admm)
+    print(f"admm {admm_s * 1e3:.1f} ms, objective {admm_obj:.6g}, violation {admm_viol:.2e}", flush=True)
     fit_s, res = _best(lambda: fit(rec, target, kd=KD, energy=energy), repeats)
 
     proxqp_s, proxqp_obj = _reference(problems, "proxqp", repeats)
@@ -161,6 +169,12 @@ def main() -> None:
         "objective": objective,
         "violation": violation,
         "active_rows": active,
+        "admm_solve_s": round(admm_s, 5),
+        "admm_iterations": sum(r.iterations for r in admm),
+        "admm_objective": admm_obj,
+        "admm_violation": admm_viol,
+        "admm_polished": all(r.polished for r in admm),
+        "admm_objective_rel_diff": (admm_obj - objective) / objective,
         "fit_s": round(fit_s, 5),
         "fit_objective": res.objective,
         "proxqp_solve_s": None if proxqp_s is None else round(proxqp_s, 5),

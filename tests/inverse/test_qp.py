@@ -1,4 +1,4 @@
-"""The interior point QP: KKT conditions, reference solvers, extremes."""
+"""The QP solvers (interior point and ADMM): KKT conditions, reference solvers, agreement, extremes."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from torch_brdf.errors import InfeasibleError, ShapeError, ValueRangeError
-from torch_brdf.inverse import energy_rows, solve_qp
+from torch_brdf.inverse import StrokeTarget, energy_rows, fit, solve_qp
+
+METHODS = ["interior_point", "admm"]
 
 
 def _problem(gen, n=400, j=147, singular=False):
@@ -32,19 +34,25 @@ def _kkt(H, f, G, h, r, tol=1e-7):
     assert r.violation <= 1e-8
 
 
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("singular", [False, True])
-def test_kkt_conditions(gen, singular):
+def test_kkt_conditions(gen, singular, method):
     H, f, G, h = _problem(gen, singular=singular)
-    r = solve_qp(H, f, G, h)
-    assert r.converged
+    r = solve_qp(H, f, G, h, method=method)
+    assert r.converged and r.method == method
+    assert bool((r.x >= 0).all())  # exactly, not to a tolerance
+    if method == "admm":  # polishing gives the exact active-set solution: KKT to rounding
+        assert r.polished
+        _kkt(H, f, G, h, r, tol=1e-10)
     _kkt(H, f, G, h, r)
     assert bool((G @ r.x <= h + 1e-10).any())  # energy rows active: the constraints matter here
     assert float((G @ r.x - h).max()) > -1e-6
 
 
-def test_unconstrained_rows_match_lstsq(gen):
+@pytest.mark.parametrize("method", METHODS)
+def test_unconstrained_rows_match_lstsq(gen, method):
     H, f, _, _ = _problem(gen, j=20)
-    r = solve_qp(H, f, torch.zeros(0, 20, dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    r = solve_qp(H, f, torch.zeros(0, 20, dtype=torch.float64), torch.zeros(0, dtype=torch.float64), method=method)
     x_nnls = r.x
     # with only x >= 0, compare with scipy's NNLS on the Cholesky factor
     from scipy.optimize import nnls
@@ -56,30 +64,48 @@ def test_unconstrained_rows_match_lstsq(gen):
     assert obj(x_nnls) == pytest.approx(obj(torch.from_numpy(x_ref)), rel=1e-9)
 
 
-def test_trivial_and_infeasible(gen):
+@pytest.mark.parametrize("method", METHODS)
+def test_trivial_and_infeasible(gen, method):
     H, f, G, h = _problem(gen)
-    r = solve_qp(H, -f, G, h)  # gradient points away from the feasible set: x = 0
-    assert float(r.x.abs().max()) <= 1e-9
+    r = solve_qp(H, -f, G, h, method=method)  # gradient points away from the feasible set: x = 0
+    assert bool((r.x == 0).all()) and r.iterations == 0
+    f1 = -f.clone()
+    f1[5] = 0.01 * float(f.max())  # one lobe pulls: x = 0 except (near) x_5, many bounds active
+    r1, ref = solve_qp(H, f1, G, h, method=method), solve_qp(H, f1, G, h, method="interior_point")
+    assert r1.objective == pytest.approx(ref.objective, rel=1e-6) and bool((r1.x >= 0).all())
+    exact = -0.5 * float(f1[5]) ** 2 / float(H[5, 5])  # x = e_5 f_5 / H_55 (the KKT point here)
+    assert r1.objective == pytest.approx(exact, rel=1e-7)
+    r0 = solve_qp(H, torch.zeros_like(f), G, h, method=method)  # all-zero target
+    assert bool((r0.x == 0).all()) and r0.objective == 0.0
     with pytest.raises(InfeasibleError):
-        solve_qp(H, f, G, -h)
+        solve_qp(H, f, G, -h, method=method)  # rho_d >= 1 leaves h < 0
     G2 = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=torch.float64)  # x0 <= 1 and x0 >= 2
     with pytest.raises(InfeasibleError):
-        solve_qp(torch.eye(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64), G2, torch.tensor([1.0, -2.0]))
+        solve_qp(
+            torch.eye(2, dtype=torch.float64),
+            torch.ones(2, dtype=torch.float64),
+            G2,
+            torch.tensor([1.0, -2.0]),
+            method=method,
+        )
     with pytest.raises(ValueRangeError):
-        solve_qp(H, f * float("nan"), G, h)
+        solve_qp(H, f * float("nan"), G, h, method=method)
     with pytest.raises(ShapeError):
-        solve_qp(H, f[:5], G, h)
+        solve_qp(H, f[:5], G, h, method=method)
+    with pytest.raises(ValueRangeError):
+        solve_qp(H, f, G, h, method="newton")
 
 
 @pytest.mark.reference
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("solver", ["proxqp", "clarabel"])
 @pytest.mark.parametrize("singular", [False, True])
-def test_agrees_with_reference_solvers(gen, solver, singular):
+def test_agrees_with_reference_solvers(gen, solver, singular, method):
     qpsolvers = pytest.importorskip("qpsolvers")
     from scipy.sparse import csc_matrix as csc
 
     H, f, G, h = _problem(gen, singular=singular)
-    r = solve_qp(H, f, G, h)
+    r = solve_qp(H, f, G, h, method=method)
     kw = {"eps_abs": 1e-12, "eps_rel": 0.0} if solver == "proxqp" else {}
     args = (csc(H.numpy()), -f.numpy(), csc(G.numpy()), h.numpy())
     x = qpsolvers.solve_qp(*args, lb=np.zeros(H.shape[0]), solver=solver, **kw)
@@ -87,3 +113,70 @@ def test_agrees_with_reference_solvers(gen, solver, singular):
     ref = 0.5 * float(x @ H @ x) - float(f @ x)
     assert r.objective == pytest.approx(ref, rel=1e-6)
     assert r.objective <= ref + 1e-9 * abs(ref)  # never worse than the reference
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_methods_agree_on_random_problems(seed):
+    """ADMM (Stellato et al. 2020) and the interior point method on random problems, half with
+    singular H, with tighter energy budgets so that several rows are active."""
+    gen = torch.Generator().manual_seed(100 + seed)
+    H, f, G, h = _problem(gen, n=200 + 50 * seed, singular=seed % 2 == 1)
+    h = h * (0.3 + 0.2 * seed)
+    ip = solve_qp(H, f, G, h, method="interior_point")
+    ad = solve_qp(H, f, G, h)  # the default
+    assert ad.method == "admm"
+    assert int(((G @ ip.x - h) > -1e-9).sum()) >= 1  # active energy rows
+    assert ad.polished and ad.violation <= 1e-10 and bool((ad.x >= 0).all())
+    assert ad.objective == pytest.approx(ip.objective, rel=1e-9)
+    _kkt(H, f, G, h, ad, tol=1e-10)
+
+
+def test_admm_without_polishing_and_warm_start(gen):
+    """The plain ADMM iterate meets OSQP's residual criteria; a warm start from the solution
+    stops at the first check."""
+    H, f, G, h = _problem(gen, singular=True)
+    ip = solve_qp(H, f, G, h, method="interior_point")
+    raw = solve_qp(H, f, G, h, method="admm", polish=False)
+    assert raw.converged and not raw.polished and 10 < raw.iterations <= 4000
+    assert bool((raw.x >= 0).all()) and raw.violation <= 1e-8
+    assert raw.objective == pytest.approx(ip.objective, rel=1e-6)
+    warm = solve_qp(H, f, G, h, method="admm", warm_start=ip)
+    cold = solve_qp(H, f, G, h, method="admm")
+    assert warm.iterations < cold.iterations
+    assert warm.objective == pytest.approx(ip.objective, rel=1e-9)
+
+
+def test_fit_with_admm_matches_interior_point(view, target_render):
+    """``fit`` (ADMM by default) against ``method="interior_point"`` on the recovery problem of
+    test_solve (whole object painted with a known p(h)) and on a few-pixel, near-singular one:
+    same objective, exact bounds."""
+    rec = view[-1]
+    n = target_render.shape[0]
+    whole = StrokeTarget(target_render, torch.ones(n, dtype=torch.float64), torch.ones(n, dtype=torch.bool))
+    w = torch.zeros(n, dtype=torch.float64)
+    w[:12] = 1  # 12 pixels, 147 unknowns: H of rank <= 12 per channel
+    few = StrokeTarget(target_render, w, w > 0)
+    for target in (whole, few):
+        ip = fit(rec, target, kd=(0.25, 0.375, 0.125), method="interior_point")
+        ad = fit(rec, target, kd=(0.25, 0.375, 0.125))  # the default
+        assert ad.meta["method"] == "admm"
+        # (the few-pixel fit is exact: both objectives ~1e-10 of the target's 1e2 sum of squares)
+        assert ad.objective == pytest.approx(ip.objective, rel=1e-6, abs=1e-8)
+        assert ad.violation <= 1e-8 and bool((ad.coefficients >= 0).all())
+    with pytest.raises(ValueRangeError):
+        fit(rec, whole, method="osqp")
+
+
+@pytest.mark.parametrize("singular", [False, True])
+def test_admm_at_the_albedo_extreme(singular):
+    """rho_d -> 1 leaves h = 1e-9 (a near-LP): ADMM stays feasible relative to h and is at least
+    as good as the interior point method run to a tight tolerance."""
+    gen = torch.Generator().manual_seed(1 if singular else 0)
+    H, f, G, h = _problem(gen, n=150, singular=singular)
+    h = torch.full_like(h, 1e-9)
+    ad = solve_qp(H, f, G, h)
+    ip = solve_qp(H, f, G, h, method="interior_point", tol=1e-14)
+    assert ad.polished and bool((ad.x >= 0).all())
+    assert ad.violation <= 1e-10 * 1e-9
+    assert ad.objective == pytest.approx(ip.objective, rel=1e-6)
+    assert ad.objective <= ip.objective + 1e-9 * abs(ip.objective)

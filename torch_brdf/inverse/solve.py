@@ -7,8 +7,9 @@ the highlight colour -- the paper's "change colors"; ``shared=True`` fits one gr
 .. math:: \min_{x}\ \sum_i w_i\Big(B_{ic} - \rho_{d,c}E_c(x_i) - \sum_j x_j T_{cj}(x_i)\Big)^2
           \quad\text{s.t.}\quad x \ge 0,\ \ \sum_j g_{cj}^l x_j \le 1 - \rho_{d,c}\ (l < N_l),
 
-solved on the normal equations :math:`H = T W T^\top` (J x J), :math:`f = T W b` with the
-interior point method of :func:`~torch_brdf.inverse.qp.solve_qp` in float64. Without
+solved on the normal equations :math:`H = T W T^\top` (J x J), :math:`f = T W b` in float64 by
+:func:`~torch_brdf.inverse.qp.solve_qp`: by default the OSQP-style ADMM with projected
+constraints and polishing (``method="interior_point"``: Mehrotra's method, same answer). Without
 constraints (``constrained=False``, "physically impossible BRDFs, if the user wants them")
 it is the minimum-norm weighted least-squares solution (``torch.linalg.lstsq``, gelsd).
 
@@ -164,7 +165,7 @@ class FitResult:
         kd: (3,) diffuse albedo used; f0: (3,) Fresnel :math:`F_0` of the record.
         objective: weighted sum of squares (all channels).
         violation: largest violation of :math:`c \\ge 0` and the energy rows (0 unconstrained).
-        iterations: interior point iterations, summed over the channel problems.
+        iterations: solver iterations (interior point or ADMM), summed over the channel problems.
         seconds: solve time (normal equations + QPs).
         constrained: whether the constraints were imposed.
         max_energy: :math:`\\max_l \\rho_d + \\sum_j g_j^l c_j` over channels (<= 1 when constrained).
@@ -194,7 +195,8 @@ def fit(
     shared: bool = False,
     energy: EnergyRows | None = None,
     basis: SRBFBasis | None = None,
-    tol: float = 1e-11,
+    tol: float | None = None,
+    method: str = "admm",
 ) -> FitResult:
     """Fit SRBF coefficients to painted targets (Eq. 17-19; see the module docstring).
 
@@ -207,17 +209,21 @@ def fit(
         shared: one grey :math:`p(h)` for all channels.
         energy: precomputed :math:`g` rows (default: cached :func:`energy_rows`).
         basis: the record's SRBF basis (default 147 lobes).
-        tol: interior point tolerance.
+        tol: solver tolerance (default: 1e-11 for the interior point method, 1e-9 for ADMM).
+        method: ``"admm"`` (default: OSQP-style ADMM with projected constraints and polishing)
+            or ``"interior_point"`` (see :func:`~torch_brdf.inverse.qp.solve_qp`).
     Returns:
         :class:`FitResult`.
     """
+    if method not in ("interior_point", "admm"):
+        raise ValueRangeError(f"method must be 'interior_point' or 'admm'; got {method!r}")
     if constrained and energy is None:
         energy = energy_rows(basis)  # precomputed once per basis (cached), not part of the solve time
     with _single_thread():  # small kernels: one thread is faster (see qp._single_thread)
-        return _fit(record, target, kd, constrained, shared, energy, basis, tol)
+        return _fit(record, target, kd, constrained, shared, energy, basis, tol, method)
 
 
-def _fit(record, target, kd, constrained, shared, energy, basis, tol) -> FitResult:
+def _fit(record, target, kd, constrained, shared, energy, basis, tol, method) -> FitResult:
     t0 = time.perf_counter()
     problems = normal_equations(record, target, kd, energy, basis, constrained, shared)
     J = problems[0].H.shape[0]
@@ -229,7 +235,7 @@ def _fit(record, target, kd, constrained, shared, energy, basis, tol) -> FitResu
         elif bool((pr.f <= 0).all()):
             x = torch.zeros(J, dtype=torch.float64)  # exact KKT point, see the module docstring
         else:
-            r = solve_qp(pr.H, pr.f, pr.G, pr.h, tol=tol)
+            r = solve_qp(pr.H, pr.f, pr.G, pr.h, tol=tol, method=method)
             x, iterations = r.x, iterations + r.iterations
         if constrained:
             violation = max(violation, float((pr.G @ x - pr.h).max()), float((-x).max()))
@@ -251,7 +257,7 @@ def _fit(record, target, kd, constrained, shared, energy, basis, tol) -> FitResu
         seconds,
         constrained,
         max_energy,
-        {"shared": shared, "pixels": record.num_pixels, "basis": record.basis},
+        {"shared": shared, "pixels": record.num_pixels, "basis": record.basis, "method": method},
     )
 
 
