@@ -16,7 +16,8 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 * ``mb_per_bounce`` (float32 values; ``mb_variance_per_bounce`` the variances kept beside).
 * ``freeze_s``, ``frame_s``, ``stream_s`` at 512x512, (64,1,1,1), 4 bounces, M = 7 editable
   objects, freezing the glossy back wall (``--quick``: 128x128); the tensors for this part use
-  ``freeze_spp`` paths per pixel, and ``freeze_entries`` says how many entries freezing read.
+  ``freeze_spp`` paths per pixel, and ``freeze_entries`` says how many entries freezing read
+  (``freeze_dense_entries``: what dense per-tile blocks would hold).
   ``frame_over_stream``: the goal is <= 3 (memory bandwidth).
 * ``rel_rmse``: relative RMSE against a full-BRDF reference at ``reference_spp`` on 128x128
   (``--quick``: 32x32), pixels seeing the light excluded: Mitsuba 3's llvm variant at 4096
@@ -146,6 +147,7 @@ def main() -> None:
     R = PolynomialRenderer(T5, _materials(sc5))
     out["freeze_resolution"], out["freeze_spp"] = fres, fspp
     out["freeze_entries"] = T5.num_entries
+    out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
     t0 = time.perf_counter()
     R.freeze("back")
     out["freeze_s"] = time.perf_counter() - t0

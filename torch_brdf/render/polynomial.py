@@ -1,6 +1,6 @@
 r"""Interactive rendering of the multibounce polynomial (Ben-Artzi et al. 2008, Sec. 5.2).
 
-Full evaluation (Eq. 26 / Eq. 29, batched matrix products per tensor block):
+Full evaluation (Eq. 26 / Eq. 29, one gather-multiply-scatter over the stored entries of each block):
 
 .. math:: B(x) = E(x) + \sum_N\sum_j\sum_t T^N_{jt}(x)\,c_j\,g_t, \qquad
           g_t = \hat c_{w_t}\prod_m d_m^{\,n_m(t)}.
@@ -60,21 +60,6 @@ def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None
     return g
 
 
-def _contract_eye(vals: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    r""":math:`\sum_j c_{jc} T_{cjzp}` -> (C, Z, P): one matrix-vector product per channel over
-    the contiguous (J, Z·P) view (no permuted copy of the block)."""
-    ch, j, z, p = vals.shape
-    return torch.bmm(c.T.unsqueeze(1), vals.reshape(ch, j, z * p)).reshape(ch, z, p)
-
-
-def _contract_terms(vals: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    r""":math:`\sum_z A_{czk} T_{c\ldots zp}`: vals (C, ..., Z, P), a (C, Z, K) -> (C, ..., K, P),
-    as broadcast matrix products :math:`A^T (K, Z) @ (Z, P)` over the leading axes."""
-    if vals.ndim == 4:
-        return torch.matmul(a.transpose(1, 2).unsqueeze(1), vals)
-    return torch.matmul(a.transpose(1, 2), vals)
-
-
 class PolynomialRenderer(nn.Module):
     """Renders :class:`~torch_brdf.transport.polynomial.PolynomialTensors` for edited BRDFs.
 
@@ -104,8 +89,11 @@ class PolynomialRenderer(nn.Module):
             raise ValueRangeError(f"max_bounces must lie in [1, {nb}] (precomputed); got {max_bounces}")
         self.register_buffer("emission", tensors.emission.to(dtype))
         self.blocks = [b for b in tensors.blocks if b.bounce <= self.max_bounces]
+        self._coords = []
         for i, b in enumerate(self.blocks):
             self.register_buffer(f"block{i}", b.values.to(dtype), persistent=False)
+            j, z, p = b.coordinates()
+            self._coords.append((j, b.terms[z], b.pixels[p]))  # eye slot, term row, pixel per entry
         self.offsets = tensors.second_offsets()
         self.two_level = tensors.series.two_level
         m = tensors.num_objects
@@ -291,13 +279,13 @@ class PolynomialRenderer(nn.Module):
         out = [torch.zeros(3, hw, dtype=self.dtype) for _ in range(self.max_bounces + 1)]
         out[0] = out[0] + self.emission
         for i, b in enumerate(self.blocks):
-            vals = getattr(self, f"block{i}")
-            gz = g[b.bounce][b.terms].T  # (C, Z)
-            contrib = torch.bmm(gz.unsqueeze(1), _contract_eye(vals, self._eye(b.object_id))).squeeze(1)
-            pw = self._pixel_weights(b.object_id, b.pixels)
+            vals = getattr(self, f"block{i}")  # (C, E)
+            j, t, pix = self._coords[i]
+            contrib = vals * self._eye(b.object_id)[j].T * g[b.bounce][t].T
+            pw = self._pixel_weights(b.object_id, pix)
             if pw is not None:
                 contrib = contrib * pw
-            out[b.bounce] = out[b.bounce].index_add(1, b.pixels, contrib)
+            out[b.bounce] = out[b.bounce].index_add(1, pix, contrib)
         imgs = [o.T.reshape(self.height, self.width, 3) for o in out]
         return imgs if per_bounce else sum(imgs[1:], imgs[0])
 
@@ -313,41 +301,40 @@ class PolynomialRenderer(nn.Module):
         d = self._d_all()
         ch = self._c_hat_ext()
         off = self.offsets[i]
-        amat = {}
+        kidx, phis = {}, {}
         for n, table in self.tensors.terms.items():
-            t = table.size
             w = table.w
             own = (w >= off) & (w < off + slots)
-            s = torch.where(own, w - off + 1, 0)
-            k = s * nb + table.counts[:, i]
+            kidx[n] = torch.where(own, w - off + 1, 0) * nb + table.counts[:, i]  # k' of each term
             phi = _term_factors(table.counts, d, skip=i)
             wc = torch.where(w >= 0, w, ch.shape[0] - 1)
-            phi = phi * torch.where(own[:, None], torch.ones_like(ch[wc]), ch[wc])
-            a = torch.zeros(3, t, K, dtype=self.dtype)
-            if t:
-                a[:, torch.arange(t), k] = phi.T
-            amat[n] = a
-        mine = [(q, bl) for q, bl in enumerate(self.blocks) if bl.object_id == i]
-        rest = [(q, bl) for q, bl in enumerate(self.blocks) if bl.object_id != i]
-        pix_i = torch.cat([bl.pixels for _, bl in mine] or [torch.zeros(0, dtype=torch.long)]).unique()
-        pix_r = torch.cat([bl.pixels for _, bl in rest] or [torch.zeros(0, dtype=torch.long)]).unique()
-        F = torch.zeros(3, b.size, K, pix_i.numel(), dtype=self.dtype)
-        for q, bl in mine:
-            vals = getattr(self, f"block{q}")
-            cols = torch.searchsorted(pix_i, bl.pixels)
-            F.index_add_(3, cols, _contract_terms(vals, amat[bl.bounce][:, bl.terms]))
-        V = torch.zeros(3, K, pix_r.numel(), dtype=self.dtype)
-        for q, bl in rest:
-            vals = getattr(self, f"block{q}")
-            cols = torch.searchsorted(pix_r, bl.pixels)
-            contrib = _contract_terms(_contract_eye(vals, self._eye(bl.object_id)), amat[bl.bounce][:, bl.terms])
-            pw = self._pixel_weights(bl.object_id, bl.pixels)
+            phis[n] = (phi * torch.where(own[:, None], torch.ones_like(ch[wc]), ch[wc])).T  # (C, T)
+        mine = [q for q, bl in enumerate(self.blocks) if bl.object_id == i]
+        rest = [q for q, bl in enumerate(self.blocks) if bl.object_id != i]
+        empty = [torch.zeros(0, dtype=torch.long)]
+        pix_i = torch.cat([self._coords[q][2] for q in mine] or empty).unique()
+        pix_r = torch.cat([self._coords[q][2] for q in rest] or empty).unique()
+        p_i, p_r = pix_i.numel(), pix_r.numel()
+        F = torch.zeros(3, b.size * K * p_i, dtype=self.dtype)
+        for q in mine:  # Eq. 27: F[j, k'(t), p] += T[j, t, p] * (the other objects' factors of t)
+            j, t, pix = self._coords[q]
+            n = self.blocks[q].bounce
+            flat = (j * K + kidx[n][t]) * p_i + torch.searchsorted(pix_i, pix)
+            F.index_add_(1, flat, getattr(self, f"block{q}") * phis[n][:, t])
+        V = torch.zeros(3, K * p_r, dtype=self.dtype)
+        for q in rest:  # other pixels: their own coefficients are constants too
+            bl = self.blocks[q]
+            j, t, pix = self._coords[q]
+            n = bl.bounce
+            contrib = getattr(self, f"block{q}") * self._eye(bl.object_id)[j].T * phis[n][:, t]
+            pw = self._pixel_weights(bl.object_id, pix)
             if pw is not None:
-                contrib = contrib * pw[:, None, :]
-            V.index_add_(2, cols, contrib)
+                contrib = contrib * pw
+            V.index_add_(1, kidx[n][t] * p_r + torch.searchsorted(pix_r, pix), contrib)
+        V = V.reshape(3, K, p_r)
         self._frozen = {
             "object": i,
-            "F": F.reshape(3, b.size, K * pix_i.numel()),
+            "F": F.reshape(3, b.size, K * p_i),
             "V": V,
             "pix_i": pix_i,
             "pix_r": pix_r,

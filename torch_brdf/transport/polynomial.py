@@ -36,9 +36,9 @@ Estimator (Sec. 5.1). A batched (wavefront) path tracer from the eye on embree:
 
 Bookkeeping. Per pass group, entries are reduced to per-path sums (so the per-entry Monte
 Carlo variance is the variance over paths, not over light samples); sums and sums of squares
-accumulate per tile; a tile's entries become dense blocks per (eye object, bounce) over the
-terms and pixels that *occur* in that tile (:class:`TensorBlock`). A pixel whose jittered
-samples see two objects has a record under each.
+accumulate per tile; a tile's entries become one block per (eye object, bounce) that numbers
+the terms and pixels occurring in that tile and stores only the entries that occur, sparse
+(:class:`TensorBlock`). A pixel whose jittered samples see two objects has a record under each.
 
 Reproducibility. Tile ``k`` with pass group ``g`` draws from its own generator seeded by
 ``(seed, k, g)``; each finished tile is written atomically to the checkpoint folder, so an
@@ -313,28 +313,59 @@ class TermTable:
 
 @dataclass(frozen=True)
 class TensorBlock:
-    """Dense tensor entries of one tile, eye object and bounce.
+    """The tensor entries of one tile, eye object and bounce that occur, stored sparse.
+
+    Within a tile the terms and pixels that appear are numbered (``terms``, ``pixels``); an
+    entry (j, z, p) of the block's dense ``(C, J, Z, P)`` tensor is kept only if some path
+    reached it (coordinate format, flat index ``(j * Z + z) * P + p``, ascending). At 64 spp
+    a pixel holds at most 64 entries per bounce and layer, where a dense block over the
+    tile's terms would hold J x Z (up to 64 x 84 on the Cornell box).
 
     Attributes:
         object_id: the object seen at the eye vertex.
         bounce: N (1 = direct lighting).
         pixels: (P,) int64 flat row-major pixel indices.
         terms: (Z,) int64 rows of the bounce's :class:`TermTable`.
-        values: (C, J, Z, P) mean contribution per unit coefficient (J = the eye object's
-            coefficient count; 1 for fixed objects).
-        variance: (C, J, Z, P) Monte Carlo variance of each mean, or None.
+        J: coefficients of the eye object (1 for fixed objects).
+        index: (E,) int64 flat entry indices into (J, Z, P).
+        values: (C, E) mean contribution per unit coefficient.
+        variance: (C, E) Monte Carlo variance of each mean, or None.
     """
 
     object_id: int
     bounce: int
     pixels: torch.Tensor
     terms: torch.Tensor
+    J: int
+    index: torch.Tensor
     values: torch.Tensor
     variance: torch.Tensor | None = None
 
     @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """The dense shape (C, J, Z, P)."""
+        return (self.values.shape[0], self.J, self.terms.numel(), self.pixels.numel())
+
+    def coordinates(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(j, z, p) of every stored entry, each (E,) int64."""
+        z, p = self.terms.numel(), self.pixels.numel()
+        jz, pp = torch.div(self.index, p, rounding_mode="floor"), self.index % p
+        return torch.div(jz, z, rounding_mode="floor"), jz % z, pp
+
+    def dense(self, variance: bool = False) -> torch.Tensor:
+        """The block as a dense (C, J, Z, P) tensor (zeros where no path contributed)."""
+        src = self.variance if variance else self.values
+        if src is None:
+            raise ValueRangeError("this block keeps no variances")
+        c, j, z, p = self.shape
+        out = torch.zeros(c, j * z * p, dtype=src.dtype)
+        out[:, self.index] = src
+        return out.view(c, j, z, p)
+
+    @property
     def nbytes(self) -> int:
-        n = self.values.numel() * self.values.element_size()
+        """Bytes of values, variances and indices."""
+        n = self.values.numel() * self.values.element_size() + self.index.numel() * self.index.element_size()
         return n + (0 if self.variance is None else self.variance.numel() * self.variance.element_size())
 
 
@@ -387,17 +418,23 @@ class PolynomialTensors:
         return out
 
     def memory_per_bounce(self, variance: bool = False) -> dict[int, int]:
-        """Bytes of tensor values per bounce (float32, in memory), like the seed's Table II;
-        with ``variance`` also the per-entry variances kept beside them."""
+        """Bytes of tensor entries (float32 values and int64 indices, in memory) per bounce, like
+        the seed's Table II; with ``variance`` also the per-entry variances kept beside them."""
         out = {n: 0 for n in range(1, self.series.bounces + 1)}
         for b in self.blocks:
-            out[b.bounce] += b.nbytes if variance else b.values.numel() * b.values.element_size()
+            v = b.variance
+            out[b.bounce] += b.nbytes - (0 if variance or v is None else v.numel() * v.element_size())
         return out
 
     @property
     def num_entries(self) -> int:
         """Stored tensor entries (all blocks, channels included)."""
         return sum(b.values.numel() for b in self.blocks)
+
+    @property
+    def num_dense_entries(self) -> int:
+        """Entries the blocks would hold as dense (C, J, Z, P) tensors, for comparison."""
+        return sum(math.prod(b.shape) for b in self.blocks)
 
     def first_order(self, obj: str | int) -> BasisImage:
         """The direct-lighting term of the pixels that see ``obj``: a :class:`BasisImage`
@@ -408,9 +445,9 @@ class PolynomialTensors:
             j = 1 if self.bases[m] is None else self.bases[m].size
             empty = torch.zeros(3, j, 0)
             return BasisImage(empty, torch.zeros(0, dtype=torch.int64), self.height, self.width)
-        vals = torch.cat([b.values[:, :, 0] for b in blocks], -1)
+        vals = torch.cat([b.dense()[:, :, 0] for b in blocks], -1)
         pix = torch.cat([b.pixels for b in blocks])
-        var = None if blocks[0].variance is None else torch.cat([b.variance[:, :, 0] for b in blocks], -1)
+        var = None if blocks[0].variance is None else torch.cat([b.dense(True)[:, :, 0] for b in blocks], -1)
         basis = "fixed" if self.bases[m] is None else json.dumps(self.bases[m].spec(), sort_keys=True)
         return BasisImage(vals, pix, self.height, self.width, None, var, basis, {"object": self.object_names[m]})
 
@@ -436,11 +473,13 @@ class PolynomialTensors:
             if dt is np.float16 and np.abs(v).max(initial=0) > 65504:
                 raise ValueRangeError("tensor entries exceed the float16 range; save with storage='float32'")
             arrays[f"b{i}_values"] = v.astype(dt)
+            small = math.prod(b.shape[1:]) < 2**31
+            arrays[f"b{i}_index"] = b.index.numpy().astype(np.int32 if small else np.int64)
             arrays[f"b{i}_pixels"] = b.pixels.numpy()
             arrays[f"b{i}_terms"] = b.terms.numpy()
             if b.variance is not None:
                 arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
-            index.append([b.object_id, b.bounce])
+            index.append([b.object_id, b.bounce, b.J])
         meta = {
             "height": self.height,
             "width": self.width,
@@ -471,10 +510,12 @@ class PolynomialTensors:
                     int(n),
                     t[f"b{i}_pixels"].long(),
                     t[f"b{i}_terms"].long(),
+                    int(j),
+                    t[f"b{i}_index"].long(),
                     t[f"b{i}_values"].float(),
                     t[f"b{i}_variance"].float() if f"b{i}_variance" in t else None,
                 )
-                for i, (o, n) in enumerate(meta["blocks"])
+                for i, (o, n, j) in enumerate(meta["blocks"])
             ]
             bases = [None if b is None else ObjectBasis(**b) for b in meta["bases"]]
             return cls(
@@ -934,12 +975,10 @@ def _blocks_from_entries(
         tid = rank[pinv]
         J = 1 if bases[obj] is None else bases[obj].size
         z, p = upid.numel(), upix.numel()
-        flat = (red["j"][m] * z + tid) * p + prow  # unique per row: plain assignment
-        vals = torch.zeros(3, J * z * p)
-        vv = torch.zeros(3, J * z * p)
-        vals[:, flat] = mean[m].T.float()
-        vv[:, flat] = var[m].T.float()
-        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], vals.view(3, J, z, p), vv.view(3, J, z, p)))
+        flat = (red["j"][m] * z + tid) * p + prow  # unique per entry
+        flat, perm = torch.sort(flat)
+        vals, vv = mean[m][perm].T.float().contiguous(), var[m][perm].T.float().contiguous()
+        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], J, flat, vals, vv))
     return out
 
 
