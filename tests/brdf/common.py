@@ -53,7 +53,6 @@ Gauss-Legendre cubature. Subclasses whose lobes peak elsewhere can override
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
 
@@ -63,6 +62,7 @@ import torch
 from scipy.stats import chi2 as chi2_dist
 from torch import nn
 
+from torch_brdf._threads import single_thread
 from torch_brdf.brdf.base import BRDF, Clamped
 from torch_brdf.frame import Frame, orthonormal_basis
 
@@ -95,17 +95,6 @@ MC_RTOL = 0.01  # MC albedo against quadrature
 MC_ATOL = 1e-4  # ... plus this absolute slack for albedos near 0
 CHI2_SIGNIFICANCE = 0.01  # before the Bonferroni correction
 CHI2_MIN_EXPECTED = 5.0  # Mitsuba's min_exp_frequency
-
-
-@contextmanager
-def single_thread():
-    """Temporarily use one torch intra-op thread (restored on exit)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 # -- directions ---------------------------------------------------------------------------------

@@ -627,6 +627,23 @@ def _as_coefficients(c, J: int) -> torch.Tensor:
     return t.clone()
 
 
+def coarsen_coefficients(c: torch.Tensor, e: torch.Tensor, groups: torch.Tensor, J_new: int) -> torch.Tensor:
+    r"""Albedo-weighted merge of band coefficients (:meth:`Factored1D.coarsen`, Sec. 4.1):
+    :math:`c_G = \sum_{j\in G} c_j e_j / \sum_{j\in G} e_j`; a group with zero weight (it never
+    reflects) keeps the plain mean of its coefficients. Differentiable in ``c``.
+
+    Args:
+        c: (J, C) coefficients; e: (J, C) band albedos; groups: (J,) coarse band of each band.
+    Returns:
+        (J_new, C) in ``c``'s dtype.
+    """
+    e = e.to(c)
+    z = torch.zeros(J_new, c.shape[1], dtype=c.dtype)
+    num, den = z.index_add(0, groups, c * e), z.index_add(0, groups, e)
+    plain = z.index_add(0, groups, c) / z.index_add(0, groups, torch.ones_like(c))
+    return torch.where(den > 0, num / den.clamp_min(1e-300), plain)
+
+
 @register("factored_1d")
 class Factored1D(BRDF):
     r"""Editable factored BRDF :math:`\rho = \rho_q(\omega_i, \omega_o)\sum_j c_j b_j(\gamma)`
@@ -850,14 +867,7 @@ class Factored1D(BRDF):
         e = e[:, None].expand(self.J, 3) if e.ndim == 1 else e
         if e.shape != (self.J, 3):
             raise ShapeError(f"Expected weights of shape ({self.J},) or ({self.J}, 3); got {tuple(e.shape)}")
-        g = self.basis.groups(J_new)
-        c = self.coefficients.detach().double().cpu()
-        num = torch.zeros(J_new, 3, dtype=torch.float64).index_add_(0, g, c * e)
-        den = torch.zeros(J_new, 3, dtype=torch.float64).index_add_(0, g, e)
-        # a group with zero weight (never reflects) keeps the plain mean of its coefficients
-        cnt = torch.zeros(J_new, 3, dtype=torch.float64).index_add_(0, g, torch.ones_like(c))
-        plain = torch.zeros(J_new, 3, dtype=torch.float64).index_add_(0, g, c) / cnt
-        c_new = torch.where(den > 0, num / den.clamp_min(1e-300), plain)
+        c_new = coarsen_coefficients(self.coefficients.detach().double().cpu(), e, self.basis.groups(J_new), J_new)
         return type(self)._like(self, self.basis.coarsened(J_new), c_new)
 
     def albedo_quotient(self) -> Quotient:

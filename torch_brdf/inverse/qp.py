@@ -61,11 +61,11 @@ largest constraint violation.
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
 
+from .._threads import single_thread
 from ..errors import InfeasibleError, NumericalError, ShapeError, ValueRangeError
 
 __all__ = ["QPResult", "solve_qp"]
@@ -113,19 +113,6 @@ def _chol(K: torch.Tensor) -> torch.Tensor:
     raise NumericalError("interior point: the J x J Newton matrix is not positive definite even with jitter 1e-8")
 
 
-@contextmanager
-def _single_thread():
-    """Run small dense kernels on one intra-op thread: on a shared 2-core machine a 147 x 192
-    matrix-vector product takes ~0.1 ms on one thread and up to ~4 ms on two (thread hand-off
-    under load; cf. OPENBLAS_NUM_THREADS=1 in ../shared/FACTS.md)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
-
-
 def solve_qp(
     H,
     f,
@@ -166,7 +153,7 @@ def solve_qp(
     """
     if method not in ("interior_point", "admm"):
         raise ValueRangeError(f"method must be 'interior_point' or 'admm'; got {method!r}")
-    with _single_thread():
+    with single_thread():
         H, f, G, h = _prepare(H, f, G, h)
         if bool((f <= 0).all()) and (G.shape[0] == 0 or bool((h >= 0).all())):
             # x = 0 is feasible and the gradient -f >= 0 there: an exact KKT point (bound

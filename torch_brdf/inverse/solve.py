@@ -29,13 +29,14 @@ from dataclasses import dataclass, field
 import torch
 
 from .._checks import check_finite
+from .._threads import single_thread
 from ..brdf.srbf import SRBFBasis
 from ..errors import InfeasibleError, ShapeError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
 from ._util import f64
 from .energy import EnergyRows, energy_rows
-from .qp import _single_thread, solve_qp
+from .qp import solve_qp
 from .strokes import StrokeTarget
 from .transfer import split_record
 
@@ -219,7 +220,7 @@ def fit(
         raise ValueRangeError(f"method must be 'interior_point' or 'admm'; got {method!r}")
     if constrained and energy is None:
         energy = energy_rows(basis)  # precomputed once per basis (cached), not part of the solve time
-    with _single_thread():  # small kernels: one thread is faster (see qp._single_thread)
+    with single_thread():  # small kernels: one thread is faster (see qp._single_thread)
         return _fit(record, target, kd, constrained, shared, energy, basis, tol, method)
 
 

@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .._threads import single_thread
 from ..errors import FileFormatError, NumericalError, ShapeError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
@@ -372,15 +373,12 @@ def small_matrix_mode(n: int):
     * One intra-op thread when N < 512: a 100 x 100 Cholesky is ~10x slower with 2 threads on
       a loaded 2-core machine (measured 1.2 ms vs 11 ms per objective evaluation).
     """
-    threads = torch.get_num_threads()
     torch.set_flush_denormal(True)
-    if n < 512:
-        torch.set_num_threads(1)
     try:
-        yield
+        with single_thread(n < 512):
+            yield
     finally:
         torch.set_flush_denormal(False)
-        torch.set_num_threads(threads)
 
 
 def _converged(old: float, new: float, tol: float) -> bool:

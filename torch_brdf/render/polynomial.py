@@ -36,7 +36,7 @@ from torch import nn
 from .._checks import as_float_tensor, check_finite
 from ..brdf import BRDF, Lambert, create
 from ..brdf.band_albedo import band_albedos
-from ..brdf.bands import Factored1D, FresnelFactored1D, project
+from ..brdf.bands import Factored1D, FresnelFactored1D, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..transport.polynomial import ObjectBasis, PolynomialTensors
 
@@ -101,6 +101,7 @@ class PolynomialRenderer(nn.Module):
         self.c_hat: list[torch.Tensor | None] = [None] * m
         self.d: list[torch.Tensor] = [torch.zeros(3, dtype=dtype) for _ in range(m)]
         self.weight_maps: dict[int, torch.Tensor] = {}
+        self._map_means: dict[int, torch.Tensor] = {}
         self._albedo_weights: dict[int, list[torch.Tensor]] = {}
         self._frozen: dict[str, Any] | None = None
         materials = dict(materials or {})
@@ -213,14 +214,7 @@ class PolynomialRenderer(nn.Module):
         if self.two_level:
             if c_hat is None:
                 g = b.band_basis().groups(b.second)
-                parts = []
-                for k, e in enumerate(es):
-                    ck, ek = c[k * b.J : (k + 1) * b.J], e.to(c)
-                    num = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ck * ek)
-                    den = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ek)
-                    cnt = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, torch.ones_like(ck))
-                    plain = torch.zeros(b.second, 3, dtype=c.dtype).index_add(0, g, ck) / cnt
-                    parts.append(torch.where(den > 0, num / den.clamp_min(1e-300), plain))
+                parts = [coarsen_coefficients(c[k * b.J : (k + 1) * b.J], e, g, b.second) for k, e in enumerate(es)]
                 c_hat = torch.cat(parts, 0)
             c_hat = as_float_tensor(c_hat, "c_hat").to(self.dtype)
             if c_hat.shape != (b.second_size, 3):
@@ -240,15 +234,15 @@ class PolynomialRenderer(nn.Module):
         if w.shape != (self.height, self.width, 3):
             raise ShapeError(f"Expected a weight map of shape ({self.height}, {self.width}[, 3]); got {tuple(w.shape)}")
         check_finite(w, "weights")
-        self.weight_maps[m] = w.reshape(-1, 3)
+        self.weight_maps[m] = w = w.reshape(-1, 3)
+        pix = torch.cat([b.pixels for b in self.blocks if b.object_id == m] or [torch.zeros(0, dtype=torch.long)])
+        self._map_means[m] = w[pix.unique()].mean(0) if pix.numel() else w.mean(0)
         self._frozen = None
 
     def _map_mean(self, m: int) -> torch.Tensor:
-        w = self.weight_maps.get(m)
-        if w is None:
-            return torch.ones(3, dtype=self.dtype)
-        pix = torch.cat([b.pixels for b in self.blocks if b.object_id == m] or [torch.zeros(0, dtype=torch.long)])
-        return w[pix.unique()].mean(0) if pix.numel() else w.mean(0)
+        """The weight map's mean over the object's seen pixels (set once by :meth:`set_weight_map`)."""
+        mean = self._map_means.get(m)
+        return torch.ones(3, dtype=self.dtype) if mean is None else mean
 
     # -- coefficient vectors -------------------------------------------------------------------
     def _d_all(self) -> torch.Tensor:

@@ -46,36 +46,82 @@ def material_brdfs(scene: Scene) -> list[BRDF]:
     return [cache[o.material] for o in scene.objects]
 
 
+def rows_by_object(oid: torch.Tensor) -> list[tuple[int, torch.Tensor]]:
+    """Rows of each object id: [(object, row indices)], by one stable sort (not a mask per object)."""
+    if oid.numel() == 0:
+        return []
+    order = torch.argsort(oid, stable=True)
+    ids, counts = torch.unique_consecutive(oid[order], return_counts=True)
+    return list(zip(ids.tolist(), torch.split(order, counts.tolist()), strict=True))
+
+
 def _grouped(oid: torch.Tensor, fn, width: int) -> torch.Tensor:
-    """Apply ``fn(object_id, mask) -> (m, width)`` to each object's rows of a batch."""
+    """Apply ``fn(object_id, rows) -> (m, width)`` to each object's rows of a batch."""
     out = torch.zeros(oid.numel(), width)
-    for o in oid.unique().tolist():
-        m = oid == o
-        out[m] = fn(o, m)
+    for o, rows in rows_by_object(oid):
+        out[rows] = fn(o, rows)
     return out
 
 
-def _pass_generator(seed: int, pass_index: int) -> torch.Generator:
+def seeded_generator(*keys: int) -> torch.Generator:
+    """A torch generator whose stream is a function of ``keys`` (e.g. (seed, pass) or
+    (seed, tile, group)), through numpy's SeedSequence, so streams of different keys are
+    independent and any one can be regenerated on resume."""
     g = torch.Generator()
-    g.manual_seed(int(np.random.SeedSequence([seed, pass_index]).generate_state(1, np.uint64)[0] >> 1))
+    g.manual_seed(int(np.random.SeedSequence(list(keys)).generate_state(1, np.uint64)[0] >> 1))
     return g
+
+
+def emission_seen(scene: Scene, directions: torch.Tensor, hits) -> torch.Tensor:
+    """(P, 3) radiance of what the rays see directly: the environment where they miss, area
+    lights where they hit an emitter."""
+    out = torch.zeros(directions.shape[0], 3)
+    env = scene.environment
+    miss = ~hits.hit
+    if env is not None and bool(miss.any()):
+        out[miss] += env.eval_miss(directions[miss])
+    for oid, light in scene.area_lights.items():
+        on = hits.object_id == oid
+        if bool(on.any()):
+            out[on] += light.emitted(directions[on], hits.geometric_normal[on])
+    return out
+
+
+def shading_frame(d_in: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor):
+    """Two-sided shading at path vertices: normals flipped to face the arriving ray, the shading
+    normal replaced by the geometric one where they disagree.
+
+    Returns:
+        (ng, ns, frame, wo): the flipped normals (n, 3), the local :class:`Frame` and the
+        local outgoing direction (n, 3).
+    """
+    flip = torch.where((d_in * ng).sum(-1, keepdim=True) > 0, -1.0, 1.0)
+    ng, ns = ng * flip, ns * flip
+    ns = torch.where((ns * ng).sum(-1, keepdim=True) > 0, ns, ng)
+    frame = Frame.from_normal(ns)
+    return ng, ns, frame, frame.to_local(-d_in)
+
+
+def sample_light(scene: Scene, light, pos, ng, ns, gen):
+    """Next-event estimation towards ``light`` from every vertex.
+
+    Returns:
+        (ls, cos, candidates, visible): the :class:`LightSample`, the cosine at the shading
+        normal (n,), how many shadow rays were cast, and the rows (long) that see the light.
+    """
+    ls = light.sample(pos, gen)
+    cos = (ls.direction * ns).sum(-1)
+    k = torch.nonzero((cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)).squeeze(1)
+    if k.numel() == 0:
+        return ls, cos, 0, k
+    return ls, cos, k.numel(), k[scene.visible(pos[k], ng[k], ls.direction[k], ls.distance[k])]
 
 
 @torch.no_grad()
 def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces: int, gen) -> torch.Tensor:
     """One path per ray: (P, 3) radiance estimates (float32)."""
-    p = origins.shape[0]
-    out = torch.zeros(p, 3)
-    env = scene.environment
-    emitters = scene.area_lights
     hits = scene.trace(origins, directions)
-    miss = ~hits.hit
-    if env is not None and bool(miss.any()):
-        out[miss] += env.eval_miss(directions[miss])
-    for oid, light in emitters.items():
-        on = hits.object_id == oid
-        if bool(on.any()):
-            out[on] += light.emitted(directions[on], hits.geometric_normal[on])
+    out = emission_seen(scene, directions, hits)
     # the active paths, compacted: pixel index, arriving direction, surface, throughput
     idx = torch.nonzero(hits.hit).squeeze(1)
     d_in, pos = directions[idx], hits.position[idx]
@@ -84,18 +130,11 @@ def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces:
     for bounce in range(max_bounces):
         if idx.numel() == 0:
             break
-        flip = torch.where((d_in * ng).sum(-1, keepdim=True) > 0, -1.0, 1.0)
-        ng, ns = ng * flip, ns * flip
-        ns = torch.where((ns * ng).sum(-1, keepdim=True) > 0, ns, ng)
-        frame = Frame.from_normal(ns)
-        wo = frame.to_local(-d_in)
+        ng, ns, frame, wo = shading_frame(d_in, ng, ns)
         for light in scene.lights:
-            ls = light.sample(pos, gen)
-            cos = (ls.direction * ns).sum(-1)
-            k = torch.nonzero((cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)).squeeze(1)
+            ls, cos, _, k = sample_light(scene, light, pos, ng, ns, gen)
             if k.numel() == 0:
                 continue
-            k = k[scene.visible(pos[k], ng[k], ls.direction[k], ls.distance[k])]
             wi_k, wo_k = frame.to_local(ls.direction)[k], wo[k]
             f = _grouped(oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k: brdfs[o].eval_local(wi_k[m], wo_k[m]), 3)
             out.index_add_(0, idx[k], beta[k] * f * ls.weight[k] * cos[k, None])
@@ -157,7 +196,7 @@ def path_trace(
             start = int(meta["passes_done"])
     bar = tqdm(range(start, spp), total=spp, initial=start, desc=f"path trace {scene.name}", disable=not progress)
     for s in bar:
-        gen = _pass_generator(seed, s)
+        gen = seeded_generator(seed, s)
         o, d = cam.generate_rays(jitter=True, generator=gen)
         for a in range(0, h * w, chunk):
             sl = slice(a, min(a + chunk, h * w))

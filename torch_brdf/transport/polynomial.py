@@ -64,14 +64,13 @@ from tqdm.auto import tqdm
 from ..brdf import BRDF
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ShapeError, ValueRangeError
-from ..frame import Frame
 from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
 from ..scene.envmap import EnvironmentMap
 from ..scene.lights import Light, LightSample, luminance
 from ..scene.scene import Scene
 from ..sphere.warps import cosine_hemisphere_pdf, square_to_cosine_hemisphere
-from .pathtrace import material_brdfs
+from .pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, seeded_generator, shading_frame
 
 TENSOR_KIND = "multibounce-tensors"
 TILE_KIND = "multibounce-tile"
@@ -536,15 +535,6 @@ class PolynomialTensors:
 # --------------------------------------------------------------------------------------------
 # path tracing with symbolic bookkeeping
 # --------------------------------------------------------------------------------------------
-def _by_object(oid: torch.Tensor) -> list[tuple[int, torch.Tensor]]:
-    """Rows of each object id: [(object, row indices)], by one stable sort (not a mask per object)."""
-    if oid.numel() == 0:
-        return []
-    order = torch.argsort(oid, stable=True)
-    ids, counts = torch.unique_consecutive(oid[order], return_counts=True)
-    return list(zip(ids.tolist(), torch.split(order, counts.tolist()), strict=True))
-
-
 class _Layers:
     """Band index and quotient weight of every (object, layer) at a banded vertex."""
 
@@ -568,7 +558,7 @@ class _Layers:
         idx = torch.full((n, L), -1 if self.level == 2 else 0, dtype=torch.long)
         wgt = torch.zeros(n, L, 3, dtype=wi.dtype)
         up = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).to(wi.dtype)[:, None]
-        for o, m in _by_object(oid):
+        for o, m in rows_by_object(oid):
             spec = self.per_object[o]
             wim, wom = wi[m], wo[m]
             if spec is None:
@@ -640,7 +630,7 @@ class _Tracer:
     def _fixed_f(self, oid, wi, wo):
         """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""
         out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
-        for o, m in _by_object(oid):
+        for o, m in rows_by_object(oid):
             if not self.editable[o]:
                 out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
         return out
@@ -655,18 +645,9 @@ class _Tracer:
         exactness oracle of the tests).
         """
         scene, nb = self.scene, self.series.bounces
-        n = origins.shape[0]
         ent = _Entries()
-        emis = torch.zeros(n, 3)
         hits = self._trace(origins, directions)
-        env = scene.environment
-        if env is not None and bool((~hits.hit).any()):
-            miss = ~hits.hit
-            emis[miss] += env.eval_miss(directions[miss])
-        for oid, light in scene.area_lights.items():
-            on = hits.object_id == oid
-            if bool(on.any()):
-                emis[on] += light.emitted(directions[on], hits.geometric_normal[on])
+        emis = emission_seen(scene, directions, hits)
         idx = torch.nonzero(hits.hit).squeeze(1)
         d_in, pos = directions[idx], hits.position[idx]
         ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
@@ -684,21 +665,12 @@ class _Tracer:
         for v in range(1, nb + 1):
             if idx.numel() == 0:
                 break
-            flip = torch.where((d_in * ng).sum(-1, keepdim=True) > 0, -1.0, 1.0)
-            ng, ns = ng * flip, ns * flip
-            ns = torch.where((ns * ng).sum(-1, keepdim=True) > 0, ns, ng)
-            frame = Frame.from_normal(ns)
-            wo = frame.to_local(-d_in)
+            ng, ns, frame, wo = shading_frame(d_in, ng, ns)
             banded2 = v == 2 and self.level2 is not None
             ed = self.editable[oid]
             for light in self.lights:
-                ls = light.sample(pos, gen)
-                cos = (ls.direction * ns).sum(-1)
-                kk = torch.nonzero((cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)).squeeze(1)
-                if kk.numel() == 0:
-                    continue
-                self.rays["shadow"] += kk.numel()
-                kk = kk[scene.visible(pos[kk], ng[kk], ls.direction[kk], ls.distance[kk])]
+                ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
+                self.rays["shadow"] += cast
                 if kk.numel() == 0:
                     continue
                 wl = frame.to_local(ls.direction)[kk]
@@ -892,12 +864,6 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
     return out
 
 
-def _pass_seed(seed: int, tile: int, group: int) -> torch.Generator:
-    g = torch.Generator()
-    g.manual_seed(int(np.random.SeedSequence([seed, tile, group]).generate_state(1, np.uint64)[0] >> 1))
-    return g
-
-
 def _settings_digest(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -917,7 +883,7 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
     reduced = []
     for gi, g0 in enumerate(range(0, spp, group)):
         ng = min(group, spp - g0)
-        gen = _pass_seed(seed, tile, gi)
+        gen = seeded_generator(seed, tile, gi)
         off = torch.rand(ng * p, 2, generator=gen, dtype=torch.float64)
         ray = torch.arange(ng * p)
         rec = ray % p
