@@ -1,4 +1,5 @@
-"""Light transport: the reference path tracer and the precomputations (multibounce tensors)."""
+"""Light transport: the reference path tracer, the precomputations (multibounce tensors) and the
+differential block visibility of all-frequency relighting."""
 
 from .pathtrace import path_trace, reference_path_trace
 from .polynomial import (
@@ -11,8 +12,10 @@ from .polynomial import (
     plan_bases,
     precompute_polynomial,
 )
+from .visibility_codec import BlockVisibility
 
 __all__ = [
+    "BlockVisibility",
     "Mixture",
     "ObjectBasis",
     "PolynomialTensors",
