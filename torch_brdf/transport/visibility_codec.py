@@ -37,9 +37,10 @@ unoccluded or occluded block costs 2 or 1 bytes. Per-vertex byte offsets let any
 vertices be decoded without reading the rest.
 
 Nothing here loops in Python over vertices, blocks or entries: encoding works on chunks of
-``_CHUNK_PAIRS`` vertex-block pairs at a time (to bound the temporaries, each chunk fully
-vectorised), and parsing a stream finds the block starts by pointer doubling
-(``ceil(log2 NB)`` vectorised steps).
+``_CHUNK_PAIRS`` vertex-block pairs at a time (to bound the temporaries; each chunk is one
+set of numpy array operations, several times faster than the torch equivalents for the
+byte-sized masks and ``nonzero``), and parsing a stream finds the block starts by pointer
+doubling (``ceil(log2 NB)`` vectorised steps).
 """
 
 from __future__ import annotations
@@ -244,10 +245,23 @@ def _gather_ranges(starts: torch.Tensor, lengths: torch.Tensor, total: int) -> t
     return shift + torch.arange(total, dtype=torch.int64)
 
 
+def _raise_bad_visibility(x: np.ndarray, bad: np.ndarray, first_pair: int, nb: int, bits: int):
+    """Raise ValueRangeError naming the first bad texel of a chunk ``x`` (pairs x 256)."""
+    pair, texel = np.argwhere(bad)[0]
+    vertex, block = divmod(first_pair + int(pair), nb)
+    where = f"vertex {vertex} block {block} texel {int(texel)} holds {float(x[pair, texel])}"
+    if bits == 0:
+        raise ValueRangeError(
+            f"binary visibility (bits=0) must hold only 0 and 1; {where} ({int(bad.sum())} such values "
+            "in this chunk); encode graded maps with bits=2, 6 or 8"
+        )
+    raise ValueRangeError(f"visibility must lie in [0, 1]; {where} ({int(bad.sum())} such values in this chunk)")
+
+
 # --------------------------------------------------------------------------------------------
 # the record
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # identity equality: elementwise == of tensors has no truth value
 class BlockVisibility:
     r"""Sparse differential visibility of ``P`` vertices x ``NB`` blocks of 256 texels.
 
@@ -355,40 +369,39 @@ class BlockVisibility:
         if v.is_complex():
             raise ValueRangeError(f"visibility must be real; got {v.dtype}")
         p, nb, _ = v.shape
-        if v.dtype != torch.bool:
-            if bits == 0:
-                bad = ~((v == 0) | (v == 1))
-                if bool(bad.any()):
-                    example = float(v[bad].reshape(-1)[0])
-                    raise ValueRangeError(
-                        f"binary visibility (bits=0) must hold only 0 and 1; got {int(bad.sum())} other values "
-                        f"(e.g. {example}); encode graded maps with bits=2, 6 or 8"
-                    )
-            else:
-                if not v.is_floating_point():
-                    v = v.to(torch.float64)
-                bad = ~((v >= 0) & (v <= 1))  # NaN compares False: counted as bad
-                if bool(bad.any()):
-                    raise ValueRangeError(
-                        f"visibility must lie in [0, 1]; got {int(bad.sum())} values outside "
-                        f"({int(torch.isnan(v).sum())} NaN, min {float(v.nan_to_num(0.5).min()):.4g}, "
-                        f"max {float(v.nan_to_num(0.5).max()):.4g})"
-                    )
-        flat = v.reshape(p * nb, BLOCK_TEXELS)
+        flat = v.detach().reshape(p * nb, BLOCK_TEXELS)
         levels = _levels(bits)
         counts, index, delta = [], [], []
         for start in range(0, p * nb, _CHUNK_PAIRS):  # chunks of pairs bound the temporaries
             chunk = flat[start : start + _CHUNK_PAIRS]
-            q = chunk.to(torch.int8) if bits == 0 else torch.round(chunk * levels).to(torch.int16)
-            d = torch.diff(q, dim=1, prepend=torch.zeros(q.shape[0], 1, dtype=q.dtype))
-            nonzero = d != 0
-            counts.append(nonzero.sum(1, dtype=torch.int16))
-            index.append(nonzero.nonzero()[:, 1].to(torch.uint8))  # row-major: pair by pair, increasing
+            if chunk.dtype == torch.bool:
+                x = chunk.cpu().numpy()
+            else:
+                if not chunk.is_floating_point() or chunk.element_size() < 4:  # ints, float16, bfloat16
+                    chunk = chunk.to(torch.float32)
+                x = chunk.cpu().numpy()
+                bad = ~((x == 0) | (x == 1)) if bits == 0 else ~((x >= 0) & (x <= 1))  # NaN is bad
+                if bad.any():
+                    _raise_bad_visibility(x, bad, start, nb, bits)
+            # mask of non-zero derivative entries (Eq. 5), per pair: first texel, then changes
+            if bits == 0:
+                change = np.empty(x.shape, dtype=bool)
+                np.not_equal(x[:, 0], 0, out=change[:, 0])
+                np.not_equal(x[:, 1:], x[:, :-1], out=change[:, 1:])
+            else:
+                level = np.rint(x * levels).astype(np.int16)  # V quantised, not V_d: no drift
+                d = np.empty_like(level)
+                d[:, 0] = level[:, 0]
+                np.subtract(level[:, 1:], level[:, :-1], out=d[:, 1:])
+                change = d != 0
+            counts.append(change.sum(1, dtype=np.int16))
+            at = np.flatnonzero(change)  # row-major: pair by pair, positions increasing
+            index.append((at & (BLOCK_TEXELS - 1)).astype(np.uint8))
             if bits:
-                delta.append(d[nonzero].to(torch.int16))
-        counts_t = torch.cat(counts).reshape(p, nb) if counts else torch.zeros(0, nb, dtype=torch.int16)
-        index_t = torch.cat(index) if index else torch.zeros(0, dtype=torch.uint8)
-        delta_t = (torch.cat(delta) if delta else torch.zeros(0, dtype=torch.int16)) if bits else None
+                delta.append(d.reshape(-1)[at])
+        counts_t = torch.from_numpy(np.concatenate(counts) if counts else np.zeros(0, np.int16)).reshape(p, nb)
+        index_t = torch.from_numpy(np.concatenate(index) if index else np.zeros(0, np.uint8))
+        delta_t = torch.from_numpy(np.concatenate(delta) if delta else np.zeros(0, np.int16)) if bits else None
         meta = dict(meta or {})
         return cls._from_entries(nb, bits, counts_t, index_t, delta_t, meta)
 
@@ -475,8 +488,12 @@ class BlockVisibility:
         """
         if self.bits:
             return self.delta.to(dtype) / self.levels
-        rank = torch.arange(self.num_entries, dtype=torch.int64) - self.offsets[self.pair_of_entry()]
-        return (1 - 2 * (rank & 1)).to(dtype)
+        return self._signs(self.pair_of_entry()).to(dtype)
+
+    def _signs(self, pair: torch.Tensor) -> torch.Tensor:
+        """Implied binary derivatives +1, -1, +1, ... from ``(F,)`` pair ids: ``(F,)`` int8."""
+        rank = torch.arange(self.num_entries, dtype=torch.int64) - self.offsets[pair]
+        return 1 - 2 * (rank & 1).to(torch.int8)
 
     def decode(self, vertices=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """Dense visibility: the cumulative sum of :math:`V_d` (Sec. 4.4).
@@ -491,9 +508,9 @@ class BlockVisibility:
         """
         rec = self if vertices is None else self.select(vertices)
         out = torch.zeros(rec.counts.numel(), BLOCK_TEXELS, dtype=dtype)
-        units = rec.delta.to(dtype) if rec.bits else rec.values(dtype)  # integers: exact sums
-        flat_pos = rec.pair_of_entry() * BLOCK_TEXELS + rec.index.to(torch.int64)
-        out.view(-1)[flat_pos] = units
+        pair = rec.pair_of_entry()
+        units = rec.delta if rec.bits else rec._signs(pair)  # integers: the sums below are exact
+        out.view(-1)[pair * BLOCK_TEXELS + rec.index.to(torch.int64)] = units.to(dtype)
         out.cumsum_(1)
         if rec.bits:
             out.div_(rec.levels)
