@@ -373,3 +373,39 @@ def test_corrupted_real_streams(gen, tmp_path):
     save_arrays(tmp_path / "bad.npz", {"stream": stream, "vertex_offsets": offsets}, kind="block-visibility", meta=meta)
     with pytest.raises(FileFormatError, match="4 vertices"):
         BlockVisibility.load(tmp_path / "bad.npz")
+
+
+def test_chunked_encoding_matches_one_chunk(gen, monkeypatch):
+    """Chunk boundaries (here every 7 pairs, inside vertices) change nothing, and a bad texel in a
+    later chunk is reported at its own vertex and block."""
+    from torch_brdf.transport import visibility_codec
+
+    v = random_spans(5, 6, gen).float()
+    maps = {0: v, 6: v * torch.rand(5, 6, 256, generator=gen)}
+    whole = {bits: BlockVisibility.encode(m, bits) for bits, m in maps.items()}
+    monkeypatch.setattr(visibility_codec, "_CHUNK_PAIRS", 7)
+    for bits, m in maps.items():
+        assert_same(BlockVisibility.encode(m, bits), whole[bits])
+    v[3, 4, 10] = float("nan")
+    with pytest.raises(ValueRangeError, match="vertex 3 block 4 texel 10"):
+        BlockVisibility.encode(v, bits=6)
+
+
+def test_random_corruption_raises_only_file_format_errors(gen):
+    """Flipping random bytes either still parses into a valid record or raises FileFormatError."""
+    for bits in (0, 6):
+        v = random_spans(4, 6, gen).float() * (0.6 if bits else 1.0)
+        stream, offsets = BlockVisibility.encode(v, bits).to_bytes()
+        rejected = 0
+        for _ in range(100):
+            bad = stream.copy()
+            at = int(torch.randint(0, stream.size, (1,), generator=gen))
+            bad[at] = int(torch.randint(0, 256, (1,), generator=gen))
+            try:
+                rec = BlockVisibility.from_bytes(bad, offsets, 6, bits)
+            except FileFormatError:
+                rejected += 1
+                continue
+            dec = rec.decode()
+            assert bool(((dec >= 0) & (dec <= 1)).all())
+        assert rejected > 50
