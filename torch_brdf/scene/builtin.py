@@ -15,6 +15,7 @@ import numpy as np
 import trimesh
 
 from ..data import data_path
+from ..errors import ValueRangeError
 from .camera import Camera
 from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight
@@ -137,6 +138,22 @@ def _ground(size: float, y: float = 0.0, name: str = "plane") -> trimesh.Trimesh
     return mesh_from_arrays(v, [[0, 1, 2], [0, 2, 3]], name)
 
 
+def grid_plane(size: float, quads: int, y: float = 0.0, name: str = "plane") -> trimesh.Trimesh:
+    """A square ``size`` x ``size`` plane at height ``y`` facing +y, tessellated into
+    ``quads`` x ``quads`` quads (two triangles each): receivers of per-vertex shadows need
+    vertices where the shadows fall."""
+    n = int(quads)
+    if n < 1 or not size > 0:
+        raise ValueRangeError(f"grid_plane: need size > 0 and quads >= 1; got {size}, {quads}")
+    c = np.linspace(-size / 2, size / 2, n + 1)
+    x, z = np.meshgrid(c, c, indexing="ij")
+    v = np.stack((x.ravel(), np.full(x.size, y), z.ravel()), -1)
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    i = i.ravel()
+    f = np.concatenate((np.stack((i, i + 1, i + n + 2), -1), np.stack((i, i + n + 2, i + n + 1), -1)))
+    return mesh_from_arrays(v, f, name)
+
+
 def _default_sky() -> EnvironmentMap:
     """The procedural sky of the built-in scenes: sun irradiance about 1.3 (relative
     units), so a white Lambert surface in the sun has radiance of order 0.5."""
@@ -239,6 +256,27 @@ def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = No
     return Scene(objects, materials, [env], cam, name="bunny_plane")
 
 
+def bunny_relight(
+    resolution: Resolution = 256,
+    plane_quads: int = 96,
+    exponent: float = 200.0,
+    envmap: EnvironmentMap | None = None,
+) -> Scene:
+    """The relighting test of Inger et al.: a glossy Phong bunny (exponent ``exponent``) on
+    a tessellated, mildly glossy plane (Phong exponent 20) under a sun-like sky.
+
+    Per-vertex shading needs vertices where shadows fall, so the plane is a 6 x 6 grid of
+    ``plane_quads`` x ``plane_quads`` quads. The bunny comes from the shared data when
+    present (34,834 vertices), else a procedural stand-in as in :func:`bunny_plane`.
+    """
+    sc = bunny_plane(resolution, envmap)
+    sc.objects[1] = SceneObject("plane", grid_plane(6.0, plane_quads), "plane")
+    sc.materials["bunny"] = {"type": "phong", "kd": (0.35, 0.3, 0.25), "ks": 0.5, "exponent": float(exponent)}
+    sc.materials["plane"] = {"type": "phong", "kd": 0.45, "ks": 0.15, "exponent": 20.0}
+    sc.name = "bunny_relight"
+    return sc
+
+
 #: name -> builder, for the CLI and tests.
 def cornell_box_glossy(resolution: Resolution = 128, exponent: float = 100.0) -> Scene:
     """The Cornell box of Ben-Artzi et al. 2008, Fig. 6(b): a glossy Blinn-Phong back wall
@@ -260,4 +298,5 @@ BUILTIN_SCENES: dict[str, Callable[..., Scene]] = {
     "teatray": teatray,
     "ring": ring,
     "bunny_plane": bunny_plane,
+    "bunny_relight": bunny_relight,
 }
