@@ -1,5 +1,13 @@
-"""Functions on the sphere: sampling warps with pdfs and lat-long map geometry."""
+"""Functions on the sphere: sampling warps with pdfs, lat-long map geometry, Haar wavelets on cubemaps."""
 
+from .haar import (
+    HaarTripleProduct,
+    SparseHaar,
+    haar2d,
+    haar_tripling_coefficients,
+    ihaar2d,
+    keep_largest,
+)
 from .latlong import (
     direction_to_latlong,
     direction_to_texel,
@@ -20,9 +28,15 @@ from .warps import (
 )
 
 __all__ = [
+    "HaarTripleProduct",
+    "SparseHaar",
     "cosine_hemisphere_pdf",
     "direction_to_latlong",
     "direction_to_texel",
+    "haar2d",
+    "haar_tripling_coefficients",
+    "ihaar2d",
+    "keep_largest",
     "latlong_to_direction",
     "row_cos_bounds",
     "square_to_cosine_hemisphere",
