@@ -278,7 +278,7 @@ def test_module_to_dtype():
     tp = HaarTripleProduct()
     tp.set_lighting(light, 0.1)
     tp64 = tp.to(torch.float64)
-    assert tp64.light_values.dtype == torch.float64 and tp64.light_slot.dtype == torch.long
+    assert tp64.light_values.dtype == torch.float64 and tp64.slots.dtype == torch.long
     rc = tp64.brdf_coefficients(rho.double(), 0.1)
     assert tp64.product(tp64.visibility_coefficients(vis.double()), rc).dtype == torch.float64
 

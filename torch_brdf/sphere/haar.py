@@ -320,10 +320,14 @@ def _largest_positions(score: torch.Tensor, k: int) -> torch.Tensor:
     if k == n:
         return torch.arange(n, device=score.device).expand(rows, n).clone()
     kth = score.topk(k, dim=-1).values[:, -1:]  # (B, 1) the k-th largest score
-    above = score > kth
+    keep = score > kth
     tied = score == kth
-    need = k - above.sum(-1, keepdim=True)  # >= 1 tied positions still to take
-    keep = above | (tied & (tied.cumsum(-1) <= need))
+    need = k - keep.sum(-1)  # (B,) >= 1 tied positions still to take
+    excess = (tied.sum(-1) > need).nonzero()[:, 0]  # rows with more ties than places (rare with real data)
+    keep |= tied
+    if excess.numel():
+        first = tied[excess].cumsum(-1) <= need[excess, None]  # the lowest tied positions
+        keep[excess] = keep[excess] & (~tied[excess] | first)
     return keep.nonzero()[:, 1].reshape(rows, k)
 
 
@@ -358,7 +362,7 @@ def keep_largest(coeffs: torch.Tensor, fraction: float, *, channels: bool = True
     k = _kept_count(fraction, n)
     lead = x.shape[:-nd]
     flat = x.reshape(-1, n, x.shape[-1] if channels else 1)
-    idx = _largest_positions(flat.abs().sum(-1), k)
+    idx = _largest_positions(sum(ch.abs() for ch in flat.unbind(-1)), k)  # L1 over channels
     vals = flat.gather(1, idx[..., None].expand(-1, -1, flat.shape[-1]))
     vals = vals.reshape(*lead, k, flat.shape[-1]) if channels else vals.reshape(*lead, k)
     return SparseHaar(indices=idx.reshape(*lead, k), values=vals, resolution=size)
@@ -399,14 +403,16 @@ class HaarTripleProduct(nn.Module):
         v_c = tp.visibility_coefficients(V)                # V: (P, 6, R, R)
         B = tp.product(v_c, rho_c)                         # (P, C)
 
-    Cost of :meth:`product`: ``O(P (k_L + k_rho) A C)`` with ``A = 3 log2(R) - 2`` ancestor
-    functions per wavelet, plus the zeroing of a ``(chunk, |U|)`` buffer (``|U|`` = distinct
-    ancestors of the kept lighting, at most ``k_L A``); independent of the texel count ``6 R^2``
-    apart from the gathers from the dense visibility coefficients.
+    Cost of :meth:`product`: ``O(P (nnz(W) + k_rho) C)`` where ``W`` is the fixed
+    ``(k_L, |U|)`` matrix of ancestor values of the kept lighting positions (``U`` = their
+    distinct strict ancestors), ``nnz(W) <= k_L A`` and ``|U| <= k_L A`` with
+    ``A = 3 log2(R) - 2`` ancestors per finest wavelet; nothing in it scales with the texel
+    count ``6 R^2``.
 
     Args:
-        chunk_elements: vertices are processed in chunks whose largest temporary,
-            ``(chunk, k_L + k_rho, A, C)``, holds at most this many elements (at least one vertex).
+        chunk_elements: vertices are processed in chunks whose temporaries of
+            ``(chunk, k_rho + |U| + k_L, C)`` elements hold at most about this many (at least
+            one vertex per chunk).
     """
 
     def __init__(self, chunk_elements: int = 1 << 22):
@@ -415,19 +421,17 @@ class HaarTripleProduct(nn.Module):
             raise ValueRangeError(f"chunk_elements must be >= 1; got {chunk_elements}")
         self.chunk_elements = int(chunk_elements)
         self.resolution: int | None = None
-        self._n_union = 0
         for name in (
             "light_indices",  # (k_L,) kept lighting positions
             "light_values",  # (k_L, C) their coefficients
-            "light_dense",  # (6R^2, C) truncated lighting coefficients, zero where dropped
-            "light_slot",  # (6R^2,) slot of a position in light_indices, k_L if dropped
-            "light_parent",  # (6R^2, C) case-2 parent sum of the truncated lighting, + case 1 at phi
-            "light_anc_pos",  # (k_L, A) ancestor positions of the kept lighting positions
-            "light_anc_w",  # (k_L, A) the ancestors' values on the kept positions' supports
-            "light_anc_slot",  # (k_L, A) slots of those ancestors in U, |U| for unused columns
-            "anc_slot",  # (6R^2,) slot of a position in U (the lighting's ancestors), |U| if none
-            "sib",  # (6R^2, 2) positions of the other two wavelet types of a node
-            "c3",  # (6R^2,) case-3 coefficient of a position's node
+            "union",  # (|U|,) U: the distinct strict ancestors of the kept lighting positions
+            "w_rows",  # (nnz,) W[q, u]: value of ancestor union[u] on kept position q's support
+            "w_cols",  # (nnz,)
+            "w_vals",  # (nnz,)
+            "slots",  # (6R^2, 4) long: slot in U (|U| if none), slot in light_indices (k_L if
+            #           dropped), and the other two wavelet types of the position's node
+            "light_table",  # (6R^2, 2C + 1): parent sum of the lighting (+ case 1 at phi),
+            #                 truncated lighting coefficient (0 if dropped), case-3 coefficient
         ):
             self.register_buffer(name, None)
 
@@ -439,7 +443,7 @@ class HaarTripleProduct(nn.Module):
         Precomputes the lighting's parent sums :math:`\bar L(p) = \sum_{a \succ p} L_a\,
         \Psi_a|_{\mathrm{supp}\,p}` at every position ``p`` (the value of the truncated
         lighting's reconstruction from levels coarser than ``p`` on ``p``'s support), the
-        ancestor tables of the kept lighting positions, and the position-to-slot maps.
+        sparse ancestor matrix ``W`` of the kept lighting positions, and per-position slots.
 
         Args:
             lighting: (6, R, R, C) texel lighting, solid angle folded in; R a power of two.
@@ -460,26 +464,25 @@ class HaarTripleProduct(nn.Module):
         anc_w = tab.anc_w.to(dev, dt).repeat(FACES, 1)  # (6R^2, A)
         dense = sparse.to_dense().reshape(n, -1)  # (6R^2, C)
         # case 2 with L the coarser factor (+ case 1 at the scaling positions, phi = 1/R)
-        parent = torch.einsum("pac,pa->pc", dense[anc_pos], anc_w)
+        parent = (dense[anc_pos] * anc_w[..., None]).sum(1)
         parent = parent + tab.phi.to(dev, dt).repeat(FACES)[:, None] * dense
+        c3 = tab.c3.to(dev, dt).repeat(FACES)[:, None]
         idx = sparse.indices
         k_l = idx.shape[0]
-        slot = torch.full((n,), k_l, dtype=torch.long, device=dev)
-        slot[idx] = torch.arange(k_l, device=dev)
-        l_anc_pos, l_anc_w = anc_pos[idx], anc_w[idx]
-        used = l_anc_w != 0
-        union = torch.unique(l_anc_pos[used])  # U: the distinct ancestors of the kept positions
-        anc_slot = torch.full((n,), union.numel(), dtype=torch.long, device=dev)
-        anc_slot[union] = torch.arange(union.numel(), device=dev)
-        l_anc_slot = torch.where(used, anc_slot[l_anc_pos], union.numel())
+        light_slot = torch.full((n,), k_l, dtype=torch.long, device=dev)
+        light_slot[idx] = torch.arange(k_l, device=dev)
+        used = anc_w[idx] != 0  # (k_L, A)
+        rows = torch.arange(k_l, device=dev)[:, None].expand_as(used)[used]
+        union, cols = torch.unique(anc_pos[idx][used], return_inverse=True)
+        union_slot = torch.full((n,), union.numel(), dtype=torch.long, device=dev)
+        union_slot[union] = torch.arange(union.numel(), device=dev)
+        sib = (offset[..., None] + tab.sib).reshape(n, 2).to(dev)
 
         self.resolution = size
-        self.light_indices, self.light_values, self.light_dense = idx, sparse.values, dense
-        self.light_slot, self.light_parent = slot, parent
-        self.light_anc_pos, self.light_anc_w, self.light_anc_slot = l_anc_pos, l_anc_w, l_anc_slot
-        self.anc_slot, self._n_union = anc_slot, union.numel()
-        self.sib = (offset[..., None] + tab.sib).reshape(n, 2).to(dev)
-        self.c3 = tab.c3.to(dev, dt).repeat(FACES)
+        self.light_indices, self.light_values, self.union = idx, sparse.values, union
+        self.w_rows, self.w_cols, self.w_vals = rows, cols, anc_w[idx][used]
+        self.slots = torch.cat((union_slot[:, None], light_slot[:, None], sib), dim=1)
+        self.light_table = torch.cat((parent, dense, c3), dim=1)
         return sparse
 
     def brdf_coefficients(self, brdf: torch.Tensor, fraction: float = 1.0) -> SparseHaar:
@@ -523,24 +526,29 @@ class HaarTripleProduct(nn.Module):
     def product(self, visibility_coeffs: torch.Tensor, brdf: SparseHaar) -> torch.Tensor:
         r"""Triple product :math:`B_c = \sum_{ijk} C_{ijk} L_{c,i} V_j \rho_{c,k}` over the six faces.
 
-        Terms, with :math:`q` the kept lighting positions, :math:`p` a vertex's kept BRDF
-        positions and :math:`\bar F(x) = \sum_{a \succ x} F_a \Psi_a|_{\mathrm{supp}\,x}` the
-        parent sum of :math:`F` at :math:`x` (its strictly coarser ancestors, :math:`\phi`
-        included, weighted by their value on :math:`x`'s support):
+        Write :math:`q` for the kept lighting positions, :math:`p` for a vertex's kept BRDF
+        positions, :math:`a \succ x` for the strict ancestors of :math:`x` (coarser wavelets
+        whose support contains :math:`x`'s, and :math:`\phi`), :math:`w(a, x)` for the value
+        of :math:`\Psi_a` on :math:`x`'s support, and :math:`\bar F(x) = \sum_{a \succ x}
+        F_a w(a, x)` for the parent sum. The non-zero tripling coefficients give
 
-        - case 1 (:math:`\phi\phi\phi`): :math:`\sum_f L_{\phi_f} V_{\phi_f} \rho_{\phi_f} / R`,
-          taken at the BRDF's scaling positions;
-        - case 2, lighting and visibility the equal pair: :math:`\sum_q L_q V_q \bar\rho(q)`;
-          :math:`\bar\rho(q)` gathers the BRDF at the fixed ancestors of :math:`q` through a
-          per-chunk buffer over U (the union of those ancestors);
-        - case 2, visibility and BRDF the equal pair: :math:`\sum_p \rho_p V_p \bar L(p)`,
-          :math:`\bar L` precomputed at every position;
-        - case 2, lighting and BRDF the equal pair: :math:`\sum_p \rho_p L_p \bar V(p)`, non-zero
-          only where both are kept; :math:`\bar V` is evaluated at the kept lighting positions;
+        - case 1 (:math:`\phi\phi\phi`): :math:`\sum_f L_{\phi_f} V_{\phi_f}
+          \rho_{\phi_f} / R`, taken at the BRDF's scaling positions;
+        - case 2, lighting and visibility the equal pair, BRDF coarser:
+          :math:`\sum_q L_q V_q \bar\rho(q) = \sum_p \rho_p Y(p)` with
+          :math:`Y(p) = \sum_{q \prec p} w(p, q) L_q V_q` (``W^T (L V)``, non-zero on ``U`` only);
+        - case 2, visibility and BRDF the equal pair, lighting coarser:
+          :math:`\sum_p \rho_p V_p \bar L(p)`, :math:`\bar L` precomputed everywhere;
+        - case 2, lighting and BRDF the equal pair, visibility coarser:
+          :math:`\sum_p \rho_p L_p \bar V(p)`, non-zero only where both are kept;
+          :math:`\bar V` at the kept lighting positions is ``W V_U``;
         - case 3: :math:`\sum_p \rho_p c_3(p) (L_{s_1} V_{s_2} + L_{s_2} V_{s_1})` with
-          :math:`s_1, s_2` the other two wavelet types of :math:`p`'s node (all six
-          assignments of H, V, D to the three factors), non-zero only where the lighting has
-          a kept coefficient at the BRDF's node.
+          :math:`s_1, s_2` the other two wavelet types of :math:`p`'s node and
+          :math:`c_3 = 2^l / R` (all six assignments of H, V, D to the three factors),
+          non-zero only where the lighting has a kept coefficient at the BRDF's node.
+
+        So per vertex: two products with the sparse ``W`` (``nnz(W) <= k_L A``) and a few
+        gathers at the ``k_rho`` BRDF positions.
 
         Args:
             visibility_coeffs: (P, 6, R, R) from :meth:`visibility_coefficients`.
@@ -571,51 +579,55 @@ class HaarTripleProduct(nn.Module):
         c_l, c_r = self.light_values.shape[-1], brdf.values.shape[-1]
         if c_l != c_r and 1 not in (c_l, c_r):
             raise ShapeError(f"channels of lighting ({c_l}) and brdf ({c_r}) must match or be 1")
-        ch = max(c_l, c_r)
         dt = torch.promote_types(torch.promote_types(vis.dtype, brdf.values.dtype), self.light_values.dtype)
         vis = vis.reshape(n_vert, -1).to(dt)
-        l_val = self.light_values.to(dt).expand(-1, ch)
-        l_dense = self.light_dense.to(dt).expand(-1, ch)
-        l_parent = self.light_parent.to(dt).expand(-1, ch)
-        anc_w, c3 = self.light_anc_w.to(dt), self.c3.to(dt)
-        k_l, width = self.light_anc_pos.shape
-        n_u = self._n_union  # |U|, also the dump slot of unused columns
-        anc_pos_flat, anc_slot_flat = self.light_anc_pos.reshape(-1), self.light_anc_slot.reshape(-1)
+        l_val = self.light_values.to(dt)
+        table = self.light_table.to(dt)
+        l_dense = table[:, c_l : 2 * c_l]
+        k_l, n_u, k_r = l_val.shape[0], self.union.numel(), brdf.k
+        # W (k_L, |U|) and its transpose, coalesced once per call (nnz <= k_L A); one more, empty,
+        # row each, so that the products hold a zero at slot |U| (outside U) and k_L (L dropped)
+        w_idx = torch.stack((self.w_rows, self.w_cols))
+        w_val = self.w_vals.to(dt)
+        w = torch.sparse_coo_tensor(w_idx, w_val, (k_l + 1, n_u), check_invariants=False).coalesce()
+        w_t = torch.sparse_coo_tensor(w_idx.flip(0), w_val, (n_u + 1, k_l), check_invariants=False).coalesce()
 
-        k_r = brdf.k
-        step = max(1, self.chunk_elements // max(1, (k_l + k_r) * width * ch))
-        out = vis.new_zeros(n_vert, ch)
+        ch = max(c_l, c_r)
+        step = max(1, self.chunk_elements // max(1, (k_r + n_u + k_l) * ch))
+        out = vis.new_empty(n_vert, ch)
         for a in range(0, n_vert, step):
             b = min(n_vert, a + step)
             m = b - a
             v = vis[a:b]  # (m, 6R^2)
             ri = brdf.indices[a:b]  # (m, k)
-            rv = brdf.values[a:b].to(dt).expand(-1, -1, ch)  # (m, k, C)
+            rv = brdf.values[a:b].to(dt)  # (m, k, C)
+            col = torch.arange(m, device=v.device)[:, None]
+            flat = ri.reshape(-1)
+            slots = self.slots.index_select(0, flat).view(m, k_r, 4)
+            lt = table.index_select(0, flat).view(m, k_r, -1)
+            l_parent, l_p, c3 = lt[..., :c_l], lt[..., c_l : 2 * c_l], lt[..., 2 * c_l :]
 
-            # case 2, pair (L, V), rho coarser: sum_q L_q V_q rho_bar(q)
-            rho_u = v.new_zeros(m, n_u + 1, ch)
-            rho_u.scatter_(1, self.anc_slot[ri][..., None].expand(-1, -1, ch), rv)
-            rho_u[:, n_u] = 0  # dump slot of the BRDF positions outside U and of unused columns
-            rho_anc = rho_u.index_select(1, anc_slot_flat).view(m, k_l, width, ch)
-            rho_bar = torch.einsum("mqac,qa->mqc", rho_anc, anc_w)
-            acc = torch.einsum("qc,mq,mqc->mc", l_val, v.index_select(1, self.light_indices), rho_bar)
+            # case 2, pair (L, V), rho coarser: Y = W^T (L V) on U, then Y at the BRDF positions
+            lv = v.index_select(1, self.light_indices).t()[..., None] * l_val[:, None, :]  # (k_L, m, C_L)
+            y = torch.sparse.mm(w_t, lv.reshape(k_l, -1)).view(-1, c_l)  # (|U| + 1, m C_L)
+            y_p = y.index_select(0, (slots[..., 0] * m + col).reshape(-1)).view(m, k_r, c_l)
 
-            # case 2, pair (V, rho), L coarser; and case 1 (folded into light_parent at phi)
-            v_p = v.gather(1, ri)  # (m, k)
-            acc += torch.einsum("mkc,mk,mkc->mc", rv, v_p, l_parent[ri])
+            # case 2, pair (L, rho), V coarser: V_bar = W V_U at the kept lighting positions
+            v_bar = torch.sparse.mm(w, v.index_select(1, self.union).t()).view(-1)  # (k_L + 1, m)
+            v_bar_p = v_bar.index_select(0, (slots[..., 1] * m + col).reshape(-1)).view(m, k_r, 1)
 
-            # case 2, pair (L, rho), V coarser: V_bar at the kept lighting positions
-            v_bar = torch.einsum("mqa,qa->mq", v.index_select(1, anc_pos_flat).view(m, k_l, width), anc_w)
-            v_bar = torch.cat((v_bar, v_bar.new_zeros(m, 1)), dim=1)  # slot k_L: lighting dropped
-            acc += torch.einsum("mkc,mkc,mk->mc", rv, l_dense[ri], v_bar.gather(1, self.light_slot[ri]))
+            # case 2, pair (V, rho), L coarser, with case 1 folded into l_parent at phi
+            v_p = v.gather(1, ri)[..., None]  # (m, k, 1)
 
-            # case 3: H, V, D of one node
-            s = self.sib[ri]  # (m, k, 2)
-            v_s = v.gather(1, s.reshape(m, -1)).view(m, k_r, 2)
-            l_s = l_dense[s]  # (m, k, 2, C)
-            mixed = l_s[:, :, 0] * v_s[:, :, 1, None] + l_s[:, :, 1] * v_s[:, :, 0, None]
-            acc += torch.einsum("mkc,mk,mkc->mc", rv, c3[ri], mixed)
-            out[a:b] = acc
+            # case 3: the other two wavelet types s1, s2 of the BRDF position's node
+            sib = slots[..., 2:]
+            v_s = v.gather(1, sib.reshape(m, -1)).view(m, k_r, 2, 1)
+            l_s = l_dense.index_select(0, sib.reshape(-1)).view(m, k_r, 2, c_l)
+            mixed = (l_s[:, :, 0] * v_s[:, :, 1]).addcmul_(l_s[:, :, 1], v_s[:, :, 0])
+
+            # the factor multiplying rho_p: (m, k, C_L)
+            factor = torch.addcmul(y_p, v_p, l_parent).addcmul_(v_bar_p, l_p).addcmul_(c3, mixed)
+            out[a:b] = (rv * factor).sum(1)
         return out
 
     def forward(self, visibility_coeffs: torch.Tensor, brdf: SparseHaar) -> torch.Tensor:
