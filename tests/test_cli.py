@@ -75,3 +75,55 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert bad.exit_code == 2 and "JSON" in bad.output
     bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
     assert bad.exit_code == 2
+
+
+RELIGHT_TOML = """
+name = "tiny_relight"
+[camera]
+origin = [0.0, 1.2, -2.0]
+target = [0.0, 0.2, 0.0]
+up = [0.0, 1.0, 0.0]
+fov_deg = 45.0
+width = 24
+height = 16
+[materials]
+box = { type = "phong", kd = 0.3, ks = 0.4, exponent = 50.0 }
+floor = { type = "lambert", albedo = 0.5 }
+[[objects]]
+name = "box"
+material = "box"
+vertices = [[-0.3, 0.2, -0.3], [0.3, 0.2, -0.3], [0.3, 0.2, 0.3], [-0.3, 0.2, 0.3],
+            [-0.3, 0.6, -0.3], [0.3, 0.6, -0.3], [0.3, 0.6, 0.3], [-0.3, 0.6, 0.3]]
+faces = [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+         [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]]
+[[objects]]
+name = "floor"
+material = "floor"
+vertices = [[-1.0, 0.0, -1.0], [-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [1.0, 0.0, -1.0], [0.0, 0.0, 0.0]]
+faces = [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]]
+[[lights]]
+type = "envmap"
+procedural = "sky"
+height = 16
+"""
+
+
+def test_precompute_visibility_and_relight(tmp_path):
+    from torch_brdf.transport.visibility import VertexVisibility
+
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(RELIGHT_TOML)
+    out = tmp_path / "vis.npz"
+    res = runner.invoke(app, ["precompute-visibility", str(toml), "--resolution", "32", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    info = json.loads(res.output[res.output.index('{"out"') :].splitlines()[0])
+    assert info["vertices"] == 13 and info["bytes_per_vertex"] > 0
+    assert len(VertexVisibility.load(out).vertices) == 13 and not (tmp_path / "vis.npz.chunks").exists()
+    img_out = tmp_path / "frame"
+    res = runner.invoke(app, ["relight", str(toml), "--visibility", str(out), "--out", str(img_out), "--rotate", "0.5"])
+    assert res.exit_code == 0, res.output
+    stats = json.loads(res.stdout.strip().splitlines()[-1])["stats"]
+    assert stats["vertices"] > 0 and sum(stats["cases"].values()) == stats["blocks"]
+    assert read_exr(img_out.with_suffix(".exr")).shape == (16, 24, 3)
+    bad = runner.invoke(app, ["precompute-visibility", str(toml), "--resolution", "40", "--out", str(out)])
+    assert bad.exit_code == 2 and "multiple" in bad.output

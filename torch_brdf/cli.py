@@ -1,4 +1,5 @@
-"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info`` and ``precompute``."""
+"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``,
+``fit-strokes``, ``precompute-visibility`` and ``relight``."""
 
 from __future__ import annotations
 
@@ -166,6 +167,78 @@ def fit_strokes(
         st, size = load_strokes(strokes)
         cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
         typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size)))
+    except TorchBRDFError as exc:
+        _fail(exc)
+
+
+@app.command("precompute-visibility")
+def precompute_visibility_cmd(
+    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    out: Path = typer.Option(Path("out/visibility.npz"), help="Output record (.npz, versioned, checksummed)."),
+    resolution: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
+    supersample: int = typer.Option(1, min=1, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
+    bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
+    chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
+    resume: bool = typer.Option(True, help="Keep finished chunks in OUT.chunks/ and resume from them."),
+):
+    """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
+    import shutil
+
+    from .transport.visibility import precompute_visibility
+
+    try:
+        sc = load_scene(scene)
+        ck = out.parent / (out.name + ".chunks") if resume else None
+        t0 = time.perf_counter()
+        vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck)
+        seconds = time.perf_counter() - t0
+        out.parent.mkdir(parents=True, exist_ok=True)
+        vis.save(out)
+        if ck is not None:
+            shutil.rmtree(ck, ignore_errors=True)
+        info = {
+            "out": str(out),
+            "vertices": len(vis.vertices),
+            "cubemap": f"{resolution}x{resolution}x6",
+            "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
+            "seconds": round(seconds, 3),
+        }
+        typer.echo(json.dumps(info))
+    except TorchBRDFError as exc:
+        _fail(exc)
+
+
+@app.command()
+def relight(
+    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
+    visibility: Path = typer.Option(..., help="Record written by precompute-visibility."),
+    out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
+    rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
+    method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
+    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+):
+    """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
+    from .io import write_exr, write_png
+    from .render.triple import TripleProductRenderer
+    from .transport.visibility import VertexVisibility
+
+    try:
+        sc = load_scene(scene)
+        vis = VertexVisibility.load(visibility)
+        r = TripleProductRenderer(sc, vis)
+        if rotate:
+            r.set_lighting(r.envmap.rotated(rotate))
+        t0 = time.perf_counter()
+        image, stats = r.render(method=method)
+        seconds = time.perf_counter() - t0
+        out = out.with_suffix("")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_exr(out.with_suffix(".exr"), image)
+        write_png(out.with_suffix(".png"), image, exposure=exposure)
+        info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+        if stats is not None:
+            info["stats"] = stats.as_dict()
+        typer.echo(json.dumps(info))
     except TorchBRDFError as exc:
         _fail(exc)
 

@@ -257,3 +257,16 @@ def test_block_lighting_representations_agree():
     # the sun's energy is where the sun is: total L Omega over the sphere matches the lat-long integral
     env = sky()
     torch.testing.assert_close(lit.texels.sum((0, 1)), env.integral().double(), rtol=0.02, atol=0)
+
+
+def test_haar_baseline_is_exact_with_every_coefficient(scene, vis):
+    r = renderer(scene, vis, box="phong", floor="phong")
+    view = r.all_vertices(EYE)
+    ref = r.shade_standard(view)
+    timings: dict = {}
+    full = r.shade_haar(view, fraction=1.0, timings=timings)
+    torch.testing.assert_close(full, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+    assert set(timings) == {"visibility_s", "brdf_s", "product_s"}
+    few = r.shade_haar(view, fraction=0.01)
+    assert bool(torch.isfinite(few).all())
+    assert float((few - ref).abs().max()) > float((full - ref).abs().max())

@@ -229,11 +229,11 @@ def ring(resolution: Resolution = 256) -> Scene:
     return Scene(objects, materials, lights, cam, name="ring")
 
 
-def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = None) -> Scene:
-    """The Stanford bunny (shared data; an icosphere stand-in otherwise) on a plane under
-    an environment map (procedural sky by default)."""
+def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = None, use_data: bool = True) -> Scene:
+    """The Stanford bunny (shared data; an icosphere stand-in otherwise or with
+    ``use_data=False``) on a plane under an environment map (procedural sky by default)."""
     w, h = _size(resolution)
-    p = data_path("meshes", "bunny.ply", required=False)
+    p = data_path("meshes", "bunny.ply", required=False) if use_data else None
     if p is not None:
         bunny = load_mesh(p, "bunny")
         bunny.apply_scale(10.0)
@@ -261,20 +261,22 @@ def bunny_relight(
     plane_quads: int = 96,
     exponent: float = 200.0,
     envmap: EnvironmentMap | None = None,
+    use_data: bool = True,
 ) -> Scene:
     """The relighting test of Inger et al.: a glossy Phong bunny (exponent ``exponent``) on
     a tessellated, mildly glossy plane (Phong exponent 20) under a sun-like sky.
 
     Per-vertex shading needs vertices where shadows fall, so the plane is a 6 x 6 grid of
     ``plane_quads`` x ``plane_quads`` quads. The bunny comes from the shared data when
-    present (34,834 vertices), else a procedural stand-in as in :func:`bunny_plane`.
+    present (35,947 vertices) and ``use_data``, else a procedural stand-in (2,562 vertices).
     """
-    sc = bunny_plane(resolution, envmap)
-    sc.objects[1] = SceneObject("plane", grid_plane(6.0, plane_quads), "plane")
-    sc.materials["bunny"] = {"type": "phong", "kd": (0.35, 0.3, 0.25), "ks": 0.5, "exponent": float(exponent)}
-    sc.materials["plane"] = {"type": "phong", "kd": 0.45, "ks": 0.15, "exponent": 20.0}
-    sc.name = "bunny_relight"
-    return sc
+    base = bunny_plane(resolution, envmap, use_data)  # the bunny, sky and camera
+    objects = [base.objects[0], SceneObject("plane", grid_plane(6.0, plane_quads), "plane")]
+    materials = {
+        "bunny": {"type": "phong", "kd": (0.35, 0.3, 0.25), "ks": 0.5, "exponent": float(exponent)},
+        "plane": {"type": "phong", "kd": 0.45, "ks": 0.15, "exponent": 20.0},
+    }
+    return Scene(objects, materials, base.lights, base.camera, name="bunny_relight")
 
 
 #: name -> builder, for the CLI and tests.
