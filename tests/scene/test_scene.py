@@ -337,6 +337,7 @@ _VISIBLE = {
     "teatray": {"teapot", "tray"},
     "ring": {"ring", "plane"},
     "bunny_plane": {"bunny", "plane"},
+    "bunny_relight": {"bunny", "plane"},
 }
 
 
@@ -363,7 +364,7 @@ def _check_resting(scene: Scene, name: str):
         assert teapot.bounds[0, 1] == pytest.approx(tray.bounds[1, 1])
         assert tray.bounds[0, 1] == pytest.approx(floor.bounds[0, 1])
         np.testing.assert_allclose((teapot.bounds[0] + teapot.bounds[1])[[0, 2]], 0.0, atol=1e-9)
-    elif name == "bunny_plane":
+    elif name in ("bunny_plane", "bunny_relight"):
         bunny = scene.objects[scene.object_id("bunny")].mesh
         assert bunny.bounds[0, 1] == pytest.approx(0.0, abs=1e-9)
         np.testing.assert_allclose((bunny.bounds[0] + bunny.bounds[1])[[0, 2]], 0.0, atol=1e-9)
@@ -547,3 +548,16 @@ def test_cornell_meshes_are_fresh_copies():
     a, b = cornell_box_meshes(), cornell_box_meshes()
     a["floor"].apply_translation([0.0, 10.0, 0.0])
     assert b["floor"].bounds[0, 1] == 0.0
+
+
+def test_grid_plane_faces_up_and_tessellates():
+    from torch_brdf.errors import ValueRangeError
+    from torch_brdf.scene.builtin import grid_plane
+
+    m = grid_plane(2.0, 4, y=0.5)
+    assert len(m.vertices) == 25 and len(m.faces) == 32
+    np.testing.assert_allclose(m.face_normals, np.tile([0.0, 1.0, 0.0], (32, 1)), atol=1e-12)
+    assert m.area == pytest.approx(4.0)
+    np.testing.assert_allclose(m.vertices[:, 1], 0.5)
+    with pytest.raises(ValueRangeError):
+        grid_plane(2.0, 0)

@@ -91,7 +91,10 @@ def test_unoccluded_plane_vertex_is_its_hemisphere(scene, record):
 
 
 def test_chunking_and_workers_do_not_change_the_record(scene, record):
-    other = precompute_visibility(scene, resolution=32, chunk=1000, progress=False)
+    # one chunk of every vertex: ~40k rays, enough for the two-process ray casting path
+    two = ball_on_plane(workers=2)
+    other = precompute_visibility(two, resolution=32, chunk=1000, progress=False)
+    assert two.tracer._pool is not None
     for a, b in zip(other.blocks.to_bytes(), record.blocks.to_bytes(), strict=True):
         assert np.array_equal(a, b)
 
