@@ -20,10 +20,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 
 import torch
+from _timing import best_of
 
 from torch_brdf.brdf import create
 from torch_brdf.brdf.band_albedo import band_albedos
@@ -38,15 +38,6 @@ def _pairs(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     w = torch.nn.functional.normalize(torch.randn(2, n, 3, generator=g), dim=-1)
     w[..., 2] = w[..., 2].abs()
     return w[0].contiguous(), w[1].contiguous()
-
-
-def _best(fn, repeats: int = 3) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def _models(have_nbrdf: bool) -> dict[str, torch.nn.Module]:
@@ -82,7 +73,7 @@ def main() -> None:
     evals = {}
     with torch.no_grad():
         for name, model in _models(have_nbrdf).items():
-            s = _best(lambda model=model: model.eval_local(wi, wo))
+            s = best_of(lambda model=model: model.eval_local(wi, wo))[0]
             evals[name] = round(n / s)
             print(f"eval {name}: {evals[name]:,} pairs/s", flush=True)
     rel = {k: round(v / evals["lambert"], 4) for k, v in evals.items()}

@@ -39,11 +39,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # ../shared/FACTS.md: scipy 
 
 import argparse
 import json
-import math
 import time
 
 import numpy as np
 import torch
+from _timing import best_of
 
 from torch_brdf.inverse import (
     Brush,
@@ -62,15 +62,6 @@ from torch_brdf.inverse import (
 from torch_brdf.scene import teatray
 
 F0, KD = 0.9, 0.3
-
-
-def _best(fn, repeats):
-    best, out = math.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def _strokes(rec):
@@ -106,7 +97,7 @@ def _reference(problems, solver, repeats):
         lb = np.zeros(147)
         return [qpsolvers.solve_qp(*a, lb=lb, solver=solver, **kw) for a in args]
 
-    seconds, xs = _best(run, repeats)
+    seconds, xs = best_of(run, repeats)
     obj = sum(pr.sum_of_squares(torch.from_numpy(x)) for pr, x in zip(problems, xs, strict=True))
     return seconds, obj
 
@@ -133,23 +124,25 @@ def main() -> None:
     energy = energy_rows()  # precomputed once per basis (not timed below)
 
     tr = 1 if args.quick else 2  # best of 2: the machine is shared
-    transfer_s, rec = _best(lambda: transfer_functions(px, ls, vis, f0=F0), tr)
-    transfer_cuts_s, cut = _best(lambda: transfer_functions(px, ls, vis, f0=F0, cuts=CutOptions()), tr)
+    transfer_s, rec = best_of(lambda: transfer_functions(px, ls, vis, f0=F0), tr)
+    transfer_cuts_s, cut = best_of(lambda: transfer_functions(px, ls, vis, f0=F0, cuts=CutOptions()), tr)
     cuts_rel_err = float((cut.values - rec.values).norm() / rec.values.norm())
     print(f"transfer dense {transfer_s:.2f} s, cuts {transfer_cuts_s:.2f} s (rel err {cuts_rel_err:.2e})", flush=True)
 
     target = _strokes(rec)
-    ne_s, problems = _best(lambda: normal_equations(rec, target, kd=KD, energy=energy), repeats)
-    solve_s, results = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h, method="interior_point") for p in problems], repeats)
+    ne_s, problems = best_of(lambda: normal_equations(rec, target, kd=KD, energy=energy), repeats)
+    solve_s, results = best_of(
+        lambda: [solve_qp(p.H, p.f, p.G, p.h, method="interior_point") for p in problems], repeats
+    )
     objective = sum(p.sum_of_squares(r.x) for p, r in zip(problems, results, strict=True))
     violation = max(r.violation for r in results)
     active = sum(int(((p.G @ r.x - p.h) > -1e-7).sum()) for p, r in zip(problems, results, strict=True))
     print(f"solve {solve_s * 1e3:.1f} ms, objective {objective:.6g}, violation {violation:.2e}", flush=True)
-    admm_s, admm = _best(lambda: [solve_qp(p.H, p.f, p.G, p.h, method="admm") for p in problems], repeats)
+    admm_s, admm = best_of(lambda: [solve_qp(p.H, p.f, p.G, p.h, method="admm") for p in problems], repeats)
     admm_obj = sum(p.sum_of_squares(r.x) for p, r in zip(problems, admm, strict=True))
     admm_viol = max(r.violation for r in admm)
     print(f"admm {admm_s * 1e3:.1f} ms, objective {admm_obj:.6g}, violation {admm_viol:.2e}", flush=True)
-    fit_s, res = _best(lambda: fit(rec, target, kd=KD, energy=energy), repeats)
+    fit_s, res = best_of(lambda: fit(rec, target, kd=KD, energy=energy), repeats)
 
     proxqp_s, proxqp_obj = _reference(problems, "proxqp", repeats)
     clarabel_s, clarabel_obj = _reference(problems, "clarabel", repeats)

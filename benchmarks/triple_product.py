@@ -38,6 +38,7 @@ import math
 import time
 
 import torch
+from _timing import best_of
 
 from torch_brdf.data import data_path
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer, psnr
@@ -46,15 +47,6 @@ from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport.visibility import HORIZON_EPS, precompute_visibility
-
-
-def _best(fn, repeat: int):
-    best, out = math.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def _display(img: torch.Tensor, exposure: float) -> torch.Tensor:
@@ -112,7 +104,7 @@ def main() -> None:
     del up
     r = TripleProductRenderer(scene, vis)
     env = r.envmap
-    lighting_s, _ = _best(lambda: r.set_lighting(env), 3)
+    lighting_s, _ = best_of(lambda: r.set_lighting(env), 3)
 
     frames = [
         ("camera", scene.camera, 0.0),
@@ -141,11 +133,11 @@ def main() -> None:
     first = None
     for name, cam, angle in frames:
         r.set_lighting(env.rotated(angle) if angle else env)
-        cull_s, view = _best(lambda cam=cam: r.view(cam), 1)
+        cull_s, view = best_of(lambda cam=cam: r.view(cam), 1)
         mask = view.mask
-        frame_s, (rad, stats) = _best(lambda view=view: r.shade(view), args.repeat)
+        frame_s, (rad, stats) = best_of(lambda view=view: r.shade(view), args.repeat)
         dense = view.blocks.decode()  # the standard basis stores visibility expanded
-        std_s, ref_rad = _best(lambda view=view, dense=dense: r.shade_standard(view, dense_visibility=dense), 1)
+        std_s, ref_rad = best_of(lambda view=view, dense=dense: r.shade_standard(view, dense_visibility=dense), 1)
         del dense
         tim: dict = {}
         haar_rad = r.shade_haar(view, fraction=args.haar_fraction, timings=tim)
@@ -198,7 +190,7 @@ def main() -> None:
     rules.update({f"fixed_{l * l}": FixedRule(l) for l in (1, 2, 4, 16)})
     curve = {}
     for key, rule in rules.items():
-        s, (rad, st) = _best(lambda rule=rule: r.shade(view, rule=rule), args.repeat)
+        s, (rad, st) = best_of(lambda rule=rule: r.shade(view, rule=rule), args.repeat)
         curve[key] = {
             "frame_s": s,
             "psnr": psnr(r.image(view, rad), ref, mask),

@@ -24,3 +24,11 @@ def shared_file(*parts: str):
     if p is None:
         pytest.skip(f"shared data not found: {'/'.join(parts)} (set TORCH_BRDF_DATA or place ../shared/data)")
     return p
+
+
+def corrupted_copy(path, dest):
+    """Write ``path``'s bytes to ``dest`` with one byte in the middle flipped; returns ``dest``."""
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    dest.write_bytes(bytes(raw))
+    return dest

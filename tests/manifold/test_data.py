@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import shared_file
+from tests.conftest import corrupted_copy, shared_file
 from tests.manifold.common import SMALL_GRID, small_family
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.manifold.data import (
@@ -131,8 +131,6 @@ def test_nbrdf_observations_cache_resume_and_corruption(tmp_path):
     np.testing.assert_array_equal(obs.z[2].numpy(), t[:, grid.valid()].reshape(-1).numpy().astype(np.float32))
     again = nbrdf_observations(weights, grid, names, cache=cache, progress=False)
     assert torch.equal(again.z, obs.z)
-    raw = bytearray(cache.read_bytes())
-    raw[len(raw) // 2] ^= 0xFF
-    cache.write_bytes(bytes(raw))
+    corrupted_copy(cache, cache)
     with pytest.raises(FileFormatError):
         nbrdf_observations(weights, grid, names, cache=cache, progress=False)

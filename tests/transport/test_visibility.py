@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.conftest import corrupted_copy
 from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.scene.builtin import grid_plane
 from torch_brdf.scene.camera import Camera
@@ -117,12 +118,8 @@ def test_save_load_round_trip_and_scene_check(scene, record, tmp_path):
     back.check_scene(scene)
     with pytest.raises(SceneError):
         back.check_scene(ball_on_plane(quads=5))
-    raw = bytearray(path.read_bytes())
-    raw[len(raw) // 2] ^= 0xFF
-    bad = tmp_path / "bad.npz"
-    bad.write_bytes(bytes(raw))
     with pytest.raises(FileFormatError):
-        VertexVisibility.load(bad)
+        VertexVisibility.load(corrupted_copy(path, tmp_path / "bad.npz"))
 
 
 def test_graded_maps_within_quantisation_bound(scene):
