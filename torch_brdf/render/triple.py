@@ -661,7 +661,7 @@ class TripleProductRenderer(nn.Module):
             e = min(P, s + chunk)
             rows = torch.arange(s, e)
             if dense_visibility is None:
-                V = view.blocks.decode(rows).to(self.dtype).reshape(e - s, -1)
+                V = view.blocks.decode(rows, dtype=self.dtype).reshape(e - s, -1)
             else:
                 V = dense_visibility[s:e].to(self.dtype).reshape(e - s, -1)
             f = frames
