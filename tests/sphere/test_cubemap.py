@@ -113,3 +113,26 @@ def test_constant_block_needs_one_sample():
     recon = A @ dct_basis(16, 1)
     assert torch.allclose(recon, torch.full((256,), 2.5, dtype=torch.float64))
     assert float(sample_positions(1)[0]) == 7.5
+
+
+def test_nearest_point_in_block(gen):
+    cb = CubemapBlocks(64, 16)
+    # a direction inside a block maps to itself; the block's own centre is its own nearest point
+    d = torch.randn(200, 3, generator=gen, dtype=torch.float64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    f, a, b = direction_to_cube(d)
+    R, S, n = 64, 16, 4
+    j = ((a + 1) / 2 * R).clamp(max=R - 1e-9).floor().long()
+    i = ((b + 1) / 2 * R).clamp(max=R - 1e-9).floor().long()
+    blocks = f * n * n + (i // S) * n + (j // S)
+    torch.testing.assert_close(cb.nearest_in_blocks(blocks, d), d)
+    # another block: the result lies in that block and is at least as close as its centre
+    other = (blocks + 7) % cb.block_count
+    p = cb.nearest_in_blocks(other, d)
+    fo, ao, bo = direction_to_cube(p)
+    assert torch.equal(fo, other // (n * n))
+    bi, bj = (other % (n * n)) // n, other % n
+    for coord, k in ((ao, bj), (bo, bi)):  # inside the block's face-coordinate square
+        assert bool((coord >= 2 * k * S / R - 1 - 1e-9).all() and (coord <= 2 * (k + 1) * S / R - 1 + 1e-9).all())
+    cos_p, cos_c = (p * d).sum(-1), (cb.centers[other] * d).sum(-1)
+    assert bool((cos_p >= cos_c - 1e-12).all())

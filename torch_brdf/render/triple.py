@@ -49,6 +49,7 @@ an image by interpolating vertex colours at the camera's primary hits. Baselines
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import torch
@@ -63,6 +64,7 @@ from ..scene.envmap import EnvironmentMap
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
+from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
 from ..transport.visibility import VertexVisibility
 from ..transport.visibility_codec import BlockVisibility
@@ -312,7 +314,7 @@ class GenericRule(SamplingRule):
         geom = sampler.geometry
         f4 = sampler.samples(brdf, pairs, 2)  # (n, 4, C)
         mirror = pairs.frames.to_world(torch.stack((-pairs.wo[:, 0], -pairs.wo[:, 1], pairs.wo[:, 2]), -1))
-        peak = sampler.eval(brdf, pairs, _nearest_in_block(geom, pairs, mirror, sampler.dtype)[:, None])[:, 0]
+        peak = sampler.eval(brdf, pairs, geom.nearest_in_blocks(pairs.blocks, mirror).to(sampler.dtype)[:, None])[:, 0]
         mean = f4.mean(1)  # (n, C)
         energy = sampler.energy[pairs.blocks]  # (n,)
         total = torch.zeros(int(pairs.vertex.max()) + 1 if n else 0, dtype=mean.dtype)
@@ -339,31 +341,6 @@ class GenericRule(SamplingRule):
         i16 = i4[fine]
         out[16] = (i16, sampler.samples(brdf, _subset(pairs, i16), 16))
         return out
-
-
-def _nearest_in_block(geom: CubemapBlocks, pairs: _Pairs, d: torch.Tensor, dtype) -> torch.Tensor:
-    """The point of each pair's block nearest (approximately) to direction ``d`` (n, 3):
-    ``d`` projected on the block's face plane and clamped to the block; the block centre when
-    ``d`` points away from that face."""
-    from ..sphere.cubemap import _FACE_MATRIX, cube_directions
-
-    S, nb = geom.block, geom.blocks_per_side
-    b = pairs.blocks
-    face = b // (nb * nb)
-    bi, bj = (b % (nb * nb)) // nb, b % nb
-    m = _FACE_MATRIX.to(d.dtype)[face]  # d = m @ (a, b, 1) * s
-    loc = (m.transpose(-1, -2) * d.unsqueeze(-2)).sum(-1)  # (a s, b s, s)
-    s = loc[:, 2]
-    front = s > 1e-6
-    safe = torch.where(front, s, torch.ones_like(s))
-    a, bb = loc[:, 0] / safe, loc[:, 1] / safe
-    R = geom.resolution
-    lo_a, hi_a = 2 * (bj * S) / R - 1, 2 * (bj * S + S) / R - 1
-    lo_b, hi_b = 2 * (bi * S) / R - 1, 2 * (bi * S + S) / R - 1
-    ca, cb = (lo_a + hi_a) / 2, (lo_b + hi_b) / 2
-    a = torch.where(front, torch.minimum(torch.maximum(a, lo_a), hi_a), ca)
-    bb = torch.where(front, torch.minimum(torch.maximum(bb, lo_b), hi_b), cb)
-    return cube_directions(face, a.to(dtype), bb.to(dtype))
 
 
 # ---------------------------------------------------------------------------------- frames
@@ -693,10 +670,6 @@ class TripleProductRenderer(nn.Module):
         Returns:
             (P, C) radiance.
         """
-        import time
-
-        from ..sphere.haar import HaarTripleProduct
-
         geom = self.geometry
         htp = HaarTripleProduct()
         htp.set_lighting(geom.from_blocks(self.lighting.texels.to(torch.float32)), fraction)

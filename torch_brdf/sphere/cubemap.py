@@ -227,6 +227,31 @@ class CubemapBlocks:
         cos = (self.directions * self.centers[:, None]).sum(-1)
         return float(torch.acos(cos.clamp(-1, 1)).max())
 
+    def nearest_in_blocks(self, blocks: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """A point of each block close to direction ``d``: ``d`` projected on the block's
+        face plane and clamped to the block (exact when ``d`` falls inside the block), or
+        the block centre when ``d`` points away from that face.
+
+        Args:
+            blocks: (n,) int64 block ids.
+            d: (n, 3) directions.
+        Returns:
+            (n, 3) unit directions in ``d``'s dtype.
+        """
+        S, nb, R = self.block, self.blocks_per_side, self.resolution
+        face = blocks // (nb * nb)
+        bi, bj = (blocks % (nb * nb)) // nb, blocks % nb
+        m = _FACE_MATRIX.to(d.dtype)[face]  # d = s * m @ (a, b, 1)
+        loc = (m.transpose(-1, -2) * d.unsqueeze(-2)).sum(-1)  # (a s, b s, s)
+        s = loc[:, 2]
+        front = s > 1e-6
+        safe = torch.where(front, s, torch.ones_like(s))
+        lo_a, hi_a = 2 * (bj * S) / R - 1, 2 * (bj * S + S) / R - 1
+        lo_b, hi_b = 2 * (bi * S) / R - 1, 2 * (bi * S + S) / R - 1
+        a = torch.where(front, torch.minimum(torch.maximum(loc[:, 0] / safe, lo_a), hi_a), (lo_a + hi_a) / 2)
+        b = torch.where(front, torch.minimum(torch.maximum(loc[:, 1] / safe, lo_b), hi_b), (lo_b + hi_b) / 2)
+        return cube_directions(face, a.to(d.dtype), b.to(d.dtype))
+
     def supersampled_directions(self, samples: int) -> torch.Tensor:
         """(NB, S^2, k^2, 3) float64 directions of a ``k x k`` grid inside every texel."""
         k = int(samples)
