@@ -1,6 +1,15 @@
 """Scenes: meshes, embree ray tracing, camera, lights and built-in scenes."""
 
-from .builtin import BUILTIN_SCENES, bunny_plane, cornell_box, cornell_box_glossy, ring, teatray
+from .builtin import (
+    BUILTIN_SCENES,
+    bunny_plane,
+    bunny_relight,
+    cornell_box,
+    cornell_box_glossy,
+    grid_plane,
+    ring,
+    teatray,
+)
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
 from .lights import AreaLight, DirectionalLight, Light, LightSample
@@ -23,8 +32,10 @@ __all__ = [
     "Scene",
     "SceneObject",
     "bunny_plane",
+    "bunny_relight",
     "cornell_box",
     "cornell_box_glossy",
+    "grid_plane",
     "load_mesh",
     "mesh_from_arrays",
     "ring",

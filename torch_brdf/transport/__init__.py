@@ -12,6 +12,7 @@ from .polynomial import (
     plan_bases,
     precompute_polynomial,
 )
+from .visibility import SceneVertices, VertexVisibility, precompute_visibility, scene_vertices
 from .visibility_codec import BlockVisibility
 
 __all__ = [
@@ -19,11 +20,15 @@ __all__ = [
     "Mixture",
     "ObjectBasis",
     "PolynomialTensors",
+    "SceneVertices",
     "Series",
     "TensorBlock",
     "TermTable",
+    "VertexVisibility",
     "path_trace",
     "plan_bases",
     "precompute_polynomial",
+    "precompute_visibility",
     "reference_path_trace",
+    "scene_vertices",
 ]
