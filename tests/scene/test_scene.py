@@ -561,3 +561,21 @@ def test_grid_plane_faces_up_and_tessellates():
     np.testing.assert_allclose(m.vertices[:, 1], 0.5)
     with pytest.raises(ValueRangeError):
         grid_plane(2.0, 0)
+
+
+def test_changing_geometry_after_construction_is_refused():
+    """The tracer is built with the scene: swapping an object's mesh afterwards would trace
+    the old geometry, so ray queries refuse; materials may still change."""
+    from torch_brdf.errors import SceneError
+    from torch_brdf.scene.builtin import bunny_plane, grid_plane
+    from torch_brdf.scene.scene import SceneObject
+
+    sc = bunny_plane(8, use_data=False)
+    o, d = torch.zeros(1, 3) + torch.tensor([0.0, 3.0, 0.0]), torch.tensor([[0.0, -1.0, 0.0]])
+    sc.materials["plane"] = {"type": "lambert", "albedo": 0.2}
+    assert bool(sc.trace(o, d).hit.all())
+    sc.objects[1] = SceneObject("plane", grid_plane(4.0, 2), "plane")
+    with pytest.raises(SceneError, match="changed after construction"):
+        sc.trace(o, d)
+    with pytest.raises(SceneError):
+        sc.occluded(o, d, float("inf"))

@@ -117,6 +117,7 @@ class Scene:
         if sum(isinstance(li, EnvironmentMap) for li in self.lights) > 1:
             raise SceneError("a scene holds at most one environment map")
         self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects], self.workers)
+        self._traced = [(o.mesh, o.smooth) for o in self.objects]
 
     # -- lookups ---------------------------------------------------------------------------
     def object_id(self, name: str) -> int:
@@ -143,21 +144,34 @@ class Scene:
     @property
     def ray_epsilon(self) -> float:
         """Offset used by :meth:`spawn` against self-intersection (scene-scale dependent)."""
-        return self._tracer.ray_epsilon
+        return self.tracer.ray_epsilon
 
     @property
     def tracer(self) -> RayTracer:
-        """The underlying :class:`RayTracer` (vertex/face tables for gathers)."""
+        """The underlying :class:`RayTracer` (vertex/face tables for gathers).
+
+        Raises:
+            SceneError: objects were added, removed or given other meshes after the scene was
+                built (the tracer holds the meshes of construction time; build a new Scene).
+        """
+        now = [(o.mesh, o.smooth) for o in self.objects]
+        if len(now) != len(self._traced) or any(
+            a[0] is not b[0] or a[1] != b[1] for a, b in zip(now, self._traced, strict=False)
+        ):
+            raise SceneError(
+                f"scene {self.name!r}: objects or their meshes changed after construction; the ray tracer "
+                "still holds the old geometry. Build a new Scene(objects, materials, lights, camera) instead"
+            )
         return self._tracer
 
     # -- ray queries -----------------------------------------------------------------------
     def trace(self, origins, directions) -> Hits:
         """Closest hits, see :meth:`RayTracer.trace`. origins, directions: (P, 3)."""
-        return self._tracer.trace(origins, directions)
+        return self.tracer.trace(origins, directions)
 
     def occluded(self, origins, directions, t_max) -> torch.Tensor:
         """(P,) bool: anything within ``(0, t_max)`` along each ray (:meth:`RayTracer.occluded`)."""
-        return self._tracer.occluded(origins, directions, t_max)
+        return self.tracer.occluded(origins, directions, t_max)
 
     def spawn(self, position, geometric_normal, directions) -> torch.Tensor:
         """Origins offset off the surface for rays leaving along ``directions``."""
