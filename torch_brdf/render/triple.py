@@ -632,7 +632,6 @@ class TripleProductRenderer(nn.Module):
         _nrm, frames, wo, oid = self._frames(view)
         P = len(view.vertex_ids)
         L = self.lighting.texels.reshape(-1, self.lighting.texels.shape[-1])  # (T, C)
-        dirs = self.geometry.directions.reshape(-1, 3).to(self.dtype)  # (T, 3)
         out = torch.zeros(P, L.shape[-1], dtype=self.dtype)
         for s in range(0, P, chunk):
             e = min(P, s + chunk)
@@ -641,15 +640,7 @@ class TripleProductRenderer(nn.Module):
                 V = view.blocks.decode(rows, dtype=self.dtype).reshape(e - s, -1)
             else:
                 V = dense_visibility[s:e].to(self.dtype).reshape(e - s, -1)
-            f = frames
-            loc = torch.stack((f.s[s:e] @ dirs.T, f.t[s:e] @ dirs.T, f.n[s:e] @ dirs.T), -1)  # (m, T, 3)
-            cos = loc[..., 2].clamp_min(0)
-            for o in torch.unique(oid[s:e]).tolist():
-                r = (oid[s:e] == o).nonzero().squeeze(-1)
-                wi = loc[r]
-                w = wo[s:e][r][:, None, :].expand_as(wi)
-                fr = self.brdfs[o].eval_local(wi.reshape(-1, 3), w.reshape(-1, 3)).reshape(len(r), -1, L.shape[-1])
-                out[s + r] = torch.einsum("mt,mtc,tc->mc", V[r] * cos[r], fr.to(self.dtype), L)
+            out[s:e] = torch.einsum("mt,mtc,tc->mc", V, self._texel_brdf(frames, wo, oid, rows), L)
         return out
 
     @torch.no_grad()
@@ -675,6 +666,7 @@ class TripleProductRenderer(nn.Module):
         htp.set_lighting(geom.from_blocks(self.lighting.texels.to(torch.float32)), fraction)
         P, C = len(view.vertex_ids), self.lighting.texels.shape[-1]
         out = torch.zeros(P, C, dtype=self.dtype)
+        _nrm, frames, wo, oid = self._frames(view)
         t = {"visibility_s": 0.0, "brdf_s": 0.0, "product_s": 0.0}
         for s in range(0, P, chunk):
             rows = torch.arange(s, min(P, s + chunk))
@@ -682,7 +674,8 @@ class TripleProductRenderer(nn.Module):
             V = geom.from_blocks(view.blocks.decode(rows), lead=1)
             Vc = htp.visibility_coefficients(V)
             t1 = time.perf_counter()
-            rho = geom.from_blocks(self.cosine_brdf_texels(view, rows).to(torch.float32), lead=1)
+            rho = self._texel_brdf(frames, wo, oid, rows).view(len(rows), geom.block_count, geom.block_size, C)
+            rho = geom.from_blocks(rho.to(torch.float32), lead=1)
             bc = htp.brdf_coefficients(rho, fraction)
             t2 = time.perf_counter()
             out[rows] = htp.product(Vc, bc).to(self.dtype)
@@ -699,9 +692,15 @@ class TripleProductRenderer(nn.Module):
         """The cosine-folded BRDF at every texel for some of the view's vertices:
         (m, NB, S^2, C), :math:`f(\\omega_t, \\omega_o)\\max(0, n\\cdot\\omega_t)`."""
         _nrm, frames, wo, oid = self._frames(view)
+        C = self.lighting.texels.shape[-1]
+        texels = self._texel_brdf(frames, wo, oid, rows)
+        return texels.view(len(rows), self.geometry.block_count, self.geometry.block_size, C)
+
+    def _texel_brdf(self, frames: Frame, wo: torch.Tensor, oid: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """f max(0, n.w) at every texel centre for the shaded vertices ``rows``: (m, T, C)."""
         dirs = self.geometry.directions.reshape(-1, 3).to(self.dtype)
         f = Frame(frames.s[rows], frames.t[rows], frames.n[rows])
-        loc = torch.stack((f.s @ dirs.T, f.t @ dirs.T, f.n @ dirs.T), -1)
+        loc = torch.stack((f.s @ dirs.T, f.t @ dirs.T, f.n @ dirs.T), -1)  # (m, T, 3)
         C = self.lighting.texels.shape[-1]
         out = torch.zeros(len(rows), dirs.shape[0], C, dtype=self.dtype)
         for o in torch.unique(oid[rows]).tolist():
@@ -709,7 +708,7 @@ class TripleProductRenderer(nn.Module):
             w = wo[rows][r][:, None, :].expand_as(loc[r])
             fr = self.brdfs[o].eval_local(loc[r].reshape(-1, 3), w.reshape(-1, 3)).reshape(len(r), -1, C)
             out[r] = fr.to(self.dtype) * loc[r][..., 2:3].clamp_min(0)
-        return out.view(len(rows), self.geometry.block_count, self.geometry.block_size, C)
+        return out
 
 
 def _block_contract(w: torch.Tensor, n: torch.Tensor, blocks: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
