@@ -70,10 +70,13 @@ def _log2(size: int, what: str) -> int:
     return size.bit_length() - 1
 
 
-def _check_square(x: torch.Tensor, name: str) -> int:
+def _square_images(x, name: str) -> tuple[torch.Tensor, int]:
+    """``x`` as a float tensor of (..., R, R) images with R a power of two, and R."""
+    x = as_float_tensor(x, name)
     if x.ndim < 2 or x.shape[-1] != x.shape[-2]:
         raise ShapeError(f"Expected {name} to have shape (..., R, R); got {tuple(x.shape)}")
-    return x.shape[-1]
+    _log2(x.shape[-1], name)
+    return x, x.shape[-1]
 
 
 def haar2d(x: torch.Tensor) -> torch.Tensor:
@@ -94,9 +97,7 @@ def haar2d(x: torch.Tensor) -> torch.Tensor:
     Raises:
         ShapeError: the last two dims are not equal or R is not a power of two.
     """
-    x = as_float_tensor(x, "haar2d input")
-    size = _check_square(x, "haar2d input")
-    _log2(size, "haar2d input")
+    x, size = _square_images(x, "haar2d input")
     lead = x.shape[:-2]
     out = torch.empty_like(x, memory_format=torch.contiguous_format)
     approx = x
@@ -127,9 +128,7 @@ def ihaar2d(c: torch.Tensor) -> torch.Tensor:
     Raises:
         ShapeError: the last two dims are not equal or R is not a power of two.
     """
-    c = as_float_tensor(c, "ihaar2d input")
-    size = _check_square(c, "ihaar2d input")
-    _log2(size, "ihaar2d input")
+    c, size = _square_images(c, "ihaar2d input")
     lead = c.shape[:-2]
     approx = c[..., :1, :1]
     h = 1
