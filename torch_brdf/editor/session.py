@@ -209,6 +209,21 @@ class ReferenceJob:
             self.on_done(self)
 
 
+def load_scene(spec: str, resolution: int | None = None):
+    """A built-in scene by name or a TOML scene file (``resolution``: square image size).
+
+    The same rule as the CLI's loader; kept here because the CLI imports the editor, which
+    must not import the CLI back (layers)."""
+    from ..scene import BUILTIN_SCENES, Scene
+
+    if spec in BUILTIN_SCENES:
+        return BUILTIN_SCENES[spec](resolution or 128)
+    if spec.endswith(".toml") or Path(spec).is_file():
+        scene = Scene.from_toml(spec)
+        return scene.with_resolution(resolution) if resolution else scene
+    raise SceneError(f"unknown scene {spec!r}: give a tensors .npz, a TOML file or one of {sorted(BUILTIN_SCENES)}")
+
+
 def _cache_name(scene, spec: str, series: str, spp: int, seed: int) -> str:
     key = f"{spec}|{scene.name}|{scene.camera.width}x{scene.camera.height}|{series}|{spp}|{seed}"
     if Path(spec).is_file():
@@ -242,8 +257,6 @@ def load_source(
     Raises:
         TorchBRDFError: the source does not load (missing, corrupt, unknown scene).
     """
-    from ..cli import load_scene
-
     path = Path(source)
     if path.suffix == ".npz" or (path.is_file() and not source.endswith(".toml")):
         if not path.is_file():
