@@ -33,16 +33,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--headless",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 MAIN = ".tb-frame-wrap:has(canvas.tb-main)"
 
 
@@ -54,7 +44,7 @@ def _p95(xs: list[float]) -> float:
 def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dict:
     from playwright.sync_api import sync_playwright
 
-    from torch_brdf.editor.server import EditorServer
+    from torch_brdf.editor.server import EditorServer, launch_chromium
     from torch_brdf.scene import cornell_box_glossy
     from torch_brdf.transport import precompute_polynomial
 
@@ -64,7 +54,7 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dic
     print(f"{size}²: precomputed in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     config = {"source": str(path), "display_width": 512, "threads": threads}
     with EditorServer(config, timeout=300) as server, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = launch_chromium(p)
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 1200})
             page.set_default_timeout(300_000)
@@ -111,6 +101,8 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=None)
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the editor's kernel")
     args = ap.parse_args()
+    from torch_brdf.editor.server import CHROMIUM
+
     if not os.path.exists(CHROMIUM):
         sys.exit(f"{CHROMIUM} not found: apt-get install -y chromium")
     sizes = (128, 256) if args.quick else (256, 512)

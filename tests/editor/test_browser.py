@@ -18,17 +18,8 @@ import torch
 
 from tests.conftest import corrupted_copy
 from torch_brdf.editor import object_id_buffer
+from torch_brdf.editor.server import CHROMIUM, launch_chromium
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--headless",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 MAIN = ".tb-frame-wrap:has(canvas.tb-main)"
 LOAD_S = 240  # a Voilà kernel on a loaded 2-core machine: imports, tensors, freeze
 
@@ -63,7 +54,7 @@ def page(small_tensors_file):
 
     config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2}
     with EditorServer(config) as server, sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = launch_chromium(p)
         try:
             pg = browser.new_page(viewport={"width": 1280, "height": 1200})
             pg.set_default_timeout(LOAD_S * 1000)

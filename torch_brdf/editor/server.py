@@ -22,6 +22,25 @@ from typing import Any
 
 from ..errors import TorchBRDFError
 
+#: Debian's chromium (``apt-get install -y chromium``): Playwright's own browser download
+#: cannot work on these machines, so tests and the benchmark launch the system browser
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = (
+    "--no-sandbox",
+    "--headless",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+)
+
+
+def launch_chromium(playwright):
+    """A headless system chromium through a started ``sync_playwright()`` object."""
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_ARGS))
+
+
 _CELL = """\
 import json
 from torch_brdf.editor.app import EditorApp

@@ -24,6 +24,7 @@ function render({ model, el }) {
   const g = (window.__torch_brdf = window.__torch_brdf || { latencies: [], frames: 0 });
   const wrap = document.createElement("div");
   wrap.className = "tb-frame-wrap";
+  wrap.style.marginRight = "12px";
   const canvas = document.createElement("canvas");
   canvas.className = "tb-frame " + (model.get("role") || "");
   canvas.style.imageRendering = "pixelated";
