@@ -2,7 +2,8 @@
 
     python benchmarks/editor.py [--quick] [--steps 50] [--spp 4]
 
-For each size, the glossy Cornell box is precomputed (series 64,1,1,1), the editor is served by
+For each size, the glossy Cornell box is precomputed (series 64,1,1,1; kept in ``--tensors``,
+default ``out/bench_editor/``, for the next run), the editor is served by
 Voilà on 127.0.0.1 and opened in Debian's chromium through Playwright, the back wall is
 selected (frozen), and the exponent slider is stepped ``--steps`` times with the keyboard
 (one ArrowRight per step, each waiting for its frame). Latency: from the key event to the
@@ -27,7 +28,6 @@ import os
 import re
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,10 +48,11 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dic
     from torch_brdf.scene import cornell_box_glossy
     from torch_brdf.transport import precompute_polynomial
 
-    path = workdir / f"cb{size}.npz"
-    t0 = time.perf_counter()
-    precompute_polynomial(cornell_box_glossy(size), "64,1,1,1", spp=spp, seed=0).save(path)
-    print(f"{size}²: precomputed in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    path = workdir / f"cornell_box_glossy_{size}_{spp}spp.npz"
+    if not path.is_file():
+        t0 = time.perf_counter()
+        precompute_polynomial(cornell_box_glossy(size), "64,1,1,1", spp=spp, seed=0).save(path)
+        print(f"{size}²: precomputed in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     config = {"source": str(path), "display_width": 512, "threads": threads}
     with EditorServer(config, timeout=300) as server, sync_playwright() as p:
         browser = launch_chromium(p)
@@ -100,6 +101,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--spp", type=int, default=None)
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the editor's kernel")
+    ap.add_argument("--tensors", type=Path, default=Path("out/bench_editor"), help="where the tensors are kept")
     args = ap.parse_args()
     from torch_brdf.editor.server import CHROMIUM
 
@@ -110,9 +112,9 @@ def main() -> None:
     spp = args.spp or (1 if args.quick else 4)
     result: dict = {"sizes": list(sizes), "steps": steps, "spp": spp, "threads": args.threads}
     result["load_avg_start"] = round(os.getloadavg()[0], 2)
-    with tempfile.TemporaryDirectory(prefix="torch_brdf_editor_bench_") as tmp:
-        for size in sizes:
-            result.update(measure(size, steps, spp, Path(tmp), args.threads))
+    args.tensors.mkdir(parents=True, exist_ok=True)
+    for size in sizes:
+        result.update(measure(size, steps, spp, args.tensors.resolve(), args.threads))
     result["load_avg_end"] = round(os.getloadavg()[0], 2)
     for key in ("latency_ms_256", "latency_ms_512", "p95_ms_512"):
         result.setdefault(key, None)

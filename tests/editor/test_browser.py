@@ -138,15 +138,19 @@ def test_dragging_the_exponent_changes_the_wall(page, ids, shots):
     buf, names = ids
     selected(page, "back")
     before = pixels(page).float()
+    lobe = page.inner_html(".tb-lobe")
     handle = page.query_selector(".tb-param-exponent .noUi-handle").bounding_box()
     x, y = handle["x"] + handle["width"] / 2, handle["y"] + handle["height"] / 2
     n = frames(page)
     page.mouse.move(x, y)
     page.mouse.down()
-    page.mouse.move(x + 60, y, steps=6)
+    page.mouse.move(x + 25, y, steps=5)  # about one decade up
     page.mouse.up()
     settle(page, n)
     after = pixels(page).float()
+    page.wait_for_function(
+        "l => document.querySelector('.tb-lobe').innerHTML !== l", arg=lobe
+    )  # redrawn after the drag
     change = (after - before).abs().amax(-1)
     wall = buf == names.index("back")
     light = buf == names.index("light")

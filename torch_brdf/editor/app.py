@@ -12,6 +12,7 @@ as a message on the page; the kernel and the server stay up.
 
 from __future__ import annotations
 
+import asyncio
 import html
 import math
 import time
@@ -90,6 +91,7 @@ class EditorApp:
         self.session: EditorSession | None = None
         self.job: ReferenceJob | None = None
         self._busy = False  # True while controls are rebuilt (their observers stay quiet)
+        self._lobe_timer: asyncio.TimerHandle | None = None
         self.choices, self.skipped = model_choices()
         self._build()
         self.open(self.config["source"], self.config.get("scene"))
@@ -332,7 +334,19 @@ class EditorApp:
         s.set_material(obj, material, f0=f0)
         self.message.value = ""
         self._redraw()
-        self._draw_lobe()
+        self._schedule_lobe()
+
+    def _schedule_lobe(self, delay: float = 0.15) -> None:
+        """Redraw the lobe once the edits pause for ``delay`` s (in a kernel's event loop), so
+        that a drag's next input does not wait for it; immediately outside an event loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            self._draw_lobe()
+            return
+        if self._lobe_timer is not None:
+            self._lobe_timer.cancel()
+        self._lobe_timer = loop.call_later(delay, self._draw_lobe)
 
     # -- drawing ---------------------------------------------------------------------------------
     def _redraw(self) -> None:
