@@ -251,12 +251,14 @@ def editor(
     spp: int = typer.Option(16, min=1, help="Paths per pixel when precomputing a scene."),
     series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
     cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
+    gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
     port: int = typer.Option(None, help="Port on 127.0.0.1 (default: a free one)."),
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
 
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
+    config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
 
 

@@ -22,3 +22,21 @@ def small_tensors_file(tmp_path_factory, small_scene):
     path = tmp_path_factory.mktemp("editor") / "cb32.npz"
     tensors.save(path)
     return path, tensors
+
+
+@pytest.fixture(scope="session")
+def small_fit(tmp_path_factory):
+    """A q = 2 GPLVM fit of the first 8 NBRDF materials (path), or None without the shared data."""
+    from torch_brdf.data import data_path
+    from torch_brdf.io.merl import load_nbrdf_weights
+    from torch_brdf.manifold import fit_gplvm, gram, nbrdf_observations
+
+    weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
+    if weights is None:
+        return None
+    names = list(load_nbrdf_weights(weights).names)[:8]
+    obs = nbrdf_observations(weights, names=names, progress=False)
+    s, d = gram(obs.z, obs.cosine_weights())
+    path = tmp_path_factory.mktemp("gplvm") / "fit8.npz"
+    fit_gplvm(s, d, q=2, names=obs.names, max_iter=50).save(path)
+    return path

@@ -42,7 +42,7 @@ def shots(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def page(small_tensors_file):
+def page(small_tensors_file, small_fit):
     reason = _missing()
     if reason:
         if os.environ.get("CI"):
@@ -53,6 +53,8 @@ def page(small_tensors_file):
     from torch_brdf.editor.server import EditorServer
 
     config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2}
+    if small_fit is not None:  # the measured-material map needs the shared NBRDF data
+        config["gplvm"] = str(small_fit)
     with EditorServer(config) as server, sync_playwright() as p:
         browser = launch_chromium(p)
         try:
@@ -185,8 +187,30 @@ def test_reference_button_shows_a_difference_image(page, shots):
     page.screenshot(path=str(shots / "editor_reference.png"), full_page=True)
 
 
+def test_a_latent_map_click_changes_the_material(page, ids, small_fit, shots):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz (the latent map's materials)")
+    buf, names = ids
+    click_pixel(page, *interior_pixel(buf, names.index("back")))
+    selected(page, "back")
+    before = pixels(page).float()
+    n = frames(page)
+    box = page.query_selector("canvas.tb-latent").bounding_box()
+    page.mouse.click(box["x"] + 0.3 * box["width"], box["y"] + 0.6 * box["height"])
+    page.wait_for_selector(".tb-latent-pick")
+    page.wait_for_selector(".tb-blend")
+    settle(page, n)
+    wall = buf == names.index("back")
+    assert float((pixels(page).float() - before).abs().amax(-1)[wall].mean()) > 1.0
+    page.screenshot(path=str(shots / "editor_latent.png"), full_page=True)
+
+
 def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small_tensors_file):
     # a value typed out of range (GGX roughness <= 1)
+    if page.query_selector(".tb-typed-roughness") is None:  # after a measured blend: back to GGX
+        page.select_option("select:near(:text('model'))", label="Beckmann (cook_torrance)")
+        page.select_option("select:near(:text('model'))", label="GGX (cook_torrance)")
+        page.wait_for_selector(".tb-typed-roughness input")
     page.fill(".tb-typed-roughness input", "7")
     page.press(".tb-typed-roughness input", "Enter")
     page.wait_for_selector(".tb-error:has-text('roughness')")

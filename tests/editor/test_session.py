@@ -193,3 +193,26 @@ def test_compare_reports_relative_rmse(session):
     ref = session.renderer.evaluate() * 1.1
     diff, rmse = session.compare(ref)
     assert diff.shape == ref.shape and math.isclose(rmse, 0.1 / 1.1, rel_tol=1e-4)
+
+
+# -- measured materials ----------------------------------------------------------------------
+def test_latent_pick_blends_the_materials_projections(session, small_fit):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    from torch_brdf.brdf import NBRDF
+    from torch_brdf.editor.latent import LatentMap
+
+    lm = LatentMap(small_fit, resolution=32)
+    assert lm.image().shape == (32, 32, 3)
+    session.select("back")
+    c, info = lm.pick(session, "back", 5, 20)
+    b = lm.model.weights(lm.latent(5, 20))
+    own = torch.stack([session.coefficients("back", NBRDF(n, lm.nbrdf)) for n in lm.names])
+    assert torch.allclose(c, torch.einsum("n,njc->jc", b, own).clamp_min(0), rtol=1e-12, atol=0)
+    assert len(info["heaviest"]) == 3 and info["variance"] >= 0
+    session.set_material("back", lm.material(session, "back", c))
+    m = session.tensors.object_id("back")
+    assert torch.allclose(session.renderer.c[m].double(), c, rtol=1e-6, atol=1e-9)  # the curve is used as is
+    with pytest.raises(ValueRangeError):
+        lm.latent(32, 0)
+    session.set_material("back", {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": 100.0})

@@ -45,6 +45,9 @@ DEFAULTS: dict[str, Any] = {
     # that spin-wait made a 128² edit 20-100x slower (projection 155 ms vs 2.3 ms, frame 120 vs
     # 9 ms, measured at load 18); an interactive kernel should not depend on a free core.
     "threads": 1,
+    # a GPLVM fit (GPLVMFit file) of NBRDF materials: shows the measured-material latent map
+    "gplvm": None,
+    "nbrdf_weights": None,
 }
 
 
@@ -129,6 +132,11 @@ class EditorApp:
         self.ref_result = W.HTML("")
         self.ref_image = FrameView(role="tb-reference", display_width=dw // 2)
         self.diff_image = FrameView(role="tb-difference", display_width=dw // 2)
+        self.latent = None
+        self.latent_view = FrameView(role="tb-latent", display_width=192)
+        self.latent_view.on_msg(self._on_latent_msg)
+        self.latent_info = W.HTML("")
+        self.latent_box = W.VBox([])
         self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
         self.open_button = W.Button(description="Open")
         self.open_button.on_click(lambda _b: self.open(self.open_path.value.strip()))
@@ -139,6 +147,11 @@ class EditorApp:
             layout=W.Layout(min_width="380px"),
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
+        self.latent_box.children = [
+            W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            W.HBox([self.latent_view, self.latent_info]),
+        ]
+        self.latent_box.layout.display = "none"
         reference = W.VBox(
             [
                 W.HTML("<b>reference</b>: path trace of the current materials, compared with the editor"),
@@ -153,7 +166,7 @@ class EditorApp:
                 self.title,
                 self.status,
                 self.message,
-                W.HBox([left, W.VBox([right, lobe, self.theta_i])]),
+                W.HBox([left, W.VBox([right, lobe, self.theta_i, self.latent_box])]),
                 reference,
                 W.HBox([self.open_path, self.open_button]),
             ]
@@ -214,9 +227,49 @@ class EditorApp:
         self.bounces.max, self.bounces.value = session.bounces, session.bounces
         self._busy = False
         self.ref_button.disabled = sc is None
+        if c.get("gplvm") and self.latent is None:
+            self._guard(self._load_latent)
         start = "back" if "back" in session.editable else session.editable[0]
         self._guard(self.select, start)
         self._redraw()
+
+    # -- measured materials ------------------------------------------------------------------------
+    def _load_latent(self) -> None:
+        from .latent import LatentMap
+
+        self.latent = LatentMap(self.config["gplvm"], self.config.get("nbrdf_weights"))
+        self.latent_view.show(self.latent.image(), f"{len(self.latent.names)} materials, latent dims 0-1")
+        self.latent_box.layout.display = None
+
+    def _on_latent_msg(self, _widget, content, _buffers) -> None:
+        if isinstance(content, dict) and content.get("event") == "click":
+            self._guard(self.pick_latent, int(content["x"]), int(content["y"]))
+
+    def pick_latent(self, x: int, y: int) -> None:
+        """Give the selected object the measured blend at latent-map pixel (x, y)."""
+        s = self.session
+        if self.latent is None or s is None or s.selected is None:
+            return
+        self.latent_info.value = "projecting the measured materials onto the bands …"
+        c, info = self.latent.pick(s, s.selected, x, y)
+        s.set_material(s.selected, self.latent.material(s, s.selected, c))
+        heavy = ", ".join(f"{n} {w:+.2f}" for n, w in info["heaviest"])
+        self.latent_info.value = html.escape(
+            f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
+        )
+        self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
+        self._show_blend_form()
+        self.message.value = ""
+        self._redraw()
+        self._draw_lobe()
+
+    def _show_blend_form(self) -> None:
+        self._busy = True
+        self.controls = {}
+        self.form.children = [
+            W.HTML("<i class='tb-blend'>measured blend on the bands (pick a model to edit values)</i>")
+        ]
+        self._busy = False
 
     # -- selection -------------------------------------------------------------------------------
     def _on_frame_msg(self, _widget, content, _buffers) -> None:
@@ -238,7 +291,6 @@ class EditorApp:
         secs = s.select(obj)  # SceneError for fixed objects -> message
         self.message.value = ""
         mat = s.materials[obj]
-        choice = self._choice_for(mat)
         b = s.basis(obj)
         bands = f"{b.J} band{'s' if b.J > 1 else ''} over {b.variable}"
         hint = " (one band: glossy models show as their diffuse equivalent)" if b.J == 1 else ""
@@ -246,10 +298,14 @@ class EditorApp:
             f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
             f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
         )
-        self._busy = True
-        self.model.value = choice.label
-        self._busy = False
-        self._build_form(choice, material_values(mat, param_specs(choice.model, dict(choice.fixed))))
+        if mat.get("type") == "factored_1d":
+            self._show_blend_form()
+        else:
+            choice = self._choice_for(mat)
+            self._busy = True
+            self.model.value = choice.label
+            self._busy = False
+            self._build_form(choice, material_values(mat, param_specs(choice.model, dict(choice.fixed))))
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
         self._draw_lobe()
 
@@ -329,8 +385,9 @@ class EditorApp:
     def _apply_material(self) -> None:
         s = self.session
         obj = s.selected
-        material = self._current_choice().material(self._values())
         f0 = float(self.f0.value) if s.has_fresnel(obj) else None
+        # no controls: a measured blend is shown; only f0 can change it
+        material = self._current_choice().material(self._values()) if self.controls else s.materials[obj]
         s.set_material(obj, material, f0=f0)
         self.message.value = ""
         self._redraw()

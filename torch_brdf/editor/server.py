@@ -141,8 +141,22 @@ class EditorServer:
     def log(self) -> str:
         return self.log_path.read_text() if self.log_path.exists() else ""
 
+    def _kernels(self) -> list[int]:
+        """Pids of the processes Voilà started (its kernels run in sessions of their own)."""
+        out = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == self.proc.pid:  # field 4 of /proc/PID/stat: the parent pid
+                out.append(int(stat.parent.name))
+        return out
+
     def stop(self) -> None:
-        """Stop Voilà and its kernels (the process group this server started)."""
+        """Stop Voilà and its kernels (the process group this server started and Voilà's
+        children, by pid; Voilà shuts its kernels down itself on SIGTERM, this is the backstop)."""
+        kernels = self._kernels() if self.proc is not None and self.proc.poll() is None else []
         if self.proc is not None and self.proc.poll() is None:
             try:
                 os.killpg(self.proc.pid, signal.SIGTERM)
@@ -155,6 +169,11 @@ class EditorServer:
         if self.proc is not None:
             try:  # kernels left in the group after Voilà itself exited
                 os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        for pid in kernels:
+            try:
+                os.kill(pid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass
         if getattr(self, "_log", None) is not None:
@@ -189,6 +208,11 @@ def serve(config: dict[str, Any], port: int | None = None, echo=print) -> None:
     except TorchBRDFError as exc:
         echo(f"warning: {exc} (the page will say so; open another source there)")
     server = EditorServer(c, port=port)
+
+    def _interrupt(_signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _interrupt)  # a plain kill stops the server too
     server.start()
     echo(f"torch_brdf editor: {server.url}  (Ctrl-C stops the server)")
     try:

@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from ..brdf import BRDF, Lambert, PairQuadrature, create, make_quotient
+from ..brdf import BRDF, Factored1D, Lambert, PairQuadrature, create, make_quotient
 from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
 from ..render.polynomial import PolynomialRenderer, emitter_mask, relative_rmse
 from ..transport import PolynomialTensors, path_trace, precompute_polynomial
@@ -368,9 +368,12 @@ class EditorSession:
         b = self.basis(obj)
         if type(brdf) is Lambert and b.quotient == "one":
             return (brdf.reflectance.detach().double() / math.pi).reshape(1, 3).expand(b.J, 3)
+        basis = b.band_basis()
+        if type(brdf) is Factored1D and torch.equal(brdf.basis.edges, basis.edges) and brdf.quotient.key == b.quotient:
+            return brdf.coefficients.detach().double()  # a curve on these bands is used as is
         key = (obj, bool(brdf.anisotropic))
         if key not in self._projectors:
-            self._projectors[key] = FastProjector(b.band_basis(), b.quotient, brdf.anisotropic)
+            self._projectors[key] = FastProjector(basis, b.quotient, brdf.anisotropic)
         return self._projectors[key](brdf)
 
     def set_material(self, obj: str, material: dict[str, Any], f0=None) -> float:
