@@ -33,7 +33,7 @@ from .._threads import single_thread
 from ..brdf.srbf import SRBFBasis
 from ..errors import InfeasibleError, ShapeError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
 from ._util import f64
 from .energy import EnergyRows, energy_rows
 from .qp import solve_qp

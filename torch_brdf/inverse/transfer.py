@@ -36,7 +36,7 @@ per-pixel visibility (no per-vertex interpolation), so the saving is in the SRBF
 not the ray casts.
 
 Records: :func:`transfer_functions` returns the package's shared "pixels x basis x channels"
-record, :class:`~torch_brdf.render.record.BasisImage`, with J + 1 basis functions: the J
+record, :class:`~torch_brdf.records.BasisImage`, with J + 1 basis functions: the J
 transfer functions and, last, :math:`E(x)` for the diffuse albedo. Its ``image`` evaluates
 Eq. 5/22 for ``torch.cat([c, rho_d[None]])`` (coefficients (J + 1, C)).
 """
@@ -57,7 +57,7 @@ from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.lights import luminance

@@ -12,7 +12,7 @@ from .builtin import (
 )
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
-from .lights import AreaLight, DirectionalLight, Light, LightSample
+from .lights import AreaLight, DirectionalLight, Light, LightSample, PointLights
 from .mesh import DegenerateFacesWarning, load_mesh, mesh_from_arrays
 from .raytrace import Hits, RayTracer
 from .scene import Scene, SceneObject
@@ -28,6 +28,7 @@ __all__ = [
     "Light",
     "LightSample",
     "PointLightSet",
+    "PointLights",
     "RayTracer",
     "Scene",
     "SceneObject",

@@ -17,6 +17,7 @@ interface.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,6 +110,74 @@ class DirectionalLight(Light):
 
     def power_estimate(self) -> float:
         return float(luminance(self.irradiance.double()))
+
+
+class PointLights(Light):
+    """K distant point lights, e.g. an environment map's median-cut set
+    (:meth:`~torch_brdf.scene.envmap.EnvironmentMap.point_lights`); next-event estimation picks
+    one per point in proportion to its luminance (``weight`` = intensity / selection probability).
+
+    Args:
+        directions: (K, 3) unit directions towards the lights.
+        intensity: (K, 3) RGB irradiance each light gives a surface facing it.
+    """
+
+    is_delta = True
+    is_infinite = True
+
+    def __init__(self, directions: torch.Tensor, intensity: torch.Tensor):
+        super().__init__()
+        self.register_buffer("directions", directions.float())
+        self.register_buffer("intensity", intensity.float())
+        p = luminance(self.intensity).clamp_min(0)
+        if not float(p.sum()) > 0:
+            p = torch.ones_like(p)
+        self.register_buffer("prob", p / p.sum())
+
+    def sample(self, points, generator=None):
+        n = points.shape[0]
+        k = torch.multinomial(self.prob, n, replacement=True, generator=generator) if n else torch.zeros(0).long()
+        w = self.intensity[k] / self.prob[k, None]
+        d = self.directions[k].to(points.dtype)
+        inf = torch.full((n,), math.inf, dtype=points.dtype)
+        return LightSample(d, inf, w.to(points.dtype), inf)
+
+    def power_estimate(self) -> float:
+        return float(luminance(self.intensity).sum())
+
+
+@dataclass(frozen=True)
+class PointLightSet:
+    r"""K distant point lights standing in for a map (see :meth:`EnvironmentMap.point_lights`).
+
+    Attributes:
+        directions: (K, 3) unit directions towards the lights (world space).
+        radiance: (K, 3) mean RGB radiance of each light's region of the map.
+        solid_angle: (K,) solid angle of each region (sums to :math:`4\pi`).
+    """
+
+    directions: torch.Tensor
+    radiance: torch.Tensor
+    solid_angle: torch.Tensor
+
+    @property
+    def intensity(self) -> torch.Tensor:
+        """(K, 3) radiance x solid angle: the region's power (irradiance at normal incidence)."""
+        return self.radiance * self.solid_angle[:, None]
+
+    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+        r"""Irradiance :math:`\sum_k I_k \max(0, n\cdot\omega_k)`: unit normals (N, 3) -> (N, 3)."""
+        n = check_vectors(normals, "normals")
+        cos = (n @ self.directions.to(n).T).clamp_min(0)
+        return cos @ self.intensity.to(n)
+
+    def as_light(self) -> PointLights:
+        """The set as a :class:`Light` for next-event estimation."""
+        return PointLights(self.directions, self.intensity)
+
+    def to(self, *args, **kwargs) -> PointLightSet:
+        """A copy with every tensor moved/cast by ``Tensor.to(*args, **kwargs)``."""
+        return PointLightSet(*(t.to(*args, **kwargs) for t in (self.directions, self.radiance, self.solid_angle)))
 
 
 class AreaLight(Light):
