@@ -8,6 +8,7 @@ from tests.records.contract import RecordContract
 from torch_brdf.records import (
     BasisImage,
     BlockVisibility,
+    FitResult,
     GPLVMFit,
     ObjectBasis,
     PolynomialTensors,
@@ -83,8 +84,9 @@ def _blocks(gen, p=4):
     return BlockVisibility.encode(torch.rand(p, 6, 256, generator=gen) > 0.5, meta={"scene": "test"})
 
 
-def _same_blocks(a, b):
-    assert (a.block_count, a.bits, a.meta) == (b.block_count, b.bits, b.meta)
+def _same_blocks(a, b, meta=True):
+    assert (a.block_count, a.bits) == (b.block_count, b.bits)
+    assert a.meta == b.meta or not meta
     for k in ("counts", "offsets", "index", "delta", "states"):
         _equal(getattr(a, k), getattr(b, k))
 
@@ -112,7 +114,7 @@ class TestVertexVisibility(RecordContract):
         assert a.settings() == b.settings()
         for k in ("positions", "normals", "object_ids", "offsets"):
             _equal(getattr(a.vertices, k), getattr(b.vertices, k))
-        _same_blocks(a.blocks, b.blocks)
+        _same_blocks(a.blocks, b.blocks, meta=False)  # the vertex record keeps its own settings, not the blocks' meta
 
 
 class TestGPLVMFit(RecordContract):
@@ -137,3 +139,16 @@ class TestGPLVMFit(RecordContract):
             "meta",
         ):
             assert getattr(a, k) == getattr(b, k)
+
+
+class TestFitResult(RecordContract):
+    def make(self, gen):
+        c = torch.rand(5, 3, generator=gen, dtype=torch.float64)
+        kd, f0 = torch.full((3,), 0.3, dtype=torch.float64), torch.full((3,), 0.04, dtype=torch.float64)
+        return FitResult(c, kd, f0, 1.5, 0.0, 12, 0.25, True, 0.9, {"pixels": 10})
+
+    def assert_same(self, a, b):
+        for k in ("coefficients", "kd", "f0"):
+            _equal(getattr(a, k), getattr(b, k))
+        keys = ("objective", "violation", "iterations", "seconds", "constrained", "max_energy", "meta")
+        assert [getattr(a, k) for k in keys] == [getattr(b, k) for k in keys]

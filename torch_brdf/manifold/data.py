@@ -45,8 +45,8 @@ from tqdm.auto import tqdm
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
-from ..records.cache import Checkpoint
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
+from ..records.cache import Checkpoint
 
 OBS_KIND = "merl-observations"
 

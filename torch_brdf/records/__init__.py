@@ -9,7 +9,7 @@ The floor between the producers (:mod:`torch_brdf.transport`, :mod:`torch_brdf.m
 - :class:`PolynomialTensors` (with :class:`Series`, :class:`ObjectBasis`, :class:`TermTable`,
   :class:`TensorBlock`): the multibounce tensors;
 - :class:`VertexVisibility` and :class:`BlockVisibility`: per-vertex differential visibility;
-- :class:`GPLVMFit`: a fitted BRDF manifold.
+- :class:`GPLVMFit`: a fitted BRDF manifold; :class:`FitResult`: an inverse-design SRBF fit.
 
 Every record derives from :class:`Record` (``kind``, ``version``, ``to_arrays``/``from_arrays``;
 ``save``/``load`` are atomic, checksummed, pickle-free and refuse corrupt files with
@@ -20,7 +20,7 @@ the one checkpoint / resume mechanism of every precomputation.
 from .basis_image import BasisImage, float16_error
 from .cache import Checkpoint, CorruptCacheWarning, TileCache, remove_cache, settings_key
 from .codec import Record, load_record, save_record
-from .fits import GPLVMFit
+from .fits import FitResult, GPLVMFit
 from .polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock, TermTable
 from .visibility import SceneVertices, VertexVisibility, scene_vertices
 from .visibility_codec import BlockVisibility
@@ -30,6 +30,7 @@ __all__ = [
     "BlockVisibility",
     "Checkpoint",
     "CorruptCacheWarning",
+    "FitResult",
     "GPLVMFit",
     "ObjectBasis",
     "PolynomialTensors",

@@ -1,4 +1,4 @@
-"""Saved fits: the GPLVM of the BRDF manifold (:class:`GPLVMFit`)."""
+"""Saved fits: the BRDF manifold's GPLVM (:class:`GPLVMFit`) and the inverse-design SRBF fit (:class:`FitResult`)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ import torch
 
 from .codec import Record
 
-__all__ = ["GPLVM_FIT_KIND", "GPLVMFit"]
+__all__ = ["GPLVM_FIT_KIND", "INVERSE_FIT_KIND", "FitResult", "GPLVMFit"]
 
 GPLVM_FIT_KIND = "gplvm-fit"
+INVERSE_FIT_KIND = "inverse-fit"
 
 
 @dataclass(frozen=True)
@@ -87,3 +88,68 @@ class GPLVMFit(Record):
             float(m["data_scale"]), str(m["method"]), int(m["iterations"]), int(m["rejected"]),
             float(m["seconds"]), tuple(m.get("names", ())), dict(m.get("meta", {})),
         )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FitResult(Record):
+    """Result of :func:`fit`.
+
+    Attributes:
+        coefficients: (J, 3) float64 SRBF coefficients of :math:`p(h)` per channel.
+        kd: (3,) diffuse albedo used; f0: (3,) Fresnel :math:`F_0` of the record.
+        objective: weighted sum of squares (all channels).
+        violation: largest violation of :math:`c \\ge 0` and the energy rows (0 unconstrained).
+        iterations: solver iterations (interior point or ADMM), summed over the channel problems.
+        seconds: solve time (normal equations + QPs).
+        constrained: whether the constraints were imposed.
+        max_energy: :math:`\\max_l \\rho_d + \\sum_j g_j^l c_j` over channels (<= 1 when constrained).
+    """
+
+    coefficients: torch.Tensor
+    kd: torch.Tensor
+    f0: torch.Tensor
+    objective: float
+    violation: float
+    iterations: int
+    seconds: float
+    constrained: bool
+    max_energy: float
+    meta: dict = field(default_factory=dict)
+
+    kind = INVERSE_FIT_KIND
+    version = 1
+
+    def record_coefficients(self) -> torch.Tensor:
+        """(J + 1, 3) coefficients for the transfer record: SRBF part and :math:`\\rho_d` last."""
+        return torch.cat((self.coefficients, self.kd[None]), 0)
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Coefficients, albedo, F0 and the solve's figures for :meth:`save`."""
+        arrays = {"coefficients": self.coefficients.numpy(), "kd": self.kd.numpy(), "f0": self.f0.numpy()}
+        meta = {
+            "objective": self.objective,
+            "violation": self.violation,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "constrained": self.constrained,
+            "max_energy": self.max_energy,
+            "meta": self.meta,
+        }
+        return arrays, meta
+
+    @classmethod
+    def from_arrays(cls, arrays, meta) -> FitResult:
+        """The fit of :meth:`to_arrays` output (float64)."""
+        t = {k: torch.from_numpy(v.copy()).double() for k, v in arrays.items()}
+        return cls(
+            t["coefficients"],
+            t["kd"],
+            t["f0"],
+            float(meta["objective"]),
+            float(meta["violation"]),
+            int(meta["iterations"]),
+            float(meta["seconds"]),
+            bool(meta["constrained"]),
+            float(meta["max_energy"]),
+            dict(meta.get("meta", {})),
+        )

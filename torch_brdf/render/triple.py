@@ -60,6 +60,8 @@ from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
+from ..records.visibility import VertexVisibility
+from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.scene import Scene
@@ -67,8 +69,6 @@ from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
 from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
-from ..records.visibility import VertexVisibility
-from ..records.visibility_codec import BlockVisibility
 
 __all__ = [
     "BlockLighting",
@@ -464,7 +464,9 @@ class TripleProductRenderer(nn.Module):
     # -- state ----------------------------------------------------------------------------
     def set_lighting(self, envmap: EnvironmentMap) -> None:
         """New lighting (e.g. ``envmap.rotated(angle)``): recompute the block representations."""
-        self.envmap = envmap
+        # the map is the scene's (an input, float64 rotation): not a submodule, so that
+        # ``.to(dtype)`` on the renderer neither converts nor mutates it
+        self.__dict__["envmap"] = envmap
         self.lighting = block_lighting(envmap, self.geometry, self.lighting_samples, self.dtype)
 
     def _apply(self, fn, recurse=True):
