@@ -31,8 +31,9 @@ Estimator (Sec. 5.1). A batched (wavefront) path tracer from the eye on embree:
   diffuse-equivalent vertices (Eq. 23-24); *fixed* objects (``SceneObject.editable`` False)
   contribute their full BRDF :math:`f\cos` and no index (Sec. 5.3);
 * emission seen directly from the eye is the constant term :math:`E`; emission reached by a
-  continuation ray is not counted (NEE covers it), as in :func:`.pathtrace.path_trace`, so a
-  scene of Lambertian objects evaluated at their albedos estimates the same image.
+  continuation ray is not counted (NEE covers it), as in
+  :func:`torch_brdf.transport.pathtrace.path_trace`, so a scene of Lambertian objects
+  evaluated at their albedos estimates the same image.
 
 Bookkeeping. Per pass group, entries are reduced to per-path sums (so the per-entry Monte
 Carlo variance is the variance over paths, not over light samples); sums and sums of squares
