@@ -1,4 +1,7 @@
-r"""Lights: the common interface, a directional light and emissive-triangle area lights.
+r"""Lights: the common interface, a directional light, emissive-triangle area lights, and the
+one home of distant light sets (:class:`PointLights` for next-event estimation,
+:class:`PointLightSet` from an environment map's median cut, :class:`LightSamples`
+importance-sampled from it).
 
 Every light answers two questions for a batch of shading points:
 
@@ -24,8 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .._checks import check_rgb, check_vectors
-from ..errors import MeshError, ValueRangeError
+from .._checks import check_finite, check_rgb, check_vectors
+from ..errors import MeshError, SceneError, ShapeError, ValueRangeError
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,57 @@ class PointLightSet:
     def to(self, *args, **kwargs) -> PointLightSet:
         """A copy with every tensor moved/cast by ``Tensor.to(*args, **kwargs)``."""
         return PointLightSet(*(t.to(*args, **kwargs) for t in (self.directions, self.radiance, self.solid_angle)))
+
+
+@dataclass(frozen=True)
+class LightSamples:
+    """S distant light directions shared by every pixel.
+
+    Attributes:
+        directions: (S, 3) unit world directions towards the light, float64.
+        weight: (S, 3) :math:`L(\\omega_s) / (S\\,\\mathrm{pdf}(\\omega_s))`, float64 (RGB).
+    """
+
+    directions: torch.Tensor
+    weight: torch.Tensor
+
+    def __post_init__(self):
+        d, w = self.directions, self.weight
+        if d.ndim != 2 or d.shape[-1] != 3 or w.shape != (d.shape[0], 3) or d.shape[0] < 1:
+            raise ShapeError(f"Expected directions (S, 3) and weight (S, 3); got {tuple(d.shape)}, {tuple(w.shape)}")
+        check_finite(d, "light directions")
+        check_finite(w, "light weights")
+
+    @property
+    def count(self) -> int:
+        return self.directions.shape[0]
+
+    def as_light(self) -> PointLights:
+        """The samples as a :class:`Light` for next-event estimation (``weight`` as intensities)."""
+        return PointLights(self.directions, self.weight)
+
+    @classmethod
+    def from_environment(
+        cls,
+        env: EnvironmentMap,
+        count: int = 1024,
+        generator: torch.Generator | None = None,  # noqa: F821
+    ) -> LightSamples:
+        """Importance-sample ``count`` directions from ``env`` (luminance x solid angle).
+
+        Args:
+            env: the environment map (rotated maps sample their rotated radiance).
+            count: S >= 1 (a power of two if visibility cuts will be used).
+            generator: random source (seed it for reproducible records).
+        """
+        if not callable(getattr(env, "sample_directions", None)):  # an EnvironmentMap (it imports this module)
+            raise SceneError(f"expected an EnvironmentMap; got {type(env).__name__}")
+        if int(count) < 1:
+            raise ValueRangeError(f"light sample count must be >= 1; got {count}")
+        d, pdf = env.sample_directions(int(count), generator=generator, dtype=torch.float64)
+        L = env.eval_miss(d)
+        w = torch.where(pdf[:, None] > 0, L / (pdf[:, None].clamp_min(1e-300) * int(count)), torch.zeros_like(L))
+        return cls(d, w)
 
 
 class AreaLight(Light):
