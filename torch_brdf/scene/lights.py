@@ -213,14 +213,15 @@ class LightSamples:
     @classmethod
     def from_environment(
         cls,
-        env: EnvironmentMap,
+        env: Light,
         count: int = 1024,
-        generator: torch.Generator | None = None,  # noqa: F821
+        generator: torch.Generator | None = None,
     ) -> LightSamples:
         """Importance-sample ``count`` directions from ``env`` (luminance x solid angle).
 
         Args:
-            env: the environment map (rotated maps sample their rotated radiance).
+            env: the :class:`~torch_brdf.scene.envmap.EnvironmentMap` (rotated maps sample their
+                rotated radiance).
             count: S >= 1 (a power of two if visibility cuts will be used).
             generator: random source (seed it for reproducible records).
         """
