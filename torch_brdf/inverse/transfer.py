@@ -36,7 +36,7 @@ per-pixel visibility (no per-vertex interpolation), so the saving is in the SRBF
 not the ray casts.
 
 Records: :func:`transfer_functions` returns the package's shared "pixels x basis x channels"
-record, :class:`~torch_brdf.render.record.BasisImage`, with J + 1 basis functions: the J
+record, :class:`~torch_brdf.records.BasisImage`, with J + 1 basis functions: the J
 transfer functions and, last, :math:`E(x)` for the diffuse albedo. Its ``image`` evaluates
 Eq. 5/22 for ``torch.cat([c, rho_d[None]])`` (coefficients (J + 1, C)).
 """
@@ -57,10 +57,9 @@ from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
-from ..scene.envmap import EnvironmentMap
-from ..scene.lights import luminance
+from ..scene.lights import LightSamples, luminance
 from ..scene.scene import Scene
 from .energy import default_basis
 
@@ -74,50 +73,6 @@ __all__ = [
     "split_record",
     "transfer_functions",
 ]
-
-
-@dataclass(frozen=True)
-class LightSamples:
-    """S distant light directions shared by every pixel.
-
-    Attributes:
-        directions: (S, 3) unit world directions towards the light, float64.
-        weight: (S, 3) :math:`L(\\omega_s) / (S\\,\\mathrm{pdf}(\\omega_s))`, float64 (RGB).
-    """
-
-    directions: torch.Tensor
-    weight: torch.Tensor
-
-    def __post_init__(self):
-        d, w = self.directions, self.weight
-        if d.ndim != 2 or d.shape[-1] != 3 or w.shape != (d.shape[0], 3) or d.shape[0] < 1:
-            raise ShapeError(f"Expected directions (S, 3) and weight (S, 3); got {tuple(d.shape)}, {tuple(w.shape)}")
-        check_finite(d, "light directions")
-        check_finite(w, "light weights")
-
-    @property
-    def count(self) -> int:
-        return self.directions.shape[0]
-
-    @classmethod
-    def from_environment(
-        cls, env: EnvironmentMap, count: int = 1024, generator: torch.Generator | None = None
-    ) -> LightSamples:
-        """Importance-sample ``count`` directions from ``env`` (luminance x solid angle).
-
-        Args:
-            env: the environment map (rotated maps sample their rotated radiance).
-            count: S >= 1 (a power of two if visibility cuts will be used).
-            generator: random source (seed it for reproducible records).
-        """
-        if not isinstance(env, EnvironmentMap):
-            raise SceneError(f"expected an EnvironmentMap; got {type(env).__name__}")
-        if int(count) < 1:
-            raise ValueRangeError(f"light sample count must be >= 1; got {count}")
-        d, pdf = env.sample_directions(int(count), generator=generator, dtype=torch.float64)
-        L = env.eval_miss(d)
-        w = torch.where(pdf[:, None] > 0, L / (pdf[:, None].clamp_min(1e-300) * int(count)), torch.zeros_like(L))
-        return cls(d, w)
 
 
 @dataclass(frozen=True)

@@ -2,11 +2,12 @@
 
 Every file we write for later reading (checkpoints, precomputed tensors, visibility
 records) goes through :func:`save_arrays`: the arrays plus a JSON header with the
-format name, a ``kind`` (what the file holds), the format version, user metadata and a
-SHA-256 checksum over every array's name, dtype, shape and bytes. The write is atomic
-(temporary file in the same folder, then ``os.replace``), so an interrupted run leaves
-either the old file or the new one. :func:`load_arrays` refuses object arrays (no
-pickle), a wrong kind, a newer version or a checksum mismatch, with a clear error.
+format name, a ``kind`` (what the file holds), the format version, the version of the kind's
+layout (``kind_version``), user metadata and a SHA-256 checksum over every array's name,
+dtype, shape and bytes. The write is atomic (temporary file in the same folder, then
+``os.replace``), so an interrupted run leaves either the old file or the new one.
+:func:`load_arrays` refuses object arrays (no pickle), a wrong kind, a newer format
+version, another layout version of the kind or a checksum mismatch, with a clear error.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ def save_arrays(
     kind: str,
     meta: dict[str, Any] | None = None,
     compress: bool = False,
+    kind_version: int = 1,
 ) -> Path:
     """Write ``arrays`` with a header (format, kind, version, meta, checksum) atomically.
 
@@ -51,6 +53,8 @@ def save_arrays(
         kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
         meta: JSON-serialisable metadata (settings, progress).
         compress: zip-deflate the arrays.
+        kind_version: version of the layout of ``kind`` (checked on load; files written
+            before it was recorded count as version 1).
     """
     path = Path(path)
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
@@ -58,6 +62,8 @@ def save_arrays(
         if a.dtype == object or k == _HEADER:
             raise FileFormatError(f"array {k!r} cannot be stored (object dtype or reserved name)")
     header = {"format": FORMAT, "kind": kind, "version": VERSION, "meta": meta or {}, "checksum": _checksum(arrays)}
+    if int(kind_version) != 1:  # absent means 1, so files of version-1 layouts keep their bytes
+        header["kind_version"] = int(kind_version)
     blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     with replacing(path) as tmp, open(tmp, "wb") as f:
@@ -65,13 +71,20 @@ def save_arrays(
     return path
 
 
-def load_arrays(path: str | Path, kind: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def load_arrays(
+    path: str | Path, kind: str | None = None, kind_version: int | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read a file written by :func:`save_arrays` and verify it.
+
+    Args:
+        kind: the expected ``kind`` (None: any).
+        kind_version: the expected layout version of ``kind`` (None: any).
 
     Returns:
         (arrays, meta).
     Raises:
-        FileFormatError: missing, not an array file, wrong kind, newer version, corrupt.
+        FileFormatError: missing, not an array file, wrong kind, newer format version, other
+            layout version, corrupt.
     """
     path = Path(path)
     if not path.is_file():
@@ -93,6 +106,11 @@ def load_arrays(path: str | Path, kind: str | None = None) -> tuple[dict[str, np
         raise FileFormatError(f"{path}: format version {header.get('version')} is newer than this reader ({VERSION})")
     if kind is not None and header.get("kind") != kind:
         raise FileFormatError(f"{path} holds {header.get('kind')!r}, expected {kind!r}")
+    if kind_version is not None and int(header.get("kind_version", 1)) != kind_version:
+        raise FileFormatError(
+            f"{path}: {header.get('kind')!r} layout version {header.get('kind_version', 1)}, "
+            f"this reader reads version {kind_version}"
+        )
     if _checksum(data) != header.get("checksum"):
         raise FileFormatError(f"{path}: checksum mismatch (file corrupt or modified)")
     return data, header.get("meta", {})

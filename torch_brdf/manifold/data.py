@@ -45,8 +45,8 @@ from tqdm.auto import tqdm
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
-from ..io.arrays import load_arrays, save_arrays
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
+from ..records.cache import Checkpoint
 
 OBS_KIND = "merl-observations"
 
@@ -203,7 +203,7 @@ def nbrdf_observations(
 ) -> Observations:
     """Tabulate NBRDF networks on ``grid`` into an observation matrix (an APPROXIMATION of MERL).
 
-    With ``cache`` the matrix is stored through :func:`~torch_brdf.io.save_arrays` (atomic,
+    With ``cache`` the matrix is stored as a :class:`~torch_brdf.records.cache.Checkpoint` (atomic,
     checksummed) every ``save_every`` materials and at the end; a later call with the same
     weights file, names and grid resumes from it (or just loads it). A cache written for other
     settings is recomputed; a corrupt cache raises :class:`~torch_brdf.errors.FileFormatError`.
@@ -226,18 +226,18 @@ def nbrdf_observations(
     b = grid.num_valid
     z = np.zeros((len(names), 3 * b), dtype=np.float32)
     done = 0
-    if cache is not None and Path(cache).exists():
-        arrays, m = load_arrays(cache, kind=OBS_KIND)
-        if {k: m.get(k) for k in meta} == meta and arrays.get("z", np.empty(0)).shape == z.shape:
-            z = np.asarray(arrays["z"], dtype=np.float32).copy()
-            done = int(m.get("done", 0))
+    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta)
+    saved = None if ckpt is None else ckpt.load()
+    if saved is not None and saved[0].get("z", np.empty(0)).shape == z.shape:
+        z = np.asarray(saved[0]["z"], dtype=np.float32).copy()
+        done = int(saved[1].get("done", 0))
     valid = grid.valid()
     bar = tqdm(range(done, len(names)), initial=done, total=len(names), desc="tabulate NBRDF", disable=not progress)
     for i in bar:
         t = tabulate_nbrdf(NBRDF(names[i], w), *grid.indices, mask_horizon=False)
         z[i] = t[:, valid].reshape(-1).numpy().astype(np.float32)
-        if cache is not None and ((i + 1) % save_every == 0 or i + 1 == len(names)):
-            save_arrays(cache, {"z": z}, kind=OBS_KIND, meta={**meta, "done": i + 1})
+        if ckpt is not None and ((i + 1) % save_every == 0 or i + 1 == len(names)):
+            ckpt.save({"z": z}, meta={**meta, "done": i + 1})
     return Observations(torch.from_numpy(z), names, grid, "nbrdf")
 
 

@@ -48,6 +48,7 @@ an image by interpolating vertex colours at the camera's primary hits. Baselines
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -59,6 +60,8 @@ from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
+from ..records.visibility import VertexVisibility
+from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.scene import Scene
@@ -66,8 +69,6 @@ from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
 from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
-from ..transport.visibility import VertexVisibility
-from ..transport.visibility_codec import BlockVisibility
 
 __all__ = [
     "BlockLighting",
@@ -463,8 +464,20 @@ class TripleProductRenderer(nn.Module):
     # -- state ----------------------------------------------------------------------------
     def set_lighting(self, envmap: EnvironmentMap) -> None:
         """New lighting (e.g. ``envmap.rotated(angle)``): recompute the block representations."""
-        self.envmap = envmap
+        # the map is the scene's (an input, float64 rotation): not a submodule, so that
+        # ``.to(dtype)`` on the renderer neither converts nor mutates it
+        self.__dict__["envmap"] = envmap
         self.lighting = block_lighting(envmap, self.geometry, self.lighting_samples, self.dtype)
+
+    def _apply(self, fn, recurse=True):
+        """``.to(dtype/device)``, ``.double()``, ...: the buffers and BRDFs, and the products'
+        dtype with the lighting and DCT bases recomputed in it (not rounded from the old dtype)."""
+        super()._apply(fn, recurse)
+        self.dtype = fn(torch.zeros((), dtype=self.dtype)).dtype
+        lighting = block_lighting(self.envmap, self.geometry, self.lighting_samples, self.dtype)
+        self.lighting = BlockLighting(*(fn(getattr(lighting, f.name)) for f in dataclasses.fields(lighting)))
+        self._bases = {l: fn(dct_basis(self.geometry.block, l, self.dtype)) for l in (2, 4)}
+        return self
 
     def set_material(self, obj: str | int, brdf: BRDF | dict | str) -> None:
         """Give object ``obj`` (name or id) a new BRDF (module, material dict or registry name)."""

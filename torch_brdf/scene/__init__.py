@@ -12,7 +12,7 @@ from .builtin import (
 )
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
-from .lights import AreaLight, DirectionalLight, Light, LightSample
+from .lights import AreaLight, DirectionalLight, Light, LightSample, LightSamples, PointLights
 from .mesh import DegenerateFacesWarning, load_mesh, mesh_from_arrays
 from .raytrace import Hits, RayTracer
 from .scene import Scene, SceneObject
@@ -27,7 +27,9 @@ __all__ = [
     "Hits",
     "Light",
     "LightSample",
+    "LightSamples",
     "PointLightSet",
+    "PointLights",
     "RayTracer",
     "Scene",
     "SceneObject",
