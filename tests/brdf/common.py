@@ -64,6 +64,7 @@ from torch import nn
 
 from torch_brdf._threads import single_thread
 from torch_brdf.brdf.base import BRDF, Clamped
+from torch_brdf.errors import ValueRangeError
 from torch_brdf.frame import Frame, orthonormal_basis
 
 F32, F64 = torch.float32, torch.float64
@@ -463,6 +464,49 @@ class BRDFContract:
             )
 
         assert torch.autograd.gradcheck(fn, tuple(raws), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+    def test_constrained_setters(self):
+        """``model.<name> = value`` goes through the inverse transform into the same raw
+        Parameter (gpytorch's setter): eval, ``state_dict`` and the optimiser's tensor all see
+        the new value; out-of-range values raise and leave the parameter unchanged."""
+        brdf = self.make(F64)
+        owners = [(m, n) for m in brdf.modules() for n in getattr(m, "__dict__", {}).get("_constraints", {})]
+        if not owners:
+            pytest.skip("model has no constrained parameters")
+        wi, wo = self.pairs(16, F64, 7)
+        for owner, name in owners:
+            transform = owner._constraints[name]
+            raw = getattr(owner, "raw_" + name)
+            old = getattr(owner, name).detach().clone()
+            if isinstance(transform, Clamped) and math.isfinite(transform.hi):
+                x = (old - transform.lo) / (transform.hi - transform.lo)
+                new = transform.lo + (transform.hi - transform.lo) * torch.where(x < 0.5, x + 0.3, x - 0.3)
+                too_big, too_small = transform.hi + 0.5, transform.lo - 0.5
+            else:  # Positive, Clamped(lo, inf)
+                new = 1.5 * old + 0.1
+                too_big, too_small = None, getattr(transform, "lower", getattr(transform, "lo", 0.0)) - 1.0
+            assert not torch.allclose(new, old), (name, old)
+            raw_before = raw.detach().clone()
+            setattr(owner, name, new)
+            assert getattr(owner, "raw_" + name) is raw, f"{name}: the raw Parameter was replaced"
+            assert isinstance(raw, nn.Parameter) and raw.requires_grad, name
+            assert name not in owner.__dict__, f"{name} is shadowed by an instance attribute"
+            assert torch.allclose(getattr(owner, name), new.expand_as(getattr(owner, name)), rtol=1e-12, atol=1e-12)
+            sd_key = next(k for k, v in brdf.state_dict(keep_vars=True).items() if v is raw)
+            assert torch.equal(brdf.state_dict()[sd_key], raw.detach())
+            assert not torch.equal(raw.detach(), raw_before), f"{name}: raw_{name} kept its old value"
+            # evaluation uses the assigned value: a fresh model loaded from the state_dict agrees
+            fresh = self.make(F64)
+            fresh.load_state_dict(brdf.state_dict())
+            assert torch.equal(fresh.eval(wi, wo), brdf.eval(wi, wo)), name
+            # out-of-range and non-finite values raise
+            for bad in (too_small, too_big, float("nan")):
+                if bad is None:
+                    continue
+                before = raw.detach().clone()
+                with pytest.raises(ValueRangeError):
+                    setattr(owner, name, bad)
+                assert torch.equal(raw.detach(), before), f"{name}: a refused value changed the parameter"
 
     def _mc_albedo(self, brdf: BRDF, wo: torch.Tensor, n: int, offset: int) -> tuple[torch.Tensor, torch.Tensor]:
         u = torch.rand(n, 2, generator=self.gen(offset), dtype=F64)
