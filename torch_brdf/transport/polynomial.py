@@ -64,6 +64,7 @@ from tqdm.auto import tqdm
 from ..brdf import BRDF
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ShapeError, ValueRangeError
+from ..frame import half_vector
 from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
 from ..scene.envmap import EnvironmentMap
@@ -257,8 +258,7 @@ class Mixture:
     def pdf(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         """Solid-angle density of :meth:`sample` (0 below the horizon)."""
         n = self.exponent
-        h = wi + wo
-        h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        h = half_vector(wi, wo)
         cos_h = h[:, 2].clamp_min(0)
         cos_oh = (wo * h).sum(-1).abs().clamp_min(1e-12)
         p_h = (n + 1) / (2 * math.pi) * cos_h.clamp_min(1e-30) ** n * (cos_h > 0)
