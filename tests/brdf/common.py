@@ -26,9 +26,9 @@ returns ``(wi, pdf)`` with ``pdf = 0`` for invalid samples):
   ``check_gradients = False`` is refused for a model that has parameters);
 * ``test_sampling_matches_quadrature``: :math:`E[f\cos\theta_i/\mathrm{pdf}]` over seeded
   samples equals the quadrature albedo within ``mc_rtol`` (1%);
-* ``test_sampling_chi2``: Pearson's chi-square test of ``sample`` against ``pdf`` (Mitsuba
-  3's ``chi2.py``: cells with small expectations pooled, threshold 0.01 with a
-  Bonferroni factor ``chi2_family_size``);
+* ``test_sampling_chi2``: Pearson's chi-square test of ``sample`` against ``pdf`` (the
+  suite's one helper, :func:`tests._stats.assert_chi2`: Mitsuba 3's ``chi2.py`` pooling,
+  significance 0.01 with the Šidák factor ``chi2_family_size``);
 * ``test_sample_returns_its_pdf``: the returned pdf equals ``pdf(wi, wo)``, samples are
   unit vectors, ``pdf > 0`` only above the horizon;
 * ``test_extremes_are_finite``: eval, pdf, sample and parameter gradients are finite in
@@ -59,9 +59,9 @@ from functools import cache
 import numpy as np
 import pytest
 import torch
-from scipy.stats import chi2 as chi2_dist
 from torch import nn
 
+from tests._stats import assert_chi2
 from torch_brdf._threads import single_thread
 from torch_brdf.brdf.base import BRDF, Clamped
 from torch_brdf.errors import ValueRangeError
@@ -94,8 +94,6 @@ TOLERANCES = {
 #: Statistical tests (always float64)
 MC_RTOL = 0.01  # MC albedo against quadrature
 MC_ATOL = 1e-4  # ... plus this absolute slack for albedos near 0
-CHI2_SIGNIFICANCE = 0.01  # before the Bonferroni correction
-CHI2_MIN_EXPECTED = 5.0  # Mitsuba's min_exp_frequency
 
 
 # -- directions ---------------------------------------------------------------------------------
@@ -257,29 +255,6 @@ def adaptive_cell_integrals(
         if len(lo) == 0:
             break
     return out
-
-
-def chi2_pvalue(observed: torch.Tensor, expected: torch.Tensor, n: int) -> float:
-    """Pearson chi-square p-value with Mitsuba's pooling: cells expecting fewer than
-    ``CHI2_MIN_EXPECTED`` are merged (in increasing order of expectation) into one pooled cell.
-    Fails if a cell with zero expectation received more than ``1e-5 n`` samples."""
-    obs, exp = observed.double(), expected.double().clamp_min(0)
-    order = torch.argsort(exp)
-    stat, dof, pooled_o, pooled_e = 0.0, 0, 0.0, 0.0
-    for i in order.tolist():
-        o, e = float(obs[i]), float(exp[i])
-        if e == 0.0:
-            assert o <= 1e-5 * n, f"{o} samples in a cell whose expected count is 0"
-        elif e < CHI2_MIN_EXPECTED or 0 < pooled_e < CHI2_MIN_EXPECTED:
-            pooled_o += o
-            pooled_e += e
-        else:
-            stat += (o - e) ** 2 / e
-            dof += 1
-    if pooled_e > 0:
-        stat += (pooled_o - pooled_e) ** 2 / pooled_e
-        dof += 1
-    return float(chi2_dist.sf(stat, max(dof - 1, 1)))
 
 
 class _EvalAndPdf(nn.Module):
@@ -553,7 +528,6 @@ class BRDFContract:
 
     def test_sampling_chi2(self):
         brdf = self.make(F64)
-        alpha = 1 - (1 - CHI2_SIGNIFICANCE) ** (1 / max(self.chi2_family_size, 1))
         for k, th in enumerate(self.chi2_thetas):
             wo = direction(math.radians(th))
             r, s, t, radial, azim = self._chi2_cells(wo)
@@ -587,8 +561,7 @@ class BRDFContract:
             assert total <= 1 + 1e-3, f"pdf integrates to {total} > 1"
             observed = torch.cat([obs, torch.tensor([float((~valid).sum())], dtype=F64)])
             expected = torch.cat([mass * n, torch.tensor([max(1 - total, 0.0) * n], dtype=F64)])
-            p_value = chi2_pvalue(observed, expected, n)
-            assert p_value > alpha, f"theta_o={th}: chi-square p-value {p_value:.3g} <= {alpha:.3g}"
+            assert_chi2(observed, expected, n, self.chi2_family_size, what=f"theta_o={th}: ")
 
     def test_sample_returns_its_pdf(self):
         for dt in (F32, F64):
