@@ -45,6 +45,7 @@ __all__ = [
     "BlinnNDF",
     "CookTorrance",
     "MicrofacetDistribution",
+    "MicrofacetMixture",
     "beckmann_d",
     "beckmann_g1_over_cos",
     "blinn_d",
@@ -521,12 +522,35 @@ class AnisotropicPhongNDF(MicrofacetDistribution):
         return _polar(-torch.expm1(2.0 * lg / (e + 1.0)), phi)
 
 
+class MicrofacetMixture(BRDF):
+    """Sampling shared by the microfacet models: with the probability ``_p_spec(wo)`` (*B,)
+    reflect ``wo`` about a half vector of :meth:`microfacet_distribution`, else the cosine
+    lobe (:func:`mixture_sample`); ``pdf_local`` is the mixture's exact density."""
+
+    def microfacet_distribution(self, dtype: torch.dtype) -> MicrofacetDistribution:
+        """The model's distribution of microfacet normals, built from its current parameters."""
+        raise NotImplementedError
+
+    def _p_spec(self, wo: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def sample_local(self, wo, u):
+        dist = self.microfacet_distribution(wo.dtype)
+        wi = mixture_sample(wo, u, self._p_spec(wo), dist.sample_reflection)
+        return wi, self.pdf_local(wi, wo)
+
+    def pdf_local(self, wi, wo):
+        si, so, _ = safe_pair(wi, wo)
+        pdf_s = self.microfacet_distribution(wi.dtype).reflection_pdf(so, half_terms(si, so))
+        return mixture_pdf(wi, wo, self._p_spec(so), pdf_s)
+
+
 # -- Cook-Torrance ---------------------------------------------------------------------------
 _DISTRIBUTIONS = ("beckmann", "ggx")
 
 
 @register("cook_torrance")
-class CookTorrance(BRDF):
+class CookTorrance(MicrofacetMixture):
     r"""Cook-Torrance microfacet BRDF with an optional Lambertian base,
 
     .. math:: f = \frac{k_d}{\pi} + \frac{F(\omega_i\cdot h)\,D(h)\,G_1(\omega_i)G_1(\omega_o)}
@@ -587,20 +611,6 @@ class CookTorrance(BRDF):
         f0 = self.f0.to(dt)
         spec = (f0 + (1.0 - f0) * one_minus**5).mean(-1)
         return lobe_weight(spec, self.kd.to(dt).mean().expand_as(spec))
-
-    def _sample_spec(self, wo, u):
-        return self.microfacet_distribution(wo.dtype).sample_reflection(wo, u)
-
-    def _pdf_spec(self, wi, wo):
-        return self.microfacet_distribution(wi.dtype).reflection_pdf(wo, half_terms(wi, wo))
-
-    def sample_local(self, wo, u):
-        wi = mixture_sample(wo, u, self._p_spec(wo), self._sample_spec)
-        return wi, self.pdf_local(wi, wo)
-
-    def pdf_local(self, wi, wo):
-        si, so, _ = safe_pair(wi, wo)
-        return mixture_pdf(wi, wo, self._p_spec(so), self._pdf_spec(si, so))
 
     def albedo_bound(self, wo: torch.Tensor) -> torch.Tensor:
         """Documented upper bound of the directional albedo: kd + 1, shape (*B, 3)."""
