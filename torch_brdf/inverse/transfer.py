@@ -56,7 +56,7 @@ from tqdm.auto import tqdm
 from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
 from ..errors import SceneError, ShapeError, ValueRangeError
-from ..frame import Frame
+from ..frame import Frame, half_terms
 from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
 from ..scene.lights import LightSamples, luminance
@@ -225,15 +225,11 @@ class _LightTree:
 def _static_weighted(wi: torch.Tensor, wo: torch.Tensor, f0: torch.Tensor, weight: torch.Tensor):
     r"""Local half vectors (n, 3) and ``weight * F(wi.h) / den`` (n, 3) of Eq. 11's static factor
     :math:`s` for local unit pairs (n, 3) (0 where either direction is at or below the horizon)."""
-    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    hs = wi + wo
-    length = hs.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    h = hs / length
-    one_minus = (1 - 0.5 * length).clamp(0, 1)  # 1 - wi.h = 1 - |wi + wo| / 2
+    ht = half_terms(wi, wo)
     ci, co = wi[:, 2:3].clamp(0, 1), wo[:, 2:3].clamp(0, 1)
     den = (ci + co - ci * co).clamp_min(1e-300)
-    s = (f0 + (1 - f0) * one_minus**5) * (weight / den)
-    return h, torch.where(up[:, None], s, torch.zeros((), dtype=s.dtype))
+    s = (f0 + (1 - f0) * ht.one_minus_cos_d[:, None] ** 5) * (weight / den)
+    return ht.h, torch.where(ht.up[:, None], s, torch.zeros((), dtype=s.dtype))
 
 
 def _srbf(basis: SRBFBasis, h: torch.Tensor) -> torch.Tensor:
@@ -265,12 +261,6 @@ def _accumulate(T, ii, wi, wo, weight, f0, basis, chunk: int = 1 << 14) -> None:
             for c in range(3):
                 A = torch.sparse_csr_tensor(crow, cols, s[:, c].contiguous(), (p, b - a))
                 T[:, c] += A @ G
-
-
-def _frames(normal: torch.Tensor) -> torch.Tensor:
-    """Rows s, t, n of the shading frames (Frame.from_normal): (P, 3, 3); local = F @ world."""
-    f = Frame.from_normal(normal)
-    return torch.stack((f.s, f.t, f.n), -2)
 
 
 def transfer_functions(
@@ -309,7 +299,7 @@ def transfer_functions(
         raise ValueRangeError(f"f0 must lie in [0, 1]; got {f0t.tolist()}")
     J = basis.K
     vis = visibility.double()
-    frames = _frames(px.normal)  # (P, 3, 3)
+    frames = Frame.from_normal(px.normal).matrix()  # (P, 3, 3): local = frames @ world
     wo_l = (frames @ px.wo[:, :, None])[..., 0]  # (P, 3)
     T = torch.zeros(P, 3, J, dtype=torch.float64)
     t0 = time.perf_counter()

@@ -35,8 +35,7 @@ from torch import nn
 
 from .._checks import as_float_tensor, check_finite
 from ..brdf import BRDF, Lambert, create
-from ..brdf.band_albedo import band_albedos
-from ..brdf.bands import Factored1D, FresnelFactored1D, coarsen_coefficients, project
+from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..records.polynomial import ObjectBasis, PolynomialTensors
 

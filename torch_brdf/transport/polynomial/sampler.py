@@ -2,13 +2,18 @@ r"""The direction sampler of the multibounce precomputation (Ben-Artzi et al. 20
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
 from ...errors import ValueRangeError
-from ...sphere.warps import cosine_hemisphere_pdf, square_to_cosine_hemisphere
+from ...frame import half_vector
+from ...sphere.warps import (
+    cosine_hemisphere_pdf,
+    cosine_power_hemisphere_pdf,
+    square_to_cosine_hemisphere,
+    square_to_cosine_power_hemisphere,
+)
 
 __all__ = ["Mixture"]
 
@@ -29,11 +34,7 @@ class Mixture:
     def sample(self, wo: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Local ``wo`` (n, 3), uniforms ``u`` (n, 3) -> ``wi`` (n, 3), solid-angle pdf (n,)."""
         cosine = square_to_cosine_hemisphere(u[:, 1:])
-        n = self.exponent
-        cos_h = u[:, 1].clamp_min(1e-12) ** (1.0 / (n + 1.0))
-        sin_h = (1 - cos_h * cos_h).clamp_min(0).sqrt()
-        phi = 2 * math.pi * u[:, 2]
-        h = torch.stack((sin_h * phi.cos(), sin_h * phi.sin(), cos_h), -1)
+        h = square_to_cosine_power_hemisphere(u[:, 1:], self.exponent)
         glossy = 2 * (wo * h).sum(-1, keepdim=True) * h - wo
         wi = torch.where((u[:, :1] < self.diffuse), cosine, glossy)
         return wi, self.pdf(wi, wo)
@@ -41,10 +42,8 @@ class Mixture:
     def pdf(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         """Solid-angle density of :meth:`sample` (0 below the horizon)."""
         n = self.exponent
-        h = wi + wo
-        h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        cos_h = h[:, 2].clamp_min(0)
+        h = half_vector(wi, wo)
         cos_oh = (wo * h).sum(-1).abs().clamp_min(1e-12)
-        p_h = (n + 1) / (2 * math.pi) * cos_h.clamp_min(1e-30) ** n * (cos_h > 0)
+        p_h = cosine_power_hemisphere_pdf(h[:, 2], n)
         p = self.diffuse * cosine_hemisphere_pdf(wi[:, 2]) + (1 - self.diffuse) * p_h / (4 * cos_oh)
         return torch.where(wi[:, 2] > 0, p, torch.zeros_like(p))
