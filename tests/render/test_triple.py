@@ -3,8 +3,6 @@ analytic values, rules, extremes and the image path."""
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -15,13 +13,13 @@ from torch_brdf.brdf.base import Lambert
 from torch_brdf.brdf.measured import MERLTabulated
 from torch_brdf.errors import SceneError, ShapeError, ValueRangeError
 from torch_brdf.io.merl import merl_index_to_angles
+from torch_brdf.metrics import psnr
 from torch_brdf.render.triple import (
     FixedRule,
     GenericRule,
     PhongRule,
     TripleProductRenderer,
     block_lighting,
-    psnr,
 )
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.sphere.cubemap import CubemapBlocks
@@ -236,15 +234,6 @@ def test_mismatched_record_and_bad_input(scene, vis):
         r.set_material(7, Lambert(0.5))
     with pytest.raises(ValueRangeError):
         FixedRule(3)
-
-
-def test_psnr_values():
-    a = torch.zeros(4, 4, 3)
-    b = torch.ones(4, 4, 3)
-    assert psnr(b, b) == math.inf
-    assert psnr(a + 0.1, b * 1.0, peak=1.0) == pytest.approx(10 * math.log10(1 / 0.81))
-    with pytest.raises(ShapeError):
-        psnr(a, b[:2])
 
 
 def test_block_lighting_representations_agree():

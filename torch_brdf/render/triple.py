@@ -59,6 +59,7 @@ from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
+from ..metrics import psnr
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.scene import Scene
@@ -745,26 +746,3 @@ def _entries(offsets: torch.Tensor, ids: torch.Tensor) -> tuple[torch.Tensor, to
     first = torch.cumsum(counts, 0) - counts
     ent = torch.repeat_interleave(start - first, counts) + torch.arange(int(counts.sum()))
     return row, ent
-
-
-# ---------------------------------------------------------------------------------- metrics
-def psnr(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None, peak: float | None = None):
-    r"""Peak signal-to-noise ratio in dB, :math:`10\log_{10}(\mathrm{peak}^2/\mathrm{MSE})`.
-
-    Args:
-        image, reference: (H, W, C) (or any equal shapes) linear images.
-        mask: optional (H, W) bool; only those pixels count.
-        peak: default the reference's maximum over the counted pixels.
-    Returns:
-        float (``inf`` for identical images).
-    """
-    if image.shape != reference.shape:
-        raise ShapeError(f"image {tuple(image.shape)} and reference {tuple(reference.shape)} differ")
-    a, b = image.to(torch.float64), reference.to(torch.float64)
-    if mask is not None:
-        a, b = a[mask], b[mask]
-    mse = float(((a - b) ** 2).mean())
-    p = float(b.max()) if peak is None else float(peak)
-    if mse == 0:
-        return float("inf")
-    return 10 * math.log10(p * p / mse)
