@@ -53,6 +53,13 @@ def _compared(image, reference, mask) -> tuple[torch.Tensor, torch.Tensor]:
     return a[mask], b[mask]
 
 
+def _ratio(error: float, size: float, name: str) -> float:
+    """``error / size`` of a relative metric, refused when the reference's ``size`` is zero."""
+    if not size > 0:
+        raise ValueRangeError(f"the reference is zero where compared; {name} is undefined")
+    return error / size
+
+
 def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
     r"""Relative RMSE :math:`\sqrt{\sum (I - R)^2 / \sum R^2}` over the counted pixels and channels.
 
@@ -65,28 +72,15 @@ def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tens
         ValueRangeError: the reference is zero wherever compared.
     """
     a, b = _compared(image, reference, mask)
-    den = float((b * b).sum())
-    if not den > 0:
-        raise ValueRangeError("the reference is zero where compared; relative RMSE is undefined")
-    return math.sqrt(float(((a - b) ** 2).sum()) / den)
+    return math.sqrt(_ratio(float(((a - b) ** 2).sum()), float((b * b).sum()), "relative RMSE"))
 
 
 def relative_l1(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    r"""Relative L1 error :math:`\sum |I - R| / \sum |R|` over the counted pixels and channels.
-
-    Args:
-        image, reference: (H, W, C) (or any equal shapes).
-        mask: optional (H, W) bool; only those pixels count (default all).
-    Returns:
-        float.
-    Raises:
-        ValueRangeError: the reference is zero wherever compared.
-    """
+    r"""Relative L1 error :math:`\sum |I - R| / \sum |R|` over the counted pixels and channels:
+    a float, from images (H, W, C) and an optional (H, W) bool mask as :func:`relative_rmse`
+    takes them (and refused, as there, when the reference is zero wherever compared)."""
     a, b = _compared(image, reference, mask)
-    den = float(b.abs().sum())
-    if not den > 0:
-        raise ValueRangeError("the reference is zero where compared; relative L1 error is undefined")
-    return float((a - b).abs().sum()) / den
+    return _ratio(float((a - b).abs().sum()), float(b.abs().sum()), "relative L1 error")
 
 
 def psnr(
