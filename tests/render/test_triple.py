@@ -209,9 +209,10 @@ def test_image_interpolates_vertex_colours_at_primary_hits(scene, vis):
     assert len(view.vertex_ids) < len(vis.vertices)  # culled: not every vertex is seen
     rad = torch.rand(len(view.vertex_ids), 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     img = r.image(view, rad, background=False)
-    k = len(view.pixel) // 2
-    expect = (rad[view.corners[k]] * view.weights[k][:, None]).sum(0)
-    flat = img.view(-1, 3)[view.pixel[k]]
+    gb = view.gbuffer
+    k = len(gb.pixels) // 2
+    expect = (rad[gb.corners[k]] * gb.weights[k][:, None]).sum(0)
+    flat = img.view(-1, 3)[gb.pixels[k]]
     torch.testing.assert_close(flat.double(), expect, rtol=1e-6, atol=1e-7)
     assert float(img.view(-1, 3)[~view.mask.view(-1)].abs().max()) == 0.0
     ours, stats = r.render()
