@@ -14,6 +14,7 @@ package through its ``__init__`` from outside is still found).
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import torch_brdf
@@ -163,6 +164,14 @@ def test_no_import_cycles():
 def test_every_subpackage_is_in_a_layer():
     _, _, loose = _report(PACKAGE)
     assert not loose, f"in no layer (add them to LAYERS here and in STYLE.md): {loose}"
+
+
+def test_package_docstring_lists_every_subpackage():
+    """One line per public subpackage and top-level module, and no line for one that is gone."""
+    mods = modules(PACKAGE)
+    public = {m.split(".")[1] for m in mods if "." in m and not m.split(".")[1].startswith("_")}
+    cited = set(re.findall(r"^\* :mod:`torch_brdf\.(\w+)`", torch_brdf.__doc__, re.MULTILINE))
+    assert cited == public, f"missing from the package docstring: {public - cited}; gone: {cited - public}"
 
 
 def _write(root: Path, files: dict[str, str]) -> Path:

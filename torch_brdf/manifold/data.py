@@ -9,7 +9,7 @@ direction (for :math:`\phi_h = 0`, lower-edge angles) is at or below the horizon
 dropped (the NBRDF tables mark them missing; real MERL files also miss data there). A row of
 ``Z`` is ``[R bins, G bins, B bins]`` over the valid bins, in 1/sr with MERL's scale applied.
 Missing measurements of a real file (negative values) in a valid bin are bad input for the
-manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`GPLVM.project` with a mask
+manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`~torch_brdf.manifold.gplvm.GPLVM.project` with a mask
 for partially observed BRDFs.
 
 **Sources.** :func:`nbrdf_observations` tabulates the NBRDF networks (an *approximation* of
