@@ -125,7 +125,7 @@ def trace_gbuffer(
     """
     cam = camera if camera is not None else scene.camera
     o, d = cam.generate_rays(dtype=F64)
-    hits = scene.trace(o, d)
+    hits = scene.trace(o.float(), d.float())  # embree's float32 either way; rows kept go to float64 below
     keep = hits.hit
     if objects is not None:
         wanted = [objects] if isinstance(objects, str | int) else list(objects)
@@ -141,7 +141,7 @@ def trace_gbuffer(
     obj, prim = hits.object_id[idx], hits.prim_id[idx]
     tracer = scene.tracer
     vids, corners = _vertex_rows(tracer.faces[tracer.face_offsets[obj] + prim])
-    uv = hits.barycentrics[idx]
+    uv = hits.barycentrics[idx].to(F64)
     return GBuffer(
         height=cam.height,
         width=cam.width,
@@ -149,10 +149,10 @@ def trace_gbuffer(
         pixels=idx,
         object_id=obj,
         prim_id=prim,
-        position=hits.position[idx],
-        geometric_normal=F.normalize(hits.geometric_normal[idx], dim=-1),
-        normal=F.normalize(hits.normal[idx], dim=-1),
-        depth=hits.t[idx],
+        position=hits.position[idx].to(F64),
+        geometric_normal=F.normalize(hits.geometric_normal[idx].to(F64), dim=-1),
+        normal=F.normalize(hits.normal[idx].to(F64), dim=-1),
+        depth=hits.t[idx].to(F64),
         wo=-d[idx],
         vertex_ids=vids,
         corners=corners,
