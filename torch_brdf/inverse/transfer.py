@@ -50,15 +50,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
-from ..errors import SceneError, ShapeError, ValueRangeError
+from ..errors import ShapeError, ValueRangeError
 from ..frame import Frame, half_terms
 from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
+from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.lights import LightSamples, luminance
 from ..scene.scene import Scene
 from .energy import default_basis
@@ -75,34 +75,12 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class ObjectPixels:
-    """The pixels of one object in one view (a small G-buffer), float64.
-
-    Attributes:
-        pixels: (P,) int64 flat row-major indices into the ``height x width`` frame.
-        height, width: frame size.
-        position: (P, 3) hit points; geometric_normal, normal: (P, 3) face and shading normals.
-        wo: (P, 3) unit directions towards the camera.
-        object_id: the object's index in the scene.
-    """
-
-    pixels: torch.Tensor
-    height: int
-    width: int
-    position: torch.Tensor
-    geometric_normal: torch.Tensor
-    normal: torch.Tensor
-    wo: torch.Tensor
-    object_id: int
-
-    @property
-    def count(self) -> int:
-        return self.pixels.shape[0]
+#: the pixels of one object in one view: a :class:`~torch_brdf.scene.gbuffer.GBuffer` (former name).
+ObjectPixels = GBuffer
 
 
-def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) -> ObjectPixels:
-    """Trace one primary ray per pixel centre and keep the pixels whose closest hit is ``obj``.
+def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) -> GBuffer:
+    """The G-buffer of the pixels whose closest primary hit is ``obj`` (:func:`trace_gbuffer`).
 
     Args:
         scene: the scene.
@@ -112,32 +90,11 @@ def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) ->
     Raises:
         SceneError: unknown object, or the object covers no pixel of the view.
     """
-    oid = scene.object_id(obj) if isinstance(obj, str) else int(obj)
-    if not 0 <= oid < len(scene.objects):
-        raise SceneError(f"object id {oid} out of range for {len(scene.objects)} objects")
-    cam = camera if camera is not None else scene.camera
-    o, d = cam.generate_rays(dtype=torch.float64)
-    hits = scene.trace(o, d)
-    keep = hits.object_id == oid
-    if not bool(keep.any()):
-        raise SceneError(f"object {scene.objects[oid].name!r} covers no pixel of the {cam.width}x{cam.height} view")
-    idx = torch.nonzero(keep).squeeze(1)
-    return ObjectPixels(
-        pixels=idx,
-        height=cam.height,
-        width=cam.width,
-        position=hits.position[idx].double(),
-        # embree's float32 normals renormalised in float64: the shading frames must be orthonormal
-        # to float64 precision, or local directions are off unit length by ~1e-7
-        geometric_normal=F.normalize(hits.geometric_normal[idx].double(), dim=-1),
-        normal=F.normalize(hits.normal[idx].double(), dim=-1),
-        wo=-d[idx].double(),
-        object_id=oid,
-    )
+    return trace_gbuffer(scene, camera, objects=obj)
 
 
 def cosine_visibility(
-    scene: Scene, px: ObjectPixels, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool = False
+    scene: Scene, px: GBuffer, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool = False
 ) -> torch.Tensor:
     r"""Cosine-weighted visibility :math:`\tilde V(x_p, \omega_s) = V\max(0, n_p\cdot\omega_s)`.
 
@@ -264,7 +221,7 @@ def _accumulate(T, ii, wi, wo, weight, f0, basis, chunk: int = 1 << 14) -> None:
 
 
 def transfer_functions(
-    px: ObjectPixels,
+    px: GBuffer,
     samples: LightSamples,
     visibility: torch.Tensor,
     basis: SRBFBasis | None = None,
@@ -276,7 +233,7 @@ def transfer_functions(
     r"""Transfer functions :math:`T_j(x)` (Eq. 6; Eq. 21 with ``cuts``) and :math:`E(x)` for one object.
 
     Args:
-        px: the object's pixels (:func:`object_pixels`).
+        px: the object's pixels (:func:`object_pixels`, a G-buffer).
         samples: the light directions (:class:`LightSamples`).
         visibility: (P, S) :math:`\tilde V` from :func:`cosine_visibility`.
         basis: the SRBFs (default 147 hemicube lobes, :math:`\sigma = \pi/40`).

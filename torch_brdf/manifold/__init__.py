@@ -6,21 +6,21 @@ and other linear functionals of the BRDF blend with the same weights b.
 
 * :mod:`.kernel`: shifted SE kernel (Eq. 5), Cholesky with jitter escalation.
 * :mod:`.gplvm`: Gram-matrix fit (Eq. 6), :class:`GPLVM` interpolation / variance / projection.
-* :mod:`.data`: MERL grids, observation matrices (NBRDF, ``.binary``), split, metrics, PCA.
+* :mod:`.data`: MERL grids, observation matrices (NBRDF, ``.binary``), split, PCA
+  (the held-out metrics live in :mod:`torch_brdf.metrics`).
 * :mod:`.evaluate`: held-out reconstruction against PCA.
 * :mod:`.paths`: latent slices, best paths, limitation diagnostics.
 * :mod:`.materials`: per-material image records and the sphere scene (rendered by :mod:`torch_brdf.render.manifold`).
 * :mod:`.zh`: real SH / rotated ZH shading of interpolated materials.
 """
 
+from ..metrics import cosine_weighted_rmse, log_relative_rmse  # re-exported from torch_brdf.metrics
 from .data import (
     MERLGrid,
     Observations,
     analytic_observations,
-    cosine_weighted_rmse,
     default_grid,
     fit_pca,
-    log_relative_rmse,
     nbrdf_observations,
     read_split,
     split_names,

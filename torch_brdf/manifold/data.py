@@ -9,7 +9,7 @@ direction (for :math:`\phi_h = 0`, lower-edge angles) is at or below the horizon
 dropped (the NBRDF tables mark them missing; real MERL files also miss data there). A row of
 ``Z`` is ``[R bins, G bins, B bins]`` over the valid bins, in 1/sr with MERL's scale applied.
 Missing measurements of a real file (negative values) in a valid bin are bad input for the
-manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`GPLVM.project` with a mask
+manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`~torch_brdf.manifold.gplvm.GPLVM.project` with a mask
 for partially observed BRDFs.
 
 **Sources.** :func:`nbrdf_observations` tabulates the NBRDF networks (an *approximation* of
@@ -20,14 +20,11 @@ MERL, see ``../shared/data/merl/README.md``) through
 column blocks for :func:`~torch_brdf.manifold.gplvm.gram`, so the full-resolution Gram matrix
 never needs the whole ``Z`` in memory.
 
-**Metrics** (held-out reconstruction, after Nielsen, Jensen and Ramamoorthi 2015, "On Optimal,
-Minimal BRDF Sampling for Reflectance Acquisition"): the cosine map
-:math:`c = \cos\theta_i\cos\theta_o` clipped to [0.01, 1]; the log mapping
-:math:`m(\rho) = \log((\rho c + \varepsilon)/(\rho_{\mathrm{ref}} c + \varepsilon))` with the
-per-bin median :math:`\rho_{\mathrm{ref}}` of the training set and :math:`\varepsilon = 10^{-3}`;
-log-relative RMSE = RMSE of :math:`m(\hat\rho) - m(\rho)` (the reference cancels in the
-difference; kept for the mapping's definition); interpolants are clamped at 0 inside the
-log (negative values have no log). Cosine-weighted RMSE = RMSE of :math:`c(\hat\rho - \rho)`.
+**Metrics** of held-out reconstructions: :func:`~torch_brdf.metrics.log_relative_rmse` (after
+Nielsen, Jensen and Ramamoorthi 2015, with the per-bin median of the training set as
+:math:`\rho_{\mathrm{ref}}`) and :func:`~torch_brdf.metrics.cosine_weighted_rmse`, both on
+the cosine map :math:`c = \cos\theta_i\cos\theta_o` clipped to [0.01, 1]; they live in
+:mod:`torch_brdf.metrics` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -46,6 +43,8 @@ from tqdm.auto import tqdm
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
+from ..metrics import cosine_weighted_rmse as cosine_weighted_rmse  # re-exported
+from ..metrics import log_relative_rmse as log_relative_rmse  # re-exported
 from ..records.cache import Checkpoint
 
 OBS_KIND = "merl-observations"
@@ -326,42 +325,7 @@ def read_split(path: str | os.PathLike) -> tuple[list[str], list[str]]:
     return train, test
 
 
-# -- metrics and the PCA baseline ------------------------------------------------------------------
-def log_relative_rmse(
-    pred: torch.Tensor, true: torch.Tensor, cosine: torch.Tensor, eps: float = 1e-3, reference=None
-) -> torch.Tensor:
-    r"""Log-relative RMSE per row (Nielsen et al. 2015 mapping, see the module docstring).
-
-    Args:
-        pred, true: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
-        eps: :math:`\varepsilon`. reference: optional per-bin :math:`\rho_{ref}` (cancels; accepted for clarity).
-    Returns:
-        (M,) or () float64.
-    """
-    pred, true = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(true, dtype=torch.float64)
-    c = _cos_like(cosine, true)
-    ref = torch.zeros_like(c) if reference is None else torch.as_tensor(reference, dtype=torch.float64) * c
-    mp = torch.log(pred.clamp_min(0) * c + eps) - torch.log(ref + eps)
-    mt = torch.log(true.clamp_min(0) * c + eps) - torch.log(ref + eps)
-    return ((mp - mt) ** 2).mean(-1).sqrt()
-
-
-def cosine_weighted_rmse(pred: torch.Tensor, true: torch.Tensor, cosine: torch.Tensor) -> torch.Tensor:
-    """RMSE of ``cosine * (pred - true)`` per row: (M,) or ()."""
-    pred, true = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(true, dtype=torch.float64)
-    c = _cos_like(cosine, true)
-    return (((pred - true) * c) ** 2).mean(-1).sqrt()
-
-
-def _cos_like(cosine, like: torch.Tensor) -> torch.Tensor:
-    c = torch.as_tensor(cosine, dtype=torch.float64)
-    if c.numel() * 3 == like.shape[-1]:
-        c = c.repeat(3)
-    if c.shape != (like.shape[-1],):
-        raise ShapeError(f"cosine map of shape {tuple(c.shape)} does not match rows of width {like.shape[-1]}")
-    return c
-
-
+# -- the PCA baseline ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class PCABasis:
     """Linear baseline: mean (d,) and q orthonormal components (q, d) of weighted rows."""

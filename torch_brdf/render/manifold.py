@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from ..errors import ShapeError
 from ..manifold.data import MERLGrid
 from ..manifold.materials import merl_material, with_material
+from ..metrics import relative_l1, relative_rmse
 from ..records.basis_image import BasisImage
 from ..scene.scene import Scene
 from ..transport.pathtrace import path_trace
@@ -69,17 +70,11 @@ def gi_blend_error(blended: torch.Tensor, reference: torch.Tensor) -> dict[str, 
     """Relative errors of a blended GI image against a render of the interpolated BRDF.
 
     Returns:
-        ``{"rel_l1": sum|a-b| / sum|b|, "rel_rmse": rms(a-b) / rms(b)}``.
+        ``{"rel_l1": sum|a-b| / sum|b|, "rel_rmse": rms(a-b) / rms(b)}`` (:mod:`torch_brdf.metrics`).
+    Raises:
+        ShapeError: the shapes differ; ValueRangeError: the reference is all zero.
     """
-    a, b = torch.as_tensor(blended, dtype=torch.float64), torch.as_tensor(reference, dtype=torch.float64)
-    if a.shape != b.shape:
-        raise ShapeError(f"image shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
-    den1 = float(b.abs().sum()) or 1.0
-    den2 = float(b.pow(2).mean().sqrt()) or 1.0
-    return {
-        "rel_l1": float((a - b).abs().sum()) / den1,
-        "rel_rmse": float((a - b).pow(2).mean().sqrt()) / den2,
-    }
+    return {"rel_l1": relative_l1(blended, reference), "rel_rmse": relative_rmse(blended, reference)}
 
 
 __all__ = ["blend", "gi_blend_error", "render_rows"]

@@ -37,6 +37,7 @@ from .._checks import as_float_tensor, check_finite
 from ..brdf import BRDF, Lambert, create
 from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
+from ..metrics import relative_rmse as relative_rmse  # re-exported; defined in torch_brdf.metrics
 from ..records.polynomial import ObjectBasis, PolynomialTensors
 
 
@@ -403,20 +404,6 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is None:
             return 0
         return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
-
-
-def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    r"""Relative RMSE :math:`\sqrt{\sum (I - R)^2 / \sum R^2}` over pixels (and channels) where
-    ``mask`` (H, W) holds (default all). Images (H, W, C)."""
-    if image.shape != reference.shape:
-        raise ShapeError(f"image {tuple(image.shape)} and reference {tuple(reference.shape)} differ in shape")
-    a, b = image.detach().double(), reference.detach().double()
-    if mask is not None:
-        a, b = a[mask], b[mask]
-    den = float((b * b).sum())
-    if not den > 0:
-        raise ValueRangeError("the reference is zero where compared; relative RMSE is undefined")
-    return math.sqrt(float(((a - b) ** 2).sum()) / den)
 
 
 def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:

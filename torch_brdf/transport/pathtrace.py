@@ -106,8 +106,9 @@ def sample_light(scene: Scene, light, pos, ng, ns, gen):
     """Next-event estimation towards ``light`` from every vertex.
 
     Returns:
-        (ls, cos, candidates, visible): the :class:`LightSample`, the cosine at the shading
-        normal (n,), how many shadow rays were cast, and the rows (long) that see the light.
+        (ls, cos, candidates, visible): the :class:`~torch_brdf.scene.lights.LightSample`, the
+        cosine at the shading normal (n,), how many shadow rays were cast, and the rows (long)
+        that see the light.
     """
     ls = light.sample(pos, gen)
     cos = (ls.direction * ns).sum(-1)
