@@ -468,7 +468,7 @@ class EditorApp:
         self.job.start()
 
     def _show_reference(self, editor_image: torch.Tensor, job: ReferenceJob) -> None:
-        from ..render.polynomial import relative_rmse
+        from ..metrics import relative_rmse
 
         rmse = relative_rmse(editor_image, job.image, self.session.mask)
         diff = editor_image - job.image

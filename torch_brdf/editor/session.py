@@ -33,8 +33,12 @@ import torch
 
 from ..brdf import BRDF, Factored1D, Lambert, PairQuadrature, create, make_quotient
 from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
-from ..render.polynomial import PolynomialRenderer, emitter_mask, relative_rmse
-from ..transport import PolynomialTensors, path_trace, precompute_polynomial
+from ..metrics import relative_rmse
+from ..records import PolynomialTensors
+from ..render import PolynomialRenderer
+from ..render.polynomial import emitter_mask
+from ..scene import trace_gbuffer
+from ..transport import path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
@@ -97,16 +101,19 @@ def object_id_buffer(tensors: PolynomialTensors, scene=None) -> tuple[torch.Tens
     """Which object each pixel shows: (H, W) int64 object ids (-1: nothing), and how it was found.
 
     The tensors do not store a primary-hit buffer. With ``scene`` (the scene the tensors were
-    precomputed from, same camera size and object names) the buffer comes from primary rays
-    through the pixel centres (``"primary rays"``). Without it, from the tensors: every
+    precomputed from, same camera size and object names) the buffer comes from the scene's
+    G-buffer, primary rays through the pixel centres (``"primary rays"``). Without it, from
+    the tensors: every
     entry names its eye object (the block's object), and each pixel takes the object most of
     its entries name (``"tensor entries"``; pixels that see only an emitter or nothing get -1).
     """
     h, w = tensors.height, tensors.width
     if scene is not None and (scene.camera.width, scene.camera.height) == (w, h):
         if [o.name for o in scene.objects] == list(tensors.object_names):
-            o, d = scene.camera.generate_rays()
-            return scene.trace(o, d).object_id.reshape(h, w).long(), "primary rays"
+            g = trace_gbuffer(scene)
+            ids = torch.full((h * w,), -1, dtype=torch.int64)
+            ids[g.pixels] = g.object_id
+            return ids.reshape(h, w), "primary rays"
     counts = torch.zeros(tensors.num_objects, h * w)
     for b in tensors.blocks:  # every block's entries belong to its eye object, whatever the bounce
         pix = b.pixels[b.coordinates()[2]]
