@@ -41,7 +41,7 @@ def _p95(xs: list[float]) -> float:
     return s[min(len(s) - 1, round(0.95 * (len(s) - 1)))]
 
 
-def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dict:
+def measure(size: int, steps: int, spp: int, workdir: Path, threads) -> dict:
     from playwright.sync_api import sync_playwright
 
     from torch_brdf.editor.server import EditorServer, launch_chromium
@@ -82,6 +82,9 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dic
                     frame_ms.append(float(m.group(1)))
                     kernel_ms.append(float(m.group(3)))
             exponent = page.input_value(".tb-typed-exponent input")
+            status = page.inner_text("body")
+            m = re.search(r"(\d) torch threads? \(timed\)", status)
+            chosen = int(m.group(1)) if m else None
         finally:
             browser.close()
     out = {
@@ -90,6 +93,7 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads: int) -> dic
         f"frame_ms_{size}": round(statistics.median(frame_ms), 2) if frame_ms else None,
         f"kernel_ms_{size}": round(statistics.median(kernel_ms), 1) if kernel_ms else None,
         f"playwright_ms_{size}": round(statistics.median(wall), 1),
+        f"threads_{size}": chosen if chosen is not None else threads,
     }
     print(f"{size}²: {out} (exponent now {exponent})", file=sys.stderr)
     return out
@@ -100,7 +104,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="128² and 256², 20 steps, 1 spp")
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--spp", type=int, default=None)
-    ap.add_argument("--threads", type=int, default=1, help="torch threads of the editor's kernel")
+    ap.add_argument("--threads", default="auto", help="torch threads of the editor's kernel (an int or auto)")
     ap.add_argument("--tensors", type=Path, default=Path("out/bench_editor"), help="where the tensors are kept")
     args = ap.parse_args()
     from torch_brdf.editor.server import CHROMIUM
@@ -110,11 +114,12 @@ def main() -> None:
     sizes = (128, 256) if args.quick else (256, 512)
     steps = args.steps or (20 if args.quick else 50)
     spp = args.spp or (1 if args.quick else 4)
-    result: dict = {"sizes": list(sizes), "steps": steps, "spp": spp, "threads": args.threads}
+    threads = args.threads if args.threads == "auto" else int(args.threads)
+    result: dict = {"sizes": list(sizes), "steps": steps, "spp": spp, "threads": threads}
     result["load_avg_start"] = round(os.getloadavg()[0], 2)
     args.tensors.mkdir(parents=True, exist_ok=True)
     for size in sizes:
-        result.update(measure(size, steps, spp, args.tensors.resolve(), args.threads))
+        result.update(measure(size, steps, spp, args.tensors.resolve(), threads))
     result["load_avg_end"] = round(os.getloadavg()[0], 2)
     for key in ("latency_ms_256", "latency_ms_512", "p95_ms_512"):
         result.setdefault(key, None)
