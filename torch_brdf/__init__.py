@@ -6,7 +6,8 @@ built-in scenes), :mod:`torch_brdf.io` (EXR/PNG, versioned array files),
 (path tracing), :mod:`torch_brdf.errors` (the exception hierarchy).
 """
 
-from . import errors
+# _threads first: it sets OMP_WAIT_POLICY before torch loads
+from . import _threads, errors
 from .errors import TorchBRDFError
 
 __version__ = "0.1.0"
