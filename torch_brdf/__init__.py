@@ -6,8 +6,7 @@ built-in scenes), :mod:`torch_brdf.io` (EXR/PNG, versioned array files),
 (path tracing), :mod:`torch_brdf.errors` (the exception hierarchy).
 """
 
-# _threads first: it sets OMP_WAIT_POLICY before torch loads
-from . import _threads, errors
+from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
 from .errors import TorchBRDFError
 
 __version__ = "0.1.0"

@@ -38,9 +38,10 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-if "torch" not in sys.modules:  # libgomp reads it at load time: only effective before torch
+_TORCH_FIRST = "torch" in sys.modules
+if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective before that
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-_WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY") if "torch" not in sys.modules else None
+_WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY")
 
 import torch  # noqa: E402  (after OMP_WAIT_POLICY)
 
@@ -183,11 +184,13 @@ def intra_op_threads(threads: int | None = None) -> int:
 
 
 def omp_wait_policy() -> str:
-    """``OMP_WAIT_POLICY`` as the OpenMP runtime read it when torch loaded ("default" when
-    torch was imported before torch_brdf and the variable was not set then)."""
-    if _WAIT_POLICY_AT_LOAD is not None:
-        return _WAIT_POLICY_AT_LOAD.upper()
-    return "unknown (torch was imported before torch_brdf)"
+    """``OMP_WAIT_POLICY`` as torch's OpenMP runtime read it when torch loaded: the value (e.g.
+    "PASSIVE"), or "default" (libgomp spins a while, then sleeps). When torch was imported
+    before torch_brdf the current value is reported with " (if set before torch loaded)"."""
+    if _TORCH_FIRST:
+        value = os.environ.get("OMP_WAIT_POLICY")
+        return "default" if value is None else f"{value.upper()} (if set before torch loaded)"
+    return (_WAIT_POLICY_AT_LOAD or "default").upper()
 
 
 # -- applying them ------------------------------------------------------------------------------------

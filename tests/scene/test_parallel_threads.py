@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_info
 
-from torch_brdf.scene.parallel import CHUNK, HitArrays, TracePool, TraceKernel
+from torch_brdf.scene.parallel import CHUNK, HitArrays, TraceKernel, TracePool
 
 
 class _AskingKernel(TraceKernel):
