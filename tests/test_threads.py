@@ -95,9 +95,12 @@ def test_env_and_argument_overrides(monkeypatch, cores):
     monkeypatch.setattr(th, "cgroup_cpu_limit", lambda *a: None)
     monkeypatch.delenv(th.ENV_WORKERS, raising=False)
     monkeypatch.delenv(th.ENV_THREADS, raising=False)
-    assert th.worker_count() == 4 and th.intra_op_threads() == 4
+    with th.limit_threads(3, blas=False):  # torch's own count, capped at the usable cores
+        assert th.worker_count() == 4 and th.intra_op_threads() == 3
+        cores(2)
+        assert th.worker_count() == 2 and th.intra_op_threads() == 2
     cores(64)
-    assert th.worker_count() == th.MAX_DEFAULT_WORKERS and th.intra_op_threads() == 64
+    assert th.worker_count() == th.MAX_DEFAULT_WORKERS
     monkeypatch.setenv(th.ENV_WORKERS, " 3 ")
     monkeypatch.setenv(th.ENV_THREADS, "5")
     assert th.worker_count() == 3 and th.intra_op_threads() == 5

@@ -5,7 +5,7 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
 - :func:`worker_count`: processes that trace rays (the caller plus forked children); argument,
   else ``TORCH_BRDF_WORKERS``, else the usable cores (at most :data:`MAX_DEFAULT_WORKERS`).
 - :func:`intra_op_threads`: torch threads of the calling process; argument, else
-  ``TORCH_BRDF_THREADS``, else the usable cores.
+  ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set on import).
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
@@ -175,12 +175,13 @@ def worker_count(workers: int | None = None) -> int:
 
 
 def intra_op_threads(threads: int | None = None) -> int:
-    """torch intra-op threads for the calling process (argument, else ``TORCH_BRDF_THREADS``,
-    else the usable cores). Raises :class:`ValueRangeError` on a non-positive count."""
+    """torch intra-op threads for the calling process: the argument, else ``TORCH_BRDF_THREADS``,
+    else torch's own count capped at the usable cores (torch counts the affinity mask but not a
+    cgroup quota). Raises :class:`ValueRangeError` on a count that is not a positive integer."""
     if threads is not None:
         return _positive(threads, "threads")
     env = _from_env(ENV_THREADS)
-    return env if env is not None else usable_cores()
+    return env if env is not None else max(1, min(torch.get_num_threads(), usable_cores()))
 
 
 def omp_wait_policy() -> str:
@@ -253,11 +254,9 @@ def configure_worker(threads: int = 1) -> None:
 
 
 def cap_to_usable() -> None:
-    """Never run more torch threads than usable cores (torch counts the affinity mask but not
-    a cgroup quota); ``TORCH_BRDF_THREADS`` sets the count outright. Called on import."""
-    n = _from_env(ENV_THREADS)
-    if n is None:
-        n = min(torch.get_num_threads(), usable_cores())
+    """Set torch's thread count to :func:`intra_op_threads` (never more than the usable cores;
+    ``TORCH_BRDF_THREADS`` sets it outright). Called on import."""
+    n = intra_op_threads()
     if n != torch.get_num_threads():
         torch.set_num_threads(n)
 
@@ -364,7 +363,7 @@ def tuned(op: str, size: int, threads: int | None = None):
     with _lock:
         t = _tunings.get(key)
         if t is None:
-            t = _tunings[key] = _Tuning(candidates(min(usable_cores(), max(1, torch.get_num_threads()))))
+            t = _tunings[key] = _Tuning(candidates(intra_op_threads()))
         n = t.next_count()
     with limit_threads(n, blas=False):
         t0 = time.perf_counter()

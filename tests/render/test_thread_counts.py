@@ -65,7 +65,7 @@ def test_polynomial_paths_run_under_the_measured_count(polynomial, monkeypatch):
     ops = {op for op, _ in state}
     assert ops == {"polynomial.freeze", "polynomial.frame"}
     frame = next(v for (op, _), v in state.items() if op == "polynomial.frame")
-    tried = _threads.candidates(min(_threads.usable_cores(), torch.get_num_threads()))
+    tried = _threads.candidates(_threads.intra_op_threads())
     assert sorted(set(seen)) == tried  # each candidate measured on real frames
     assert frame["chosen"] in tried and seen[-1] == frame["chosen"]
     _threads.reset_tuning()
