@@ -241,16 +241,22 @@ def single_thread(enabled: bool = True):
         yield
 
 
+def prepare_fork() -> None:
+    """Call in the parent before forking workers: finds the BLAS libraries now, so that
+    :func:`configure_worker` in a child only calls into them (no ``dlopen`` after fork)."""
+    _blas_controller()
+
+
 def configure_worker(threads: int = 1) -> None:
     """Run first in every worker process: ``threads`` torch threads and BLAS threads (one
-    worker per core; a worker's own threads would compete with its siblings)."""
+    worker per core; a worker's own threads would compete with its siblings). BLAS threads
+    are set when the parent called :func:`prepare_fork` (else the environment variables
+    below reach only libraries loaded later)."""
     os.environ["OMP_NUM_THREADS"] = os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
     os.environ["MKL_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
-    try:
-        _blas_controller().limit(limits=threads, user_api="blas")
-    except Exception:  # pragma: no cover - a BLAS threadpoolctl cannot drive is left alone
-        pass
+    if _BLAS is not None:
+        _BLAS.limit(limits=threads, user_api="blas")
 
 
 def cap_to_usable() -> None:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._threads import configure_worker, worker_count
+from .._threads import configure_worker, prepare_fork, worker_count
 
 #: rays per embree call; results do not depend on it being shared by every process.
 CHUNK = 1 << 14
@@ -329,6 +329,7 @@ class TracePool:
             return
         self._procs, self._conns = [], []  # after a fork: the parent's children are not ours
         self.kernel.commit()
+        prepare_fork()
         ctx = multiprocessing.get_context("fork")
         ppid = os.getpid()
         self._shared = _Shared(ROUND, ctx.Lock())
