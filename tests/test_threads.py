@@ -44,6 +44,7 @@ def _v2(tmp_path, rel: str, files: dict[str, str]):
 def _v1(tmp_path, line: str, dirs: dict[str, tuple[str, str]]):
     """A fake cgroup v1 mount: ``dirs`` maps a path under the mount to (quota, period)."""
     root = tmp_path / "cgroup"
+    root.mkdir(parents=True, exist_ok=True)
     for path, (quota, period) in dirs.items():
         d = root / path
         d.mkdir(parents=True, exist_ok=True)
@@ -84,6 +85,11 @@ def test_cgroup_v1_quota(tmp_path, cores):
     root, proc = _v1(tmp_path / "y", "1:cpu:/\n0::/", {"cpu": ("200000", "100000")})
     (root / "unified").mkdir()
     assert th.usable_cores(root, proc) == 2
+    # hybrid with the quota on the unified side (cgroup v2 cpu controller)
+    root, proc = _v1(tmp_path / "z", "1:cpuacct:/\n0::/job", {})
+    (root / "unified" / "job").mkdir(parents=True)
+    (root / "unified" / "job" / "cpu.max").write_text("100000 100000\n")
+    assert th.usable_cores(root, proc) == 1
 
 
 def test_usable_cores_on_this_machine_is_within_the_affinity_mask():

@@ -105,7 +105,8 @@ def cgroup_cpu_limit(root: str | os.PathLike = _CGROUP_ROOT, proc_cgroup: str | 
         _, controllers, rel = parts
         rel = rel.lstrip("/")
         if controllers == "":  # cgroup v2 unified hierarchy
-            bases = [root, root / "unified"]  # unified alone, or beside v1 (hybrid)
+            hybrid = root / "unified"  # v2 mounted beside the v1 controllers (hybrid)
+            bases = [hybrid if hybrid.is_dir() else root]
             pairs = lambda d: (_read(d / "cpu.max") or "").split()  # noqa: E731
         elif "cpu" in controllers.split(","):  # cgroup v1 cpu controller
             bases = [root / controllers, root / "cpu,cpuacct", root / "cpu"]
