@@ -28,11 +28,12 @@ alternations of quiet and loaded (after warm-up calls in each phase):
   when it runs here (needs Debian's libllvm19), else ``scalar_rgb`` (``mitsuba_variant``,
   ``mitsuba_note`` say which and why): the reference ``mitsuba_slowdown``.
 
-The last line printed is one JSON object: per stage ``{quiet_s, loaded_s, slowdown}`` under
-``stages``, ``slowdown`` (stage -> ratio), ``embree_slowdown``, ``mitsuba_slowdown``,
-``max_slowdown`` (our stages), ``threads`` (what ``torch_brdf._threads`` chose), the cores,
-``OMP_WAIT_POLICY`` as torch's OpenMP read it, and ``loadavg`` before and after: on a shared
-machine the other programs' load is part of every figure.
+The last line printed is one JSON object: per stage ``{quiet_s, loaded_s, slowdown}`` (and
+every timed run in ``quiet_runs`` / ``loaded_runs``) under ``stages``, ``slowdown`` (stage ->
+ratio), ``embree_slowdown``, ``mitsuba_slowdown``, ``max_slowdown`` (our stages), ``threads``
+(what ``torch_brdf._threads`` chose), the cores, ``OMP_WAIT_POLICY`` as torch's OpenMP read
+it, and ``loadavg`` before and after: on a shared machine the other programs' load is part
+of every figure.
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def stage_precompute(q: bool, ctx: dict):
 
     sc = ctx.setdefault("box", cornell_box_glossy(64 if q else 128))
     spp = 4 if q else 16
-    return (lambda: precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=False)), 1, 1
+    return (lambda: precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=False)), 3 if q else 2, 1
 
 
 def _frozen_renderer(q: bool, ctx: dict):
@@ -287,6 +288,7 @@ def main(argv=None) -> dict:
                     times[phase] += _times(fn, repeats, warmup, *self_timed)
         for phase, ts in times.items():
             row[f"{phase}_s"] = round(statistics.median(ts), 5)
+            row[f"{phase}_runs"] = [round(t, 5) for t in ts]  # the spread: a shared machine is noisy
         row["slowdown"] = round(row["loaded_s"] / row["quiet_s"], 3)
         out["stages"][name] = row
         print(f"{name}: quiet {row['quiet_s']:.4f} s, loaded {row['loaded_s']:.4f} s, "

@@ -273,7 +273,7 @@ def cap_to_usable() -> None:
 TRIALS = 2
 #: a chosen count is measured again after this many consecutive calls slower than
 #: ``SLOW_FACTOR`` times its measured time (another program now shares the cores).
-SLOW_CALLS = 3
+SLOW_CALLS = 5
 SLOW_FACTOR = 1.8
 
 _override: int | None = None
