@@ -8,6 +8,7 @@
 """
 
 from ..records.basis_image import BasisImage, float16_error
+from .fit import ImageFit, fit_image, object_mask
 from .manifold import blend, gi_blend_error, render_rows
 from .polynomial import PolynomialRenderer
 from .record import BasisImageRenderer
@@ -16,10 +17,13 @@ from .triple import TripleProductRenderer
 __all__ = [
     "BasisImage",
     "BasisImageRenderer",
+    "ImageFit",
     "PolynomialRenderer",
     "TripleProductRenderer",
     "blend",
+    "fit_image",
     "float16_error",
     "gi_blend_error",
+    "object_mask",
     "render_rows",
 ]

@@ -1,0 +1,262 @@
+r"""Inverse material design with global illumination through the polynomial tensors (issue #16).
+
+With every other object's coefficients held, the image is a polynomial in the edited objects'
+band curves :math:`c_m` (Ben-Artzi et al. 2008, Eq. 26-28): the eye vertex is linear in
+:math:`c_m`, later bounces see :math:`c_m` through its diffuse equivalent
+:math:`d_m = \frac1\pi\sum_j c_{m,j} e_j` (App. B, Eq. 37) and the second-bounce coarsening
+(both linear in :math:`c_m`). :func:`fit_image` minimises, per colour channel,
+
+.. math:: L(c) = \tfrac12\sum_p w_p\,(B_p(c) - B^*_p)^2 + \tfrac\lambda2\sum_m\|D c_m\|^2
+          \quad\text{s.t.}\quad c \ge 0,\qquad \tfrac1\pi\sum_j c_{m,j} e_{m,j} \le 1\ \ \forall m,
+
+(the smoothness regulariser: :math:`D` takes first differences of each curve over adjacent
+bands; ``smoothness`` = :math:`\lambda`, default 0) by projected Gauss-Newton: at the iterate
+:math:`c_k` the residual is linearised, :math:`B(c) \approx B(c_k) + A(c - c_k)` with the exact
+Jacobian :math:`A` (forward-mode derivatives of the renderer's own evaluation, one per
+coefficient, all channels at once), and the constrained quadratic model
+
+.. math:: \min_c\ \tfrac12 c^\top(A^\top W A + \lambda D^\top D + \mu I)c
+          - (A^\top W (A c_k - r_k) + \mu c_k)^\top c
+
+is solved exactly by the inverse-design QP solver (:func:`torch_brdf.inverse.solve_qp`: non-negative
+bounds and the energy rows :math:`e_m/\pi`). A backtracking line search along the feasible
+segment :math:`c_k \to c_{QP}` (the feasible set is convex, so every point on it is feasible)
+keeps the loss monotone; :math:`\mu` (Levenberg damping, :math:`10^{-12}` of the largest
+diagonal entry unless the step is rejected) makes singular systems (few painted pixels,
+bands no painted pixel sees) well posed: the step is the smallest change that fits.
+
+Evaluation is :class:`~torch_brdf.render.PolynomialRenderer` (frozen when one object is edited,
+Eq. 28); nothing of its math is repeated here. The report (:class:`ImageFit`) holds the loss
+curve and the KKT residual of the last iterate, computed from the last QP's multipliers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from .._checks import as_float_tensor, check_finite
+from ..errors import ShapeError, ValueRangeError
+from ..inverse.qp import solve_qp
+from .polynomial import PolynomialRenderer
+
+__all__ = ["ImageFit", "energy_row", "fit_image", "object_mask"]
+
+
+@dataclass(frozen=True)
+class ImageFit:
+    """Result of :func:`fit_image`.
+
+    Attributes:
+        coefficients: object name -> (size, C) float64 fitted band coefficients.
+        albedo: object name -> (C,) diffuse equivalent :math:`\\frac1\\pi\\sum_j c_j e_j` (<= 1).
+        loss: final :math:`\\frac12\\sum_p w_p (B_p - B^*_p)^2` (summed over channels, without the
+            regulariser).
+        loss_curve: the loss before the first and after every iteration.
+        kkt_residual: max over channels of the relative KKT residual of the last iterate
+            (stationarity with the last QP's multipliers, complementarity, feasibility), each
+            relative to :math:`\\max(\\|A^\\top W B^*\\|_\\infty, 10^{-300})`.
+        violation: largest constraint violation (:math:`-c_j`, :math:`d - 1`), >= 0.
+        iterations: Gauss-Newton iterations.
+        converged: the relative loss change, the step or the KKT residual fell below ``tol``.
+        image: (H, W, C) the render of the fitted coefficients.
+    """
+
+    coefficients: dict[str, torch.Tensor]
+    albedo: dict[str, torch.Tensor]
+    loss: float
+    loss_curve: list[float]
+    kkt_residual: float
+    violation: float
+    iterations: int
+    converged: bool
+    image: torch.Tensor = field(repr=False)
+
+
+def energy_row(renderer: PolynomialRenderer, obj) -> torch.Tensor:
+    r"""(size, C) float64: the row :math:`e_j/\pi` (layers stacked) with :math:`d = \sum_j row_j c_j`."""
+    return torch.cat(renderer.albedo_weights(obj), 0) / math.pi
+
+
+def object_mask(tensors, obj) -> torch.Tensor:
+    """(H, W) bool: the pixels whose eye ray sees ``obj`` (its first-bounce blocks)."""
+    m = tensors.object_id(obj)
+    out = torch.zeros(tensors.height * tensors.width, dtype=torch.bool)
+    for b in tensors.blocks:
+        if b.object_id == m and b.bounce == 1:
+            out[b.pixels] = True
+    return out.reshape(tensors.height, tensors.width)
+
+
+def _diff(n: int, J: int) -> torch.Tensor:
+    """First differences of each J-band layer of an n-vector: ((J - 1) n / J, n)."""
+    rows = []
+    for k in range(n // J):
+        for j in range(J - 1):
+            r = torch.zeros(n, dtype=torch.float64)
+            r[k * J + j], r[k * J + j + 1] = -1.0, 1.0
+            rows.append(r)
+    return torch.stack(rows) if rows else torch.zeros(0, n, dtype=torch.float64)
+
+
+def fit_image(
+    renderer: PolynomialRenderer,
+    objects,
+    target,
+    weights=None,
+    init: dict | None = None,
+    smoothness: float = 0.0,
+    max_iter: int = 30,
+    tol: float = 1e-12,
+    albedo_max: float = 1.0,
+) -> ImageFit:
+    r"""Fit the band curves of ``objects`` so that the render matches ``target`` on the painted pixels.
+
+    Args:
+        renderer: a :class:`PolynomialRenderer` holding the other objects' materials (use
+            ``max_bounces=1`` for the direct-lighting-only fit). Its dtype should be float64
+            for tight fits. The fitted coefficients are left set on it.
+        objects: an editable object name (or id) or a list of them.
+        target: (H, W, C) target image (a painted image, or a full render).
+        weights: (H, W) or (H, W, C) fit weights >= 0 (the stroke mask); default all ones.
+        init: object -> (size, C) starting coefficients; default the renderer's current ones.
+        smoothness: :math:`\lambda` of the first-difference regulariser (see the module).
+        max_iter: Gauss-Newton iterations.
+        tol: stop when the loss changes by less than ``tol`` relative (or the step is zero).
+        albedo_max: the bound on each object's diffuse equivalent d (energy conservation: 1).
+    Returns:
+        :class:`ImageFit`.
+    Raises:
+        ShapeError: target or weights of the wrong shape.
+        ValueRangeError: negative weights, NaN/Inf, ``albedo_max <= 0``.
+    """
+    names = [objects] if isinstance(objects, (str, int)) else list(objects)
+    if not names:
+        raise ValueRangeError("fit_image needs at least one object")
+    H, W = renderer.height, renderer.width
+    tgt = as_float_tensor(target, "target").to(torch.float64)
+    if tgt.shape != (H, W, 3):
+        raise ShapeError(f"Expected target of shape ({H}, {W}, 3); got {tuple(tgt.shape)}")
+    check_finite(tgt, "target")
+    w = torch.ones(H, W, 3, dtype=torch.float64) if weights is None else as_float_tensor(weights, "weights").double()
+    if w.ndim == 2:
+        w = w[..., None].expand(H, W, 3)
+    if w.shape != (H, W, 3):
+        raise ShapeError(f"Expected weights of shape ({H}, {W}[, 3]); got {tuple(w.shape)}")
+    check_finite(w, "weights")
+    if bool((w < 0).any()):
+        raise ValueRangeError("weights must be >= 0")
+    if not albedo_max > 0:
+        raise ValueRangeError(f"albedo_max must be > 0; got {albedo_max}")
+    sel = w.reshape(-1, 3).sum(1) > 0
+    wp = w.reshape(-1, 3)[sel]  # (P, C)
+    bp = tgt.reshape(-1, 3)[sel]
+    ids = [renderer.tensors.object_id(o) for o in names]
+    labels = [renderer.tensors.object_names[m] for m in ids]
+    rows = [energy_row(renderer, m) for m in ids]
+    sizes = [r.shape[0] for r in rows]
+    n = sum(sizes)
+    splits = torch.tensor([0] + sizes).cumsum(0).tolist()
+    init = init or {}
+    x = torch.zeros(n, 3, dtype=torch.float64)
+    for k, (m, lab) in enumerate(zip(ids, labels)):
+        c0 = init.get(lab, init.get(m, renderer.c[m]))
+        c0 = as_float_tensor(c0, "init").detach().double().reshape(sizes[k], -1).expand(sizes[k], 3)
+        x[splits[k] : splits[k + 1]] = c0
+    G = torch.zeros(3, len(ids), n, dtype=torch.float64)  # per channel: one energy row per object
+    for k, r in enumerate(rows):
+        G[:, k, splits[k] : splits[k + 1]] = r.T
+    h = torch.full((len(ids),), float(albedo_max), dtype=torch.float64)
+    x = _project_start(x, G, h)
+    D = torch.block_diag(*[_diff(s, renderer.tensors.bases[m].J) for s, m in zip(sizes, ids)])
+    R2 = smoothness * (D.T @ D) if smoothness else torch.zeros(n, n, dtype=torch.float64)
+    if len(ids) == 1 and renderer.frozen_object != labels[0]:
+        renderer.freeze(ids[0])
+    dt = renderer.dtype
+
+    def render(xc):
+        for k, m in enumerate(ids):
+            renderer.set_coefficients(m, xc[splits[k] : splits[k + 1]].to(dt))
+        return renderer()
+
+    def losses(img):  # per channel (C,)
+        r = img.reshape(-1, 3)[sel].double() - bp
+        return 0.5 * (wp * r * r).sum(0)
+
+    def jacobian(xc):  # (C, P, n): d image / d c, all channels per forward-mode pass
+        cols = []
+        for i in range(n):
+            with fwAD.dual_level():
+                t = torch.zeros(n, 3, dtype=torch.float64)
+                t[i] = 1.0
+                img = render(fwAD.make_dual(xc, t))
+                cols.append(fwAD.unpack_dual(img).tangent.reshape(-1, 3)[sel].double())
+        return torch.stack(cols, -1).permute(1, 0, 2)
+
+    reg = lambda xc: 0.5 * torch.einsum("jc,jk,kc->c", xc, R2, xc)  # noqa: E731
+    img = render(x).detach()
+    lc = losses(img)
+    curve = [float(lc.sum())]
+    scale = torch.ones(3, dtype=torch.float64)
+    kkt = torch.zeros(3, dtype=torch.float64)
+    converged, it = False, 0
+    for it in range(1, max_iter + 1):
+        A = jacobian(x)
+        r = img.reshape(-1, 3)[sel].double() - bp  # (P, C)
+        x_new = x.clone()
+        for ch in range(3):
+            Aw = A[ch].T * wp[:, ch]
+            Hc = Aw @ A[ch] + R2
+            scale[ch] = max(float((Aw @ bp[:, ch]).abs().max()), float(Hc.abs().max()), 1e-300)
+            mu = 1e-12 * max(float(Hc.diagonal().max()), 1e-300)
+            g = Aw @ r[:, ch] + R2 @ x[:, ch]  # gradient of the loss at x
+            f = Hc @ x[:, ch] - g + mu * x[:, ch]
+            q = solve_qp(Hc + mu * torch.eye(n, dtype=torch.float64), f, G[ch], h)
+            x_new[:, ch] = q.x
+            # KKT at the iterate: g + G^T y - z = 0, z x = 0, y (G x - h) = 0
+            stat = (g + G[ch].T @ q.row_dual - q.bound_dual).abs().max()
+            comp = max(
+                float((q.bound_dual * x[:, ch]).abs().max()), float((q.row_dual * (G[ch] @ x[:, ch] - h)).abs().max())
+            )
+            kkt[ch] = max(float(stat), comp) / scale[ch]
+        # backtracking per channel (the loss is separable in the channels)
+        step = x_new - x
+        alpha = torch.ones(3, dtype=torch.float64)
+        base = lc + reg(x)
+        for _ in range(40):
+            trial = x + step * alpha
+            timg = render(trial).detach()
+            tl = losses(timg)
+            bad = (tl + reg(trial)) > base * (1 + 1e-15) + 1e-300
+            if not bool(bad.any()):
+                break
+            alpha = torch.where(bad, alpha * 0.5, alpha)
+        else:
+            trial, timg, tl = x, img, lc
+        moved = float((trial - x).abs().max())
+        x, img, old = trial, timg, float(lc.sum())
+        lc = tl
+        curve.append(float(lc.sum()))
+        if abs(old - curve[-1]) <= tol * max(old, 1e-300) or moved == 0.0 or float(kkt.max()) <= tol:
+            converged = True
+            break
+    coeffs = {lab: x[splits[k] : splits[k + 1]].clone() for k, lab in enumerate(labels)}
+    alb = {lab: (rows[k] * coeffs[lab]).sum(0) for k, lab in enumerate(labels)}
+    viol = max(float((-x).clamp_min(0).max()), max(float((a - albedo_max).clamp_min(0).max()) for a in alb.values()))
+    render(x)
+    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, it, converged, img)
+
+
+def _project_start(x: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """A feasible start: clamp to >= 0, then scale each object's curve down to its energy bound."""
+    x = x.clamp_min(0)
+    for ch in range(3):
+        for k in range(G.shape[1]):
+            on = G[ch, k] != 0
+            d = float(G[ch, k] @ x[:, ch])
+            if d > float(h[k]):
+                x[on, ch] = x[on, ch] * (float(h[k]) / d)
+    return x
