@@ -1,5 +1,5 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``,
-``fit-strokes``, ``precompute-visibility``, ``relight`` and ``editor``."""
+``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight`` and ``editor``."""
 
 from __future__ import annotations
 
@@ -167,6 +167,71 @@ def fit_strokes(
         typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size)))
     except TorchBRDFError as exc:
         _fail(exc)
+
+
+@app.command("fit-image")
+def fit_image_cmd(
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    target: Path = typer.Option(..., help="Target image (.exr or .png) at the tensors' size."),
+    mask: Path = typer.Option(None, help="Painted pixels (.png/.exr; > 0 is painted); default the objects' pixels."),
+    objects: list[str] = typer.Option(..., "--object", help="Edited object (repeat for several)."),
+    out: Path = typer.Option(Path("out/fit_image"), help="Output folder: fit.npz, render.exr/png, report.json."),
+    scene: str = typer.Option(None, help="The scene of a tensors file (default: the one named in the file)."),
+    resolution: int = typer.Option(64, min=8, help="Image size when precomputing a scene."),
+    spp: int = typer.Option(16, min=1, help="Paths per pixel when precomputing a scene."),
+    series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
+    bounces: int = typer.Option(None, min=1, help="Fit with bounces 1..B only (1: direct lighting only)."),
+    smoothness: float = typer.Option(0.0, min=0.0, help="Weight of the first-difference curve regulariser."),
+    iterations: int = typer.Option(30, min=1, help="Gauss-Newton iterations."),
+):
+    """Fit band curves of objects to a target image through the GI polynomial tensors (issue #16)."""
+    import numpy as np
+    import torch
+
+    from .io import read_exr, read_png, save_arrays, write_exr, write_png
+    from .records.polynomial import PolynomialTensors
+    from .render import PolynomialRenderer, fit_image, object_mask
+    from .transport.polynomial import precompute_polynomial
+
+    def read(path: Path):
+        return read_exr(path, allow_gray=True) if path.suffix.lower() == ".exr" else read_png(path)
+
+    try:
+        t0 = time.perf_counter()
+        if source.endswith(".npz") and Path(source).is_file():
+            T = PolynomialTensors.load(source)
+            sc = load_scene(scene or T.meta.get("scene", ""), T.width)
+        else:
+            sc = load_scene(source, resolution)
+            T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=False)
+        pre = time.perf_counter() - t0
+        mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
+        R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
+        img = read(target).double()[..., :3]
+        if mask is None:
+            w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
+        else:
+            m = read(mask).double()
+            w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
+        t0 = time.perf_counter()
+        res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations)
+        fit_s = time.perf_counter() - t0
+        out.mkdir(parents=True, exist_ok=True)
+        arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
+        save_arrays(out / "fit.npz", arrays, "gi-image-fit", {"objects": list(res.coefficients)})
+        full = PolynomialRenderer(T, mats, dtype=torch.float64)
+        for k, v in res.coefficients.items():
+            full.set_coefficients(k, v)
+        image = full().detach().float()
+        write_exr(out / "render.exr", image)
+        write_png(out / "render.png", image)
+    except TorchBRDFError as exc:
+        _fail(exc)
+    report = {"out": str(out), "precompute_s": round(pre, 3), "fit_s": round(fit_s, 3), "loss": res.loss}
+    report |= {"iterations": res.iterations, "kkt_residual": res.kkt_residual, "violation": res.violation}
+    report["albedo"] = {k: np.round(v.numpy(), 6).tolist() for k, v in res.albedo.items()}
+    (out / "report.json").write_text(json.dumps(report | {"loss_curve": res.loss_curve}))
+    typer.echo(json.dumps(report))
 
 
 @app.command("precompute-visibility")

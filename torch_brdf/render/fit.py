@@ -162,7 +162,7 @@ def fit_image(
     splits = torch.tensor([0] + sizes).cumsum(0).tolist()
     init = init or {}
     x = torch.zeros(n, 3, dtype=torch.float64)
-    for k, (m, lab) in enumerate(zip(ids, labels)):
+    for k, (m, lab) in enumerate(zip(ids, labels, strict=True)):
         c0 = init.get(lab, init.get(m, renderer.c[m]))
         c0 = as_float_tensor(c0, "init").detach().double().reshape(sizes[k], -1).expand(sizes[k], 3)
         x[splits[k] : splits[k + 1]] = c0
@@ -171,7 +171,7 @@ def fit_image(
         G[:, k, splits[k] : splits[k + 1]] = r.T
     h = torch.full((len(ids),), float(albedo_max), dtype=torch.float64)
     x = _project_start(x, G, h)
-    D = torch.block_diag(*[_diff(s, renderer.tensors.bases[m].J) for s, m in zip(sizes, ids)])
+    D = torch.block_diag(*[_diff(s, renderer.tensors.bases[m].J) for s, m in zip(sizes, ids, strict=True)])
     R2 = smoothness * (D.T @ D) if smoothness else torch.zeros(n, n, dtype=torch.float64)
     if len(ids) == 1 and renderer.frozen_object != labels[0]:
         renderer.freeze(ids[0])
@@ -202,8 +202,8 @@ def fit_image(
     curve = [float(lc.sum())]
     scale = torch.ones(3, dtype=torch.float64)
     kkt = torch.zeros(3, dtype=torch.float64)
-    converged, it = False, 0
-    for it in range(1, max_iter + 1):
+    converged, iters = False, 0
+    for iters in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
         A = jacobian(x)
         r = img.reshape(-1, 3)[sel].double() - bp  # (P, C)
         x_new = x.clone()
@@ -247,7 +247,7 @@ def fit_image(
     alb = {lab: (rows[k] * coeffs[lab]).sum(0) for k, lab in enumerate(labels)}
     viol = max(float((-x).clamp_min(0).max()), max(float((a - albedo_max).clamp_min(0).max()) for a in alb.values()))
     render(x)
-    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, it, converged, img)
+    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, img)
 
 
 def _project_start(x: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
