@@ -12,8 +12,10 @@ band curves :math:`c_m` (Ben-Artzi et al. 2008, Eq. 26-28): the eye vertex is li
 (the smoothness regulariser: :math:`D` takes first differences of each curve over adjacent
 bands; ``smoothness`` = :math:`\lambda`, default 0) by projected Gauss-Newton: at the iterate
 :math:`c_k` the residual is linearised, :math:`B(c) \approx B(c_k) + A(c - c_k)` with the exact
-Jacobian :math:`A` (forward-mode derivatives of the renderer's own evaluation, one per
-coefficient, all channels at once), and the constrained quadratic model
+Jacobian :math:`A` from the renderer's own evaluation (the image is linear in the eye
+coefficients for fixed :math:`d`: one plain frame per coefficient, all channels at once, plus one
+forward-mode derivative in each :math:`d_m`; with a two-level series, forward-mode derivatives
+per coefficient), and the constrained quadratic model
 
 .. math:: \min_c\ \tfrac12 c^\top(A^\top W A + \lambda D^\top D + \mu I)c
           - (A^\top W (A c_k - r_k) + \mu c_k)^\top c
@@ -186,7 +188,41 @@ def fit_image(
         r = img.reshape(-1, 3)[sel].double() - bp
         return 0.5 * (wp * r * r).sum(0)
 
-    def jacobian(xc):  # (C, P, n): d image / d c, all channels per forward-mode pass
+    def jacobian(xc):  # (C, P, n): d image / d c, exact
+        if renderer.two_level:
+            return _jacobian_dual(xc)
+        # the image is linear in the eye coefficients c for fixed diffuse equivalents d
+        # (Eq. 26/28), and d = row . c: columns = (image(e_i; d) - image(0; d)) + dI/dd * row_i
+        render(xc)
+        ds = [renderer.d[m].detach().clone() for m in ids]
+
+        def plain(xe):
+            for k, m in enumerate(ids):
+                renderer.set_coefficients(m, xe[splits[k] : splits[k + 1]].to(dt), d=ds[k])
+            return renderer().detach().reshape(-1, 3)[sel].double()
+
+        zero = torch.zeros(n, 3, dtype=torch.float64)
+        base = plain(zero)
+        cols = []
+        for i in range(n):
+            e = zero.clone()
+            e[i] = 1.0
+            cols.append(plain(e) - base)
+        A = torch.stack(cols, -1)  # (P, C, n)
+        for k in range(len(ids)):
+            with fwAD.dual_level():
+                for q, mm in enumerate(ids):
+                    dq = ds[q].to(dt)
+                    if q == k:
+                        dq = fwAD.make_dual(dq, torch.ones_like(dq))
+                    renderer.set_coefficients(mm, xc[splits[q] : splits[q + 1]].to(dt), d=dq)
+                tangent = fwAD.unpack_dual(renderer()).tangent  # None: no bounce sees d (1 bounce)
+            if tangent is not None:
+                dd = tangent.reshape(-1, 3)[sel].double()  # (P, C)
+                A[:, :, splits[k] : splits[k + 1]] += dd[:, :, None] * rows[k].T[None]
+        return A.permute(1, 0, 2)
+
+    def _jacobian_dual(xc):  # forward-mode, one pass per coefficient (all channels at once)
         cols = []
         for i in range(n):
             with fwAD.dual_level():
