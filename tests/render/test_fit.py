@@ -154,3 +154,18 @@ def test_cli_fit_image(tmp_path):
     # the target went through float32 EXR: recovered to that precision
     assert float((c - truth).abs().max() / truth.abs().max()) < 1e-3
     assert (tmp_path / "fit" / "render.exr").is_file()
+
+
+def test_library_brdf_parameters_recovered(box):
+    """Blinn-Phong kd, ks (linear in the curve) fitted directly: in-family target recovered."""
+    from torch_brdf.render import blinn_phong_family
+
+    R = _renderer(box)
+    fam = blinn_phong_family(R, "back", 50.0)
+    R.set_material("back", {"type": "blinn_phong", "kd": (0.3, 0.2, 0.1), "ks": 0.5, "exponent": 50.0})
+    target = R().detach()
+    R.set_material("back", {"type": "lambert", "albedo": 0.5})
+    res = fit_image(R, "back", target, weights=object_mask(R.tensors, "back"), families={"back": fam})
+    _feasible(R, res)
+    truth = torch.tensor([[0.3, 0.2, 0.1], [0.5, 0.5, 0.5]], dtype=torch.float64)
+    assert float((res.parameters["back"] - truth).abs().max() / truth.abs().max()) < 1e-4

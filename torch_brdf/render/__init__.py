@@ -8,7 +8,7 @@
 """
 
 from ..records.basis_image import BasisImage, float16_error
-from .fit import ImageFit, fit_image, object_mask
+from .fit import ImageFit, blinn_phong_family, fit_image, object_mask
 from .manifold import blend, gi_blend_error, render_rows
 from .polynomial import PolynomialRenderer
 from .record import BasisImageRenderer
@@ -21,6 +21,7 @@ __all__ = [
     "PolynomialRenderer",
     "TripleProductRenderer",
     "blend",
+    "blinn_phong_family",
     "fit_image",
     "float16_error",
     "gi_blend_error",

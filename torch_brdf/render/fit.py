@@ -45,7 +45,7 @@ from ..errors import ShapeError, ValueRangeError
 from ..inverse.qp import solve_qp
 from .polynomial import PolynomialRenderer
 
-__all__ = ["ImageFit", "energy_row", "fit_image", "object_mask"]
+__all__ = ["ImageFit", "blinn_phong_family", "energy_row", "fit_image", "object_mask"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,7 @@ class ImageFit:
         iterations: Gauss-Newton iterations.
         converged: the relative loss change, the step or the KKT residual fell below ``tol``.
         image: (H, W, C) the render of the fitted coefficients.
+        parameters: object name -> (K, C) fitted :math:`\theta` of the objects fitted in a family.
     """
 
     coefficients: dict[str, torch.Tensor]
@@ -76,11 +77,27 @@ class ImageFit:
     iterations: int
     converged: bool
     image: torch.Tensor = field(repr=False)
+    parameters: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 def energy_row(renderer: PolynomialRenderer, obj) -> torch.Tensor:
     r"""(size, C) float64: the row :math:`e_j/\pi` (layers stacked) with :math:`d = \sum_j row_j c_j`."""
     return torch.cat(renderer.albedo_weights(obj), 0) / math.pi
+
+
+def blinn_phong_family(renderer: PolynomialRenderer, obj, exponent: float) -> torch.Tensor:
+    r"""(size, 2) float64: the curves of Blinn-Phong (kd = 1, ks = 0) and (kd = 0, ks = 1) at
+    ``exponent`` on ``obj``'s bands, projected by the renderer (:meth:`~PolynomialRenderer.set_material`),
+    so that :math:`c = B\,(k_d, k_s)^\top` (the model is linear in kd and ks). The object's
+    coefficients are restored."""
+    m = renderer.tensors.object_id(obj)
+    keep = (renderer.c[m], renderer.d[m], renderer.c_hat[m])
+    cols = []
+    for kd, ks in ((1.0, 0.0), (0.0, 1.0)):
+        renderer.set_material(m, {"type": "blinn_phong", "kd": kd, "ks": ks, "exponent": float(exponent)})
+        cols.append(renderer.c[m][:, 0].detach().double().clone())
+    renderer.set_coefficients(m, keep[0], d=keep[1], c_hat=keep[2])
+    return torch.stack(cols, 1)
 
 
 def object_mask(tensors, obj) -> torch.Tensor:
@@ -114,6 +131,7 @@ def fit_image(
     max_iter: int = 30,
     tol: float = 1e-12,
     albedo_max: float = 1.0,
+    families: dict | None = None,
 ) -> ImageFit:
     r"""Fit the band curves of ``objects`` so that the render matches ``target`` on the painted pixels.
 
@@ -129,6 +147,10 @@ def fit_image(
         max_iter: Gauss-Newton iterations.
         tol: stop when the loss changes by less than ``tol`` relative (or the step is zero).
         albedo_max: the bound on each object's diffuse equivalent d (energy conservation: 1).
+        families: object -> (size, K) non-negative matrix B: fit the K parameters
+            :math:`\theta \ge 0` of the curve :math:`c = B\theta` instead of the free curve
+            (a library BRDF linear in its parameters, e.g. :func:`blinn_phong_family`: kd and
+            ks at a fixed exponent); ``ImageFit.parameters`` holds :math:`\theta` (K, C).
     Returns:
         :class:`ImageFit`.
     Raises:
@@ -172,9 +194,30 @@ def fit_image(
     for k, r in enumerate(rows):
         G[:, k, splits[k] : splits[k + 1]] = r.T
     h = torch.full((len(ids),), float(albedo_max), dtype=torch.float64)
-    x = _project_start(x, G, h)
     D = torch.block_diag(*[_diff(s, renderer.tensors.bases[m].J) for s, m in zip(sizes, ids, strict=True)])
     R2 = smoothness * (D.T @ D) if smoothness else torch.zeros(n, n, dtype=torch.float64)
+    # the fitted variables y: c = B y (B = identity for free curves)
+    families = families or {}
+    blocks, psizes = [], []
+    for k, (m, lab) in enumerate(zip(ids, labels, strict=True)):
+        fam = families.get(lab, families.get(m))
+        if fam is None:
+            blocks.append(torch.eye(sizes[k], dtype=torch.float64))
+        else:
+            fam = as_float_tensor(fam, "family").double()
+            if fam.ndim != 2 or fam.shape[0] != sizes[k] or bool((fam < 0).any()):
+                raise ShapeError(
+                    f"Expected a non-negative family matrix ({sizes[k]}, K) for {lab!r}; got {tuple(fam.shape)}"
+                )
+            blocks.append(fam)
+        psizes.append(blocks[-1].shape[1])
+    B = torch.block_diag(*blocks)
+    pspl = torch.tensor([0] + psizes).cumsum(0).tolist()
+    y = torch.linalg.lstsq(B, x).solution.clamp_min(0) if families else x
+    G, R2 = G @ B, B.T @ R2 @ B
+    y = _project_start(y, G, h)
+    x = B @ y
+    nt = y.shape[0]
     if len(ids) == 1 and renderer.frozen_object != labels[0]:
         renderer.freeze(ids[0])
     dt = renderer.dtype
@@ -232,7 +275,7 @@ def fit_image(
                 cols.append(fwAD.unpack_dual(img).tangent.reshape(-1, 3)[sel].double())
         return torch.stack(cols, -1).permute(1, 0, 2)
 
-    reg = lambda xc: 0.5 * torch.einsum("jc,jk,kc->c", xc, R2, xc)  # noqa: E731
+    reg = lambda yc: 0.5 * torch.einsum("jc,jk,kc->c", yc, R2, yc)  # noqa: E731
     img = render(x).detach()
     lc = losses(img)
     curve = [float(lc.sum())]
@@ -240,50 +283,56 @@ def fit_image(
     kkt = torch.zeros(3, dtype=torch.float64)
     converged, iters = False, 0
     for iters in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
-        A = jacobian(x)
+        A = jacobian(x) @ B  # (C, P, nt)
         r = img.reshape(-1, 3)[sel].double() - bp  # (P, C)
-        x_new = x.clone()
+        y_new = y.clone()
         for ch in range(3):
             Aw = A[ch].T * wp[:, ch]
             Hc = Aw @ A[ch] + R2
             scale[ch] = max(float((Aw @ bp[:, ch]).abs().max()), float(Hc.abs().max()), 1e-300)
             mu = 1e-12 * max(float(Hc.diagonal().max()), 1e-300)
-            g = Aw @ r[:, ch] + R2 @ x[:, ch]  # gradient of the loss at x
-            f = Hc @ x[:, ch] - g + mu * x[:, ch]
-            q = solve_qp(Hc + mu * torch.eye(n, dtype=torch.float64), f, G[ch], h)
-            x_new[:, ch] = q.x
-            # KKT at the iterate: g + G^T y - z = 0, z x = 0, y (G x - h) = 0
+            g = Aw @ r[:, ch] + R2 @ y[:, ch]  # gradient of the loss at y
+            f = Hc @ y[:, ch] - g + mu * y[:, ch]
+            q = solve_qp(Hc + mu * torch.eye(nt, dtype=torch.float64), f, G[ch], h)
+            y_new[:, ch] = q.x
+            # KKT at the iterate: g + G^T u - z = 0, z y = 0, u (G y - h) = 0
             stat = (g + G[ch].T @ q.row_dual - q.bound_dual).abs().max()
             comp = max(
-                float((q.bound_dual * x[:, ch]).abs().max()), float((q.row_dual * (G[ch] @ x[:, ch] - h)).abs().max())
+                float((q.bound_dual * y[:, ch]).abs().max()), float((q.row_dual * (G[ch] @ y[:, ch] - h)).abs().max())
             )
             kkt[ch] = max(float(stat), comp) / scale[ch]
         # backtracking per channel (the loss is separable in the channels)
-        step = x_new - x
+        step = y_new - y
         alpha = torch.ones(3, dtype=torch.float64)
-        base = lc + reg(x)
+        base = lc + reg(y)
         for _ in range(40):
-            trial = x + step * alpha
-            timg = render(trial).detach()
+            trial = y + step * alpha
+            timg = render(B @ trial).detach()
             tl = losses(timg)
             bad = (tl + reg(trial)) > base * (1 + 1e-15) + 1e-300
             if not bool(bad.any()):
                 break
             alpha = torch.where(bad, alpha * 0.5, alpha)
         else:
-            trial, timg, tl = x, img, lc
-        moved = float((trial - x).abs().max())
-        x, img, old = trial, timg, float(lc.sum())
+            trial, timg, tl = y, img, lc
+        moved = float((trial - y).abs().max())
+        y, img, old = trial, timg, float(lc.sum())
+        x = B @ y
         lc = tl
         curve.append(float(lc.sum()))
         if abs(old - curve[-1]) <= tol * max(old, 1e-300) or moved == 0.0 or float(kkt.max()) <= tol:
             converged = True
             break
     coeffs = {lab: x[splits[k] : splits[k + 1]].clone() for k, lab in enumerate(labels)}
+    params = {
+        lab: y[pspl[k] : pspl[k + 1]].clone()
+        for k, lab in enumerate(labels)
+        if psizes[k] != sizes[k] or lab in families
+    }
     alb = {lab: (rows[k] * coeffs[lab]).sum(0) for k, lab in enumerate(labels)}
     viol = max(float((-x).clamp_min(0).max()), max(float((a - albedo_max).clamp_min(0).max()) for a in alb.values()))
     render(x)
-    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, img)
+    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, img, params)
 
 
 def _project_start(x: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
