@@ -1,4 +1,4 @@
-"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``,
+"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
 ``fit-strokes``, ``precompute-visibility`` and ``relight``."""
 
 from __future__ import annotations
@@ -9,9 +9,32 @@ from pathlib import Path
 
 import typer
 
-from .errors import SceneError, TorchBRDFError
+from .errors import SceneError, TorchBRDFError, ValueRangeError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="torch_brdf: BRDF design in the final scene.")
+
+#: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
+PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"torch_brdf {version('torch_brdf')}")
+        except PackageNotFoundError:  # pragma: no cover - a source tree that is not installed
+            typer.echo("torch_brdf (not installed)")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the package version and exit."
+    ),
+):
+    """torch_brdf: BRDF design in the final scene."""
 
 
 def load_scene(spec: str, resolution: int | None = None):
@@ -112,19 +135,31 @@ def precompute(
     bases: str = typer.Option(None, help='JSON per-object basis overrides, e.g. \'{"left": {"J": 8}}\'.'),
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
     storage: str = typer.Option("float32", help="float32 or float16 (half the bytes, rel. error <= 4.9e-4)."),
-    resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
+    resume: bool = typer.Option(
+        True, help="Keep finished tiles in OUT with .tiles for .npz (out/tensors.tiles/) and resume from them."
+    ),
+    progress: bool = PROGRESS,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
     from .transport.polynomial import precompute_polynomial
 
     try:
+        if storage not in ("float32", "float16"):  # before the work, not after it
+            raise ValueRangeError(f"--storage must be float32 or float16; got {storage!r}")
         sc = load_scene(scene, resolution)
         overrides = json.loads(bases) if bases else None
         tiles = out.with_suffix(".tiles") if resume else None
         t0 = time.perf_counter()
         T = precompute_polynomial(
-            sc, series, spp=spp, seed=seed, bases=overrides, env_point_lights=env_point_lights, checkpoint=tiles
+            sc,
+            series,
+            spp=spp,
+            seed=seed,
+            bases=overrides,
+            env_point_lights=env_point_lights,
+            checkpoint=tiles,
+            progress=progress,
         )
         seconds = time.perf_counter() - t0
         T.save(out, storage=storage)
@@ -137,6 +172,63 @@ def precompute(
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": series, "spp": spp, "mb_per_bounce": mb}
     info["rays"] = T.meta["rays"]
+    typer.echo(json.dumps(info))
+
+
+def _parse_set(item: str) -> tuple[str, str, object]:
+    """``OBJECT.PARAM=VALUE`` -> (object, param, value); VALUE is JSON or else a plain word."""
+    key, sep, raw = item.partition("=")
+    obj, dot, param = key.strip().rpartition(".")
+    if not sep or not dot or not obj or not param:
+        raise ValueRangeError(f"--set expects OBJECT.PARAM=VALUE (e.g. back.exponent=400); got {item!r}")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw.strip()
+    return obj, param, value
+
+
+@app.command()
+def edit(
+    tensors: Path = typer.Argument(..., help="Tensors written by precompute."),
+    sets: list[str] = typer.Option(
+        [], "--set", help="OBJECT.PARAM=VALUE, repeatable: back.exponent=400, back.kd=[0.2,0.1,0.1], back.type=phong."
+    ),
+    scene: str = typer.Option(
+        None, help="The precomputed scene, for its materials (default: the name saved in TENSORS)."
+    ),
+    out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
+    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+):
+    """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
+    from .io import write_exr, write_png
+    from .records import PolynomialTensors
+    from .render import PolynomialRenderer
+
+    try:
+        edits = [_parse_set(s) for s in sets]  # before loading anything
+        T = PolynomialTensors.load(tensors)
+        sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
+        editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
+        by_name = {o.name: o for o in sc.objects}
+        materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
+        for obj, param, value in edits:
+            if obj not in materials:
+                raise SceneError(
+                    f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}"
+                )
+            materials[obj][param] = value
+        t0 = time.perf_counter()
+        image = PolynomialRenderer(T, materials)().detach()
+        seconds = time.perf_counter() - t0
+        out = out.with_suffix("")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_exr(out.with_suffix(".exr"), image)
+        write_png(out.with_suffix(".png"), image, exposure=exposure)
+    except TorchBRDFError as exc:
+        _fail(exc)
+    info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+    info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
     typer.echo(json.dumps(info))
 
 
@@ -172,12 +264,17 @@ def fit_strokes(
 @app.command("precompute-visibility")
 def precompute_visibility_cmd(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
-    out: Path = typer.Option(Path("out/visibility.npz"), help="Output record (.npz, versioned, checksummed)."),
-    resolution: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
+    out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
+    resolution: int = typer.Option(
+        64, "--resolution", "--cubemap", help="Cubemap texels per face side (a multiple of 16: 64 or 128)."
+    ),
     supersample: int = typer.Option(1, min=1, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
     bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
     chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
-    resume: bool = typer.Option(True, help="Keep finished chunks in OUT.chunks/ and resume from them."),
+    resume: bool = typer.Option(
+        True, help="Keep finished chunks in OUT with .chunks for .npz (out/vis.chunks/) and resume from them."
+    ),
+    progress: bool = PROGRESS,
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     from .records.cache import remove_cache
@@ -185,9 +282,9 @@ def precompute_visibility_cmd(
 
     try:
         sc = load_scene(scene)
-        ck = out.parent / (out.name + ".chunks") if resume else None
+        ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
         t0 = time.perf_counter()
-        vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck)
+        vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress)
         seconds = time.perf_counter() - t0
         out.parent.mkdir(parents=True, exist_ok=True)
         vis.save(out)
@@ -207,11 +304,13 @@ def precompute_visibility_cmd(
 @app.command()
 def relight(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
-    visibility: Path = typer.Option(..., help="Record written by precompute-visibility."),
+    visibility: Path = typer.Option(Path("out/vis.npz"), help="Record written by precompute-visibility."),
     out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
     exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    resolution: int = typer.Option(None, min=8, help="Override the image size (square), as precomputed scenes allow."),
+    progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
     from .io import write_exr, write_png
@@ -219,13 +318,15 @@ def relight(
     from .transport.visibility import VertexVisibility
 
     try:
-        sc = load_scene(scene)
+        if method not in ("adaptive", "standard", "haar"):  # before loading anything
+            raise ValueRangeError(f"--method must be adaptive, standard or haar; got {method!r}")
+        sc = load_scene(scene, resolution)
         vis = VertexVisibility.load(visibility)
         r = TripleProductRenderer(sc, vis)
         if rotate:
             r.set_lighting(r.envmap.rotated(rotate))
         t0 = time.perf_counter()
-        image, stats = r.render(method=method)
+        image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
         seconds = time.perf_counter() - t0
         out = out.with_suffix("")
         out.parent.mkdir(parents=True, exist_ok=True)

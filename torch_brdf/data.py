@@ -1,17 +1,59 @@
-"""Where the optional shared data lives (meshes, env maps, MERL-derived BRDFs).
+"""The user's environment: where the optional shared data lives (meshes, env maps,
+MERL-derived BRDFs), where caches go, and whether long steps show progress.
 
-The package works without it: every built-in scene has a procedural fallback. Tests
+The package works without the data: every built-in scene has a procedural fallback. Tests
 that need real data find it through ``TORCH_BRDF_DATA`` and skip when it is absent.
+Caches (band albedos, NBRDF observation matrices) go to ``TORCH_BRDF_CACHE`` (default
+``~/.cache/torch_brdf``, or ``$XDG_CACHE_HOME/torch_brdf``), never the working folder.
+Progress bars default to on when attached to a terminal or a notebook;
+``TORCH_BRDF_PROGRESS=1`` or ``0`` forces them on or off.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from .errors import DataNotFoundError
 
 ENV_VAR = "TORCH_BRDF_DATA"
+CACHE_ENV_VAR = "TORCH_BRDF_CACHE"
+PROGRESS_ENV_VAR = "TORCH_BRDF_PROGRESS"
+
+
+def cache_dir() -> Path:
+    """The on-disk cache folder: ``$TORCH_BRDF_CACHE``, else ``$XDG_CACHE_HOME/torch_brdf``,
+    else ``~/.cache/torch_brdf`` (not created here)."""
+    env = os.environ.get(CACHE_ENV_VAR)
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "torch_brdf"
+
+
+def cache_path(*parts: str) -> Path:
+    """A file inside :func:`cache_dir` (its parent folder is created)."""
+    p = cache_dir().joinpath(*parts)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def progress_default(progress: bool | None = None) -> bool:
+    """Whether to show progress bars: ``progress`` when given; else ``$TORCH_BRDF_PROGRESS``
+    (``1``/``0``) when set; else True when stderr is a terminal or the code runs in a
+    Jupyter kernel."""
+    if progress is not None:
+        return bool(progress)
+    env = os.environ.get(PROGRESS_ENV_VAR, "").strip().lower()
+    if env:
+        return env not in ("0", "false", "no", "off")
+    if "ipykernel" in sys.modules:
+        return True
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 def data_root() -> Path | None:

@@ -11,8 +11,9 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache
+from ...records.cache import TileCache, remove_cache
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -90,8 +91,9 @@ def precompute_polynomial(
     tile_rows: int | None = None,
     group: int | None = None,
     checkpoint: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     paths: dict | None = None,
+    keep_checkpoint: bool = False,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -107,9 +109,11 @@ def precompute_polynomial(
         group: passes traced together (default: enough for >= 64k rays per batch, which
             lets embree use both cores).
         checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
-            an interrupted run resumes from it.
-        progress: tqdm bar over tiles.
+            an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
+        progress: tqdm bar over tiles and pass groups (None: on when attached to a terminal
+            or notebook, see :func:`~torch_brdf.records.cache.progress_default`).
         paths: tests only: a dict that receives the raw path records (exactness oracle).
+        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
     Returns:
         :class:`PolynomialTensors`.
     """
@@ -148,7 +152,9 @@ def precompute_polynomial(
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
     t0 = time.perf_counter()
-    bar = tqdm(range(len(tiles)), desc=f"precompute {scene.name} ({series.key})", disable=not progress)
+    bar = tqdm(
+        range(len(tiles)), desc=f"precompute {scene.name} ({series.key})", disable=not progress_default(progress)
+    )
     for ti in bar:
         pix = tiles[ti]
         done = cache.load(ti)
@@ -168,4 +174,6 @@ def precompute_polynomial(
         blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     meta = {**settings, "rays": dict(tracer.rays), "seconds": time.perf_counter() - t0}
+    if not keep_checkpoint:
+        remove_cache(checkpoint)
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
