@@ -157,5 +157,12 @@ class TileCache:
             tile.save(arrays, meta)
 
     def remove(self) -> None:
-        """Delete the folder (after the result is saved)."""
-        remove_cache(self.folder)
+        """Delete this cache's tiles (every ``<prefix>*.npz``, any key, and moved-aside
+        ``.corrupt`` files) after the result is saved, then the folder if that left it empty;
+        other files in the folder are kept."""
+        if self.folder is None or not self.folder.is_dir():
+            return
+        for p in [*self.folder.glob(f"{self.prefix}*.npz"), *self.folder.glob(f"{self.prefix}*.npz.corrupt")]:
+            p.unlink(missing_ok=True)
+        if not any(self.folder.iterdir()):
+            self.folder.rmdir()

@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from ..data import progress_default
 from ..errors import ValueRangeError
-from ..records.cache import TileCache, remove_cache
+from ..records.cache import TileCache
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BlockVisibility
 from ..scene.scene import Scene
@@ -146,5 +146,5 @@ def precompute_visibility(
         parts[c] = part
         done += 1
     if not keep_checkpoint:
-        remove_cache(checkpoint)
+        cache.remove()
     return VertexVisibility(geom, verts, BlockVisibility.concat(parts), supersample, bits)

@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache, remove_cache
+from ...records.cache import TileCache
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -175,5 +175,5 @@ def precompute_polynomial(
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     meta = {**settings, "rays": dict(tracer.rays), "seconds": time.perf_counter() - t0}
     if not keep_checkpoint:
-        remove_cache(checkpoint)
+        cache.remove()
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
