@@ -128,20 +128,37 @@ TQDM = re.compile(r"\d+%\|")  # tqdm's "NN%|" bar
 
 
 @pytest.mark.parametrize("method", ["adaptive", "standard", "haar"])
-def test_long_commands_print_progress(tmp_path, monkeypatch, method):
+def test_visibility_and_relight_print_progress(tmp_path, monkeypatch, method):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("TORCH_BRDF_PROGRESS", "1")
     Path("tiny.toml").write_text(RELIGHT_TOML)
-    res = runner.invoke(app, ["precompute-visibility", "tiny.toml", "--resolution", "16", "--chunk", "4"])
+    res = runner.invoke(app, ["precompute-visibility", "tiny.toml", "--cubemap", "16", "--chunk", "4"])
     assert res.exit_code == 0 and TQDM.search(res.output), res.output
+    assert "/4 [" in res.output  # 13 vertices in chunks of 4: a tick per chunk
     res = runner.invoke(app, ["relight", "tiny.toml", "--method", method])
     assert res.exit_code == 0, res.output
     if method != "adaptive":  # the adaptive frame is the fast one (under a second at full size)
         assert TQDM.search(res.output), res.output
-    if method == "adaptive":
-        res = runner.invoke(app, ["precompute", "tiny.toml", "--resolution", "8", "--spp", "2", "--series", "2,1"])
-        assert res.exit_code == 0 and TQDM.search(res.output), res.output
-        res = runner.invoke(app, ["render", "tiny.toml", "--resolution", "8", "--spp", "2"])
-        assert res.exit_code == 0 and TQDM.search(res.output), res.output
-        res = runner.invoke(app, ["precompute", "tiny.toml", "--resolution", "8", "--no-progress"])
-        assert res.exit_code == 0 and not TQDM.search(res.output), res.output
+
+
+def test_each_long_command_prints_progress(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("TORCH_BRDF_PROGRESS", "1")
+    Path("tiny.toml").write_text(RELIGHT_TOML)
+    strokes = {
+        "strokes": [{"points": [[30, 20], [40, 22]], "color": [3, 3, 3], "diameter": 10}],
+        "display_size": [64, 48],
+    }
+    Path("strokes.json").write_text(json.dumps(strokes))
+    runs = {
+        "demo": ["demo", "--resolution", "8", "--spp", "2"],
+        "render": ["render", "tiny.toml", "--resolution", "8", "--spp", "2"],
+        "precompute": ["precompute", "tiny.toml", "--resolution", "8", "--spp", "4", "--series", "2,1"],
+        "fit-strokes": ["fit-strokes", "teatray", "--object", "teapot", "--strokes", "strokes.json"]
+        + ["--width", "64", "--height", "48", "--downsample", "2", "--samples", "32"],
+    }
+    for name, args in runs.items():
+        res = runner.invoke(app, args)
+        assert res.exit_code == 0 and TQDM.search(res.output), f"{name}: {res.output}"
+    res = runner.invoke(app, [*runs["precompute"], "--no-progress"])
+    assert res.exit_code == 0 and not TQDM.search(res.output), res.output

@@ -50,7 +50,9 @@ def load_scene(spec: str, resolution: int | None = None):
     raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
 
 
-def _render_to(scene, out: Path, spp: int, bounces: int, seed: int, exposure: float, checkpoint: bool) -> dict:
+def _render_to(
+    scene, out: Path, spp: int, bounces: int, seed: int, exposure: float, checkpoint: bool, progress: bool | None = None
+) -> dict:
     from .io import write_exr, write_png
     from .transport.pathtrace import path_trace
 
@@ -58,7 +60,7 @@ def _render_to(scene, out: Path, spp: int, bounces: int, seed: int, exposure: fl
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
-    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt)
+    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
     write_png(out.with_suffix(".png"), image, exposure=exposure)
@@ -86,11 +88,12 @@ def demo(
     spp: int = typer.Option(16, min=1, help="Samples per pixel."),
     bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, help="Random seed."),
+    progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
     try:
         scene = load_scene("cornell_box", resolution)
-        info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False)
+        info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
     except TorchBRDFError as exc:
         _fail(exc)
     typer.echo(json.dumps(info))
@@ -106,10 +109,12 @@ def render(
     seed: int = typer.Option(0),
     exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
     resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
+    progress: bool = PROGRESS,
 ):
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
     try:
-        info = _render_to(load_scene(scene, resolution), out, spp, bounces, seed, exposure, checkpoint=resume)
+        sc = load_scene(scene, resolution)
+        info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     except TorchBRDFError as exc:
         _fail(exc)
     typer.echo(json.dumps(info))
@@ -248,6 +253,7 @@ def fit_strokes(
     cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
     seed: int = typer.Option(0),
+    progress: bool = PROGRESS,
 ):
     """Inverse BRDF design: fit SRBF coefficients to painted strokes and re-render (Iwasaki et al.)."""
     from .inverse.design import DesignConfig, design, load_strokes
@@ -256,7 +262,7 @@ def fit_strokes(
         sc = load_scene(scene).with_resolution(width, height)
         st, size = load_strokes(strokes)
         cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
-        typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size)))
+        typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
     except TorchBRDFError as exc:
         _fail(exc)
 

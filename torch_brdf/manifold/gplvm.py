@@ -44,6 +44,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
+from ..data import progress_default
 from ..errors import NumericalError, ShapeError, ValueRangeError
 from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
@@ -201,7 +202,7 @@ def fit_gplvm(
     autograd: bool = False,
     names: Iterable[str] = (),
     generator: torch.Generator | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     callback: Callable[[int, float], None] | None = None,
 ) -> GPLVMFit:
     r"""Maximise the GPLVM log-likelihood (seed Eq. 6) over the latents, from a PCA start.
@@ -361,7 +362,7 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
     hist = [f]
     pairs: list[tuple[torch.Tensor, torch.Tensor, float]] = []
     rejected = 0
-    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress)
+    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress_default(progress))
     for it in bar:
         # two-loop recursion on the ascent direction of L (descent of -L)
         qv = g.clone()
@@ -422,7 +423,7 @@ def _fit_adam(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, 
     with torch.no_grad():
         hist = [float(log_likelihood(x, s, d, ell, mu + jitter))]
     rejected = 0
-    for it in tqdm(range(max_iter), desc="GPLVM Adam", disable=not progress):
+    for it in tqdm(range(max_iter), desc="GPLVM Adam", disable=not progress_default(progress)):
         saved = x.detach().clone()
         opt.zero_grad()
         ll_t = log_likelihood(x, s, d, ell, mu + jitter)
@@ -507,7 +508,7 @@ def _fit_hooke_jeeves(x0, s, d, ell, mu, jitter, max_iter, tol, step, progress, 
     n, q = st.x.shape
     rejected = 0
     min_step = 1e-6
-    bar = tqdm(range(max_iter), desc="GPLVM Hooke-Jeeves", disable=not progress)
+    bar = tqdm(range(max_iter), desc="GPLVM Hooke-Jeeves", disable=not progress_default(progress))
     for it in bar:
         base = st.x.copy()
         start = st.loglik

@@ -26,6 +26,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..brdf import BRDF, create
+from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError, ValueRangeError
 from ..frame import Frame
 from ..records.cache import Checkpoint
@@ -168,7 +169,7 @@ def path_trace(
     chunk: int = 1 << 16,
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 4,
-    progress: bool = True,
+    progress: bool | None = None,
 ) -> torch.Tensor:
     """Render ``scene`` from its camera: (H, W, 3) float32 linear radiance.
 
@@ -196,7 +197,13 @@ def path_trace(
     if saved is not None:
         total = torch.from_numpy(saved[0]["sum"])
         start = int(saved[1]["passes_done"])
-    bar = tqdm(range(start, spp), total=spp, initial=start, desc=f"path trace {scene.name}", disable=not progress)
+    bar = tqdm(
+        range(start, spp),
+        total=spp,
+        initial=start,
+        desc=f"path trace {scene.name}",
+        disable=not progress_default(progress),
+    )
     for s in bar:
         gen = seeded_generator(seed, s)
         o, d = cam.generate_rays(jitter=True, generator=gen)

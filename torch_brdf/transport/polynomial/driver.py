@@ -29,8 +29,9 @@ __all__ = ["TILE_KIND", "precompute_polynomial"]
 TILE_KIND = "multibounce-tile"
 
 
-def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
-    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key."""
+def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
+    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
+    ``tick()`` (if given) after each pass group."""
     cam = scene.camera
     p = pixels.numel()
     sizes = {
@@ -52,6 +53,8 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
         o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
         e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
         emis.index_add_(0, rec, e.double())
+        if tick is not None:
+            tick()
         dd = ent.cat()
         if not dd:
             continue
@@ -152,10 +155,14 @@ def precompute_polynomial(
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
     t0 = time.perf_counter()
+    groups = math.ceil(spp / group)  # the bar ticks per pass group of every tile
     bar = tqdm(
-        range(len(tiles)), desc=f"precompute {scene.name} ({series.key})", disable=not progress_default(progress)
+        total=len(tiles) * groups,
+        desc=f"precompute {scene.name} ({series.key})",
+        unit="group",
+        disable=not progress_default(progress),
     )
-    for ti in bar:
+    for ti in range(len(tiles)):
         pix = tiles[ti]
         done = cache.load(ti)
         if done is not None:
@@ -164,14 +171,16 @@ def precompute_polynomial(
             emis = torch.from_numpy(arrays["emission"])
             for k, v in meta.get("rays", {}).items():
                 tracer.rays[k] += int(v)
+            bar.update(groups)
         else:
             before = dict(tracer.rays)
-            emis, red = _tile_entries(tracer, scene, pix, ti, spp, group, seed, paths)
+            emis, red = _tile_entries(tracer, scene, pix, ti, spp, group, seed, paths, tick=lambda: bar.update(1))
             rays = {k: tracer.rays[k] - before[k] for k in before}
             arrays = {"emission": emis.numpy(), **{f"r_{k}": v.numpy() for k, v in red.items()}}
             cache.save(ti, arrays, meta={"settings": settings, "rays": rays})
         emission[:, pix] = (emis / spp).float().T
         blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
+    bar.close()
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     meta = {**settings, "rays": dict(tracer.rays), "seconds": time.perf_counter() - t0}
     if not keep_checkpoint:
