@@ -346,5 +346,22 @@ def relight(
         _fail(exc)
 
 
+@app.command("fetch-data")
+def fetch_data_cmd(
+    dest: Path = typer.Option(None, help="Data folder (default $TORCH_BRDF_DATA, else ~/.cache/torch_brdf/data)."),
+    url: str = typer.Option(None, help="Base URL of a mirror of the data folder (default $TORCH_BRDF_DATA_URL)."),
+    file: list[str] = typer.Option(None, help="Only these files (relative paths, repeatable)."),
+    progress: bool = PROGRESS,
+):
+    """Download the shared data (meshes, HDR maps, NBRDF weights) and verify pinned SHA-256s."""
+    from .data import fetch_data
+
+    try:
+        paths = fetch_data(dest, url, file or None, progress)
+    except TorchBRDFError as exc:
+        _fail(exc)
+    typer.echo(json.dumps({"files": [str(p) for p in paths]}))
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
