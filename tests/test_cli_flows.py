@@ -162,3 +162,27 @@ def test_each_long_command_prints_progress(tmp_path, monkeypatch):
         assert res.exit_code == 0 and TQDM.search(res.output), f"{name}: {res.output}"
     res = runner.invoke(app, [*runs["precompute"], "--no-progress"])
     assert res.exit_code == 0 and not TQDM.search(res.output), res.output
+
+
+def test_auto_exposure_for_previews(tmp_path):
+    import math
+
+    import torch
+
+    from torch_brdf.io import auto_exposure, read_png
+
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(16, 16, 3, generator=g, dtype=torch.float64)
+    assert auto_exposure(img * 1e-3) == pytest.approx(auto_exposure(img) + math.log2(1e3), abs=1e-9)
+    assert auto_exposure(torch.zeros(4, 4, 3)) == 0.0
+    toml = tmp_path / "dim.toml"
+    toml.write_text(RELIGHT_TOML.replace('procedural = "sky"', 'procedural = "constant"\nradiance = 0.001'))
+    res = runner.invoke(app, ["render", str(toml), "--resolution", "8", "--spp", "2", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert last_json(res.output)["exposure"] > 5  # a dim scene is brightened for the preview ...
+    assert read_png(tmp_path / "a.png").float().mean() > 40
+    args = ["render", str(toml), "--resolution", "8", "--spp", "2", "--exposure", "0", "--out", str(tmp_path / "b")]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0 and last_json(res.output)["exposure"] == 0.0  # ... unless told otherwise
+    assert read_png(tmp_path / "b.png").float().mean() < 5
+    assert torch.equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr"))  # the EXR stays linear

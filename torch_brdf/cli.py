@@ -51,9 +51,9 @@ def load_scene(spec: str, resolution: int | None = None):
 
 
 def _render_to(
-    scene, out: Path, spp: int, bounces: int, seed: int, exposure: float, checkpoint: bool, progress: bool | None = None
+    scene, out: Path, spp: int, bounces: int, seed: int, exposure, checkpoint: bool, progress: bool | None = None
 ) -> dict:
-    from .io import write_exr, write_png
+    from .io import write_exr
     from .transport.pathtrace import path_trace
 
     out = out.with_suffix("")
@@ -63,7 +63,7 @@ def _render_to(
     image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
-    write_png(out.with_suffix(".png"), image, exposure=exposure)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
     if ckpt is not None and ckpt.exists():
         ckpt.unlink()
     return {
@@ -73,7 +73,18 @@ def _render_to(
         "spp": spp,
         "max_bounces": bounces,
         "size": [scene.camera.width, scene.camera.height],
+        "exposure": stops,
     }
+
+
+def _preview(path: Path, image, exposure: float | None) -> float:
+    """Write the sRGB PNG preview; ``exposure`` None: automatic (the 99th percentile of the
+    lit pixels' luminance at white). Returns the exposure used (stops)."""
+    from .io import auto_exposure, write_png
+
+    stops = auto_exposure(image) if exposure is None else float(exposure)
+    write_png(path, image, exposure=stops)
+    return round(stops, 3)
 
 
 def _fail(exc: TorchBRDFError) -> None:
@@ -107,7 +118,7 @@ def render(
     spp: int = typer.Option(16, min=1),
     bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0),
-    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
     progress: bool = PROGRESS,
 ):
@@ -203,10 +214,10 @@ def edit(
         None, help="The precomputed scene, for its materials (default: the name saved in TENSORS)."
     ),
     out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
-    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
-    from .io import write_exr, write_png
+    from .io import write_exr
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
@@ -229,10 +240,11 @@ def edit(
         out = out.with_suffix("")
         out.parent.mkdir(parents=True, exist_ok=True)
         write_exr(out.with_suffix(".exr"), image)
-        write_png(out.with_suffix(".png"), image, exposure=exposure)
+        stops = _preview(out.with_suffix(".png"), image, exposure)
     except TorchBRDFError as exc:
         _fail(exc)
     info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+    info["exposure"] = stops
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
     typer.echo(json.dumps(info))
 
@@ -314,12 +326,12 @@ def relight(
     out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
-    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resolution: int = typer.Option(None, min=8, help="Override the image size (square), as precomputed scenes allow."),
     progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
-    from .io import write_exr, write_png
+    from .io import write_exr
     from .render.triple import TripleProductRenderer
     from .transport.visibility import VertexVisibility
 
@@ -337,8 +349,9 @@ def relight(
         out = out.with_suffix("")
         out.parent.mkdir(parents=True, exist_ok=True)
         write_exr(out.with_suffix(".exr"), image)
-        write_png(out.with_suffix(".png"), image, exposure=exposure)
+        stops = _preview(out.with_suffix(".png"), image, exposure)
         info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+        info["exposure"] = stops
         if stats is not None:
             info["stats"] = stats.as_dict()
         typer.echo(json.dumps(info))

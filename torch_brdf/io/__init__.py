@@ -17,7 +17,7 @@ from .merl import (
     write_merl_binary,
     write_merl_table,
 )
-from .png import TONEMAPS, read_png, to_srgb8, write_png
+from .png import TONEMAPS, auto_exposure, read_png, to_srgb8, write_png
 
 __all__ = [
     "MERL_FILE_BYTES",
@@ -26,6 +26,7 @@ __all__ = [
     "TONEMAPS",
     "MERLTableData",
     "NBRDFWeights",
+    "auto_exposure",
     "load_arrays",
     "load_merl_table",
     "load_nbrdf_weights",
