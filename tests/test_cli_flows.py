@@ -66,7 +66,7 @@ def test_readme_table_is_the_real_cli():
             assert opt in params, f"README: `torch-brdf {name}` has no option {opt}"
         # documented defaults "[--opt VALUE ...]" must be the real ones
         for opt, value in re.findall(r"(--[\w-]+) ([^\s\]-][^\s\]]*)", rest.split("[", 1)[-1] if "[" in rest else ""):
-            if value.isupper():  # a placeholder (JSON, K, OBJECT.PARAM=VALUE), not a default
+            if value.split(".")[0].isupper():  # a placeholder (JSON, K, FIT.npz, OBJECT.PARAM=VALUE)
                 continue
             default = params[opt].default
             assert str(default) == value, f"README: {name} {opt} defaults to {default!r}, not {value!r}"
