@@ -273,3 +273,27 @@ def test_interpolants_are_reciprocal(gen):
     zi = model.predict(xs)
     assert float(zi.abs().max()) > 0
     torch.testing.assert_close(zi[:, :half], zi[:, half:], rtol=1e-10, atol=1e-10)
+
+
+def _row_jump(model, eps: float) -> torch.Tensor:
+    """(N,) relative max difference of the interpolated rows at x_i + eps and at x_i."""
+    at = model.predict(model.latents)
+    near = model.predict(model.latents + eps)
+    return (near - at).abs().max(1).values / at.abs().max(1).values
+
+
+def test_continuous_predictor_is_continuous_at_training_latents():
+    """The smooth GP mean (``continuous=True``) moves by < 1% between x_i and x_i + 1e-6 for
+    every material and reproduces the rows up to mu (K^-1 Z)_i; the seed's interpolant jumps
+    there by far more than its own move (the delta term of Eq. 5)."""
+    model, obs, _ = small_model(q=2)
+    smooth = GPLVM(model.fit, obs.z.double(), continuous=True)
+    assert float(_row_jump(smooth, 1e-6).max()) < 0.01
+    z = obs.z.double()
+    kinv_z = torch.cholesky_solve(z, smooth.chol)
+    want = z - smooth.mu * kinv_z
+    torch.testing.assert_close(smooth.predict(smooth.latents), want, rtol=1e-6, atol=1e-9 * float(z.abs().max()))
+    assert float(_row_jump(model, 1e-6).max()) > float(_row_jump(smooth, 1e-6).max())
+    # away from the training latents both predictors are the same
+    x = model.latents.mean(0, keepdim=True) + 0.123
+    torch.testing.assert_close(smooth.weights(x), model.weights(x))

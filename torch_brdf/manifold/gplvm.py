@@ -650,11 +650,16 @@ class GPLVM(torch.nn.Module):
         fit: a :class:`GPLVMFit`.
         z: optional (N, d) raw observations (kept as a buffer for :meth:`predict`); any other
             (N, ...) per-material quantity can be blended with :meth:`blend`.
+        continuous: use the smooth GP mean :math:`k_{SE}(x_*)` without the :math:`\mu\delta`
+            term (continuous in :math:`x_*`; at a training latent it returns
+            :math:`z_i - \mu (K^{-1}Z)_i` instead of :math:`z_i`). Default False: the seed's
+            interpolant, exact at the training latents and discontinuous next to them.
     """
 
-    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None):
+    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None, continuous: bool = False):
         super().__init__()
         self.fit = fit
+        self.continuous = bool(continuous)
         x = fit.latents.to(torch.float64)
         if not bool(torch.isfinite(x).all()):
             raise ValueRangeError("GPLVM latents hold NaN/Inf")
@@ -696,7 +701,10 @@ class GPLVM(torch.nn.Module):
     def kvec(self, xs) -> torch.Tensor:
         """(M, N) covariances :math:`k(x_*)` (seed Eq. 3) of query points (M, Q)."""
         xs, _ = self._queries(xs)
-        return cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        return self._cross(xs)
+
+    def _cross(self, xs: torch.Tensor) -> torch.Tensor:
+        return cross_kernel(xs, self.latents, self.fit.lengthscale, 0.0 if self.continuous else self._mu)
 
     def weights(self, xs) -> torch.Tensor:
         r"""Blending weights :math:`b(x_*) = K^{-1} k(x_*)` (seed Eq. 4), batched.
@@ -707,7 +715,7 @@ class GPLVM(torch.nn.Module):
             (M, N) or (N,) float64.
         """
         xs, single = self._queries(xs)
-        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        k = self._cross(xs)
         b = torch.cholesky_solve(k.T, self.chol).T
         return b[0] if single else b
 
@@ -718,7 +726,7 @@ class GPLVM(torch.nn.Module):
             xs: (M, Q) or (Q,). Returns: (M,) or () float64.
         """
         xs, single = self._queries(xs)
-        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        k = self._cross(xs)
         b = torch.cholesky_solve(k.T, self.chol).T
         v = (1.0 + self._mu - (k * b).sum(-1)).clamp_min(0)
         return v[0] if single else v
