@@ -31,6 +31,20 @@ Prints progress lines, then one JSON object as the LAST line:
   under the sky); ``direct_blend_*`` the same with direct light only (exact up to the clamp of
   negative values, ``gi_midpoint_negative_fraction``); ``gi_weights`` the blending weights used and
   ``gi_convex_blend_rel_l1`` the GI error of the uniform convex blend of the same renders.
+* held-out study (issue #20): ``heldout_logrmse_mean`` / ``_std``, ``pca_heldout_logrmse_mean`` /
+  ``_std``, ``nearest_heldout_logrmse_mean`` / ``_std`` (dicts by q = 2, 3, 5): mean over the
+  held-out materials, then mean and std over 5 random 80/20 splits (seeds 0..4; the GPLVM is
+  fitted on the training rows, each held-out material placed at its best manifold point, PCA of
+  the same dimension, and the nearest training material by the same weighted error);
+  ``heldout_negative_mean`` / ``pca_heldout_negative_mean``: fraction of negative values in the
+  reconstructions; ``family_heldout``: the same per family held out (names containing
+  ``metallic-paint``, ``phenolic``, ``fabric``; NBRDF data only); ``heldout_continuous_logrmse_mean``:
+  the GPLVM with the smooth GP mean as predictor. ``continuity_max`` (seed interpolant) and
+  ``continuity_max_continuous`` (smooth mean): max over training materials of the relative max
+  difference between the rows at x_i + 1e-6 and at x_i (q = 2 fit on all materials);
+  ``repro_rel_err_continuous_q2`` the smooth mean's reproduction error at the training latents.
+* ``lbfgs_wolfe_loglik_q2``, ``lbfgs_wolfe_s_q2``: ``torch.optim.LBFGS`` with the strong-Wolfe
+  line search on :func:`log_likelihood` (autograd), same data, start and iteration budget.
 * ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM; Adam as in
   their GPLVM tutorial), q = 2, same normalised data: seconds, their iterations, and Eq. 6
   evaluated by our code at their final latents (same objective, so directly comparable);
@@ -156,6 +170,99 @@ def gpytorch_peer(obs: Observations, q: int, iters: int) -> dict | None:
     return {"seconds": seconds, "iterations": iters, "loglik": ll}
 
 
+def row_jump(model: GPLVM, eps: float = 1e-6) -> torch.Tensor:
+    """(N,) relative max difference of the interpolated rows at x_i + eps and at x_i."""
+    at = model.predict(model.latents)
+    near = model.predict(model.latents + eps)
+    return (near - at).abs().max(1).values / at.abs().max(1).values.clamp_min(1e-300)
+
+
+def wolfe_peer(obs: Observations, q: int, iters: int) -> dict:
+    """torch.optim.LBFGS (strong Wolfe) on the package's log_likelihood, same data, start and budget."""
+    s, d = gram(obs.z, obs.cosine_weights())
+    n = s.shape[0]
+    s = s / (float(torch.diagonal(s).sum()) / (n * d))
+    x0 = pca_latents(s, q)
+    x0 = x0 + 1e-6 * torch.randn(x0.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * float(
+        x0.std()
+    )
+    x = x0.clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([x], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe", history_size=20)
+
+    def closure():
+        opt.zero_grad()
+        loss = -log_likelihood(x, s, d, 1.0, 1e-6) / (n * d)
+        loss.backward()
+        return loss
+
+    t0 = time.perf_counter()
+    opt.step(closure)
+    seconds = time.perf_counter() - t0
+    return {"loglik": float(log_likelihood(x.detach(), s, d, 1.0, 1e-6)), "seconds": seconds}
+
+
+def heldout_study(obs: Observations, max_iter: int, splits: int = 5) -> dict:
+    """Held-out log-RMSE mean/std over random splits and family hold-outs (see the module docstring)."""
+    names = list(obs.names)
+    res: dict = {}
+    per: dict = {k: {q: [] for q in (2, 3, 5)} for k in ("gplvm", "pca", "nearest", "neg", "pca_neg", "cont")}
+    for seed in range(splits):
+        perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
+        n_test = len(names) // 5
+        test = sorted(names[i] for i in perm[:n_test])
+        train = sorted(names[i] for i in perm[n_test:])
+        for q in (2, 3, 5):
+            for continuous in (False, True):
+                h = heldout_reconstruction(
+                    obs, train, test, q, max_iter=max_iter, continuous=continuous,
+                    generator=torch.Generator().manual_seed(0),
+                )  # fmt: skip
+                if continuous:
+                    per["cont"][q].append(float(h.gplvm_logrmse.mean()))
+                    continue
+                per["gplvm"][q].append(float(h.gplvm_logrmse.mean()))
+                per["pca"][q].append(float(h.pca_logrmse.mean()))
+                per["nearest"][q].append(float(h.nearest_logrmse.mean()))
+                per["neg"][q].append(float(h.gplvm_negative.mean()))
+                per["pca_neg"][q].append(float(h.pca_negative.mean()))
+            _log(
+                f"split {seed} q={q}: GPLVM {per['gplvm'][q][-1]:.3f} (smooth {per['cont'][q][-1]:.3f}), "
+                f"PCA {per['pca'][q][-1]:.3f}, nearest {per['nearest'][q][-1]:.3f}"
+            )
+
+    def stats(key):
+        t = {q: torch.tensor(v, dtype=torch.float64) for q, v in per[key].items()}
+        return {q: round(float(v.mean()), 4) for q, v in t.items()}, {q: round(float(v.std()), 4) for q, v in t.items()}
+
+    for key, name in (
+        ("gplvm", "heldout_logrmse"),
+        ("pca", "pca_heldout_logrmse"),
+        ("nearest", "nearest_heldout_logrmse"),
+    ):
+        res[f"{name}_mean"], res[f"{name}_std"] = stats(key)
+    res["heldout_continuous_logrmse_mean"] = stats("cont")[0]
+    res["heldout_negative_mean"], _ = stats("neg")
+    res["pca_heldout_negative_mean"], _ = stats("pca_neg")
+    if obs.source == "nbrdf":
+        fam = {}
+        for family in ("metallic-paint", "phenolic", "fabric"):
+            test = [n for n in names if family in n]
+            train = [n for n in names if family not in n]
+            for q in (2, 5):
+                h = heldout_reconstruction(
+                    obs, train, test, q, max_iter=max_iter, generator=torch.Generator().manual_seed(0)
+                )
+                fam[f"{family}_q{q}"] = {
+                    "n": len(test),
+                    "gplvm": round(float(h.gplvm_logrmse.mean()), 4),
+                    "pca": round(float(h.pca_logrmse.mean()), 4),
+                    "nearest": round(float(h.nearest_logrmse.mean()), 4),
+                }
+                _log(f"family {family} q={q}: {fam[f'{family}_q{q}']}")
+        res["family_heldout"] = fam
+    return res
+
+
 def interp_rate(model: GPLVM, z: torch.Tensor, quick: bool) -> tuple[float, float]:
     g = torch.Generator().manual_seed(1)
     lo, hi = model.latents.min(0).values, model.latents.max(0).values
@@ -269,6 +376,22 @@ def main(argv=None) -> dict:
         if q == 2:
             model2 = r["model"]
             ours_q2 = r
+    jumps = row_jump(model2)
+    smooth = GPLVM(model2.fit, obs.z.double(), continuous=True)
+    z = obs.z.double()
+    out["continuity_max"] = float(jumps.max())
+    out["continuity_share_above_1pct"] = float((jumps > 0.01).double().mean())
+    out["continuity_max_continuous"] = float(row_jump(smooth).max())
+    out["repro_rel_err_continuous_q2"] = float(
+        ((smooth.predict(smooth.latents) - z).abs().max(1).values / z.abs().max(1).values).max()
+    )
+    _log(
+        f"continuity: seed interpolant {out['continuity_max']:.3g}, smooth mean {out['continuity_max_continuous']:.3g}"
+    )
+    peer = wolfe_peer(obs, 2, max_iter)
+    out["lbfgs_wolfe_loglik_q2"], out["lbfgs_wolfe_s_q2"] = peer["loglik"], round(peer["seconds"], 3)
+    _log(f"strong-Wolfe L-BFGS q=2: {peer['loglik']:.6g} in {peer['seconds']:.2f} s")
+    out.update(heldout_study(obs, max_iter))
     hj = fit_all(obs, 2, 30 if quick else 100, method="hooke-jeeves")
     out["hj_fit_s_q2"], out["hj_loglik_q2"], out["hj_sweeps_q2"] = (
         round(hj["seconds"], 3),

@@ -21,6 +21,9 @@ class HeldOut:
         gplvm_cosrmse, pca_cosrmse: (M,) cosine-weighted RMSE.
         latents: (M, q) best manifold points. variance: (M,) predictive variance there.
         fit: the GPLVM fitted on the training materials.
+        nearest_logrmse: (M,) log-relative RMSE of the nearest training material (smallest
+            weighted squared error, the metric the projection minimises).
+        gplvm_negative, pca_negative: (M,) fraction of negative values in the reconstructions.
     """
 
     names: tuple[str, ...]
@@ -32,6 +35,9 @@ class HeldOut:
     latents: torch.Tensor
     variance: torch.Tensor
     fit: GPLVMFit
+    nearest_logrmse: torch.Tensor | None = None
+    gplvm_negative: torch.Tensor | None = None
+    pca_negative: torch.Tensor | None = None
 
     def summary(self) -> dict[str, float]:
         return {
@@ -52,6 +58,7 @@ def heldout_reconstruction(
     fit_weights: torch.Tensor | None = None,
     starts: int = 4,
     generator: torch.Generator | None = None,
+    continuous: bool = False,
     **fit_kwargs,
 ) -> HeldOut:
     """Fit the GPLVM on ``train``, then place every ``test`` material at its best manifold point.
@@ -66,6 +73,7 @@ def heldout_reconstruction(
         obs: observations holding every name. train, test: disjoint name lists. q: dimension.
         fit_weights: (d,) per-column weights (default ``obs.cosine_weights()``).
         starts: starting points of the projection. fit_kwargs: passed to :func:`fit_gplvm`.
+        continuous: predict with the smooth GP mean (:class:`GPLVM` ``continuous=True``).
     """
     w = obs.cosine_weights() if fit_weights is None else torch.as_tensor(fit_weights, dtype=torch.float64)
     cos = obs.grid.cosine_map()
@@ -73,10 +81,11 @@ def heldout_reconstruction(
     z_te = obs.rows(test).to(torch.float64)
     s, d = gram(z_tr, w)
     fit = fit_gplvm(s, d, q, names=train, generator=generator, **fit_kwargs)
-    model = GPLVM(fit, z_tr)
-    lat, var, preds = [], [], []
+    model = GPLVM(fit, z_tr, continuous=continuous)
+    lat, var, preds, nearest = [], [], [], []
     for z in z_te:
         g_mat, g_vec, c = projection_terms(z_tr, z, weights=w)
+        nearest.append(z_tr[int(torch.argmin(torch.diagonal(g_mat) - 2 * g_vec))])
         x, _ = model.project(g_mat, g_vec, c, starts=starts)
         lat.append(x)
         var.append(model.variance(x))
@@ -94,4 +103,7 @@ def heldout_reconstruction(
         latents=torch.stack(lat),
         variance=torch.stack(var),
         fit=fit,
+        nearest_logrmse=log_relative_rmse(torch.stack(nearest), z_te, cos),
+        gplvm_negative=(pred < 0).double().mean(1),
+        pca_negative=(pred_pca < 0).double().mean(1),
     )
