@@ -297,3 +297,20 @@ def test_continuous_predictor_is_continuous_at_training_latents():
     # away from the training latents both predictors are the same
     x = model.latents.mean(0, keepdim=True) + 0.123
     torch.testing.assert_close(smooth.weights(x), model.weights(x))
+
+
+def test_heldout_in_the_log_metric_is_never_worse_than_the_nearest_material():
+    """Held-out placement in the perceptual (log) mapping: the training latents are candidates and
+    the seed interpolant reproduces their rows, so the GPLVM is never worse than the nearest
+    training material in that mapping; the prediction is b(x*)^T Z (linear in the data)."""
+    from torch_brdf.manifold.evaluate import heldout_reconstruction
+
+    obs, _ = small_family(20)
+    names = list(obs.names)
+    h = heldout_reconstruction(obs, names[:16], names[16:], 2, max_iter=60, generator=torch.Generator().manual_seed(0))
+    assert bool((h.gplvm_logrmse <= h.nearest_logrmse + 1e-12).all())
+    model = GPLVM(h.fit, obs.rows(names[:16]).double())
+    pred = model.predict(h.latents)
+    assert h.gplvm_negative is not None and torch.equal(h.gplvm_negative, (pred < 0).double().mean(1))
+    with pytest.raises(ValueRangeError, match="metric"):
+        heldout_reconstruction(obs, names[:16], names[16:], 2, metric="l1")
