@@ -14,10 +14,11 @@ never has to be in memory at once.
 Two optimisers, both monotone (the log-likelihood never decreases over the recorded
 iterations):
 
-* ``"lbfgs"`` (default): L-BFGS (two-loop recursion) on the exact gradient — closed form
-  :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
-  ``autograd=True`` (equal, tested) — with a backtracking Armijo line search: a step is taken
-  only if it raises ``L``; otherwise the curvature memory is dropped, then the fit stops.
+* ``"lbfgs"`` (default): L-BFGS (two-loop recursion, memory 20) on the exact gradient — closed
+  form :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
+  ``autograd=True`` (equal, tested) — with torch's strong-Wolfe line search (c1 = 1e-4,
+  c2 = 0.9) and, where it ends on a point that does not raise ``L``, a backtracking Armijo
+  search; when no step length passes, the curvature memory is dropped, then the fit stops.
 * ``"adam"``: autograd + Adam, a step that lowers ``L`` is undone and the learning rate halved.
 * ``"hooke-jeeves"``: the seed's derivative-free direct search (Hooke and Jeeves 1961),
   one latent coordinate at a time, keeping :math:`K^{-1}`, :math:`\log|K|` and
@@ -44,6 +45,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.optim.lbfgs import _strong_wolfe  # torch's strong-Wolfe line search (a plain function)
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
@@ -426,6 +428,25 @@ def _value_and_grad(x: torch.Tensor, s, d, ell, mu, autograd: bool = False) -> t
     return float(ll.detach()), g
 
 
+def _wolfe_step(x, p, f, g, slope, s, d, ell, mu, autograd) -> tuple[float, torch.Tensor | None, float]:
+    """One strong-Wolfe line search (c1 = 1e-4, c2 = 0.9; ``torch.optim.lbfgs._strong_wolfe``) along
+    the ascent direction ``p`` from ``x``: returns (L, grad, step) at the accepted point."""
+    scale = float(x.shape[0] * d)
+    shape = x.shape
+
+    def obj(xf, t, dirn):
+        fv, gv = _value_and_grad((xf + t * dirn).reshape(shape), s, d, ell, mu, autograd)
+        if gv is None:  # K not positive definite: an infinitely bad value (the search bisects)
+            return math.inf, torch.zeros_like(dirn)
+        return -fv / scale, -gv.reshape(-1) / scale
+
+    f_new, g_new, t, _ = _strong_wolfe(obj, x.reshape(-1), 1.0, p.reshape(-1), -f / scale, -g.reshape(-1) / scale,
+                                       -slope / scale)  # fmt: skip
+    if not math.isfinite(float(f_new)):
+        return -math.inf, None, 0.0
+    return -float(f_new) * scale, -g_new.reshape(shape) * scale, float(t)
+
+
 def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
     """L-BFGS ascent (two-loop recursion) with a backtracking Armijo line search.
 
@@ -466,7 +487,12 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
             slope = float((g * p).sum())
         t = 1.0
         accepted = False
-        for _ in range(60):
+        # strong-Wolfe line search (torch's, on -L / (N d)); the Armijo backtracking below is the
+        # fallback when it ends on a non-finite or non-increasing point
+        fn, gn, t_sw = _wolfe_step(x, p, f, g, slope, s, d, ell, mu + jitter, autograd)
+        if gn is not None and math.isfinite(fn) and fn >= f + 1e-4 * t_sw * slope and t_sw > 0:
+            xn, accepted = x + t_sw * p, True
+        for _ in range(0 if accepted else 60):
             xn = x + t * p
             fn, gn = _value_and_grad(xn, s, d, ell, mu + jitter, autograd)
             if gn is not None and fn >= f + 1e-4 * t * slope:
