@@ -293,7 +293,7 @@ def fit_gplvm(
         d: number of columns of Z (the :math:`d/2\,\log|K|` factor).
         q: latent dimension (the seed uses 2..5).
         lengthscale, mu: kernel hyperparameters (Eq. 5; seed: 1 and 1e-6).
-        method: ``"lbfgs"`` (exact gradient, Armijo backtracking, monotone), ``"adam"``
+        method: ``"lbfgs"`` (exact gradient, strong-Wolfe line search, monotone), ``"adam"``
             (autograd, step halving on a decrease) or ``"hooke-jeeves"`` (the seed's direct search).
         max_iter: iterations (L-BFGS/Adam steps; Hooke–Jeeves sweeps over all coordinates).
         tol: stop when an iteration improves L by less than ``tol * |L|``.
@@ -448,7 +448,7 @@ def _wolfe_step(x, p, f, g, slope, s, d, ell, mu, autograd) -> tuple[float, torc
 
 
 def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
-    """L-BFGS ascent (two-loop recursion) with a backtracking Armijo line search.
+    """L-BFGS ascent (two-loop recursion), strong-Wolfe line search with Armijo backtracking as fallback.
 
     Monotone by construction: a step is taken only if it raises L by at least
     ``1e-4 * t * g.p``; when no step length passes, the curvature memory is dropped and a
