@@ -23,10 +23,7 @@ from torch_brdf.inverse import (
     solve_qp,
     transfer_functions,
 )
-
-
-def _rel_rmse(a, b):
-    return float((a - b).pow(2).mean().sqrt() / b.pow(2).mean().sqrt())
+from torch_brdf.metrics import relative_rmse
 
 
 def test_recovers_a_known_brdf(view, target_render):
@@ -35,7 +32,7 @@ def test_recovers_a_known_brdf(view, target_render):
     rec, target = view[-1], target_render
     res = fit(rec, _whole(target), kd=KD)
     img = rec.pixel_values(res.record_coefficients())
-    assert _rel_rmse(img, target) <= 0.01
+    assert relative_rmse(img, target) <= 0.01
     assert res.violation <= 1e-8
     assert bool((res.coefficients >= 0).all())
     g = energy_rows().rows(res.f0.tolist())
@@ -235,7 +232,7 @@ def test_unconstrained_lobes_get_minimum_norm(view, target_render):
     ls2 = LightSamples.from_environment(scene.environment.rotated(2.5), 128, torch.Generator().manual_seed(8))
     rec2 = transfer_functions(px, ls2, cosine_visibility(scene, px, ls2), f0=ridge.f0.tolist())
     want = rec2.pixel_values(torch.cat((truth, torch.tensor(KD, dtype=torch.float64)[None])))
-    rel = {n: _rel_rmse(rec2.pixel_values(r.record_coefficients()), want) for n, r in fits}
+    rel = {n: relative_rmse(rec2.pixel_values(r.record_coefficients()), want) for n, r in fits}
     assert rel["ridge"] < 0.1 and rel["ridge"] <= rel["plain"]
     with pytest.raises(ValueRangeError, match="ridge"):
         fit(rec, target, kd=KD, ridge=-1.0)
