@@ -47,13 +47,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
-from .codec import Record
+from .codec import Member, Record
 
 VISIBILITY_KIND = "block-visibility"
 #: texels per block (16 x 16); indices into a block's visibility vector fit in a uint8
@@ -297,6 +297,7 @@ class BlockVisibility(Record):
 
     kind = VISIBILITY_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {"stream": Member("u", 1), "vertex_offsets": Member("iu", 1)}
 
     def __post_init__(self):
         nb = self.block_count

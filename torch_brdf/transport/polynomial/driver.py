@@ -12,7 +12,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache
+from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -143,7 +143,7 @@ def precompute_polynomial(
         "tile_rows": tile_rows,
         "group": group,
     }
-    cache = TileCache(checkpoint, TILE_KIND, settings)
+    cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
