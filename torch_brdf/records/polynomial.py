@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
-from ..errors import SceneError, ValueRangeError
+from ..errors import FileFormatError, SceneError, ValueRangeError
 from .basis_image import BasisImage
 from .codec import Member, Record
 
@@ -370,6 +370,10 @@ class PolynomialTensors(Record):
             for i, (o, n, j) in enumerate(meta["blocks"])
         ]
         bases = [None if b is None else ObjectBasis(**b) for b in meta["bases"]]
+        if t["emission"].shape != (3, int(meta["height"]) * int(meta["width"])):
+            raise FileFormatError(
+                f"emission {tuple(t['emission'].shape)} does not fit {meta['height']}x{meta['width']}"
+            )
         return cls(
             int(meta["height"]),
             int(meta["width"]),

@@ -634,6 +634,13 @@ class BlockVisibility(Record):
             stream = stream[src]
             vo = np.zeros(ids.size + 1, dtype=np.int64)
             np.cumsum(lengths, out=vo[1:])
+        # every block starts with a count byte, so P x NB cannot exceed the stream's length: bound the
+        # (P, NB) tables before allocating them (small excesses go on to the parser's precise message)
+        if (vo.size - 1) * nb > stream.size + (1 << 16):
+            raise FileFormatError(
+                f"block visibility: {vo.size - 1} vertices x {nb} blocks need at least {(vo.size - 1) * nb:,} "
+                f"count bytes; the stream has {stream.size:,}"
+            )
         counts, index, delta = _parse_stream(stream, vo, nb, bits)
         return cls._from_entries(nb, bits, counts, index, delta, meta)
 
