@@ -9,6 +9,7 @@ neither scene). Also: a damaged render checkpoint is moved aside with a warning 
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 import torch
@@ -152,3 +153,40 @@ def test_transfer_cache_after_scene_edit_equals_fresh_design(tmp_path):
     b = BasisImage.load(tmp_path / "fresh" / "transfer.npz", dtype=torch.float64)
     assert torch.equal(a.values, b.values)
     assert resumed["objective"] == fresh["objective"]
+
+
+def _toml(desc: dict) -> str:
+    """The description as TOML (the few shapes :func:`_box_desc` uses)."""
+
+    def val(v):
+        return json.dumps(v)  # numbers, strings and nested lists read the same in TOML
+
+    lines = [f"name = {val(desc['name'])}", "[camera]"]
+    lines += [f"{k} = {val(v)}" for k, v in desc["camera"].items()]
+    for name, mat in desc["materials"].items():
+        lines += [f"[materials.{name}]", *(f"{k} = {val(v)}" for k, v in mat.items())]
+    for table in ("objects", "lights"):
+        for item in desc[table]:
+            lines += [f"[[{table}]]", *(f"{k} = {val(v)}" for k, v in item.items())]
+    return "\n".join(lines) + "\n"
+
+
+def test_cli_render_resume_after_scene_edit(tmp_path, monkeypatch):
+    """The issue's command: kill ``torch-brdf render scene.toml``, edit light and albedo, run again."""
+    from typer.testing import CliRunner
+
+    from torch_brdf.cli import app
+    from torch_brdf.io import read_exr
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(_toml(_box_desc(0.5, 1.0)))
+    args = ["render", str(scene), "--spp", "8", "--bounces", "2", "--seed", "3"]
+    _interrupt_after(pathtrace, "_radiance", 6, monkeypatch)  # after the pass-4 checkpoint
+    killed = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a" / "img")])
+    monkeypatch.undo()
+    assert killed.exit_code != 0 and (tmp_path / "a" / "img.ckpt.npz").exists()
+    scene.write_text(_toml(_box_desc(0.8, 2.5)))
+    again = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a" / "img")])
+    fresh = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b" / "img"), "--no-resume"])
+    assert again.exit_code == 0 and fresh.exit_code == 0, (again.output, fresh.output)
+    assert torch.equal(read_exr(tmp_path / "a" / "img.exr"), read_exr(tmp_path / "b" / "img.exr"))

@@ -11,6 +11,13 @@ timestamps, padding, metadata) is refused before any parsing. The write is atomi
 either the old file or the new one.
 :func:`load_arrays` refuses object arrays (no pickle), a wrong kind, a newer format
 version, another layout version of the kind or a checksum mismatch, with a clear error.
+
+:func:`read_npz` is the one reader of every ``.npz`` (ours, MERL tables, NBRDF weights): it
+bounds what a file declares before allocating (each ``.npy`` header's shape x itemsize equals
+its member's size; the total is at most :func:`max_array_bytes`, ``TORCH_BRDF_MAX_ARRAY_BYTES``,
+default 8 GiB; no deflated member expands more than :data:`MAX_COMPRESSION_RATIO` times beyond
+:data:`RATIO_FREE_BYTES`) and turns every zip, inflate and header error into
+:class:`~torch_brdf.errors.FileFormatError` naming the file.
 """
 
 from __future__ import annotations

@@ -6,7 +6,8 @@ progress so that an interrupted run resumes where it stopped and gives the same 
 for bit. They all do it through this module:
 
 - :class:`Checkpoint`: one file (progress so far, or a finished record) tied to a *key*, the
-  digest of the settings that decide its content. A file written under another key is
+  digest of everything that decides its content (:func:`settings_key`: the settings, the
+  scene's content digest and the format versions). A file written under another key is
   ignored (the work is redone and the file overwritten); a corrupt file is either refused
   with :class:`~torch_brdf.errors.FileFormatError` (``on_corrupt="raise"``) or moved aside
   to ``<name>.corrupt`` with a :class:`CorruptCacheWarning` and recomputed
