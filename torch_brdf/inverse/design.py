@@ -25,7 +25,7 @@ import torch
 
 from ..errors import FileFormatError, TorchBRDFError
 from ..records.basis_image import BasisImage
-from ..records.cache import Checkpoint
+from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
 from .solve import fit, save_fit
 from .strokes import Brush, Stroke, paint
@@ -109,7 +109,8 @@ def design(
     t0 = time.perf_counter()
     px = object_pixels(scene, config.object, solve_cam)
     settings = {"scene": scene.name, **asdict(config), "size": [solve_cam.width, solve_cam.height]}
-    cache = Checkpoint(out / "transfer.npz", BasisImage.kind, settings, on_corrupt="recompute")
+    key = settings_key(settings, scene)  # an edited scene (mesh, env map, camera) recomputes
+    cache = Checkpoint(out / "transfer.npz", BasisImage.kind, key, on_corrupt="recompute")
     rec = cache.load_record(BasisImage, dtype=torch.float64)
     if rec is None:
         g = torch.Generator().manual_seed(config.seed)

@@ -206,7 +206,8 @@ def nbrdf_observations(
     With ``cache`` the matrix is stored as a :class:`~torch_brdf.records.cache.Checkpoint` (atomic,
     checksummed) every ``save_every`` materials and at the end; a later call with the same
     weights file, names and grid resumes from it (or just loads it). A cache written for other
-    settings is recomputed; a corrupt cache raises :class:`~torch_brdf.errors.FileFormatError`.
+    settings is recomputed; a corrupt cache is moved aside (``<name>.corrupt``, with a
+    :class:`~torch_brdf.records.cache.CorruptCacheWarning`) and recomputed.
 
     Args:
         weights_path: ``nbrdf_merl100_weights.npz``. grid: default :func:`default_grid`.
@@ -226,7 +227,7 @@ def nbrdf_observations(
     b = grid.num_valid
     z = np.zeros((len(names), 3 * b), dtype=np.float32)
     done = 0
-    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta)
+    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta, on_corrupt="recompute")
     saved = None if ckpt is None else ckpt.load()
     if saved is not None and saved[0].get("z", np.empty(0)).shape == z.shape:
         z = np.asarray(saved[0]["z"], dtype=np.float32).copy()

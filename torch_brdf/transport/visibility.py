@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from ..data import progress_default
 from ..errors import ValueRangeError
-from ..records.cache import TileCache
+from ..records.cache import TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BlockVisibility
 from ..scene.scene import Scene
@@ -122,7 +122,8 @@ def precompute_visibility(
         "fingerprint": verts.fingerprint,
         "chunk": chunk,
     }
-    cache = TileCache(checkpoint, CHUNK_KIND, settings, prefix="vis")
+    key = settings_key(settings, scene, parts=("geometry",))  # every mesh (occluders too), not lights
+    cache = TileCache(checkpoint, CHUNK_KIND, key, prefix="vis")
     dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
     starts = list(range(0, len(verts), chunk))
     parts: list[BlockVisibility | None] = [None] * len(starts)

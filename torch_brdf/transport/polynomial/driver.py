@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache
+from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -150,7 +150,7 @@ def precompute_polynomial(
         "tile_rows": tile_rows,
         "group": group,
     }
-    cache = TileCache(checkpoint, TILE_KIND, settings)
+    cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
