@@ -6,12 +6,20 @@ filter depend on the image and so non-linear).
 Level :math:`l = 0..L-1` convolves with the B3-spline kernel :math:`h = (1, 4, 6, 4, 1)/16`
 (separable, 5 x 5 taps) dilated by :math:`2^l`, each tap :math:`q` of pixel :math:`p` weighted by
 
-.. math:: w(p, q) = h_q\,[o_p = o_q]\,\max(0, n_p\cdot n_q)^{\sigma_n}
+.. math:: w(p, q) = h_q\,[o_p = o_q]\,[m_p = m_q]\,\max(0, n_p\cdot n_q)^{\sigma_n}
           \exp\!\Big(-\frac{|n_p\cdot(x_q - x_p)|}{\sigma_x\,\delta_p\,|q - p|}\Big)
-          \exp\!\Big(-\frac{\lVert a_p - a_q\rVert_1}{\sigma_a}\Big),
+          \exp\!\Big(-\frac{\lVert a_p - a_q\rVert_1}{\sigma_a}\Big)
+          \exp\!\Big(-\frac{\lVert \log(1 + L_p) - \log(1 + L_q)\rVert_1}{\sigma_m}\Big)
+          \exp\!\Big(-\frac{|\cos\theta_{h,p} - \cos\theta_{h,q}|}{\sigma_h}\Big),
 
 (object id :math:`o`, normal :math:`n`, position :math:`x`, albedo proxy :math:`a`, pixel
-footprint :math:`\delta_p` = depth x pixel angle) and normalised to sum to 1 over the taps.
+footprint :math:`\delta_p` = depth x pixel angle, object :math:`m` and emitted radiance
+:math:`L` seen by the mirror ray, half-vector cosine :math:`\cos\theta_h` to the brightest
+light: see :mod:`.guides`; the last factor only on ``glossy`` objects) and normalised to
+sum to 1 over the taps. The mirror terms keep the reflection of a light or an object on a glossy surface from
+being smeared over the whole surface; what they cannot keep is the soft falloff of a broad
+lobe's highlight inside one mirror region (blurred at the footprint's scale), nor contact
+shadows on one plane (same object, normal and plane on both sides).
 
 Only *interior* pixels are filtered and used as taps: those whose 3 x 3 neighbourhood of pixel
 centres sees one object. A silhouette pixel's jittered samples may see two objects, so the
@@ -47,15 +55,23 @@ class AtrousSettings:
         sigma_plane: tolerance of the distance to the tangent plane, in pixel footprints per
             pixel of offset (smaller: stops at smaller depth steps, e.g. contact edges).
         sigma_albedo: tolerance of the albedo-proxy difference (L1).
+        sigma_mirror: tolerance of the difference of log(1 + radiance seen by the mirror ray).
+        sigma_half: tolerance of the difference of the half-vector cosine to the brightest
+            light (a Blinn-Phong lobe of exponent n falls by 1/e over 1/n of it).
     """
 
-    levels: int = 4
+    levels: int = 3
     sigma_normal: float = 64.0
     sigma_plane: float = 1.0
     sigma_albedo: float = 0.05
+    sigma_mirror: float = 0.25
+    sigma_half: float = 0.002
 
     def __post_init__(self):
-        if self.levels < 1 or min(self.sigma_normal, self.sigma_plane, self.sigma_albedo) <= 0:
+        if (
+            self.levels < 1
+            or min(self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror, self.sigma_half) <= 0
+        ):
             raise ValueRangeError(f"need levels >= 1 and positive sigmas; got {self}")
 
 
@@ -75,13 +91,16 @@ class EdgeAwareFilter:
 
     Args:
         guides: the view's :class:`GuideBuffers`.
-        settings: :class:`AtrousSettings` (default: 4 levels, a 61-pixel footprint).
+        settings: :class:`AtrousSettings` (default: 3 levels, a 29-pixel footprint).
+        glossy: object ids whose pixels also stop at half-vector changes (objects with more
+            than one band; default none). Which objects are banded is part of the record
+            (its bases), not of any material value, so the filter stays fixed under edits.
 
     Calling it on planes (N, H, W) returns the filtered planes (N, H, W) in their dtype:
     ``A(a x + b y) == a A(x) + b A(y)`` up to rounding.
     """
 
-    def __init__(self, guides: GuideBuffers, settings: AtrousSettings | None = None):
+    def __init__(self, guides: GuideBuffers, settings: AtrousSettings | None = None, glossy=()):
         self.guides = guides
         self.settings = settings or AtrousSettings()
         s = self.settings
@@ -91,6 +110,11 @@ class EdgeAwareFilter:
         n = g.normal.double().permute(2, 0, 1)  # (3, H, W)
         x = g.position.double().permute(2, 0, 1)
         a = g.albedo.double().permute(2, 0, 1)
+        mid = g.mirror_id.double()
+        ml = torch.log1p(g.mirror_radiance.double().clamp_min(0)).permute(2, 0, 1)
+        ch = g.light_cos_h.double()
+        self.glossy = tuple(sorted(int(o) for o in glossy))
+        gl = torch.isin(g.object_id, torch.tensor(self.glossy, dtype=torch.long))
         foot = torch.where(torch.isfinite(g.depth), g.depth.double(), 0.0) * g.pixel_angle
         foot = foot.clamp_min(1e-12)
         same = torch.stack([_shift(oid, dy, dx, fill=-2.0) == oid for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
@@ -106,12 +130,15 @@ class EdgeAwareFilter:
                     dy, dx = (iy - 2) * step, (ix - 2) * step
                     o_q = _shift(oid, dy, dx, fill=-2.0)  # -2: outside the image
                     inner_q = _shift(interior.double(), dy, dx) > 0
-                    wt = torch.where((o_q == oid) & inner_q, hy * hx, 0.0)
+                    same = (o_q == oid) & (_shift(mid, dy, dx, fill=-3.0) == mid)
+                    wt = torch.where(same & inner_q, hy * hx, 0.0)
                     if dy or dx:
                         n_q, x_q, a_q = _shift(n, dy, dx), _shift(x, dy, dx), _shift(a, dy, dx)
                         wt = wt * (n * n_q).sum(0).clamp_min(0) ** s.sigma_normal
                         plane = ((x_q - x) * n).sum(0).abs() / (s.sigma_plane * foot * (dy * dy + dx * dx) ** 0.5)
                         wt = wt * torch.exp(-plane) * torch.exp(-(a - a_q).abs().sum(0) / s.sigma_albedo)
+                        wt = wt * torch.exp(-(ml - _shift(ml, dy, dx)).abs().sum(0) / s.sigma_mirror)
+                        wt = torch.where(gl, wt * torch.exp(-(ch - _shift(ch, dy, dx)).abs() / s.sigma_half), wt)
                     offs.append((dy, dx))
                     ws.append(wt)
             wl = torch.stack(ws)
@@ -124,7 +151,7 @@ class EdgeAwareFilter:
 
     @property
     def description(self) -> str:
-        return f"linear a-trous {self.settings}"
+        return f"linear a-trous {self.settings}, glossy objects {list(self.glossy)}"
 
     def __call__(self, images: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
         """Filter images (..., H, W) (any float dtype; e.g. (B, 3, H, W) basis images) ->
