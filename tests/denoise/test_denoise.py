@@ -4,6 +4,7 @@ guide buffers and their file round trip, HDR-FLIP."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -21,12 +22,12 @@ from torch_brdf.denoise import (
     oidn_available,
     oidn_frame,
 )
-from torch_brdf.denoise.guides import GUIDE_NAMES
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.io.arrays import load_arrays, save_arrays
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.scene.guides import GUIDE_NAMES
+from torch_brdf.transport.polynomial import PolynomialTensors, precompute_polynomial
 
 needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
 SIZE = 24
@@ -94,6 +95,16 @@ def test_guides_file_round_trip_and_version(setup, tmp_path):
     arrays["guide_meta"][1] = 99
     with pytest.raises(FileFormatError):
         GuideBuffers.from_arrays(arrays)
+
+
+def test_guides_are_saved_with_the_tensors(setup, tmp_path):
+    _, tensors, _, g = setup
+    assert tensors.guides is None
+    path = dataclasses.replace(tensors, guides=g).save(tmp_path / "t.npz")
+    back = PolynomialTensors.load(path)
+    for k in GUIDE_NAMES:
+        assert torch.equal(getattr(back.guides, k), getattr(g, k))
+    assert PolynomialTensors.load(tensors.save(tmp_path / "plain.npz")).guides is None
 
 
 def test_filter_is_linear_and_respects_object_ids(setup, gen):

@@ -67,6 +67,7 @@ from ..errors import FileFormatError, SceneError, ShapeError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
 from ..render.record import BasisImage
 from ..scene.envmap import EnvironmentMap
+from ..scene.guides import GuideBuffers
 from ..scene.lights import Light, LightSample, luminance
 from ..scene.scene import Scene
 from ..sphere.warps import cosine_hemisphere_pdf, square_to_cosine_hemisphere
@@ -381,6 +382,8 @@ class PolynomialTensors:
         terms: bounce -> :class:`TermTable`.
         blocks: the entries, per tile, eye object and bounce.
         meta: settings and statistics (spp, seed, mixture, rays cast, seconds).
+        guides: optional per-pixel :class:`~torch_brdf.scene.guides.GuideBuffers` of the view
+            (denoisers' guides; :func:`torch_brdf.denoise.guide_buffers`), saved with the file.
     """
 
     height: int
@@ -392,6 +395,7 @@ class PolynomialTensors:
     terms: dict[int, TermTable]
     blocks: list[TensorBlock]
     meta: dict[str, Any] = field(default_factory=dict)
+    guides: GuideBuffers | None = None
 
     @property
     def num_objects(self) -> int:
@@ -479,6 +483,8 @@ class PolynomialTensors:
             if b.variance is not None:
                 arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
             index.append([b.object_id, b.bounce, b.J])
+        if self.guides is not None:
+            arrays.update(self.guides.to_arrays())
         meta = {
             "height": self.height,
             "width": self.width,
@@ -527,6 +533,7 @@ class PolynomialTensors:
                 terms,
                 blocks,
                 dict(meta.get("meta", {})),
+                GuideBuffers.from_arrays(arrays),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise FileFormatError(f"{path}: not a valid multibounce tensor file ({exc})") from exc
