@@ -105,6 +105,13 @@ def test_guides_are_saved_with_the_tensors(setup, tmp_path):
     for k in GUIDE_NAMES:
         assert torch.equal(getattr(back.guides, k), getattr(g, k))
     assert PolynomialTensors.load(tensors.save(tmp_path / "plain.npz")).guides is None
+    # the filter of a record is built from its own guides and bases
+    A = EdgeAwareFilter.for_tensors(back)
+    assert A.glossy == tuple(_glossy(tensors))
+    x = torch.rand(3, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(A(x), EdgeAwareFilter(g, glossy=_glossy(tensors))(x))
+    with pytest.raises(ValueRangeError):
+        EdgeAwareFilter.for_tensors(tensors)
 
 
 def test_filter_is_linear_and_respects_object_ids(setup, gen):

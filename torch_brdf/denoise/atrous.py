@@ -149,6 +149,19 @@ class EdgeAwareFilter:
             self.offsets.append(offs)
         self.shape = (h, w)
 
+    @classmethod
+    def for_tensors(cls, tensors, settings: AtrousSettings | None = None) -> EdgeAwareFilter:
+        """The filter of a record that carries its guides (``tensors.guides``, e.g. the
+        multibounce tensors), with the half-vector guide on its banded objects (J > 1).
+
+        Raises:
+            ValueRangeError: the record has no guides (attach :func:`~.guides.guide_buffers`).
+        """
+        if getattr(tensors, "guides", None) is None:
+            raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
+        glossy = [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
+        return cls(tensors.guides, settings, glossy=glossy)
+
     @property
     def description(self) -> str:
         return f"linear a-trous {self.settings}, glossy objects {list(self.glossy)}"
