@@ -35,8 +35,9 @@ import time
 
 import torch
 
-from torch_brdf.denoise import EdgeAwareFilter, OIDNBasis, denoise_frozen, guide_buffers, hdr_flip, oidn_frame
-from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, relative_rmse
+from torch_brdf.denoise import EdgeAwareFilter, OIDNBasis, denoise_frozen, guide_buffers, oidn_frame
+from torch_brdf.metrics import hdr_flip, relative_rmse
+from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial

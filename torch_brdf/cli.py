@@ -115,8 +115,7 @@ def precompute(
     resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
-    import shutil
-
+    from .records.cache import remove_cache
     from .transport.polynomial import precompute_polynomial
 
     try:
@@ -129,8 +128,7 @@ def precompute(
         )
         seconds = time.perf_counter() - t0
         T.save(out, storage=storage)
-        if tiles is not None and tiles.exists():
-            shutil.rmtree(tiles)
+        remove_cache(tiles)
     except json.JSONDecodeError as exc:
         typer.secho(f"error: --bases is not valid JSON: {exc}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from None
@@ -182,8 +180,7 @@ def precompute_visibility_cmd(
     resume: bool = typer.Option(True, help="Keep finished chunks in OUT.chunks/ and resume from them."),
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
-    import shutil
-
+    from .records.cache import remove_cache
     from .transport.visibility import precompute_visibility
 
     try:
@@ -194,8 +191,7 @@ def precompute_visibility_cmd(
         seconds = time.perf_counter() - t0
         out.parent.mkdir(parents=True, exist_ok=True)
         vis.save(out)
-        if ck is not None:
-            shutil.rmtree(ck, ignore_errors=True)
+        remove_cache(ck)
         info = {
             "out": str(out),
             "vertices": len(vis.vertices),

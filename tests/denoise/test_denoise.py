@@ -5,7 +5,6 @@ guide buffers and their file round trip, HDR-FLIP."""
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import pytest
 import torch
@@ -18,16 +17,16 @@ from torch_brdf.denoise import (
     denoise_frozen,
     denoise_tensors,
     guide_buffers,
-    hdr_flip,
     oidn_available,
     oidn_frame,
 )
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.io.arrays import load_arrays, save_arrays
+from torch_brdf.records import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.guides import GUIDE_NAMES
-from torch_brdf.transport.polynomial import PolynomialTensors, precompute_polynomial
+from torch_brdf.transport.polynomial import precompute_polynomial
 
 needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
 SIZE = 24
@@ -251,17 +250,3 @@ def test_oidn_frame_reduces_noise_of_a_flat_image(setup, gen):
     out = oidn_frame(noisy, g)
     assert out.shape == noisy.shape
     assert float((out - base).square().mean()) < 0.5 * float((noisy - base).square().mean())
-
-
-def test_hdr_flip_orders_errors(gen):
-    pytest.importorskip("flip_evaluator")
-    ref = torch.rand(32, 32, 3, generator=gen) * 4
-    assert hdr_flip(ref, ref) == pytest.approx(0.0, abs=1e-6)
-    small = ref * (1 + 0.05 * torch.randn(32, 32, 3, generator=gen)).clamp_min(0)
-    big = ref * (1 + 0.5 * torch.randn(32, 32, 3, generator=gen)).clamp_min(0)
-    assert 0 < hdr_flip(small, ref) < hdr_flip(big, ref) <= 1
-    m = torch.zeros(32, 32, dtype=torch.bool)
-    m[:16] = True
-    assert math.isfinite(hdr_flip(big, ref, m))
-    with pytest.raises(ShapeError):
-        hdr_flip(ref[:2], ref)

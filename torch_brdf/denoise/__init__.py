@@ -4,12 +4,12 @@
 * :mod:`.atrous`: a linear edge-aware à-trous filter with weights from the guides only;
 * :mod:`.oidn`: Intel Open Image Denoise per grouped basis image and per frame (optional
   extra ``denoise``);
-* :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor;
-* :mod:`.flip`: HDR-FLIP.
+* :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor.
+
+HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
 
 from .atrous import AtrousSettings, EdgeAwareFilter
-from .flip import hdr_flip
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .tensors import denoise_frozen, denoise_planes, denoise_tensors
@@ -23,7 +23,6 @@ __all__ = [
     "denoise_planes",
     "denoise_tensors",
     "guide_buffers",
-    "hdr_flip",
     "oidn_available",
     "oidn_frame",
     "oidn_image",

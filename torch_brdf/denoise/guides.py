@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..scene.gbuffer import trace_gbuffer
 from ..scene.guides import GuideBuffers, object_albedo_proxy
 from ..transport.pathtrace import emission_seen
 
@@ -31,37 +32,41 @@ __all__ = ["GuideBuffers", "guide_buffers", "object_albedo_proxy"]
 
 
 def guide_buffers(scene) -> GuideBuffers:
-    """Trace the camera's pixel-centre rays of ``scene`` (a :class:`~torch_brdf.scene.Scene`).
+    """The guides of ``scene``'s view (a :class:`~torch_brdf.scene.Scene`), from the camera's
+    G-buffer (:func:`~torch_brdf.scene.gbuffer.trace_gbuffer`, pixel-centre rays) plus one
+    mirror ray per hit.
 
     Returns:
         :class:`GuideBuffers` at the camera's resolution.
     """
     cam = scene.camera
     h, w = cam.height, cam.width
-    o, d = cam.generate_rays()
-    hits = scene.trace(o, d)
-    n = hits.normal
-    n = torch.where(((n * d).sum(-1) > 0)[:, None], -n, n)  # face the eye
-    hit = hits.hit
-    depth = torch.where(hit, hits.t.float(), float("inf"))
-    idx = torch.nonzero(hit).squeeze(1)
-    r = d[idx] - 2 * (d[idx] * n[idx]).sum(-1, keepdim=True) * n[idx]
-    mh = scene.trace(scene.spawn(hits.position[idx], n[idx], r), r)
-    mirror_id = torch.full((h * w,), -2, dtype=torch.long)
-    mirror_id[idx] = mh.object_id.long()
-    mirror_rad = torch.zeros(h * w, 3)
-    mirror_rad[idx] = emission_seen(scene, r, mh).float()
-    angle = 2.0 * float(np.tan(np.radians(cam.fov_deg) / 2)) / h
+    gb = trace_gbuffer(scene)
+    pix = gb.pixels
+    wo = gb.wo.float()
+    n = gb.normal.float()
+    n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)  # face the eye
+    pos = gb.position.float()
+    r = 2 * (wo * n).sum(-1, keepdim=True) * n - wo  # the mirror direction of the view
+    mh = scene.trace(scene.spawn(pos, n, r), r)
+
+    def image(values, fill, width=None):
+        shape = (h * w,) if width is None else (h * w, width)
+        out = torch.full(shape, fill, dtype=values.dtype)
+        out[pix] = values
+        return out.reshape(h, w, *(() if width is None else (width,)))
+
+    oid = image(gb.object_id.long(), -1)
     return GuideBuffers(
-        normal=n.float().reshape(h, w, 3),
-        position=hits.position.float().reshape(h, w, 3),
-        depth=depth.reshape(h, w),
-        object_id=hits.object_id.long().reshape(h, w),
-        albedo=object_albedo_proxy(hits.object_id.long()).reshape(h, w, 3),
-        mirror_id=mirror_id.reshape(h, w),
-        mirror_radiance=mirror_rad.reshape(h, w, 3),
-        light_cos_h=_light_cos_h(scene, hits, d).reshape(h, w),
-        pixel_angle=angle,
+        normal=image(n, 0.0, 3),
+        position=image(pos, 0.0, 3),
+        depth=image(gb.depth.float(), float("inf")),
+        object_id=oid,
+        albedo=object_albedo_proxy(oid),
+        mirror_id=image(mh.object_id.long(), -2),
+        mirror_radiance=image(emission_seen(scene, r, mh).float(), 0.0, 3),
+        light_cos_h=image(_light_cos_h(scene, pos, n, wo), 0.0),
+        pixel_angle=2.0 * float(np.tan(np.radians(cam.fov_deg) / 2)) / h,
     )
 
 
@@ -89,17 +94,11 @@ def _brightest_light_directions(scene, points: torch.Tensor) -> torch.Tensor | N
     return None
 
 
-def _light_cos_h(scene, hits, d: torch.Tensor) -> torch.Tensor:
-    """(P,) n.h for the brightest light at the first hits (0 on a miss or without lights)."""
-    out = torch.zeros(d.shape[0])
-    idx = torch.nonzero(hits.hit).squeeze(1)
-    if idx.numel() == 0:
-        return out
-    l = _brightest_light_directions(scene, hits.position[idx].float())
-    if l is None:
-        return out
-    n = hits.normal[idx].float()
-    n = torch.where(((n * d[idx]).sum(-1) > 0)[:, None], -n, n)
-    h = torch.nn.functional.normalize(l - d[idx].float(), dim=-1)
-    out[idx] = (n * h).sum(-1)
-    return out
+def _light_cos_h(scene, pos: torch.Tensor, n: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """(P,) n.h for the brightest light at hits ``pos`` with eye-facing normals ``n`` and
+    directions to the eye ``wo`` (0 without lights)."""
+    l = _brightest_light_directions(scene, pos)
+    if l is None or pos.shape[0] == 0:
+        return torch.zeros(pos.shape[0])
+    h = torch.nn.functional.normalize(l + wo, dim=-1)
+    return (n * h).sum(-1)

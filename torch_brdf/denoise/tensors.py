@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from ..errors import ShapeError, ValueRangeError
-from ..transport.polynomial import PolynomialTensors, TensorBlock
+from ..records.polynomial import PolynomialTensors, TensorBlock
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
