@@ -19,6 +19,7 @@ one; ``tests/test_layers.py`` keeps it so):
   tensors, vertex visibility, Mitsuba comparisons).
 * :mod:`torch_brdf.manifold`: the GPLVM manifold of measured BRDFs, its materials and evaluation.
 * :mod:`torch_brdf.inverse`: paint strokes, transfer functions and constrained BRDF fits.
+* :mod:`torch_brdf.planner`: error-budget planners (the cheapest settings for an error or a time).
 * :mod:`torch_brdf.render`: modules that turn records plus coefficients into images
   (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
 * :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.

@@ -113,6 +113,9 @@ def precompute(
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
     storage: str = typer.Option("float32", help="float32 or float16 (half the bytes, rel. error <= 4.9e-4)."),
     resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
+    error: float = typer.Option(
+        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
+    ),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -124,8 +127,18 @@ def precompute(
         tiles = out.with_suffix(".tiles") if resume else None
         t0 = time.perf_counter()
         T = precompute_polynomial(
-            sc, series, spp=spp, seed=seed, bases=overrides, env_point_lights=env_point_lights, checkpoint=tiles
+            sc,
+            series,
+            spp=spp,
+            seed=seed,
+            bases=overrides,
+            env_point_lights=env_point_lights,
+            checkpoint=tiles,
+            plan="auto" if error is not None else None,
+            error=error,
         )
+        if "plan" in T.meta:
+            typer.echo(T.meta["plan"], err=True)
         seconds = time.perf_counter() - t0
         T.save(out, storage=storage)
         remove_cache(tiles)
@@ -135,7 +148,8 @@ def precompute(
     except TorchBRDFError as exc:
         _fail(exc)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
-    info = {"out": str(out), "seconds": round(seconds, 3), "series": series, "spp": spp, "mb_per_bounce": mb}
+    info = {"out": str(out), "seconds": round(seconds, 3), "series": T.series.key, "spp": T.meta["spp"]}
+    info["mb_per_bounce"] = mb
     info["rays"] = T.meta["rays"]
     typer.echo(json.dumps(info))
 
