@@ -126,7 +126,9 @@ def precompute_polynomial(
         if isinstance(plan, str):
             if plan != "auto":
                 raise ValueRangeError(f"plan must be 'auto' or a GIPlan; got {plan!r}")
-            plan = plan_polynomial(scene, error=error, seconds=time_budget, seed=seed, progress=progress)
+            plan = plan_polynomial(
+                scene, error=error, seconds=time_budget, seed=seed, env_point_lights=env_point_lights, progress=progress
+            )
         scene = with_fixed(scene, plan.fixed)
         out = precompute_polynomial(
             scene,
@@ -208,6 +210,7 @@ def plan_polynomial(
     pilot_spp: int = 4,
     pilot_bounces: int = 8,
     seed: int = 0,
+    env_point_lights: int | None = None,
     progress: bool = False,
 ) -> GIPlan:
     """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
@@ -222,6 +225,9 @@ def plan_polynomial(
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp, pilot_bounces: the pilots' settings (spp and 2 x spp, all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
     Returns:
         :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
     """
@@ -231,7 +237,13 @@ def plan_polynomial(
     series = Series((eye,) + (1,) * (pilot_bounces - 1))
     pilots = [
         precompute_polynomial(
-            scene, series, spp=pilot_spp * (k + 1), seed=seed + 7919 * (k + 1), bases=bases, progress=progress
+            scene,
+            series,
+            spp=pilot_spp * (k + 1),
+            seed=seed + 7919 * (k + 1),
+            bases=bases,
+            env_point_lights=env_point_lights,
+            progress=progress,
         )
         for k in range(2)
     ]
