@@ -22,6 +22,7 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.inverse`: paint strokes, transfer functions and constrained BRDF fits.
 * :mod:`torch_brdf.denoise`: guide buffers and denoisers of precomputed basis images (a linear
   guide-only à-trous filter, Open Image Denoise) that keep every edit exact; OIDN per frame.
+* :mod:`torch_brdf.planner`: error-budget planners (the cheapest settings for an error or a time).
 * :mod:`torch_brdf.render`: modules that turn records plus coefficients into images
   (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
 * :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.

@@ -13,6 +13,7 @@ from tqdm.auto import tqdm
 
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
+from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
@@ -24,7 +25,7 @@ from .reduce import _blocks_from_entries, _reduce, _term_tables
 from .sampler import Mixture
 from .tracer import _Tracer
 
-__all__ = ["TILE_KIND", "precompute_polynomial"]
+__all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial"]
 
 TILE_KIND = "multibounce-tile"
 
@@ -97,6 +98,9 @@ def precompute_polynomial(
     progress: bool | None = None,
     paths: dict | None = None,
     keep_checkpoint: bool = False,
+    plan: str | GIPlan | None = None,
+    error: float | None = None,
+    time_budget: float | None = None,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -117,9 +121,36 @@ def precompute_polynomial(
             or notebook, see :func:`~torch_brdf.records.cache.progress_default`).
         paths: tests only: a dict that receives the raw path records (exactness oracle).
         keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
+        plan: ``"auto"``: :func:`plan_polynomial` chooses series, bases, spp and fixed objects
+            for ``error`` / ``time_budget`` (then ``series``, ``spp`` and ``bases`` are
+            ignored); or a :class:`~torch_brdf.planner.GIPlan` to carry out.
+        error: relative RMSE budget of ``plan="auto"``.
+        time_budget: seconds budget of ``plan="auto"``.
     Returns:
-        :class:`PolynomialTensors`.
+        :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan).
     """
+    if plan is not None:
+        if isinstance(plan, str):
+            if plan != "auto":
+                raise ValueRangeError(f"plan must be 'auto' or a GIPlan; got {plan!r}")
+            plan = plan_polynomial(
+                scene, error=error, seconds=time_budget, seed=seed, env_point_lights=env_point_lights, progress=progress
+            )
+        scene = with_fixed(scene, plan.fixed)
+        out = precompute_polynomial(
+            scene,
+            **plan.kwargs(),
+            seed=seed,
+            mixture=mixture,
+            env_point_lights=env_point_lights,
+            tile_rows=tile_rows,
+            group=group,
+            checkpoint=checkpoint,
+            progress=progress,
+            paths=paths,
+        )
+        out.meta["plan"] = str(plan)
+        return out
     series = Series.parse(series)
     if spp < 1:
         raise ValueRangeError(f"spp must be >= 1; got {spp}")
@@ -186,3 +217,51 @@ def precompute_polynomial(
     if not keep_checkpoint:
         cache.remove()
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
+
+
+def plan_polynomial(
+    scene: Scene,
+    error: float | None = 0.03,
+    seconds: float | None = None,
+    edit: list[str] | None = None,
+    pilot_spp: int = 4,
+    pilot_bounces: int = 8,
+    seed: int = 0,
+    env_point_lights: int | None = None,
+    progress: bool = False,
+) -> GIPlan:
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
+
+    Bands per object come from projection errors (no tracing); two pilot runs of
+    ``pilot_spp`` and twice that spp, ``pilot_bounces`` bounces (seeds independent of ``seed``'s final run)
+    measure the bounce tail, glossy-to-glossy transport and the Monte Carlo noise; the
+    decisions are :func:`torch_brdf.planner.plan_from_pilots`'s.
+
+    Args:
+        scene: the scene.
+        error: relative RMSE budget (against the converged polynomial model).
+        seconds: precompute time budget.
+        edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp, pilot_bounces: the pilots' settings (spp and 2 x spp, all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
+    Returns:
+        :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
+    """
+    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
+    scene = with_fixed(scene, fixed)
+    eye = max([1] + [b.J for b in bases if b is not None])
+    series = Series((eye,) + (1,) * (pilot_bounces - 1))
+    pilots = [
+        precompute_polynomial(
+            scene,
+            series,
+            spp=pilot_spp * (k + 1),
+            seed=seed + 7919 * (k + 1),
+            bases=bases,
+            env_point_lights=env_point_lights,
+            progress=progress,
+        )
+        for k in range(2)
+    ]
+    return plan_from_pilots(scene, bases, errors, fixed, pilots, error=error, seconds=seconds)
