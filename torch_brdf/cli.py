@@ -113,6 +113,9 @@ def precompute(
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
     storage: str = typer.Option("float32", help="float32 or float16 (half the bytes, rel. error <= 4.9e-4)."),
     resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
+    ray: str = typer.Option(
+        None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
+    ),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -124,7 +127,15 @@ def precompute(
         tiles = out.with_suffix(".tiles") if resume else None
         t0 = time.perf_counter()
         T = precompute_polynomial(
-            sc, series, spp=spp, seed=seed, bases=overrides, env_point_lights=env_point_lights, checkpoint=tiles
+            sc,
+            series,
+            spp=spp,
+            seed=seed,
+            bases=overrides,
+            env_point_lights=env_point_lights,
+            checkpoint=tiles,
+            executor="local" if ray is None else "ray",
+            address=ray,
         )
         seconds = time.perf_counter() - t0
         T.save(out, storage=storage)
