@@ -92,12 +92,24 @@ def ray_instance():
         yield ray
     finally:
         ray.shutdown()
+        _stop_processes_under(tmp)  # what a failed start leaves behind (ray.shutdown does not)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _stop_processes_under(folder: str) -> None:
+    """SIGKILL the processes whose command line names ``folder`` (the Ray processes we started)."""
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit() and int(p.name) != os.getpid():
+            try:
+                if folder.encode() in (p / "cmdline").read_bytes():
+                    os.kill(int(p.name), signal.SIGKILL)
+            except OSError:
+                pass
 
 
 def _task_pids() -> list[int]:

@@ -175,7 +175,8 @@ def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max
                     raise TileError(
                         f"tile {k} failed on Ray (after up to {max_retries} retries): {type(exc).__name__}: {exc}"
                     ) from exc
-                finish(k, res)
+                arrays = {n: v if v.flags.writeable else v.copy() for n, v in res[0].items()}  # zero-copy views
+                finish(k, (arrays, res[1]))
     finally:
         for r in pending:
             ray.cancel(r, force=True)
