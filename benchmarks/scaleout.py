@@ -17,7 +17,8 @@ first runs). Prints progress, then one JSON object as the last line:
   driver's serial work per tile (writing it and assembling the record, from ``meta["split"]``).
 * the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles of 16 rows
   (64 tiles, more when there are more workers: 4 per worker) on ``N`` nodes of 2 workers:
-  ``T(N) = ceil(n / 2N) * (t_tile + task_overhead + transfer) + n * t_driver``, with ``t_tile``
+  ``T(N) = max(ceil(n / 2N) * (t_tile + task_overhead + transfer), n * t_driver) + t_driver``
+  (the driver assembles tile k while later tiles compute), with ``t_tile``
   the measured worker seconds per path times the paths of a tile and ``t_driver`` the
   measured driver seconds per tile scaled by the entries of a tile (entries per pixel grow as
   spp^0.54: 11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md);
@@ -118,7 +119,9 @@ def main() -> None:
         t_tile = worker_s_per_path * big_res * big_res * big_spp / n_tiles
         per_tile_driver = t_driver * (big_res * big_res // tile_px) / n_tiles  # same entries, more tiles
         rounds = math.ceil(n_tiles / (2 * nodes))
-        return rounds * (t_tile + out["task_overhead_s"] + transfer) + n_tiles * per_tile_driver
+        # the driver assembles tile k while later tiles compute: the longer of the two, plus the last tile
+        workers = rounds * (t_tile + out["task_overhead_s"] + transfer)
+        return max(workers, n_tiles * per_tile_driver) + per_tile_driver
 
     base = model(1)
     for n in (8, 64):

@@ -193,3 +193,17 @@ def test_ray_retries_exhausted_names_the_tile(ray_instance):
     run.join()
     assert killed
     assert "tile" in str(box.get("error", "")) and "retries" in str(box["error"])
+
+
+def test_cli_precompute_ray_equals_local(ray_instance, tmp_path):
+    from typer.testing import CliRunner
+
+    from torch_brdf.cli import app
+    from torch_brdf.records.polynomial import PolynomialTensors
+
+    args = ["precompute", "cornell_box_glossy", "--resolution", "16", "--spp", "2", "--series", "4,1"]
+    runner = CliRunner()
+    a = runner.invoke(app, [*args, "--out", str(tmp_path / "a.npz")])
+    b = runner.invoke(app, [*args, "--out", str(tmp_path / "b.npz"), "--ray", "auto"])  # the running instance
+    assert a.exit_code == 0 and b.exit_code == 0, a.output + b.output
+    _assert_identical(PolynomialTensors.load(tmp_path / "a.npz"), PolynomialTensors.load(tmp_path / "b.npz"))

@@ -104,6 +104,7 @@ def run_tiles(
     progress: bool = True,
     ray_context: Any | None = None,
     meta: dict[str, Any] | None = None,
+    consume: Callable[[int, dict[str, np.ndarray], dict[str, Any]], None] | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -119,8 +120,12 @@ def run_tiles(
         ray_context: Ray only: the object shipped to workers instead of ``context`` (e.g. the
             scene without its forked trace workers); default ``context``.
         meta: saved beside every tile (with the tile's own meta).
+        consume: ``consume(k, arrays, meta)`` is called for the tiles in tile order as soon as
+            tile ``k`` and all before it are finished (so the driver assembles while workers
+            compute), with one torch thread; the tile is then dropped from the result.
     Returns:
-        :class:`Tiles`, ``num_tiles`` (arrays, meta); ``meta["cached"]`` is True for loaded tiles.
+        :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
+        is True for loaded tiles.
     Raises:
         TileError: a tile failed on Ray after ``max_retries`` retries (or raised).
     """
@@ -137,6 +142,16 @@ def run_tiles(
         else:
             out[k] = (done[0], {**done[1], "cached": True})
     bar = tqdm(total=num_tiles, initial=num_tiles - len(todo), desc=desc, disable=not progress)
+    nxt = [0]  # the next tile to consume
+
+    def drain() -> None:
+        if consume is None:
+            return
+        with single_thread():
+            while nxt[0] < num_tiles and out[nxt[0]] is not None:
+                consume(nxt[0], *out[nxt[0]])
+                out[nxt[0]] = None
+                nxt[0] += 1
 
     def finish(k: int, res: TileResult) -> None:
         t0 = time.perf_counter()
@@ -144,8 +159,10 @@ def run_tiles(
         out.write_seconds += time.perf_counter() - t0
         out[k] = (res[0], {**res[1], "cached": False})
         bar.update(1)
+        drain()
 
     try:
+        drain()
         if executor == "local":
             with single_thread():
                 for k in todo:

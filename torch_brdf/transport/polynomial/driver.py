@@ -11,7 +11,6 @@ from typing import Any
 
 import torch
 
-from ..._threads import single_thread
 from ...errors import ShapeError, ValueRangeError
 from ...records.cache import TileCache
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
@@ -207,6 +206,30 @@ def precompute_polynomial(
         remote_scene = copy.copy(scene)
         remote_scene.workers = 1
         ray_work = _TileWork(remote_scene, plan, series, mixture, lights, tile_rows, spp, group, seed)
+    term_index: dict[int, dict] = {}
+    blocks: list[TensorBlock] = []
+    emission = torch.zeros(3, h * w)
+    rays = {"closest": 0, "shadow": 0}
+    split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "assemble": 0.0}
+    cached = [0]
+
+    def consume(ti: int, arrays: dict, meta: dict) -> None:
+        """Tile ``ti`` into the record (in tile order: term ids number in order of appearance)."""
+        t = time.perf_counter()
+        pix = work.pixels(ti)
+        red = {k[2:]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("r_")}
+        emis = torch.from_numpy(arrays["emission"])
+        for k, v in meta.get("rays", {}).items():
+            rays[k] += int(v)
+        if meta.get("cached"):
+            cached[0] += 1
+        else:
+            for k, v in meta.get("split", {}).items():
+                split[k] = split.get(k, 0.0) + float(v)
+        emission[:, pix] = (emis / spp).float().T
+        blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
+        split["assemble"] += time.perf_counter() - t
+
     t0 = time.perf_counter()
     results = run_tiles(
         _polynomial_tile,
@@ -220,37 +243,16 @@ def precompute_polynomial(
         progress=progress,
         ray_context=ray_work,
         meta={"settings": settings},
+        consume=consume,
     )
-    t_assemble = time.perf_counter()
-    with single_thread():  # small torch ops: a second thread only waits (see executor)
-        term_index: dict[int, dict] = {}
-        blocks: list[TensorBlock] = []
-        emission = torch.zeros(3, h * w)
-        rays = {"closest": 0, "shadow": 0}
-        split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0}
-        cached = 0
-        for ti, (arrays, meta) in enumerate(results):
-            pix = work.pixels(ti)
-            red = {k[2:]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("r_")}
-            emis = torch.from_numpy(arrays["emission"])
-            for k, v in meta.get("rays", {}).items():
-                rays[k] += int(v)
-            if meta.get("cached"):
-                cached += 1
-            else:
-                for k, v in meta.get("split", {}).items():
-                    split[k] = split.get(k, 0.0) + float(v)
-            emission[:, pix] = (emis / spp).float().T
-            blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
-        terms = _term_tables(term_index, len(scene.objects), series.bounces)
-    split["assemble"] = time.perf_counter() - t_assemble
+    terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
     meta = {
         **settings,
         "rays": rays,
         "seconds": time.perf_counter() - t0,
         "split": split,
-        "tiles_cached": cached,
+        "tiles_cached": cached[0],
         "executor": executor,
     }
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
