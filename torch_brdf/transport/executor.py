@@ -29,10 +29,9 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
-from .._threads import single_thread
+from .._threads import configure_worker, single_thread
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
@@ -88,7 +87,7 @@ def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult
         ctx = pickle.loads(ray.get(holder[0]))
         _CONTEXTS.clear()
         _CONTEXTS[key] = ctx
-    torch.set_num_threads(1)  # Ray runs one task per CPU; torch's own threads would oversubscribe
+    configure_worker(1)  # Ray runs one task per CPU; a task's own threads would oversubscribe
     return fn(ctx, index)
 
 
