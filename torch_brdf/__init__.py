@@ -9,6 +9,7 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.sphere`: sampling warps and pdfs, lat-long maps, cubemap blocks, DCT, Haar.
 * :mod:`torch_brdf.frame`: local shading frames, half/difference angles.
 * :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, log-RMSE ...).
+* :mod:`torch_brdf.linalg`: dense linear algebra shared by the package (the Cholesky with jitter).
 * :mod:`torch_brdf.brdf`: the BRDF base class, analytic, microfacet, measured and SRBF models,
   1-D band bases.
 * :mod:`torch_brdf.scene`: meshes, embree ray tracing, camera and its G-buffer, lights,

@@ -61,7 +61,7 @@ def test_scene_pickles_and_traces_the_same(scene):
 
 
 def test_local_resume_and_split(scene, local, tmp_path):
-    part = precompute_polynomial(scene, **SETTINGS, checkpoint=tmp_path)
+    part = precompute_polynomial(scene, **SETTINGS, checkpoint=tmp_path, keep_checkpoint=True)
     assert part.meta["tiles_cached"] == 0
     for f in sorted(tmp_path.glob("*.npz"))[2:]:  # as if the driver had died after two tiles
         f.unlink()

@@ -15,15 +15,15 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
-from ..errors import SceneError, ValueRangeError
+from ..errors import FileFormatError, SceneError, ValueRangeError
 from .basis_image import BasisImage
-from .codec import Record
+from .codec import Member, Record
 
 __all__ = ["TENSOR_KIND", "ObjectBasis", "PolynomialTensors", "Series", "TensorBlock", "TermTable"]
 
@@ -237,6 +237,16 @@ class PolynomialTensors(Record):
 
     kind = TENSOR_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {
+        "emission": Member("f", 2, finite=True),
+        "terms*_w": Member("i", 1),
+        "terms*_counts": Member("iu", 2),
+        "b*_values": Member("f", 2, finite=True),
+        "b*_variance": Member("f", 2),
+        "b*_index": Member("iu", 1),
+        "b*_pixels": Member("iu", 1),
+        "b*_terms": Member("iu", 1),
+    }
 
     @property
     def num_objects(self) -> int:
@@ -360,6 +370,10 @@ class PolynomialTensors(Record):
             for i, (o, n, j) in enumerate(meta["blocks"])
         ]
         bases = [None if b is None else ObjectBasis(**b) for b in meta["bases"]]
+        if t["emission"].shape != (3, int(meta["height"]) * int(meta["width"])):
+            raise FileFormatError(
+                f"emission {tuple(t['emission'].shape)} does not fit {meta['height']}x{meta['width']}"
+            )
         return cls(
             int(meta["height"]),
             int(meta["width"]),

@@ -26,9 +26,10 @@ import torch
 from tqdm.auto import tqdm
 
 from ..brdf import BRDF, create
+from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError, ValueRangeError
 from ..frame import Frame
-from ..records.cache import Checkpoint
+from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
@@ -168,7 +169,7 @@ def path_trace(
     chunk: int = 1 << 16,
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 4,
-    progress: bool = True,
+    progress: bool | None = None,
 ) -> torch.Tensor:
     """Render ``scene`` from its camera: (H, W, 3) float32 linear radiance.
 
@@ -179,8 +180,11 @@ def path_trace(
         seed: the render is a deterministic function of (scene, spp, max_bounces, seed).
         chunk: rays traced together (memory vs. overhead).
         checkpoint: file to save progress to every ``checkpoint_every`` passes and to
-            resume from when it exists with matching settings (a
-            :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic).
+            resume from when it exists with matching settings and scene content (a
+            :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic); a
+            checkpoint of other settings or an edited scene is ignored and overwritten, a
+            corrupt one is moved aside to ``<name>.corrupt`` with a warning and the render
+            starts afresh.
         progress: show a tqdm bar over sample passes.
     """
     if spp < 1 or max_bounces < 1:
@@ -191,12 +195,19 @@ def path_trace(
     settings = {"scene": scene.name, "width": w, "height": h, "spp": spp, "max_bounces": max_bounces, "seed": seed}
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
-    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, settings)
+    key = settings_key(settings, scene)  # the scene's content too: an edited scene starts fresh
+    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, key, on_corrupt="recompute")
     saved = None if ckpt is None else ckpt.load()
     if saved is not None:
         total = torch.from_numpy(saved[0]["sum"])
         start = int(saved[1]["passes_done"])
-    bar = tqdm(range(start, spp), total=spp, initial=start, desc=f"path trace {scene.name}", disable=not progress)
+    bar = tqdm(
+        range(start, spp),
+        total=spp,
+        initial=start,
+        desc=f"path trace {scene.name}",
+        disable=not progress_default(progress),
+    )
     for s in bar:
         gen = seeded_generator(seed, s)
         o, d = cam.generate_rays(jitter=True, generator=gen)

@@ -11,8 +11,9 @@ from typing import Any
 
 import torch
 
+from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache
+from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -29,8 +30,9 @@ __all__ = ["TILE_KIND", "precompute_polynomial"]
 TILE_KIND = "multibounce-tile"
 
 
-def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
-    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key."""
+def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
+    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
+    ``tick()`` (if given) after each pass group."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
@@ -54,6 +56,8 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
         e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
         with clock("bookkeeping"):
             emis.index_add_(0, rec, e.double())
+            if tick is not None:
+                tick()
             dd = ent.cat()
             if not dd:
                 continue
@@ -133,8 +137,9 @@ def precompute_polynomial(
     tile_rows: int | None = None,
     group: int | None = None,
     checkpoint: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     paths: dict | None = None,
+    keep_checkpoint: bool = False,
     executor: str = "local",
     address: str | None = None,
     max_retries: int = 3,
@@ -153,10 +158,12 @@ def precompute_polynomial(
         group: passes traced together (default: enough for >= 64k rays per batch, which
             lets embree use both cores).
         checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
-            an interrupted run resumes from it.
-        progress: tqdm bar over tiles.
+            an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
+        progress: tqdm bar over finished tiles (None: on when attached to a terminal or
+            notebook, see :func:`~torch_brdf.records.cache.progress_default`).
         paths: tests only: a dict that receives the raw path records (exactness oracle;
             local executor only).
+        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
         executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
             :mod:`torch_brdf.transport.executor`); the tensors are the same bit for bit.
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
@@ -200,7 +207,7 @@ def precompute_polynomial(
         "tile_rows": tile_rows,
         "group": group,
     }
-    cache = TileCache(checkpoint, TILE_KIND, settings)
+    cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
     ray_work = None
     if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
         remote_scene = copy.copy(scene)
@@ -240,7 +247,7 @@ def precompute_polynomial(
         address=address,
         max_retries=max_retries,
         desc=f"precompute {scene.name} ({series.key})",
-        progress=progress,
+        progress=progress_default(progress),
         ray_context=ray_work,
         meta={"settings": settings},
         consume=consume,
@@ -255,4 +262,6 @@ def precompute_polynomial(
         "tiles_cached": cached[0],
         "executor": executor,
     }
+    if not keep_checkpoint:
+        cache.remove()
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
