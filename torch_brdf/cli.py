@@ -158,6 +158,9 @@ def precompute(
     error: float = typer.Option(
         None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
     ),
+    ray: str = typer.Option(
+        None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
+    ),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -181,6 +184,8 @@ def precompute(
             progress=progress,
             plan="auto" if error is not None else None,
             error=error,
+            executor="local" if ray is None else "ray",
+            address=ray,
         )
         if "plan" in T.meta:
             typer.echo(T.meta["plan"], err=True)
