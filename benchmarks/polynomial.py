@@ -10,6 +10,11 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 * ``rays_s``: the time embreex alone (one ``EmbreeScene.run`` per batch, one process) takes to
   trace those rays, measured on the rays of the first tiles recorded during the run and
   scaled by the total counts; ``precompute_over_rays``: the ratio (the goal is <= 1.5).
+* ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
+  calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
+  direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
+  (entries, per-path and per-tile reduction), ``assemble`` (sparse blocks, term tables),
+  ``write`` (tile files; none without a checkpoint); ``split_other_s`` the rest.
 * ``mitsuba_s`` (when mitsuba is installed): Mitsuba 3's path tracer on the same scene,
   resolution, spp and depth (max_depth 5 = 4 surface vertices), llvm variant when it works
   here (else scalar_rgb, reported in ``mitsuba_variant``); ``precompute_over_mitsuba``.
@@ -129,6 +134,9 @@ def main() -> None:
     out["rays"] = T.meta["rays"]
     out["rays_s"] = _embree_seconds(sc, log, T.meta["rays"])
     out["precompute_over_rays"] = out["precompute_s"] / out["rays_s"]
+    # where the time went (exclusive seconds per stage, summed over tiles; meta["split"])
+    out["split_s"] = {k: round(v, 4) for k, v in T.meta["split"].items()}
+    out["split_other_s"] = out["precompute_s"] - sum(T.meta["split"].values())
     out["mb_per_bounce"] = {str(k): v / 2**20 for k, v in T.memory_per_bounce().items()}
     out["mb_variance_per_bounce"] = {
         str(k): (v - T.memory_per_bounce()[k]) / 2**20 for k, v in T.memory_per_bounce(variance=True).items()

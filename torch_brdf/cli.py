@@ -155,6 +155,12 @@ def precompute(
         True, help="Keep finished tiles in OUT with .tiles for .npz (out/tensors.tiles/) and resume from them."
     ),
     progress: bool = PROGRESS,
+    error: float = typer.Option(
+        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
+    ),
+    ray: str = typer.Option(
+        None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
+    ),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -176,7 +182,13 @@ def precompute(
             env_point_lights=env_point_lights,
             checkpoint=tiles,
             progress=progress,
+            plan="auto" if error is not None else None,
+            error=error,
+            executor="local" if ray is None else "ray",
+            address=ray,
         )
+        if "plan" in T.meta:
+            typer.echo(T.meta["plan"], err=True)
         seconds = time.perf_counter() - t0
         T.save(out, storage=storage)
         remove_cache(tiles)
@@ -186,7 +198,8 @@ def precompute(
     except TorchBRDFError as exc:
         _fail(exc)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
-    info = {"out": str(out), "seconds": round(seconds, 3), "series": series, "spp": spp, "mb_per_bounce": mb}
+    info = {"out": str(out), "seconds": round(seconds, 3), "series": T.series.key, "spp": T.meta["spp"]}
+    info["mb_per_bounce"] = mb
     info["rays"] = T.meta["rays"]
     typer.echo(json.dumps(info))
 

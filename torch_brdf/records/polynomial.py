@@ -22,6 +22,7 @@ import torch
 
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
+from ..scene.guides import GuideBuffers
 from .basis_image import BasisImage
 from .codec import Member, Record
 
@@ -223,6 +224,8 @@ class PolynomialTensors(Record):
         terms: bounce -> :class:`TermTable`.
         blocks: the entries, per tile, eye object and bounce.
         meta: settings and statistics (spp, seed, mixture, rays cast, seconds).
+        guides: optional per-pixel :class:`~torch_brdf.scene.guides.GuideBuffers` of the view
+            (denoisers' guides; :func:`torch_brdf.denoise.guide_buffers`), saved with the file.
     """
 
     height: int
@@ -234,6 +237,7 @@ class PolynomialTensors(Record):
     terms: dict[int, TermTable]
     blocks: list[TensorBlock]
     meta: dict[str, Any] = field(default_factory=dict)
+    guides: GuideBuffers | None = None
 
     kind = TENSOR_KIND
     version = 1
@@ -246,6 +250,9 @@ class PolynomialTensors(Record):
         "b*_index": Member("iu", 1),
         "b*_pixels": Member("iu", 1),
         "b*_terms": Member("iu", 1),
+        # optional denoiser guides (scene.guides.GuideBuffers.to_arrays)
+        "guide_meta": Member("f", 1, finite=True, required=False),
+        "guide_*": Member("fiub", None, required=False),
     }
 
     @property
@@ -334,6 +341,8 @@ class PolynomialTensors(Record):
             if b.variance is not None:
                 arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
             index.append([b.object_id, b.bounce, b.J])
+        if self.guides is not None:
+            arrays.update(self.guides.to_arrays())
         meta = {
             "height": self.height,
             "width": self.width,
@@ -384,4 +393,5 @@ class PolynomialTensors(Record):
             terms,
             blocks,
             dict(meta.get("meta", {})),
+            GuideBuffers.from_arrays(arrays),
         )

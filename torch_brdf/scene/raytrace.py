@@ -22,6 +22,7 @@ processes (the caller plus forked children, see
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -156,6 +157,8 @@ class RayTracer:
         extent = float((hi - lo).norm())
         magnitude = float(torch.maximum(lo.abs(), hi.abs()).max())
         #: distance by which ray origins are pushed off surfaces (self-intersection).
+        #: wall seconds spent in :meth:`trace` and :meth:`occluded` (profiles of callers).
+        self.seconds = 0.0
         self.ray_epsilon = max(1e-5 * extent, 64 * float(np.finfo(np.float32).eps) * magnitude, 1e-7)
 
     # -- queries ---------------------------------------------------------------------------
@@ -168,12 +171,14 @@ class RayTracer:
         Returns:
             :class:`Hits` with fields in the dtype of ``origins``.
         """
+        t0 = time.perf_counter()
         o_np, d_np, dtype = _rays_to_numpy(origins, directions)
         out = HitArrays.empty(len(o_np))
         if self._parallel(len(o_np)):
             self._pool.trace(o_np, d_np, out)
         else:
             self._kernel.trace(o_np, d_np, out)
+        self.seconds += time.perf_counter() - t0
         t, obj, prim, *vectors = out.fields()
         return Hits(
             _tensor(t, dtype), torch.from_numpy(obj), torch.from_numpy(prim), *(_tensor(a, dtype) for a in vectors)
@@ -187,6 +192,7 @@ class RayTracer:
         Returns:
             (P,) bool tensor.
         """
+        t0 = time.perf_counter()
         o_np, d_np, _ = _rays_to_numpy(origins, directions)
         if isinstance(t_max, torch.Tensor):
             t_max = t_max.detach().cpu()
@@ -202,6 +208,7 @@ class RayTracer:
             self._pool.occluded(o_np, d_np, tm_np, out)
         else:
             self._kernel.occluded(o_np, d_np, tm_np, out)
+        self.seconds += time.perf_counter() - t0
         return torch.from_numpy(out)
 
     def spawn(self, position, geometric_normal, directions) -> torch.Tensor:

@@ -123,6 +123,22 @@ class Scene:
         self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects], self.workers)
         self._traced = [(o.mesh, o.smooth) for o in self.objects]
 
+    # -- pickling (tile executors ship a scene to other processes) ----------------------------
+    def __getstate__(self) -> dict[str, Any]:
+        """Everything but the embree scene, which cannot be pickled (rebuilt on load)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_tracer", "_traced")}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects], self.workers)
+        self._traced = [(o.mesh, o.smooth) for o in self.objects]
+
+    def __copy__(self) -> Scene:
+        """A shallow copy that shares the ray tracer (``copy.copy`` would otherwise rebuild it)."""
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        return out
+
     # -- lookups ---------------------------------------------------------------------------
     def object_id(self, name: str) -> int:
         """Index of the object called ``name``."""

@@ -54,7 +54,7 @@ run bit for bit (at most one tile of work is lost).
 
 from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
-from .driver import precompute_polynomial
+from .driver import plan_polynomial, precompute_polynomial
 from .plan import ObjectBasis, Series, plan_bases
 from .sampler import Mixture
 
@@ -67,5 +67,6 @@ __all__ = [
     "TensorBlock",
     "TermTable",
     "plan_bases",
+    "plan_polynomial",
     "precompute_polynomial",
 ]

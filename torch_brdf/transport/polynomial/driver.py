@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Sequence
@@ -9,22 +10,23 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
+from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
 from ...scene.scene import Scene
+from ..executor import run_tiles
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
 from .reduce import _blocks_from_entries, _reduce, _term_tables
 from .sampler import Mixture
 from .tracer import _Tracer
 
-__all__ = ["TILE_KIND", "precompute_polynomial"]
+__all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial"]
 
 TILE_KIND = "multibounce-tile"
 
@@ -32,7 +34,7 @@ TILE_KIND = "multibounce-tile"
 def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
     """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
     ``tick()`` (if given) after each pass group."""
-    cam = scene.camera
+    cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
         "rec": p,
@@ -45,28 +47,70 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
     reduced = []
     for gi, g0 in enumerate(range(0, spp, group)):
         ng = min(group, spp - g0)
-        gen = seeded_generator(seed, tile, gi)
-        off = torch.rand(ng * p, 2, generator=gen, dtype=torch.float64)
-        ray = torch.arange(ng * p)
-        rec = ray % p
-        pix = pixels[rec]
-        o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
+        with clock("sampling"):
+            gen = seeded_generator(seed, tile, gi)
+            off = torch.rand(ng * p, 2, generator=gen, dtype=torch.float64)
+            ray = torch.arange(ng * p)
+            rec = ray % p
+            pix = pixels[rec]
+            o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
         e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
-        emis.index_add_(0, rec, e.double())
-        if tick is not None:
-            tick()
-        dd = ent.cat()
-        if not dd:
-            continue
-        ray_id = dd.pop("path")
-        dd["rec"], dd["path"] = ray_id % p, ray_id // p
-        reduced.append(_reduce(dd, {**sizes, "path": ng}, by_path=True))
+        with clock("bookkeeping"):
+            emis.index_add_(0, rec, e.double())
+            if tick is not None:
+                tick()
+            dd = ent.cat()
+            if not dd:
+                continue
+            ray_id = dd.pop("path")
+            dd["rec"], dd["path"] = ray_id % p, ray_id // p
+            reduced.append(_reduce(dd, {**sizes, "path": ng}, by_path=True))
     reduced = [r for r in reduced if r]
     if not reduced:
         return emis, {}
-    cat = {k: torch.cat([r[k] for r in reduced]) for k in reduced[0]}
-    cat["weight"] = cat.pop("sum")
-    return emis, _reduce(cat, sizes, by_path=False)
+    with clock("bookkeeping"):
+        cat = {k: torch.cat([r[k] for r in reduced]) for k in reduced[0]}
+        cat["weight"] = cat.pop("sum")
+        return emis, _reduce(cat, sizes, by_path=False)
+
+
+class _TileWork:
+    """Everything a tile needs besides its index (a pure function of this and the index).
+
+    Pickles without its tracer (rebuilt lazily where it runs) and without ``paths``.
+    """
+
+    def __init__(self, scene, plan, series, mixture, lights, tile_rows, spp, group, seed, paths=None):
+        self.scene, self.plan, self.series, self.mixture, self.lights = scene, plan, series, mixture, lights
+        self.tile_rows, self.spp, self.group, self.seed, self.paths = tile_rows, spp, group, seed, paths
+        self._tracer = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_tracer": None, "paths": None}
+
+    @property
+    def tracer(self) -> _Tracer:
+        if self._tracer is None:
+            self._tracer = _Tracer(self.scene, self.plan, self.series, self.mixture, self.lights)
+        return self._tracer
+
+    def pixels(self, k: int) -> torch.Tensor:
+        """(P,) flat pixel indices of tile ``k``."""
+        w, h = self.scene.camera.width, self.scene.camera.height
+        r0 = k * self.tile_rows
+        return torch.arange(r0 * w, min(h, r0 + self.tile_rows) * w)
+
+
+def _polynomial_tile(work: _TileWork, k: int):
+    """Tile ``k``: arrays (emission, reduced entries) and meta (rays cast, profile split)."""
+    tracer = work.tracer
+    rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
+    pix = work.pixels(k)
+    emis, red = _tile_entries(tracer, work.scene, pix, k, work.spp, work.group, work.seed, work.paths)
+    arrays = {"emission": emis.numpy(), **{f"r_{n}": v.numpy() for n, v in red.items()}}
+    rays = {n: tracer.rays[n] - rays0[n] for n in rays0}
+    split = {n: v - split0.get(n, 0.0) for n, v in tracer.clock.seconds.items()}
+    return arrays, {"rays": rays, "split": split}
 
 
 def _lights(scene: Scene, env_point_lights: int | None) -> list[Light]:
@@ -97,6 +141,12 @@ def precompute_polynomial(
     progress: bool | None = None,
     paths: dict | None = None,
     keep_checkpoint: bool = False,
+    plan: str | GIPlan | None = None,
+    error: float | None = None,
+    time_budget: float | None = None,
+    executor: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -113,13 +163,54 @@ def precompute_polynomial(
             lets embree use both cores).
         checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
             an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
-        progress: tqdm bar over tiles and pass groups (None: on when attached to a terminal
-            or notebook, see :func:`~torch_brdf.records.cache.progress_default`).
-        paths: tests only: a dict that receives the raw path records (exactness oracle).
+        progress: tqdm bar over finished tiles (None: on when attached to a terminal or
+            notebook, see :func:`~torch_brdf.records.cache.progress_default`).
+        paths: tests only: a dict that receives the raw path records (exactness oracle;
+            local executor only).
         keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
+        plan: ``"auto"``: :func:`plan_polynomial` chooses series, bases, spp and fixed objects
+            for ``error`` / ``time_budget`` (then ``series``, ``spp`` and ``bases`` are
+            ignored); or a :class:`~torch_brdf.planner.GIPlan` to carry out.
+        error: relative RMSE budget of ``plan="auto"``.
+        time_budget: seconds budget of ``plan="auto"``.
+        executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
+            :mod:`torch_brdf.transport.executor`); the tensors are the same bit for bit.
+        address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
+            cluster address.
+        max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
     Returns:
-        :class:`PolynomialTensors`.
+        :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
+        ``meta["split"]`` holds the profile split in seconds
+        (``rays``, ``sampling``, ``brdf``, ``bookkeeping`` summed over the tiles computed in
+        this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
+        ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``.
     """
+    if plan is not None:
+        if isinstance(plan, str):
+            if plan != "auto":
+                raise ValueRangeError(f"plan must be 'auto' or a GIPlan; got {plan!r}")
+            plan = plan_polynomial(
+                scene, error=error, seconds=time_budget, seed=seed, env_point_lights=env_point_lights, progress=progress
+            )
+        scene = with_fixed(scene, plan.fixed)
+        out = precompute_polynomial(
+            scene,
+            **plan.kwargs(),
+            seed=seed,
+            mixture=mixture,
+            env_point_lights=env_point_lights,
+            tile_rows=tile_rows,
+            group=group,
+            checkpoint=checkpoint,
+            progress=progress,
+            paths=paths,
+            keep_checkpoint=keep_checkpoint,
+            executor=executor,
+            address=address,
+            max_retries=max_retries,
+        )
+        out.meta["plan"] = str(plan)
+        return out
     series = Series.parse(series)
     if spp < 1:
         raise ValueRangeError(f"spp must be >= 1; got {spp}")
@@ -131,12 +222,14 @@ def precompute_polynomial(
         plan = plan_bases(scene, series, bases)
     mixture = mixture or Mixture()
     lights = _lights(scene, env_point_lights)
+    if paths is not None and executor != "local":
+        raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
     cam = scene.camera
     h, w = cam.height, cam.width
     tile_rows = tile_rows or max(1, min(h, 16384 // w))
-    tiles = [torch.arange(r0 * w, min(h, r0 + tile_rows) * w) for r0 in range(0, h, tile_rows)]
-    group = group or max(1, min(spp, math.ceil(65536 / max(1, tiles[0].numel()))))
-    tracer = _Tracer(scene, plan, series, mixture, lights)
+    num_tiles = -(-h // tile_rows)
+    group = group or max(1, min(spp, math.ceil(65536 / max(1, tile_rows * w))))
+    work = _TileWork(scene, plan, series, mixture, lights, tile_rows, spp, group, seed, paths)
     settings = {
         "scene": scene.name,
         "width": w,
@@ -151,38 +244,108 @@ def precompute_polynomial(
         "group": group,
     }
     cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
+    ray_work = None
+    if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
+        remote_scene = copy.copy(scene)
+        remote_scene.workers = 1
+        ray_work = _TileWork(remote_scene, plan, series, mixture, lights, tile_rows, spp, group, seed)
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
-    t0 = time.perf_counter()
-    groups = math.ceil(spp / group)  # the bar ticks per pass group of every tile
-    bar = tqdm(
-        total=len(tiles) * groups,
-        desc=f"precompute {scene.name} ({series.key})",
-        unit="group",
-        disable=not progress_default(progress),
-    )
-    for ti in range(len(tiles)):
-        pix = tiles[ti]
-        done = cache.load(ti)
-        if done is not None:
-            arrays, meta = done
-            red = {k[2:]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("r_")}
-            emis = torch.from_numpy(arrays["emission"])
-            for k, v in meta.get("rays", {}).items():
-                tracer.rays[k] += int(v)
-            bar.update(groups)
+    rays = {"closest": 0, "shadow": 0}
+    split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "assemble": 0.0}
+    cached = [0]
+
+    def consume(ti: int, arrays: dict, meta: dict) -> None:
+        """Tile ``ti`` into the record (in tile order: term ids number in order of appearance)."""
+        t = time.perf_counter()
+        pix = work.pixels(ti)
+        red = {k[2:]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("r_")}
+        emis = torch.from_numpy(arrays["emission"])
+        for k, v in meta.get("rays", {}).items():
+            rays[k] += int(v)
+        if meta.get("cached"):
+            cached[0] += 1
         else:
-            before = dict(tracer.rays)
-            emis, red = _tile_entries(tracer, scene, pix, ti, spp, group, seed, paths, tick=lambda: bar.update(1))
-            rays = {k: tracer.rays[k] - before[k] for k in before}
-            arrays = {"emission": emis.numpy(), **{f"r_{k}": v.numpy() for k, v in red.items()}}
-            cache.save(ti, arrays, meta={"settings": settings, "rays": rays})
+            for k, v in meta.get("split", {}).items():
+                split[k] = split.get(k, 0.0) + float(v)
         emission[:, pix] = (emis / spp).float().T
         blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
-    bar.close()
+        split["assemble"] += time.perf_counter() - t
+
+    t0 = time.perf_counter()
+    results = run_tiles(
+        _polynomial_tile,
+        work,
+        num_tiles,
+        cache,
+        executor=executor,
+        address=address,
+        max_retries=max_retries,
+        desc=f"precompute {scene.name} ({series.key})",
+        progress=progress_default(progress),
+        ray_context=ray_work,
+        meta={"settings": settings},
+        consume=consume,
+    )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
-    meta = {**settings, "rays": dict(tracer.rays), "seconds": time.perf_counter() - t0}
+    split["write"] = results.write_seconds
+    meta = {
+        **settings,
+        "rays": rays,
+        "seconds": time.perf_counter() - t0,
+        "split": split,
+        "tiles_cached": cached[0],
+        "executor": executor,
+    }
     if not keep_checkpoint:
         cache.remove()
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
+
+
+def plan_polynomial(
+    scene: Scene,
+    error: float | None = 0.03,
+    seconds: float | None = None,
+    edit: list[str] | None = None,
+    pilot_spp: int = 4,
+    pilot_bounces: int = 8,
+    seed: int = 0,
+    env_point_lights: int | None = None,
+    progress: bool = False,
+) -> GIPlan:
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
+
+    Bands per object come from projection errors (no tracing); two pilot runs of
+    ``pilot_spp`` and twice that spp, ``pilot_bounces`` bounces (seeds independent of ``seed``'s final run)
+    measure the bounce tail, glossy-to-glossy transport and the Monte Carlo noise; the
+    decisions are :func:`torch_brdf.planner.plan_from_pilots`'s.
+
+    Args:
+        scene: the scene.
+        error: relative RMSE budget (against the converged polynomial model).
+        seconds: precompute time budget.
+        edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp, pilot_bounces: the pilots' settings (spp and 2 x spp, all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
+    Returns:
+        :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
+    """
+    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
+    scene = with_fixed(scene, fixed)
+    eye = max([1] + [b.J for b in bases if b is not None])
+    series = Series((eye,) + (1,) * (pilot_bounces - 1))
+    pilots = [
+        precompute_polynomial(
+            scene,
+            series,
+            spp=pilot_spp * (k + 1),
+            seed=seed + 7919 * (k + 1),
+            bases=bases,
+            env_point_lights=env_point_lights,
+            progress=progress,
+        )
+        for k in range(2)
+    ]
+    return plan_from_pilots(scene, bases, errors, fixed, pilots, error=error, seconds=seconds)

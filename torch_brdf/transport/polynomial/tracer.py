@@ -11,6 +11,9 @@ paths of a batch are one :class:`PathState`; each light sample is one :class:`Li
 from __future__ import annotations
 
 import math
+import time
+from collections import defaultdict
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 
 import torch
@@ -23,7 +26,39 @@ from ...scene.scene import Scene
 from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
 from .sampler import Mixture
 
-__all__ = ["LightHit", "PathState"]
+__all__ = ["Clock", "LightHit", "PathState"]
+
+
+class Clock:
+    """Exclusive wall seconds per section of the precomputation (the profile split).
+
+    ``with clock("brdf"): ...`` adds the block's time less that of sections nested in it; the
+    time the scene's :class:`~torch_brdf.scene.raytrace.RayTracer` spends casting rays inside
+    a section (its ``seconds``) goes to ``"rays"`` instead.
+
+    Args:
+        ray_tracer: the scene's ray tracer (``scene.tracer``).
+    """
+
+    def __init__(self, ray_tracer):
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._rt = ray_tracer
+        self._stack: list[list[float]] = []
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0, r0 = time.perf_counter(), self._rt.seconds
+        self._stack.append([0.0, 0.0])  # time and ray time of nested sections
+        try:
+            yield
+        finally:
+            child_t, child_r = self._stack.pop()
+            total, rays = time.perf_counter() - t0, self._rt.seconds - r0
+            self.seconds[name] += total - child_t - (rays - child_r)
+            self.seconds["rays"] += rays - child_r
+            if self._stack:
+                self._stack[-1][0] += total
+                self._stack[-1][1] += rays
 
 
 @dataclass
@@ -98,7 +133,8 @@ class LightHit:
 class _Layers:
     """Band index and quotient weight of every (object, layer) at a banded vertex."""
 
-    def __init__(self, bases: list[ObjectBasis | None], brdfs: list[BRDF], level: int, offsets: list[int]):
+    def __init__(self, bases: list[ObjectBasis | None], brdfs: list[BRDF], level: int, offsets: list[int], clock):
+        self.clock = clock  # its "brdf" section times the calls
         self.level = level  # 1: eye vertex, 2: low-frequency second bounce
         self.brdfs = brdfs
         self.max_layers = max([1] + [b.layers for b in bases if b is not None])
@@ -114,6 +150,10 @@ class _Layers:
         """-> index (n, L) long and weight (n, L, 3): slot of each layer and its factor
         (quotient for editable objects; the full BRDF f for fixed ones, index -1 at level 2
         and 0 at level 1). Pairs below either horizon get weight 0."""
+        with self.clock("brdf"):
+            return self._call(oid, wi, wo)
+
+    def _call(self, oid: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor):
         n, L = oid.numel(), self.max_layers
         idx = torch.full((n, L), -1 if self.level == 2 else 0, dtype=torch.long)
         wgt = torch.zeros(n, L, 3, dtype=wi.dtype)
@@ -174,26 +214,29 @@ class _Tracer:
         self.bases = bases
         self.num_objects = len(scene.objects)
         self.editable = torch.tensor([b is not None for b in bases])
-        self.level1 = _Layers(bases, self.brdfs, 1, [0] * len(bases))
+        self.clock = Clock(scene.tracer)
+        self.level1 = _Layers(bases, self.brdfs, 1, [0] * len(bases), self.clock)
         offs, off = [], 0
         for b in bases:
             offs.append(off)
             if b is not None and series.two_level:
                 off += b.second_size
-        self.level2 = _Layers(bases, self.brdfs, 2, offs) if series.two_level else None
+        self.level2 = _Layers(bases, self.brdfs, 2, offs, self.clock) if series.two_level else None
         self.rays = {"closest": 0, "shadow": 0}
 
     def _trace(self, o, d):
         self.rays["closest"] += o.shape[0]
-        return self.scene.trace(o, d)
+        with self.clock("rays"):
+            return self.scene.trace(o, d)
 
     def _fixed_f(self, oid, wi, wo):
         """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""
-        out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
-        for o, m in rows_by_object(oid):
-            if not self.editable[o]:
-                out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
-        return out
+        with self.clock("brdf"):
+            out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
+            for o, m in rows_by_object(oid):
+                if not self.editable[o]:
+                    out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
+            return out
 
     @torch.no_grad()
     def run(self, origins, directions, rec, gen, paths: dict | None = None):
@@ -204,59 +247,68 @@ class _Tracer:
         the local directions and objects needed to re-evaluate it with explicit BRDFs (the
         exactness oracle of the tests).
         """
-        scene, nb = self.scene, self.series.bounces
+        scene, nb, clock = self.scene, self.series.bounces, self.clock
         ent = _Entries()
         hits = self._trace(origins, directions)
-        emis = emission_seen(scene, directions, hits)
-        idx = torch.nonzero(hits.hit).squeeze(1)
-        d_in, pos = directions[idx], hits.position[idx]
-        ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
-        st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        with clock("bookkeeping"):
+            emis = emission_seen(scene, directions, hits)
+            idx = torch.nonzero(hits.hit).squeeze(1)
+            d_in, pos = directions[idx], hits.position[idx]
+            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+            st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
         for v in range(1, nb + 1):
             if st.idx.numel() == 0:
                 break
-            ng, ns, frame, wo = shading_frame(d_in, ng, ns)
-            ed = self.editable[oid]
+            with clock("sampling"):
+                ng, ns, frame, wo = shading_frame(d_in, ng, ns)
+                ed = self.editable[oid]
             for light in self.lights:
-                ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
-                self.rays["shadow"] += cast
-                if kk.numel() == 0:
-                    continue
-                wl = frame.to_local(ls.direction)[kk]
-                hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None])
-                self._emit(ent, st, v, hit, paths, rec)
+                with clock("sampling"):
+                    ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
+                    self.rays["shadow"] += cast
+                    if kk.numel() == 0:
+                        continue
+                    wl = frame.to_local(ls.direction)[kk]
+                    hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None])
+                with clock("bookkeeping"):
+                    self._emit(ent, st, v, hit, paths, rec)
             if v == nb:
                 break
-            u = torch.rand(st.idx.numel(), 3, generator=gen)
-            wi, pdf = self.mixture.sample(wo, u)
-            ok = (pdf > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
-            cosw = torch.where(ok, wi[:, 2] / pdf.clamp_min(1e-30), torch.zeros_like(pdf))
+            with clock("sampling"):
+                u = torch.rand(st.idx.numel(), 3, generator=gen)
+                wi, pdf = self.mixture.sample(wo, u)
+                ok = (pdf > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+                cosw = torch.where(ok, wi[:, 2] / pdf.clamp_min(1e-30), torch.zeros_like(pdf))
             rec_p = st.oracle
-            if v == 1:
-                st.A_i, st.A_w = self.level1(oid, wi, wo)
-                st.raw = st.raw * cosw[:, None]
-                if rec_p is not None:
-                    rec_p["wi1"], rec_p["wo1"] = wi.clone(), wo.clone()
-            elif v == 2 and self.level2 is not None:
-                st.B_i, st.B_w = self.level2(oid, wi, wo)
-                st.raw = st.raw * cosw[:, None]
-                if rec_p is not None:
-                    rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
-            else:
-                f = self._fixed_f(oid, wi, wo)
-                st.raw = st.raw * f * cosw[:, None]
-                st.counts = st.counts.clone()
-                st.counts[ed, oid[ed]] += 1
-                if rec_p is not None:
-                    rec_p["objs"].append(torch.where(ed, oid, -1))
-            wworld = frame.to_world(wi)
-            alive = ok & ((wworld * ng).sum(-1) > 0) & (st.raw.amax(-1) > 0)
-            alive &= (st.A_w.abs().amax((-1, -2)) > 0) & (st.B_w.abs().amax((-1, -2)) > 0)
-            a = torch.nonzero(alive).squeeze(1)
-            sub = self._trace(scene.spawn(pos[a], ng[a], wworld[a]), wworld[a])
-            keep = a[sub.hit]
-            st, d_in = st.keep(keep), wworld[keep]
-            pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
+            with clock("bookkeeping"):
+                if v == 1:
+                    st.A_i, st.A_w = self.level1(oid, wi, wo)
+                    st.raw = st.raw * cosw[:, None]
+                    if rec_p is not None:
+                        rec_p["wi1"], rec_p["wo1"] = wi.clone(), wo.clone()
+                elif v == 2 and self.level2 is not None:
+                    st.B_i, st.B_w = self.level2(oid, wi, wo)
+                    st.raw = st.raw * cosw[:, None]
+                    if rec_p is not None:
+                        rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
+                else:
+                    f = self._fixed_f(oid, wi, wo)
+                    st.raw = st.raw * f * cosw[:, None]
+                    st.counts = st.counts.clone()
+                    st.counts[ed, oid[ed]] += 1
+                    if rec_p is not None:
+                        rec_p["objs"].append(torch.where(ed, oid, -1))
+            with clock("sampling"):
+                wworld = frame.to_world(wi)
+                alive = ok & ((wworld * ng).sum(-1) > 0) & (st.raw.amax(-1) > 0)
+                alive &= (st.A_w.abs().amax((-1, -2)) > 0) & (st.B_w.abs().amax((-1, -2)) > 0)
+                a = torch.nonzero(alive).squeeze(1)
+                origins = scene.spawn(pos[a], ng[a], wworld[a])
+            sub = self._trace(origins, wworld[a])
+            with clock("bookkeeping"):
+                keep = a[sub.hit]
+                st, d_in = st.keep(keep), wworld[keep]
+                pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
         return emis, ent
 
     def _emit(self, ent: _Entries, st: PathState, v: int, hit: LightHit, paths: dict | None, rec: torch.Tensor):

@@ -1,0 +1,209 @@
+"""The tile executors: local vs Ray bit for bit, a killed Ray worker, a restarted driver.
+
+The Ray tests start their own local instance (``ray.init(num_cpus=2)``) with a temporary
+``RAY_TMPDIR`` and home (Ray writes its auth token under ``~/.ray``) and shut it down; they
+skip when the ``cluster`` extra (Ray) is not installed.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torch_brdf.errors import ValueRangeError
+from torch_brdf.records.cache import TileCache
+from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport.executor import TileError, run_tiles
+from torch_brdf.transport.polynomial import precompute_polynomial
+
+SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 4, "progress": False}
+
+
+def _arrays(T) -> dict[str, np.ndarray]:
+    return T.to_arrays()[0]
+
+
+def _assert_identical(a, b) -> None:
+    xa, xb = _arrays(a), _arrays(b)
+    assert sorted(xa) == sorted(xb)
+    for k in xa:
+        assert xa[k].dtype == xb[k].dtype and np.array_equal(xa[k], xb[k]), k
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return cornell_box_glossy(16)
+
+
+@pytest.fixture(scope="module")
+def local(scene):
+    return precompute_polynomial(scene, **SETTINGS)
+
+
+# -- without Ray ---------------------------------------------------------------------------------
+def test_scene_pickles_and_traces_the_same(scene):
+    other = pickle.loads(pickle.dumps(scene))
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor([[0.0, 0.0, 0.0]]).expand(64, 3) + torch.rand(64, 3, generator=g) * 0.1
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    a, b = scene.trace(o, d), other.trace(o, d)
+    assert torch.equal(a.object_id, b.object_id) and torch.equal(a.position, b.position)
+
+
+def test_local_resume_and_split(scene, local, tmp_path):
+    part = precompute_polynomial(scene, **SETTINGS, checkpoint=tmp_path, keep_checkpoint=True)
+    assert part.meta["tiles_cached"] == 0
+    for f in sorted(tmp_path.glob("*.npz"))[2:]:  # as if the driver had died after two tiles
+        f.unlink()
+    again = precompute_polynomial(scene, **SETTINGS, checkpoint=tmp_path)
+    assert again.meta["tiles_cached"] == 2
+    _assert_identical(again, local)
+    split = local.meta["split"]
+    assert {"rays", "sampling", "brdf", "bookkeeping", "assemble", "write"} <= set(split)
+    assert all(v >= 0 for v in split.values()) and split["rays"] > 0
+
+
+def test_executor_arguments(scene):
+    with pytest.raises(ValueRangeError):
+        precompute_polynomial(scene, **SETTINGS, executor="dask")
+    with pytest.raises(ValueRangeError):
+        run_tiles(lambda c, k: ({}, {}), None, 1, TileCache(None, "t", "k"), max_retries=-1)
+
+
+# -- Ray -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ray_instance():
+    ray = pytest.importorskip("ray")
+    tmp = tempfile.mkdtemp(prefix="tbrt")  # short: Ray's socket paths must fit in 107 bytes
+    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "HOME")}
+    os.environ["RAY_TMPDIR"], os.environ["HOME"] = tmp, tmp
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
+        yield ray
+    finally:
+        ray.shutdown()
+        _stop_processes_under(tmp)  # what a failed start leaves behind (ray.shutdown does not)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _stop_processes_under(folder: str) -> None:
+    """SIGKILL the processes whose command line names ``folder`` (the Ray processes we started)."""
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit() and int(p.name) != os.getpid():
+            try:
+                if folder.encode() in (p / "cmdline").read_bytes():
+                    os.kill(int(p.name), signal.SIGKILL)
+            except OSError:
+                pass
+
+
+def _task_pids() -> list[int]:
+    """PIDs of Ray workers running a tile now (Ray titles them ``ray::<function>``)."""
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                if (p / "cmdline").read_bytes().startswith(b"ray::_run_in_worker"):
+                    out.append(int(p.name))
+            except OSError:
+                pass
+    return out
+
+
+def test_ray_equals_local(ray_instance, scene, local):
+    T = precompute_polynomial(scene, **SETTINGS, executor="ray")
+    _assert_identical(T, local)
+    assert T.meta["rays"] == local.meta["rays"]
+
+
+def test_ray_worker_killed_loses_nothing(ray_instance):
+    sc = cornell_box_glossy(32)
+    settings = {**SETTINGS, "spp": 8, "tile_rows": 2}  # 16 tiles
+    box: dict = {}
+    run = threading.Thread(target=lambda: box.update(T=precompute_polynomial(sc, **settings, executor="ray")))
+    run.start()
+    killed = None
+    deadline = time.monotonic() + 120
+    while killed is None and run.is_alive() and time.monotonic() < deadline:
+        pids = _task_pids()
+        if pids:
+            os.kill(pids[0], signal.SIGKILL)
+            killed = pids[0]
+        time.sleep(0.02)
+    run.join()
+    assert killed is not None, "no tile task was seen running"
+    _assert_identical(box["T"], precompute_polynomial(sc, **settings))
+
+
+def test_ray_driver_restart_resumes(ray_instance, scene, local, tmp_path, monkeypatch):
+    saves = []
+    real = TileCache.save
+
+    def dying_save(self, index, arrays, meta=None):
+        if len(saves) == 2:
+            raise KeyboardInterrupt  # the driver dies after writing two tiles
+        saves.append(index)
+        real(self, index, arrays, meta)
+
+    monkeypatch.setattr(TileCache, "save", dying_save)
+    with pytest.raises(KeyboardInterrupt):
+        precompute_polynomial(scene, **SETTINGS, executor="ray", checkpoint=tmp_path)
+    monkeypatch.setattr(TileCache, "save", real)
+    T = precompute_polynomial(scene, **SETTINGS, executor="ray", checkpoint=tmp_path)
+    assert T.meta["tiles_cached"] == 2
+    _assert_identical(T, local)
+
+
+def test_ray_retries_exhausted_names_the_tile(ray_instance):
+    sc = cornell_box_glossy(32)
+    settings = {**SETTINGS, "spp": 8, "tile_rows": 2}
+    box: dict = {}
+
+    def go():
+        try:
+            precompute_polynomial(sc, **settings, executor="ray", max_retries=0)
+        except TileError as exc:
+            box["error"] = exc
+
+    run = threading.Thread(target=go)
+    run.start()
+    killed = False
+    deadline = time.monotonic() + 120
+    while not killed and run.is_alive() and time.monotonic() < deadline:
+        pids = _task_pids()
+        if pids:
+            os.kill(pids[0], signal.SIGKILL)
+            killed = True
+        time.sleep(0.02)
+    run.join()
+    assert killed
+    assert "tile" in str(box.get("error", "")) and "retries" in str(box["error"])
+
+
+def test_cli_precompute_ray_equals_local(ray_instance, tmp_path):
+    from typer.testing import CliRunner
+
+    from torch_brdf.cli import app
+    from torch_brdf.records.polynomial import PolynomialTensors
+
+    args = ["precompute", "cornell_box_glossy", "--resolution", "16", "--spp", "2", "--series", "4,1"]
+    runner = CliRunner()
+    a = runner.invoke(app, [*args, "--out", str(tmp_path / "a.npz")])
+    b = runner.invoke(app, [*args, "--out", str(tmp_path / "b.npz"), "--ray", "auto"])  # the running instance
+    assert a.exit_code == 0 and b.exit_code == 0, a.output + b.output
+    _assert_identical(PolynomialTensors.load(tmp_path / "a.npz"), PolynomialTensors.load(tmp_path / "b.npz"))

@@ -1,0 +1,370 @@
+r"""The error-budget planner of BRDF editing with global illumination (issue #17).
+
+Given a relative-RMSE budget :math:`e` (and optionally seconds), choose the settings of
+:func:`~torch_brdf.transport.polynomial.precompute_polynomial` that model only what the scene
+requires, from cheap measurements:
+
+* **bands** per edited object: the fewest box bands (powers of two) whose cosine-weighted
+  projection error (:func:`~torch_brdf.brdf.bands.projection_error`) is below the bands' share
+  :math:`0.3e` (a Lambertian material: 1 band, exactly; a glossy lobe: as many as it needs);
+* **bounces**: the fewest whose pilot tail :math:`\|\sum_{k>N} B^k\| / \|B\|` is below the
+  bounces' share :math:`0.3e`;
+* **second bounce**: low-frequency bands at the second vertex only where the pilot shows
+  glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
+  weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
+* **spp**: from two independent pilot runs of :math:`s_a` and :math:`s_b` spp, the relative
+  Monte Carlo error at one spp is
+  :math:`\sigma = \sqrt{\sum (I_a - I_b)^2 / (1/s_a + 1/s_b) / \sum \bar I^2}` and
+  :math:`\sigma/\sqrt{s}` at :math:`s`; the noise gets what the biases leave,
+  :math:`e_n^2 = e^2 - e_b^2 - e_t^2`;
+* objects not in ``edit`` are fixed (their full BRDF is baked into the path weights).
+
+The predicted error is :math:`\sqrt{e_b^2 + e_t^2 + e_n^2}` with the band error
+:math:`e_b = \sqrt{\sum_m \epsilon_m^2 \|B_m\|^2} / \|B\|` (:math:`B_m`: the image of the paths
+whose eye vertex is on object :math:`m`), measured against the converged image of the same
+polynomial model (many bounces, many bands, high spp); the approximation of the diffuse
+equivalents themselves (Sec. 4.2) is the model, not an error the planner budgets.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ..brdf import create
+from ..brdf.bands import BandBasis, Factored1D, equivalent_albedo, project, projection_error
+from ..brdf.bands.projection import PairQuadrature
+from ..errors import SceneError, ValueRangeError
+from ..records.polynomial import ObjectBasis, PolynomialTensors, Series
+from ..scene.scene import Scene
+
+__all__ = ["GIPlan", "choose_bands", "pilot_images", "plan_from_pilots", "planned_bases", "unlit_mask", "with_fixed"]
+
+#: the shares of the budget given to each deterministic error (the noise gets the rest)
+BAND_SHARE = 0.3
+BOUNCE_SHARE = 0.3
+SECOND_SHARE = 0.3
+MAX_BANDS = 128
+
+
+def _quadrature(basis: BandBasis) -> PairQuadrature:
+    # coarser than project's default (3 s instead of 17 s per basis on a shared 2-core machine);
+    # it reproduces the default's errors to 4 digits for Blinn-Phong n = 100 at J = 1, 16, 64
+    return PairQuadrature.build(basis, n_theta_h=48, n_theta_d=4, n_phi_d=8, order=2)
+
+
+def _basis(material: dict[str, Any], J: int) -> ObjectBasis:
+    kind = material.get("type")
+    spacing = f"lobe:{float(material.get('exponent', 20.0)):g}" if kind in ("blinn_phong", "phong") else "sqrt"
+    return ObjectBasis(J=J, spacing=spacing)
+
+
+def _error_at(material: dict[str, Any], J: int) -> float:
+    basis = _basis(material, J).band_basis()
+    brdf = create(material)
+    q = _quadrature(basis)
+    curve = Factored1D(basis, coefficients=project(brdf, basis, quadrature=q))
+    return float(projection_error(brdf, curve, quadrature=q))
+
+
+def choose_bands(material: dict[str, Any], target: float, max_bands: int = MAX_BANDS) -> tuple[int, float]:
+    """The fewest bands (a power of two, at most ``max_bands``) whose projection error is <= ``target``.
+
+    Lambertian materials take 1 band with error 0 without a measurement. Otherwise J = 1 is
+    measured, then J is doubled until the error is below ``target`` (box bands converge about
+    as 1/J, so the search starts near the J that a 1/J law predicts from J = 1).
+
+    Returns:
+        (J, projection error at J).
+    """
+    if material.get("type") == "lambert":
+        return 1, 0.0
+    e1 = _error_at(material, 1)
+    if e1 <= target:
+        return 1, e1
+    J = min(max_bands, 2 ** max(0, math.floor(math.log2(e1 / target))))
+    e = _error_at(material, J) if J > 1 else e1
+    while e > target and J < max_bands:
+        J *= 2
+        e = _error_at(material, J)
+    return J, e
+
+
+def planned_bases(
+    scene: Scene, error: float, edit: list[str] | None = None
+) -> tuple[list[ObjectBasis | None], dict[str, float], tuple[str, ...]]:
+    """Bands per object for the budget ``error`` (the first step of the plan; no pilot needed).
+
+    Returns:
+        (bases per object, None for fixed ones; projection error per edited object; names of
+        the objects the plan fixes).
+    """
+    names = [o.name for o in scene.objects]
+    edit_set = {o.name for o in scene.objects if o.editable} if edit is None else set(edit)
+    unknown = sorted(edit_set - set(names))
+    if unknown:
+        raise SceneError(f"edit names unknown objects: {unknown}; objects: {names}")
+    bases: list[ObjectBasis | None] = []
+    errors: dict[str, float] = {}
+    fixed = []
+    for o in scene.objects:
+        if o.name not in edit_set or not o.editable:
+            if o.editable:
+                fixed.append(o.name)
+            bases.append(None)
+            continue
+        mat = scene.materials[o.material]
+        J, e = choose_bands(mat, BAND_SHARE * error)
+        bases.append(_basis(mat, J))
+        errors[o.name] = e
+    return bases, errors, tuple(fixed)
+
+
+def with_fixed(scene: Scene, fixed: tuple[str, ...]) -> Scene:
+    """A copy of ``scene`` whose objects named in ``fixed`` are not editable (same tracer)."""
+    if not fixed:
+        return scene
+    objs = [dataclasses.replace(o, editable=False) if o.name in fixed else o for o in scene.objects]
+    return dataclasses.replace(scene, objects=objs)
+
+
+def _coefficients(material: dict[str, Any], basis: ObjectBasis) -> tuple[torch.Tensor, torch.Tensor]:
+    """(c (J, 3), d (3,)) of ``material`` on ``basis``: projected bands (Lambert exactly:
+    albedo / pi) and the diffuse equivalent as the renderer computes it. Memoised."""
+    key = (json.dumps(material, sort_keys=True, default=str), basis)
+    if key not in _COEFFICIENTS:
+        b = basis.band_basis()
+        with torch.no_grad():
+            if material.get("type") == "lambert":
+                a = torch.as_tensor(material.get("albedo", 0.5), dtype=torch.float64).reshape(-1).expand(3)
+                c = (a / math.pi)[None].expand(basis.J, 3).clone()
+            else:
+                c = project(create(material), b, quadrature=_quadrature(b))
+            # the renderer's d (Eq. 37 with the cached Monte Carlo band albedos), also for Lambert
+            d = equivalent_albedo(Factored1D(b, coefficients=c), progress=False).to(torch.float64)
+        _COEFFICIENTS[key] = (c.detach(), d.detach())
+    return _COEFFICIENTS[key]
+
+
+_COEFFICIENTS: dict[tuple[str, ObjectBasis], tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def unlit_mask(tensors: PolynomialTensors) -> torch.Tensor:
+    """(H*W,) bool: pixels that see no emitter directly, nor next to one (the error budget's
+    pixels; jittered emitter edges would dominate every error, as in the benchmarks)."""
+    e = tensors.emission.abs().sum(0).reshape(1, 1, tensors.height, tensors.width) > 0
+    e = torch.nn.functional.max_pool2d(e.float(), 3, stride=1, padding=1) > 0
+    return ~e.reshape(-1)
+
+
+def pilot_images(
+    tensors: PolynomialTensors,
+    materials: dict[str, dict[str, Any]],
+    eye: set[int] | None = None,
+    through: set[int] | None = None,
+) -> torch.Tensor:
+    r"""The per-bounce images of a pilot record at the scene's materials, from the record alone.
+
+    The same sum as ``PolynomialRenderer.evaluate(per_bounce=True)`` (Eq. 26) for a series
+    without a second-bounce level: entry value x eye coefficient :math:`c_j` x
+    :math:`\prod_m d_m^{n_m}` (the planner sits below the render layer).
+
+    Args:
+        tensors: a record without a low-frequency second bounce.
+        materials: object name -> material dict of every editable object.
+        eye: only paths whose eye vertex is on one of these objects (default all).
+        through: only terms with a diffuse-equivalent vertex on one of these objects.
+    Returns:
+        (N + 1, H, W, C) float64: emission, then bounces 1..N.
+    """
+    if tensors.series.two_level:
+        raise ValueRangeError("pilot records have no second-bounce level")
+    m_all = tensors.num_objects
+    cs: list[torch.Tensor] = []
+    d = torch.ones(m_all, 3, dtype=torch.float64)
+    for m, b in enumerate(tensors.bases):
+        if b is None:
+            cs.append(torch.ones(1, 3, dtype=torch.float64))
+            continue
+        c, dm = _coefficients(materials[tensors.object_names[m]], b)
+        cs.append(c)
+        d[m] = dm
+    g = {}
+    for n, table in tensors.terms.items():
+        counts = table.counts.to(torch.float64)
+        g[n] = torch.exp(counts @ torch.log(d.clamp_min(1e-300))) * (counts @ (d == 0).double() == 0).double()
+    hw = tensors.height * tensors.width
+    out = torch.zeros(tensors.series.bounces + 1, 3, hw, dtype=torch.float64)
+    out[0] = tensors.emission.double()
+    for blk in tensors.blocks:
+        if eye is not None and blk.object_id not in eye:
+            continue
+        j, t, p = blk.coordinates()
+        if through is not None:
+            keep = tensors.terms[blk.bounce].counts[blk.terms[t]][:, sorted(through)].sum(1) > 0
+            j, t, p = j[keep], t[keep], p[keep]
+            vals = blk.values.double()[:, keep]
+        else:
+            vals = blk.values.double()
+        contrib = vals * cs[blk.object_id][j].T * g[blk.bounce][blk.terms[t]].T
+        out[blk.bounce].index_add_(1, blk.pixels[p], contrib)
+    return out.transpose(1, 2).reshape(-1, tensors.height, tensors.width, 3)
+
+
+@dataclass(frozen=True)
+class GIPlan:
+    """The planned settings of a multibounce precomputation and their predictions.
+
+    Attributes:
+        series: the BRDF series (its length is the number of bounces).
+        bases: per object (scene order) the :class:`ObjectBasis`, None for fixed objects.
+        object_names: the scene's object names.
+        spp: paths per pixel.
+        fixed: editable objects of the scene that the plan fixes (not in ``edit``).
+        error: the requested relative RMSE (None when only ``seconds`` was given).
+        seconds: the requested precompute seconds (None: no time budget).
+        band_error, bounce_error, noise_error: the predicted parts (relative RMSE each).
+        projection_errors: ((object, J, projection error), ...) of the edited objects.
+        glossy_to_glossy: relative RMS of the pilot's glossy-to-glossy bounce-2 light.
+        predicted_seconds: the predicted precompute time, fixed + rate x spp fitted through
+            the two pilots (the rate scaled by bounces / pilot bounces).
+        pilot_seconds: what the pilot runs cost.
+    """
+
+    series: Series
+    bases: tuple[ObjectBasis | None, ...]
+    object_names: tuple[str, ...]
+    spp: int
+    fixed: tuple[str, ...]
+    error: float | None
+    seconds: float | None
+    band_error: float
+    bounce_error: float
+    noise_error: float
+    projection_errors: tuple[tuple[str, int, float], ...]
+    glossy_to_glossy: float
+    predicted_seconds: float
+    pilot_seconds: float
+
+    @property
+    def predicted_error(self) -> float:
+        """:math:`\\sqrt{e_b^2 + e_t^2 + e_n^2}` (relative RMSE against the converged model)."""
+        return math.sqrt(self.band_error**2 + self.bounce_error**2 + self.noise_error**2)
+
+    def __str__(self) -> str:
+        want = [] if self.error is None else [f"error {self.error:g}"]
+        want += [] if self.seconds is None else [f"time {self.seconds:g} s"]
+        lines = [
+            f"GI plan for {' and '.join(want)}: series {self.series.key}, spp {self.spp}",
+            f"  predicted error {self.predicted_error:.4f} = sqrt(bands {self.band_error:.4f}^2"
+            f" + bounces {self.bounce_error:.4f}^2 + noise {self.noise_error:.4f}^2)",
+            f"  predicted cost {self.predicted_seconds:.2f} s (pilot {self.pilot_seconds:.2f} s)",
+        ]
+        for name, J, e in self.projection_errors:
+            lines.append(f"  {name}: {J} band{'s' if J > 1 else ''} (projection error {e:.4f})")
+        lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
+        if self.fixed:
+            lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
+        return "\n".join(lines)
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
+        return {"series": self.series, "spp": self.spp, "bases": list(self.bases)}
+
+
+def plan_from_pilots(
+    scene: Scene,
+    bases: list[ObjectBasis | None],
+    projection_errors: dict[str, float],
+    fixed: tuple[str, ...],
+    pilots: list[PolynomialTensors],
+    error: float | None = None,
+    seconds: float | None = None,
+) -> GIPlan:
+    """Decide bounces, second bounce and spp from two independent pilot records (see the module).
+
+    Args:
+        scene: the scene (with the plan's fixed objects already fixed).
+        bases, projection_errors, fixed: from :func:`planned_bases`.
+        pilots: two records of the same series and bases, different seeds and (for the cost
+            fit) different spp; bounces >= the most the plan may choose; no second-bounce level.
+        error: relative RMSE budget; seconds: precompute time budget (at least one).
+    Returns:
+        :class:`GIPlan`.
+    """
+    if error is None and seconds is None:
+        raise ValueRangeError("plan for an error, a time or both; got neither")
+    if error is not None and not error > 0:
+        raise ValueRangeError(f"error must be > 0; got {error}")
+    if len(pilots) != 2:
+        raise ValueRangeError(f"the planner needs two independent pilot runs; got {len(pilots)}")
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
+    a, b = (pilot_images(p, mats)[:, keep] for p in pilots)
+    s_a, s_b = (int(p.meta["spp"]) for p in pilots)
+    mean = (s_a * a + s_b * b) / (s_a + s_b)
+    total = mean.sum(0)
+    norm = float((total**2).sum()) ** 0.5
+    if norm == 0:
+        raise ValueRangeError("the pilot image is black: nothing to plan for")
+    n_max = pilots[0].series.bounces
+    tails = [float((mean[n + 1 :].sum(0) ** 2).sum()) ** 0.5 / norm for n in range(n_max + 1)]
+    budget = error if error is not None else 1.0
+    bounces = next((n for n in range(1, n_max + 1) if tails[n] <= BOUNCE_SHARE * budget), n_max)
+    # band error: the projection error weighted by the light whose eye vertex is on the object
+    names = list(pilots[0].object_names)
+    band2 = 0.0
+    for name, eps in projection_errors.items():
+        part = pilot_images(pilots[0], mats, eye={names.index(name)})[1 : bounces + 1, keep].sum(0)
+        band2 += eps**2 * float((part**2).sum())
+    band_error = band2**0.5 / norm
+    # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
+    glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
+    g2g = 0.0
+    if glossy and n_max >= 2:
+        part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
+        g2g = float((part**2).sum()) ** 0.5 / norm
+    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
+    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
+        series_bands[1] = min(16, series_bands[0])
+    series = Series(tuple(series_bands))
+    if series.two_level:
+        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
+    # noise: per-pixel differences of two independent pilots, Var(I_a - I_b) = sigma^2 (1/s_a + 1/s_b)
+    diff = a[: bounces + 1].sum(0) - b[: bounces + 1].sum(0)
+    sigma = (float((diff**2).sum()) / (1 / s_a + 1 / s_b)) ** 0.5 / norm  # relative error at 1 spp
+    # cost: t = fixed + rate * spp, fitted through the two pilots; the rate scales with bounces
+    t_a, t_b = (float(p.meta["seconds"]) for p in pilots)
+    rate = max(0.0, (t_b - t_a) / (s_b - s_a)) if s_b != s_a else t_b / s_b
+    fixed_s = max(0.0, t_b - rate * s_b)
+    rate *= bounces / n_max
+    bias2 = band_error**2 + tails[bounces] ** 2
+    spp_err = None
+    if error is not None:
+        share2 = error**2 - bias2
+        if share2 <= 0:
+            share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
+        spp_err = max(1, math.ceil(sigma**2 / share2))
+    spp_time = None if seconds is None else max(1, int((seconds - fixed_s) / max(rate, 1e-12)))
+    spp = min(x for x in (spp_err, spp_time) if x is not None)
+    return GIPlan(
+        series=series,
+        bases=tuple(bases),
+        object_names=tuple(names),
+        spp=spp,
+        fixed=tuple(fixed),
+        error=error,
+        seconds=seconds,
+        band_error=band_error,
+        bounce_error=tails[bounces],
+        noise_error=sigma / math.sqrt(spp),
+        projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
+        glossy_to_glossy=g2g,
+        predicted_seconds=fixed_s + rate * spp,
+        pilot_seconds=sum(float(p.meta["seconds"]) for p in pilots),
+    )

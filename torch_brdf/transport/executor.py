@@ -1,0 +1,198 @@
+r"""Where the tiles of a precomputation run: in this process (``local``) or on a Ray cluster (``ray``).
+
+A precomputation splits its work into tiles; tile ``k`` is a pure function of (context, k),
+where the *context* holds the scene and the settings (the seed included), so a tile gives
+the same arrays wherever and however often it runs. :func:`run_tiles` computes the tiles
+that are not yet in the :class:`~torch_brdf.records.cache.TileCache`, writes each finished
+tile atomically into it on the driver (a restarted driver resumes from them), and returns
+every tile's arrays in tile order, so the assembled record does not depend on the executor,
+the number of workers, or the order in which tiles finish.
+
+Executors:
+
+- ``local`` (default): tiles one after another in this process, with one torch thread (on a
+  shared 2-core machine torch's second thread spin-waits and made the 64² precompute 30x
+  slower under load); ray casting still uses the scene's forked trace workers.
+- ``ray``: one Ray task per tile (``pip install torch_brdf[cluster]``). The context is put
+  into the object store once and each worker process unpickles it once (it is cached per
+  worker under its key), so per task only the tile index travels. A task whose worker dies
+  is retried by Ray up to ``max_retries`` times; after that :class:`TileError` names the
+  tile. Workers trace with one process and one torch thread each (Ray runs one task per CPU).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .._threads import configure_worker, single_thread
+from ..errors import TorchBRDFError, ValueRangeError
+from ..records.cache import TileCache
+
+__all__ = ["EXECUTORS", "TileError", "connect_ray", "run_tiles"]
+
+EXECUTORS = ("local", "ray")
+
+#: a tile's result: arrays (to cache) and JSON-able metadata.
+TileResult = tuple[dict[str, np.ndarray], dict[str, Any]]
+TileFn = Callable[[Any, int], TileResult]
+
+
+class Tiles(list):
+    """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles."""
+
+    write_seconds: float = 0.0
+
+
+class TileError(TorchBRDFError, RuntimeError):
+    """A tile could not be computed (its worker died more often than the retries allow)."""
+
+
+# per-worker-process cache of unpickled contexts (key -> context); a worker keeps one.
+_CONTEXTS: dict[str, Any] = {}
+
+
+def connect_ray(address: str | None = None, **init_kwargs):
+    """Start or join Ray and return the module.
+
+    ``address``: None or ``"auto"`` uses the running Ray instance of this process if any, else
+    starts a local one (``ray.init()``; ``init_kwargs`` go to it, e.g. ``num_cpus``); any other
+    value is the address of an existing cluster (``ray.init(address=...)``).
+    """
+    try:
+        import ray
+    except ImportError as exc:  # pragma: no cover - depends on the extra
+        raise TorchBRDFError("executor='ray' needs Ray: pip install 'torch_brdf[cluster]'") from exc
+    if not ray.is_initialized():
+        kwargs = {"include_dashboard": False, "log_to_driver": False, **init_kwargs}
+        if address not in (None, "auto", "local"):
+            kwargs["address"] = address
+        ray.init(**kwargs)
+    return ray
+
+
+def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult:
+    """A Ray task's body: the cached context of ``key`` (its pickle fetched from the object
+    store and loaded once per worker process), then tile ``index`` with one torch thread."""
+    ctx = _CONTEXTS.get(key)
+    if ctx is None:
+        import ray
+
+        ctx = pickle.loads(ray.get(holder[0]))
+        _CONTEXTS.clear()
+        _CONTEXTS[key] = ctx
+    configure_worker(1)  # Ray runs one task per CPU; a task's own threads would oversubscribe
+    return fn(ctx, index)
+
+
+def run_tiles(
+    fn: TileFn,
+    context: Any,
+    num_tiles: int,
+    cache: TileCache,
+    executor: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
+    desc: str = "tiles",
+    progress: bool = True,
+    ray_context: Any | None = None,
+    meta: dict[str, Any] | None = None,
+    consume: Callable[[int, dict[str, np.ndarray], dict[str, Any]], None] | None = None,
+) -> Tiles:
+    """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
+
+    Args:
+        fn: ``fn(context, k) -> (arrays, meta)``, a module-level function (Ray pickles it by name).
+        context: what ``fn`` needs besides the tile index (scene, settings, seed).
+        num_tiles: tiles ``0 .. num_tiles - 1``.
+        cache: finished tiles (loaded instead of computed; new ones saved as they finish).
+        executor: ``"local"`` or ``"ray"``.
+        address: Ray only, see :func:`connect_ray`.
+        max_retries: Ray only: times a tile is run again after its worker died.
+        desc, progress: the tqdm bar over finished tiles.
+        ray_context: Ray only: the object shipped to workers instead of ``context`` (e.g. the
+            scene without its forked trace workers); default ``context``.
+        meta: saved beside every tile (with the tile's own meta).
+        consume: ``consume(k, arrays, meta)`` is called for the tiles in tile order as soon as
+            tile ``k`` and all before it are finished (so the driver assembles while workers
+            compute), with one torch thread; the tile is then dropped from the result.
+    Returns:
+        :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
+        is True for loaded tiles.
+    Raises:
+        TileError: a tile failed on Ray after ``max_retries`` retries (or raised).
+    """
+    if executor not in EXECUTORS:
+        raise ValueRangeError(f"executor must be one of {EXECUTORS}; got {executor!r}")
+    if max_retries < 0:
+        raise ValueRangeError(f"max_retries must be >= 0; got {max_retries}")
+    out = Tiles([None] * num_tiles)
+    todo = []
+    for k in range(num_tiles):
+        done = cache.load(k)
+        if done is None:
+            todo.append(k)
+        else:
+            out[k] = (done[0], {**done[1], "cached": True})
+    bar = tqdm(total=num_tiles, initial=num_tiles - len(todo), desc=desc, disable=not progress)
+    nxt = [0]  # the next tile to consume
+
+    def drain() -> None:
+        if consume is None:
+            return
+        with single_thread():
+            while nxt[0] < num_tiles and out[nxt[0]] is not None:
+                consume(nxt[0], *out[nxt[0]])
+                out[nxt[0]] = None
+                nxt[0] += 1
+
+    def finish(k: int, res: TileResult) -> None:
+        t0 = time.perf_counter()
+        cache.save(k, res[0], {**(meta or {}), **res[1]})
+        out.write_seconds += time.perf_counter() - t0
+        out[k] = (res[0], {**res[1], "cached": False})
+        bar.update(1)
+        drain()
+
+    try:
+        drain()
+        if executor == "local":
+            with single_thread():
+                for k in todo:
+                    finish(k, fn(context, k))
+        elif todo:
+            _run_ray(fn, context if ray_context is None else ray_context, todo, finish, address, max_retries)
+    finally:
+        bar.close()
+    return out
+
+
+def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max_retries: int) -> None:
+    ray = connect_ray(address)
+    blob = pickle.dumps(context, protocol=5)
+    key = f"{fn.__module__}.{fn.__qualname__}:{hashlib.sha256(blob).hexdigest()[:16]}"
+    ref = ray.put(blob)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
+    task = ray.remote(num_cpus=1, max_retries=max_retries)(_run_in_worker)
+    pending = {task.remote(fn, key, [ref], k): k for k in todo}
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for r in ready:
+                k = pending.pop(r)
+                try:
+                    res = ray.get(r)
+                except Exception as exc:
+                    raise TileError(
+                        f"tile {k} failed on Ray (after up to {max_retries} retries): {type(exc).__name__}: {exc}"
+                    ) from exc
+                arrays = {n: v if v.flags.writeable else v.copy() for n, v in res[0].items()}  # zero-copy views
+                finish(k, (arrays, res[1]))
+    finally:
+        for r in pending:
+            ray.cancel(r, force=True)
