@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import copy
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,15 +48,11 @@ import trimesh
 from .._checks import check_rgb
 from ..errors import SceneError, TorchBRDFError
 from .camera import Camera
+from .description import read_scene_file, validate_description
 from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight, Light
 from .mesh import load_mesh, mesh_from_arrays, validate_mesh
 from .raytrace import Hits, RayTracer
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 
 @dataclass
@@ -224,12 +219,7 @@ class Scene:
     def from_toml(cls, path: str | Path) -> Scene:
         """Build a scene from a TOML description (see the module docstring)."""
         path = Path(path)
-        try:
-            desc = tomllib.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise SceneError(f"scene file not found: {path}") from exc
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(f"scene file {path} is not valid TOML: {exc}") from exc
+        desc = read_scene_file(path)
         desc.setdefault("name", path.stem)
         return cls.from_dict(desc, base_dir=path.parent)
 
@@ -242,9 +232,7 @@ class Scene:
             base_dir: folder that relative mesh and EXR paths are resolved against.
         """
         base_dir = Path(base_dir)
-        for key in ("camera", "materials", "objects"):
-            if key not in desc:
-                raise SceneError(f"scene description lacks {key!r}")
+        desc = validate_description(desc)
         try:
             camera = Camera(**desc["camera"])
         except TypeError as exc:
