@@ -183,7 +183,9 @@ VALUES = st.recursive(
 
 
 @seed(13)
-@settings(max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(path=st.sampled_from(PATHS), op=st.sampled_from(["set", "set", "delete", "add"]), value=VALUES)
 def test_every_mutation_loads_or_raises_the_package_error(folder, path, op, value):
     if op == "add" and not isinstance(path[-1], str):

@@ -42,7 +42,7 @@ def _is_number(v: Any) -> bool:
 def _real(lo: float | None = None, hi: float | None = None, open_lo: bool = False, open_hi: bool = False) -> Check:
     lo_s = "" if lo is None else f"{'>' if open_lo else '>='} {lo:g}"
     hi_s = "" if hi is None else f"{'<' if open_hi else '<='} {hi:g}"
-    want = "a finite number" + (f" {lo_s}" if lo_s else "") + (" and" if lo_s and hi_s else "") + (f" {hi_s}" if hi_s else "")
+    want = " and ".join(["a finite number" + (f" {lo_s}" if lo_s else ""), *([hi_s] if hi_s else [])])
 
     def check(v, key):
         if not _is_number(v) or not math.isfinite(v):
