@@ -70,11 +70,11 @@ from ..transport.visibility import VertexVisibility
 from ..transport.visibility_codec import BlockVisibility
 
 __all__ = [
+    "METHODS",
     "BlockLighting",
     "FixedRule",
     "FrameStats",
     "GenericRule",
-    "METHODS",
     "PhongRule",
     "TripleProductRenderer",
     "View",

@@ -25,8 +25,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .._checks import check_count, check_seed
 from ..brdf import BRDF, create
-from ..errors import SceneError, TorchBRDFError, ValueRangeError
+from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
 from ..io.arrays import load_arrays, save_arrays
 from ..scene.scene import Scene
@@ -179,10 +180,14 @@ def path_trace(
         chunk: rays traced together (memory vs. overhead).
         checkpoint: file to save progress to every ``checkpoint_every`` passes and to
             resume from when it exists with matching settings (npz, versioned, checksummed).
+        checkpoint_every: passes between checkpoint saves.
         progress: show a tqdm bar over sample passes.
+    Raises:
+        ValueRangeError: a count (``spp``, ``max_bounces``, ``chunk``, ``checkpoint_every``)
+            that is not a positive integer, or a seed outside ``[0, 2**63)``.
     """
-    if spp < 1 or max_bounces < 1:
-        raise ValueRangeError(f"spp and max_bounces must be >= 1; got spp={spp}, max_bounces={max_bounces}")
+    spp, max_bounces, seed = check_count(spp, "spp"), check_count(max_bounces, "max_bounces"), check_seed(seed)
+    chunk, checkpoint_every = check_count(chunk, "chunk"), check_count(checkpoint_every, "checkpoint_every")
     cam = scene.camera
     h, w = cam.height, cam.width
     brdfs = material_brdfs(scene)

@@ -61,6 +61,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .._checks import MAX_BANDS, check_count, check_seed
 from ..brdf import BRDF
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ShapeError, ValueRangeError
@@ -1010,8 +1011,12 @@ def precompute_polynomial(
         :class:`PolynomialTensors`.
     """
     series = Series.parse(series)
-    if spp < 1:
-        raise ValueRangeError(f"spp must be >= 1; got {spp}")
+    check_count(series.eye, "series bands per bounce", MAX_BANDS)
+    spp, seed = check_count(spp, "spp"), check_seed(seed)
+    tile_rows, group, env_point_lights = (
+        None if v is None else check_count(v, k)
+        for v, k in ((tile_rows, "tile_rows"), (group, "group"), (env_point_lights, "env_point_lights"))
+    )
     if isinstance(bases, list):
         if len(bases) != len(scene.objects):
             raise ShapeError(f"expected {len(scene.objects)} bases (one per object); got {len(bases)}")
