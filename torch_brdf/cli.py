@@ -66,6 +66,7 @@ _OS_ERRORS = {
     errno.ENOENT: "no such file or folder",
     errno.ENOTDIR: "not a folder",
     errno.EISDIR: "is a folder",
+    errno.EEXIST: "exists already (a file where a folder is needed?)",
 }
 
 
