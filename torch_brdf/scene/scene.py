@@ -31,6 +31,9 @@ Materials are dicts with a ``type`` — a model name of the BRDF layer — and t
 parameters (``{"type": "lambert", "albedo": ...}``, ``{"type": "blinn_phong", "kd": ...,
 "ks": ..., "exponent": ...}``); renderers turn them into modules with
 :func:`torch_brdf.brdf.create`.
+
+Descriptions are validated key by key before anything is built (:mod:`.description`): wrong
+types, NaN/Inf, sizes beyond the caps and unknown keys raise :class:`SceneError` naming the key.
 """
 
 from __future__ import annotations
