@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._checks import MAX_CUBEMAP_RESOLUTION, check_count
+from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
 from ..errors import FileFormatError, SceneError, ValueRangeError
 from ..io.arrays import load_arrays, save_arrays
 from ..scene.scene import Scene
@@ -234,7 +234,7 @@ def precompute_visibility(
     block, supersample, chunk = (
         check_count(v, k) for v, k in ((block, "block"), (supersample, "supersample"), (chunk, "chunk"))
     )
-    max_chunks = None if max_chunks is None else check_count(max_chunks, "max_chunks")
+    max_chunks = None if max_chunks is None else check_int(max_chunks, "max_chunks", 0)
     geom = CubemapBlocks(resolution, block)
     if bits not in BITS:
         raise ValueRangeError(f"bits must be one of {BITS} (0 = binary); got {bits}")
