@@ -26,8 +26,7 @@ import torch
 from _timing import best_of
 
 from torch_brdf.brdf import create
-from torch_brdf.brdf.band_albedo import band_albedos
-from torch_brdf.brdf.bands import BandBasis, Factored1D, project, projection_error
+from torch_brdf.brdf.bands import BandBasis, Factored1D, band_albedos, project, projection_error
 from torch_brdf.data import data_path
 
 MERL_MATERIALS = ("gold-metallic-paint", "blue-acrylic")

@@ -59,6 +59,7 @@ from torch_brdf.inverse import (
     solve_qp,
     transfer_functions,
 )
+from torch_brdf.metrics import relative_rmse
 from torch_brdf.scene import teatray
 
 F0, KD = 0.9, 0.3
@@ -126,7 +127,7 @@ def main() -> None:
     tr = 1 if args.quick else 2  # best of 2: the machine is shared
     transfer_s, rec = best_of(lambda: transfer_functions(px, ls, vis, f0=F0), tr)
     transfer_cuts_s, cut = best_of(lambda: transfer_functions(px, ls, vis, f0=F0, cuts=CutOptions()), tr)
-    cuts_rel_err = float((cut.values - rec.values).norm() / rec.values.norm())
+    cuts_rel_err = relative_rmse(cut.values, rec.values)
     print(f"transfer dense {transfer_s:.2f} s, cuts {transfer_cuts_s:.2f} s (rel err {cuts_rel_err:.2e})", flush=True)
 
     target = _strokes(rec)

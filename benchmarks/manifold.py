@@ -61,8 +61,9 @@ from torch_brdf.manifold.data import (
 )
 from torch_brdf.manifold.evaluate import heldout_reconstruction
 from torch_brdf.manifold.gplvm import GPLVM, fit_gplvm, gram, log_likelihood, pca_latents
+from torch_brdf.manifold.materials import material_record, random_record, sphere_scene
 from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
-from torch_brdf.manifold.render import blend, gi_blend_error, material_record, random_record, render_rows, sphere_scene
+from torch_brdf.render.manifold import blend, gi_blend_error, render_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -40,7 +40,8 @@ import time
 import numpy as np
 import torch
 
-from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, relative_rmse, series_approximations
+from torch_brdf.metrics import relative_rmse
+from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial

@@ -41,7 +41,8 @@ import torch
 from _timing import best_of
 
 from torch_brdf.data import data_path
-from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer, psnr
+from torch_brdf.metrics import psnr
+from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap

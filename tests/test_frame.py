@@ -6,7 +6,15 @@ import math
 
 import torch
 
-from torch_brdf.frame import Frame, half_diff_angles, half_diff_to_directions, half_vector, orthonormal_basis
+from torch_brdf.frame import (
+    Frame,
+    half_diff_angles,
+    half_diff_to_directions,
+    half_terms,
+    half_vector,
+    orthonormal_basis,
+    polar_angle,
+)
 
 
 def _hemi(n, g, dtype=torch.float64):
@@ -60,3 +68,54 @@ def test_half_vector_of_opposite_directions_is_finite():
     assert torch.equal(h, torch.tensor([[0.0, 0.0, 1.0]]))
     angles = half_diff_angles(w, -w)
     assert all(bool(torch.isfinite(a).all()) for a in angles)
+
+
+def test_half_terms_agree_with_the_plain_formulas_and_are_reciprocal(gen):
+    wi, wo = _hemi(2000, gen), _hemi(2000, gen)
+    ht = half_terms(wi, wo)
+    h = (wi + wo) / (wi + wo).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(ht.h, h, atol=1e-13, rtol=0)
+    torch.testing.assert_close(half_vector(wi, wo), ht.h, atol=1e-15, rtol=0)
+    torch.testing.assert_close(ht.cos_h, h[:, 2], atol=1e-13, rtol=0)
+    cos_d = (wi * h).sum(-1)
+    torch.testing.assert_close(ht.cos_d, cos_d, atol=1e-13, rtol=0)
+    torch.testing.assert_close(ht.one_minus_cos_d, 1 - cos_d, atol=1e-13, rtol=0)
+    torch.testing.assert_close(ht.sin_d, (1 - cos_d**2).clamp_min(0).sqrt(), atol=1e-7, rtol=0)
+    torch.testing.assert_close(ht.tan2, (h[:, 0] ** 2 + h[:, 1] ** 2) / h[:, 2] ** 2, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(ht.theta_d, half_diff_angles(wi, wo)[2], atol=1e-12, rtol=0)
+    back = half_terms(wo, wi)  # symmetric bit for bit
+    for name in ("h", "tan2", "cos_d", "one_minus_cos_d", "sin_d"):
+        assert torch.equal(getattr(back, name), getattr(ht, name)), name
+
+
+def test_half_vector_epsilon_policy():
+    """h = s/|s| above eps(dtype), +z at or below it (documented in torch_brdf.frame)."""
+    for dt in (torch.float32, torch.float64):
+        eps = torch.finfo(dt).eps
+        w = torch.tensor([[0.6, 0.0, 0.8]], dtype=dt)
+        below = torch.tensor([[-0.6, 0.0, -0.8 + 0.5 * eps]], dtype=dt)  # |wi + wo| = eps/2
+        above = torch.tensor([[-0.6, 0.0, -0.8 + 4 * eps]], dtype=dt)  # |wi + wo| = 4 eps
+        assert torch.equal(half_vector(w, below), torch.tensor([[0.0, 0.0, 1.0]], dtype=dt))
+        assert torch.equal(half_terms(w, below).h, torch.tensor([[0.0, 0.0, 1.0]], dtype=dt))
+        torch.testing.assert_close(half_vector(w, above), torch.tensor([[0.0, 0.0, 1.0]], dtype=dt))
+        assert float(half_terms(w, above).cos_d) > 0
+
+
+def test_frame_matrix_and_tangent_along_the_normal(gen):
+    n = torch.nn.functional.normalize(torch.randn(64, 3, generator=gen, dtype=torch.float64), dim=-1)
+    f = Frame.from_normal(n, torch.randn(64, 3, generator=gen, dtype=torch.float64))
+    v = torch.randn(64, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close((f.matrix() @ v[:, :, None])[..., 0], f.to_local(v))
+    # a tangent (e.g. a view) along the normal has no tangential part: Duff's basis instead
+    g = Frame.from_normal(n, 2.0 * n)
+    duff = Frame.from_normal(n)
+    torch.testing.assert_close(g.s, duff.s)
+    torch.testing.assert_close(g.t, duff.t)
+    m = g.matrix()
+    torch.testing.assert_close(m @ m.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(64, 3, 3))
+
+
+def test_polar_angle(gen):
+    w = _hemi(100, gen)
+    torch.testing.assert_close(polar_angle(w), torch.acos(w[:, 2]), atol=1e-7, rtol=0)
+    assert float(polar_angle(torch.tensor([0.0, 1e-20, 1.0], dtype=torch.float64))) == 1e-20

@@ -1,9 +1,27 @@
 """torch_brdf: design BRDFs in their final scene, in PyTorch on the CPU.
 
-Subpackages: :mod:`torch_brdf.scene` (meshes, embree ray tracing, camera, lights,
-built-in scenes), :mod:`torch_brdf.io` (EXR/PNG, versioned array files),
-:mod:`torch_brdf.sphere` (warps, lat-long maps), :mod:`torch_brdf.transport`
-(path tracing), :mod:`torch_brdf.errors` (the exception hierarchy).
+Subpackages and modules, lowest layer first (a module imports only its own layer or a lower
+one; ``tests/test_layers.py`` keeps it so):
+
+* :mod:`torch_brdf.errors`: the exception hierarchy (``TorchBRDFError`` and its subclasses).
+* :mod:`torch_brdf.data`: where the optional shared data folder lives.
+* :mod:`torch_brdf.io`: EXR / PNG images, the versioned checksummed array files, MERL files.
+* :mod:`torch_brdf.sphere`: sampling warps and pdfs, lat-long maps, cubemap blocks, DCT, Haar.
+* :mod:`torch_brdf.frame`: local shading frames, half/difference angles.
+* :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, log-RMSE ...).
+* :mod:`torch_brdf.brdf`: the BRDF base class, analytic, microfacet, measured and SRBF models,
+  1-D band bases.
+* :mod:`torch_brdf.scene`: meshes, embree ray tracing, camera and its G-buffer, lights,
+  environment maps, built-in scenes.
+* :mod:`torch_brdf.records`: what producers save and consumers read (basis images, multibounce
+  tensors, visibility, fits) with one codec, and the one checkpoint/tile cache.
+* :mod:`torch_brdf.transport`: the reference path tracer and the precomputations (multibounce
+  tensors, vertex visibility, Mitsuba comparisons).
+* :mod:`torch_brdf.manifold`: the GPLVM manifold of measured BRDFs, its materials and evaluation.
+* :mod:`torch_brdf.inverse`: paint strokes, transfer functions and constrained BRDF fits.
+* :mod:`torch_brdf.render`: modules that turn records plus coefficients into images
+  (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
+* :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.
 """
 
 from . import errors

@@ -218,8 +218,7 @@ def precompute(
     resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
-    import shutil
-
+    from .records.cache import remove_cache
     from .transport.polynomial import Series, precompute_polynomial
 
     # every option is checked before the scene is loaded and the precompute starts
@@ -241,8 +240,7 @@ def precompute(
     )
     seconds = time.perf_counter() - t0
     T.save(out, storage=storage)
-    if tiles is not None and tiles.exists():
-        shutil.rmtree(tiles)
+    remove_cache(tiles)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": series, "spp": spp, "mb_per_bounce": mb}
     info["rays"] = T.meta["rays"]
@@ -291,8 +289,7 @@ def precompute_visibility_cmd(
     resume: bool = typer.Option(True, help="Keep finished chunks in OUT.chunks/ and resume from them."),
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
-    import shutil
-
+    from .records.cache import remove_cache
     from .sphere.cubemap import CubemapBlocks
     from .transport.visibility import BITS, precompute_visibility
 
@@ -307,8 +304,7 @@ def precompute_visibility_cmd(
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)
-    if ck is not None:
-        shutil.rmtree(ck, ignore_errors=True)
+    remove_cache(ck)
     info = {
         "out": str(out),
         "vertices": len(vis.vertices),

@@ -13,21 +13,19 @@ import torch
 
 from tests.brdf.common import BRDFContract
 from torch_brdf.brdf import create
-from torch_brdf.brdf.band_albedo import (
-    EquivalentAlbedoCacheWarning,
-    band_albedos,
-    cache_dir,
-    equivalent_albedo,
-)
 from torch_brdf.brdf.bands import (
     AnisotropicLobe,
     BandBasis,
+    EquivalentAlbedoCacheWarning,
     Factored1D,
     FresnelFactored1D,
     PairQuadrature,
     SchlickFresnel,
     SmithQuotient,
+    band_albedos,
     band_edges,
+    cache_dir,
+    equivalent_albedo,
     half_and_diff,
     make_quotient,
     project,
@@ -281,8 +279,7 @@ def test_equivalent_albedo_matches_quadrature_of_the_brdf(cache_tmp):
 
 
 def test_band_albedo_cache_hit_and_corrupt_entry(cache_tmp, monkeypatch):
-    # the package exports the function equivalent_albedo, which shadows the module attribute
-    ea = importlib.import_module("torch_brdf.brdf.band_albedo")
+    ea = importlib.import_module("torch_brdf.brdf.bands.albedo")
 
     basis = BandBasis("theta_d", 8)
     e1 = band_albedos(basis, "cook_torrance", samples_per_band=512, progress=False)

@@ -19,6 +19,7 @@ from torch_brdf.inverse import (
     paint,
     save_fit,
 )
+from torch_brdf.metrics import relative_rmse
 
 
 def _whole(target: torch.Tensor) -> StrokeTarget:
@@ -41,17 +42,13 @@ def _strokes(rec, kd=KD):
     return paint(rec, before, strokes)
 
 
-def _rel_rmse(a, b):
-    return float((a - b).pow(2).mean().sqrt() / b.pow(2).mean().sqrt())
-
-
 def test_recovers_a_known_brdf(view, target_render):
     """Acceptance: target rendered with a known p(h) in the SRBF span (the BRDF module, same light
     samples), whole object as the stroke region -> <= 1% relative RMSE, constraints to 1e-8."""
     rec, target = view[-1], target_render
     res = fit(rec, _whole(target), kd=KD)
     img = rec.pixel_values(res.record_coefficients())
-    assert _rel_rmse(img, target) <= 0.01
+    assert relative_rmse(img, target) <= 0.01
     assert res.violation <= 1e-8
     assert bool((res.coefficients >= 0).all())
     g = energy_rows().rows(res.f0.tolist())

@@ -1,7 +1,5 @@
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -11,10 +9,8 @@ from tests.manifold.common import SMALL_GRID, small_family
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.manifold.data import (
     MERLGrid,
-    cosine_weighted_rmse,
     default_grid,
     fit_pca,
-    log_relative_rmse,
     nbrdf_observations,
     read_split,
     select,
@@ -83,26 +79,6 @@ def test_published_split_matches_the_nbrdf_names():
     names = load_nbrdf_weights(shared_file("merl", "nbrdf_merl100_weights.npz")).names
     train, test = read_split(Path(__file__).resolve().parents[2] / "datasets" / "merl_split.txt")
     assert (train, test) == split_names(names)
-
-
-def test_log_relative_rmse_known_values():
-    c = torch.tensor([0.5, 1.0, 0.25], dtype=torch.float64)
-    true = torch.tensor([1.0, 2.0, 3.0, 0.5, 0.2, 0.1, 4.0, 4.0, 4.0], dtype=torch.float64)
-    assert float(log_relative_rmse(true, true, c)) == 0.0
-    # eps -> 0: doubling every value gives exactly log 2
-    assert abs(float(log_relative_rmse(2 * true, true, c, eps=1e-300)) - math.log(2)) < 1e-12
-    # the per-bin reference cancels in the difference
-    ref = torch.rand(9, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    a = log_relative_rmse(1.3 * true, true, c, reference=ref)
-    assert abs(float(a) - float(log_relative_rmse(1.3 * true, true, c))) < 1e-12
-    # negative interpolant values are clamped at 0 inside the log
-    neg = true.clone()
-    neg[0] = -5.0
-    assert math.isfinite(float(log_relative_rmse(neg, true, c)))
-    cw = cosine_weighted_rmse(true + 1.0, true, c)
-    assert abs(float(cw) - float(c.repeat(3).pow(2).mean().sqrt())) < 1e-12
-    with pytest.raises(ShapeError):
-        log_relative_rmse(true, true, torch.ones(4))
 
 
 def test_pca_reconstructs_training_rows_and_projects(gen):

@@ -148,7 +148,8 @@ def test_approximation_ordering_on_the_glossy_cornell_box():
     Images are rendered at 48x48 and compared after 4x4 box pooling (12x12 pixels, the same
     as 16x more paths per pixel) to keep Monte Carlo noise below the approximation errors;
     the glossy back wall, where the approximations differ, is also compared on its own."""
-    from torch_brdf.render.polynomial import emitter_mask, relative_rmse, series_approximations
+    from torch_brdf.metrics import relative_rmse
+    from torch_brdf.render.polynomial import emitter_mask, series_approximations
     from torch_brdf.scene.builtin import cornell_box_glossy
     from torch_brdf.transport.pathtrace import reference_path_trace
 

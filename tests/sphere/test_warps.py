@@ -6,13 +6,13 @@ import math
 
 import pytest
 import torch
-from scipy.stats import chi2
 
+from tests._stats import assert_chi2
 from torch_brdf.errors import ShapeError
 from torch_brdf.sphere import warps
 
 N = 200_000
-P_MIN = 1e-3  # chi-square p-value threshold (seeded, so the outcome is deterministic)
+COS_POWER = 7.5  # exponent of the cosine-power (Blinn lobe) warp under test
 NORM_TOL = {torch.float32: 1e-6, torch.float64: 1e-14}
 
 DIRECTIONAL = {  # warp -> (pdf of a direction, half-space only?)
@@ -23,22 +23,19 @@ DIRECTIONAL = {  # warp -> (pdf of a direction, half-space only?)
         lambda v: warps.cosine_hemisphere_pdf(v[..., 2]),
         True,
     ),
+    "cosine_power": (
+        lambda u: warps.square_to_cosine_power_hemisphere(u, COS_POWER),
+        lambda v: warps.cosine_power_hemisphere_pdf(v[..., 2], COS_POWER),
+        True,
+    ),
 }
+
+#: the chi-square tests of this file form one family (Šidák correction of the one threshold)
+CHI2_FAMILY = len(DIRECTIONAL) + 2
 
 
 def uniforms(n=N, dtype=torch.float64, seed=0):
     return torch.rand(n, 2, generator=torch.Generator().manual_seed(seed), dtype=dtype)
-
-
-def chi2_pvalue(counts: torch.Tensor, expected: torch.Tensor) -> float:
-    """Pearson chi-square p-value; bins with small expectations are pooled (Mitsuba chi2.py)."""
-    counts, expected = counts.double().reshape(-1), expected.double().reshape(-1)
-    small = expected < 5
-    c = torch.cat([counts[~small], counts[small].sum().reshape(1)])
-    e = torch.cat([expected[~small], expected[small].sum().reshape(1)])
-    keep = e > 0
-    stat = float(((c[keep] - e[keep]) ** 2 / e[keep]).sum())
-    return float(chi2.sf(stat, int(keep.sum()) - 1))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -81,11 +78,13 @@ def test_chi2_directions(name):
         mass = (b - a) * dphi / (4 * math.pi)
     elif name == "hemisphere":
         mass = (b.clamp_min(0) - a.clamp_min(0)) * dphi / (2 * math.pi)
-    else:  # int cos/pi dw over the cell = dphi/pi * (b^2 - a^2)/2 on z >= 0
+    elif name == "cosine":  # int cos/pi dw over the cell = dphi/pi * (b^2 - a^2)/2 on z >= 0
         mass = (b.clamp_min(0) ** 2 - a.clamp_min(0) ** 2) / 2 * dphi / math.pi
+    else:  # int (n+1)/(2 pi) cos^n dw over the cell = dphi/(2 pi) * (b^(n+1) - a^(n+1)) on z >= 0
+        mass = (b.clamp_min(0) ** (COS_POWER + 1) - a.clamp_min(0) ** (COS_POWER + 1)) * dphi / (2 * math.pi)
     expected = N * mass[:, None].expand(nz, nphi)
     assert abs(float(expected.sum()) - N) < 1e-6 * N
-    assert chi2_pvalue(counts, expected) > P_MIN
+    assert_chi2(counts, expected, family_size=CHI2_FAMILY)
 
 
 def test_concentric_disk_uniform():
@@ -97,7 +96,7 @@ def test_concentric_disk_uniform():
     ang = torch.remainder(torch.atan2(p[:, 1], p[:, 0]), 2 * math.pi)
     ia = (ang / (2 * math.pi) * na).floor().long().clamp(0, na - 1)
     counts = torch.bincount(ir * na + ia, minlength=nr * na)
-    assert chi2_pvalue(counts, torch.full((nr * na,), N / (nr * na))) > P_MIN
+    assert_chi2(counts, torch.full((nr * na,), N / (nr * na)), family_size=CHI2_FAMILY)
     # the centre of the square maps to the centre of the disk
     c = warps.square_to_uniform_disk_concentric(torch.full((1, 2), 0.5, dtype=torch.float64))
     assert float(c.abs().max()) == 0.0
@@ -112,7 +111,7 @@ def test_triangle_barycentrics_uniform(dtype):
     corner = (b > 0.5).long()
     cell = torch.where(corner.any(-1), corner.argmax(-1), torch.full_like(corner[:, 0], 3))
     counts = torch.bincount(cell, minlength=4)
-    assert chi2_pvalue(counts, torch.full((4,), N / 4)) > P_MIN
+    assert_chi2(counts, torch.full((4,), N / 4), family_size=CHI2_FAMILY)
 
 
 @pytest.mark.parametrize(

@@ -13,8 +13,15 @@ from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.transport import polynomial as poly
-from torch_brdf.transport.pathtrace import path_trace
-from torch_brdf.transport.polynomial import Mixture, ObjectBasis, PolynomialTensors, Series, precompute_polynomial
+from torch_brdf.transport.pathtrace import material_brdfs, path_trace
+from torch_brdf.transport.polynomial import (
+    Mixture,
+    ObjectBasis,
+    PolynomialTensors,
+    Series,
+    driver,
+    precompute_polynomial,
+)
 
 
 def glossy_box(res=12, fixed_box=True):
@@ -34,7 +41,7 @@ def _oracle(sc, T, paths, c, c_hat, d, spp):
     """Re-evaluate every recorded light sample with explicit BRDFs: Factored1D(c) at the eye
     vertex, Factored1D(c_hat) at a banded second vertex, d/pi at diffuse-equivalent vertices,
     the scene BRDF at fixed objects (already in ``raw``)."""
-    brdfs = poly.material_brdfs(sc)
+    brdfs = material_brdfs(sc)
     p = T.height * T.width
     img = torch.zeros(p, 3, dtype=torch.float64)
 
@@ -156,7 +163,7 @@ def test_interrupted_run_resumes_bit_exactly(tmp_path, monkeypatch):
     kw = dict(series="8,1,1", spp=3, seed=5, tile_rows=4, progress=False)
     full = precompute_polynomial(sc, **kw)
     calls = {"n": 0}
-    real = poly._tile_entries
+    real = driver._tile_entries
 
     def flaky(*a, **k):
         calls["n"] += 1
@@ -164,7 +171,7 @@ def test_interrupted_run_resumes_bit_exactly(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*a, **k)
 
-    monkeypatch.setattr(poly, "_tile_entries", flaky)
+    monkeypatch.setattr(driver, "_tile_entries", flaky)
     with pytest.raises(KeyboardInterrupt):
         precompute_polynomial(sc, checkpoint=tmp_path, **kw)
     assert len(list(tmp_path.glob("tile*.npz"))) == 1

@@ -15,33 +15,39 @@ from .analytic import (
     Ward,
     WardAniso,
 )
-from .band_albedo import EquivalentAlbedoCacheWarning, band_albedos, equivalent_albedo
 from .bands import (
     AnisotropicLobe,
     BandBasis,
+    EquivalentAlbedoCacheWarning,
     Factored1D,
     FresnelFactored1D,
     PairQuadrature,
     Quotient,
     SchlickFresnel,
     SmithQuotient,
+    band_albedos,
     band_edges,
+    equivalent_albedo,
     make_quotient,
     project,
     projection_error,
 )
 from .base import BRDF, Clamped, Lambert, Positive, available, create, register
 from .measured import NBRDF, MERLTabulated, tabulate_nbrdf
-from .microfacet import CookTorrance
+from .microfacet import GGXNDF, AnisotropicPhongNDF, BeckmannNDF, BlinnNDF, CookTorrance, MicrofacetDistribution
 from .srbf import SRBFBasis, SRBFDistribution, hemicube_centers, lambda_from_sigma, sigma_from_lambda
 
 __all__ = [
     "BRDF",
+    "GGXNDF",
     "NBRDF",
     "AnisotropicLobe",
+    "AnisotropicPhongNDF",
     "AshikhminShirley",
     "BandBasis",
+    "BeckmannNDF",
     "BlinnDistribution",
+    "BlinnNDF",
     "BlinnPhong",
     "Clamped",
     "CookTorrance",
@@ -52,6 +58,7 @@ __all__ = [
     "HalfVectorDistribution",
     "Lambert",
     "MERLTabulated",
+    "MicrofacetDistribution",
     "PairQuadrature",
     "Phong",
     "Positive",

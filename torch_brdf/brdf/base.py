@@ -13,7 +13,10 @@ Conventions (stated once, kept everywhere):
   sample (below the horizon); then ``wi`` is still a finite unit vector.
 * Parameters are stored raw (``raw_<name>``) and exposed through a transform
   (:class:`Positive`, :class:`Clamped`), like gpytorch's ``raw_lengthscale``; gradients
-  flow to the raw tensors. Computation follows the dtype of the directions.
+  flow to the raw tensors. Assigning ``model.<name> = value`` goes through the inverse
+  transform and updates ``raw_<name>`` in place (gpytorch's ``lengthscale.setter``);
+  out-of-range values raise :class:`~torch_brdf.errors.ValueRangeError`. Computation
+  follows the dtype of the directions.
 """
 
 from __future__ import annotations
@@ -143,6 +146,41 @@ class ConstrainedModule(nn.Module):
         if cons is not None and name in cons:
             return cons[name].forward(super().__getattr__("raw_" + name))
         return super().__getattr__(name)
+
+    def __setattr__(self, name: str, value) -> None:
+        cons = self.__dict__.get("_constraints")
+        if cons is not None and name in cons:
+            self.set_constrained(name, value)
+        else:
+            super().__setattr__(name, value)
+
+    def set_constrained(self, name: str, value) -> None:
+        """Assign a constrained parameter through its inverse transform (gpytorch's
+        ``lengthscale.setter``): ``model.<name> = value`` calls this. The Parameter
+        ``raw_<name>`` is updated in place, so it stays the same Parameter (optimisers and
+        ``state_dict`` see the new value) with its dtype, device and ``requires_grad``.
+
+        Args:
+            name: a name given to :meth:`register_constrained`.
+            value: a scalar or a tensor broadcastable to the parameter's shape.
+        Raises:
+            ValueRangeError: ``value`` is not finite or outside the transform's range
+                (e.g. a negative exponent, an albedo above 1); the parameter is unchanged.
+            ShapeError: ``value`` does not broadcast to the parameter's shape.
+        """
+        raw = super().__getattr__("raw_" + name)
+        v = torch.as_tensor(value).detach().to(device=raw.device, dtype=raw.dtype)
+        if not bool(torch.isfinite(v).all()):
+            raise ValueRangeError(f"{type(self).__name__}.{name} must be finite; got {value!r}")
+        try:
+            v = v.expand(raw.shape)
+        except RuntimeError as exc:
+            raise ShapeError(
+                f"{type(self).__name__}.{name}: expected a scalar or shape {tuple(raw.shape)}; got {tuple(v.shape)}"
+            ) from exc
+        new_raw = self._constraints[name].inverse(v)
+        with torch.no_grad():
+            raw.copy_(new_raw)
 
     def params(self, dtype: torch.dtype) -> dict[str, torch.Tensor]:
         """The constrained parameters as tensors of ``dtype`` (for the math)."""

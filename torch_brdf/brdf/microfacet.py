@@ -29,24 +29,28 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import torch
 
 from ..errors import ValueRangeError
-from ..frame import orthonormal_basis
-from ..sphere.warps import square_to_cosine_hemisphere
+from ..frame import Frame, HalfTerms, half_terms, orthonormal_basis
+from ..sphere.warps import square_to_cosine_hemisphere, square_to_cosine_power_hemisphere
 from .base import BRDF, Clamped, Positive, register
 
 __all__ = [
+    "GGXNDF",
+    "AnisotropicPhongNDF",
+    "BeckmannNDF",
+    "BlinnNDF",
     "CookTorrance",
-    "HalfTerms",
+    "MicrofacetDistribution",
+    "MicrofacetMixture",
     "beckmann_d",
     "beckmann_g1_over_cos",
     "blinn_d",
     "ggx_d",
     "ggx_g1_over_cos",
-    "half_terms",
     "half_vector_pdf",
     "lobe_weight",
     "mixture_pdf",
@@ -97,47 +101,6 @@ def safe_pair(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torch.T
     z[2] = 1.0
     m = up.unsqueeze(-1)
     return torch.where(m, wi, z), torch.where(m, wo, z), up
-
-
-class HalfTerms(NamedTuple):
-    r"""Half-vector quantities of a direction pair, computed without cancellation.
-
-    Attributes:
-        s: (*B, 3) the unnormalised sum :math:`\omega_i + \omega_o`.
-        h: (*B, 3) the unit half vector (:math:`+z` where undefined, :math:`\omega_i = -\omega_o`).
-        tan2: (*B,) :math:`\tan^2\theta_h` (finite; large near the horizon).
-        cos_h: (*B,) :math:`\cos\theta_h = h_z`.
-        cos_d: (*B,) :math:`\omega_i\cdot h = \omega_o\cdot h = |s|/2`.
-        one_minus_cos_d: (*B,) :math:`1 - \omega_i\cdot h`, accurate near 0.
-        up: (*B,) bool, both directions strictly above the horizon.
-    """
-
-    s: torch.Tensor
-    h: torch.Tensor
-    tan2: torch.Tensor
-    cos_h: torch.Tensor
-    cos_d: torch.Tensor
-    one_minus_cos_d: torch.Tensor
-    up: torch.Tensor
-
-
-def half_terms(wi: torch.Tensor, wo: torch.Tensor) -> HalfTerms:
-    """Half-vector terms of local unit directions ``wi, wo`` (*B, 3); see :class:`HalfTerms`."""
-    s = wi + wo
-    sxy2 = s[..., 0] ** 2 + s[..., 1] ** 2
-    sz = s[..., 2]
-    len2 = sxy2 + sz * sz
-    floor = _floor(s.dtype)
-    tan2 = sxy2 / (sz * sz).clamp_min(floor)
-    length = len2.clamp_min(floor).sqrt()
-    z = torch.zeros_like(s)
-    z[..., 2] = 1.0
-    h = torch.where((len2 > floor).unsqueeze(-1), s / length.unsqueeze(-1), z)
-    d = wi - wo
-    q = ((d * d).sum(-1) * 0.25).clamp(0.0, 1.0)
-    one_minus_cos_d = q / (1.0 + (1.0 - q).sqrt())
-    up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
-    return HalfTerms(s, h, tan2, h[..., 2], 0.5 * len2.sqrt(), one_minus_cos_d, up)
 
 
 def schlick_fresnel(f0: torch.Tensor, one_minus_cos: torch.Tensor) -> torch.Tensor:
@@ -260,11 +223,10 @@ def _open_unit(u: torch.Tensor) -> torch.Tensor:
 
 def sample_blinn_h(u: torch.Tensor, exponent: torch.Tensor) -> torch.Tensor:
     r"""Half vectors with density :math:`D_n(h)\cos\theta_h = \frac{n+2}{2\pi}\cos^{n+1}\theta_h`:
-    :math:`\cos\theta_h = \xi^{1/(n+2)}`, with :math:`\sin^2\theta_h = -\mathrm{expm1}(2\log\xi/(n+2))`
-    for accuracy at large :math:`n`. Args: u (*B, 2); exponent () or (*B,). Returns: (*B, 3)."""
-    lg = torch.log(_open_unit(u[..., 0]))
-    sin2 = -torch.expm1(2.0 * lg / (exponent + 2.0))
-    return _polar(sin2, 2.0 * math.pi * u[..., 1])
+    the cosine-power warp with exponent :math:`n + 1`
+    (:func:`~torch_brdf.sphere.warps.square_to_cosine_power_hemisphere`).
+    Args: u (*B, 2); exponent () or (*B,). Returns: (*B, 3)."""
+    return square_to_cosine_power_hemisphere(u, exponent + 1.0)
 
 
 def sample_beckmann_h(u: torch.Tensor, alpha_x: torch.Tensor, alpha_y: torch.Tensor | None = None) -> torch.Tensor:
@@ -315,11 +277,7 @@ def sample_around(axis: torch.Tensor, u: torch.Tensor, exponent: torch.Tensor) -
     (:math:`\gamma` the angle to it; the hemisphere around ``axis``), as for the Phong lobe
     (Lafortune & Willems 1994). Args: axis (*B, 3); u (*B, 2); exponent () or (*B,).
     Returns: (*B, 3)."""
-    lg = torch.log(_open_unit(u[..., 0]))
-    sin2 = -torch.expm1(2.0 * lg / (exponent + 1.0))
-    loc = _polar(sin2, 2.0 * math.pi * u[..., 1])
-    s, t = orthonormal_basis(axis)
-    return loc[..., :1] * s + loc[..., 1:2] * t + loc[..., 2:3] * axis
+    return Frame(*orthonormal_basis(axis), axis).to_world(square_to_cosine_power_hemisphere(u, exponent))
 
 
 # -- lobe mixtures -----------------------------------------------------------------------------
@@ -377,12 +335,222 @@ def half_vector_pdf(pdf_h: torch.Tensor, cos_d: torch.Tensor) -> torch.Tensor:
     return pdf_h / (4.0 * cos_d.clamp_min(_floor(cos_d.dtype)))
 
 
+# -- the microfacet distribution protocol -----------------------------------------------------
+def _tan2(h: torch.Tensor) -> torch.Tensor:
+    """tan^2(theta) of vectors (*B, 3) of any positive length (floored denominator): (*B,)."""
+    return (h[..., 0] ** 2 + h[..., 1] ** 2) / (h[..., 2] ** 2).clamp_min(_floor(h.dtype))
+
+
+class MicrofacetDistribution:
+    r"""The one interface of a distribution of microfacet normals, after pbrt-v4's
+    ``TrowbridgeReitzDistribution``: :meth:`D`, :meth:`G1_over_cos`, :meth:`sample`,
+    :meth:`pdf`. Every microfacet model takes one (:class:`CookTorrance`: :class:`GGXNDF` or :class:`BeckmannNDF`,
+    :class:`~torch_brdf.brdf.analytic.BlinnPhong`: :class:`BlinnNDF`,
+    :class:`~torch_brdf.brdf.analytic.Ward`: :class:`BeckmannNDF`,
+    :class:`~torch_brdf.brdf.analytic.AshikhminShirley` its anisotropic Phong lobe, and
+    :class:`~torch_brdf.brdf.analytic.DistributionBased`'s Blinn distribution and fallback
+    sampler).
+
+    Distributions are small frozen value objects built per evaluation from a model's
+    constrained parameters (tensors, so gradients flow to the model's raw Parameters and
+    ``state_dict`` is the model's). :math:`D` is normalised over projected microfacet area,
+    :math:`\int D(h)(h\cdot n)\,d\omega_h = 1`; reflecting :math:`\omega_o` about a sampled
+    :math:`h` gives :math:`\omega_i` with density ``pdf(wo, h) / (4 wo.h)``
+    (:meth:`sample_reflection`, :meth:`reflection_pdf`).
+    """
+
+    #: True if D depends on the azimuth of h (needs a tangent frame).
+    anisotropic: bool = False
+
+    def D(self, h: torch.Tensor) -> torch.Tensor:
+        """Normal distribution at half vectors h (*B, 3) with h_z > 0, any positive length: (*B,)."""
+        raise NotImplementedError
+
+    def G1_over_cos(self, w: torch.Tensor) -> torch.Tensor:
+        r"""Smith masking :math:`G_1(\omega)/\cos\theta` (finite at grazing angles) of local
+        directions (*B, 3) with :math:`w_z \ge 0`: (*B,)."""
+        raise NotImplementedError
+
+    def sample(self, wo: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Unit half vectors (*B, 3) for local ``wo`` (*B, 3) and uniforms ``u`` (*B, 2)."""
+        raise NotImplementedError
+
+    def pdf(self, wo: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Solid-angle density (*B,) with which :meth:`sample` draws the unit half vector ``h``
+        (*B, 3) given ``wo`` (*B, 3). Default: :math:`D(h)\\cos\theta_h` (all normals)."""
+        return self.D(h) * h[..., 2].clamp_min(0.0)
+
+    def sample_reflection(self, wo: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``wi`` (*B, 3): ``wo`` reflected about a sampled half vector."""
+        return reflect(wo, self.sample(wo, u))
+
+    def reflection_pdf(self, wo: torch.Tensor, ht: HalfTerms) -> torch.Tensor:
+        r"""Solid-angle density (*B,) of :meth:`sample_reflection` at the pair whose
+        :func:`~torch_brdf.frame.half_terms` are ``ht``: :math:`\mathrm{pdf}_h/(4\,\omega_o\cdot h)`."""
+        return half_vector_pdf(self.pdf(wo, ht.h), ht.cos_d)
+
+
+@dataclass(frozen=True)
+class BlinnNDF(MicrofacetDistribution):
+    r"""Normalised Blinn distribution :math:`D_n = \frac{n+2}{2\pi}\cos^n\theta_h`
+    (:func:`blinn_d`), sampled as :math:`D_n\cos\theta_h` (:func:`sample_blinn_h`). It has no
+    exact Smith masking; :meth:`G1_over_cos` is the implicit :math:`G_1 = \cos\theta`
+    (i.e. 1), under which :math:`DG/(4\cos\theta_i\cos\theta_o) = D/4` is Blinn-Phong's lobe.
+
+    Attributes:
+        exponent: () or (*B,) :math:`n > 0`.
+    """
+
+    exponent: torch.Tensor
+
+    def D(self, h):
+        return blinn_d(_tan2(h), self.exponent)
+
+    def G1_over_cos(self, w):
+        return torch.ones_like(w[..., 2])
+
+    def sample(self, wo, u):
+        return sample_blinn_h(u, self.exponent)
+
+
+@dataclass(frozen=True)
+class BeckmannNDF(MicrofacetDistribution):
+    r"""(Anisotropic) Beckmann distribution (:func:`beckmann_d`), sampled as
+    :math:`D(h)\cos\theta_h` (:func:`sample_beckmann_h`); exact Smith :math:`G_1`
+    (:func:`beckmann_g1_over_cos`) with the roughness projected on the direction's azimuth,
+    :math:`\alpha^2(\phi) = \alpha_x^2\cos^2\phi + \alpha_y^2\sin^2\phi` (Heitz 2014).
+
+    Attributes:
+        alpha_x: () or (*B,) roughness along the tangent.
+        alpha_y: None (isotropic) or roughness along the bitangent.
+    """
+
+    alpha_x: torch.Tensor
+    alpha_y: torch.Tensor | None = None
+
+    @property
+    def anisotropic(self) -> bool:
+        return self.alpha_y is not None
+
+    def D(self, h):
+        return beckmann_d(h, self.alpha_x, self.alpha_y)
+
+    def G1_over_cos(self, w):
+        if self.alpha_y is None:
+            return beckmann_g1_over_cos(w, self.alpha_x)
+        x2, y2 = w[..., 0] ** 2, w[..., 1] ** 2
+        r2 = x2 + y2
+        a2 = (x2 * self.alpha_x**2 + y2 * self.alpha_y**2) / r2.clamp_min(_tiny(w.dtype))
+        a2 = torch.where(r2 > 0, a2, self.alpha_x**2 * torch.ones_like(r2))
+        return beckmann_g1_over_cos(w, a2.sqrt())
+
+    def sample(self, wo, u):
+        return sample_beckmann_h(u, self.alpha_x, self.alpha_y)
+
+
+@dataclass(frozen=True)
+class GGXNDF(MicrofacetDistribution):
+    r"""Isotropic GGX / Trowbridge-Reitz (:func:`ggx_d`, exact :func:`ggx_g1_over_cos`),
+    sampled by its visible normals (:func:`sample_ggx_vndf`, Heitz 2018):
+    :math:`\mathrm{pdf}_h = G_1(\omega_o)\max(0, \omega_o\cdot h)D(h)/\cos\theta_o`.
+
+    Attributes:
+        alpha: () or (*B,) roughness.
+    """
+
+    alpha: torch.Tensor
+
+    def D(self, h):
+        return ggx_d(h, self.alpha)
+
+    def G1_over_cos(self, w):
+        return ggx_g1_over_cos(w, self.alpha)
+
+    def sample(self, wo, u):
+        return sample_ggx_vndf(wo, u, self.alpha)
+
+    def pdf(self, wo, h):
+        return self.G1_over_cos(wo) * (wo * h).sum(-1).clamp_min(0.0) * self.D(h)
+
+
+def _log1p_over(t: torch.Tensor) -> torch.Tensor:
+    """log(1 + t)/t, continuous at t = 0 (t >= 0)."""
+    small = t < 1e-4
+    ts = torch.where(small, torch.ones_like(t), t)
+    return torch.where(small, 1.0 - 0.5 * t + t * t / 3.0, torch.log1p(ts) / ts)
+
+
+@dataclass(frozen=True)
+class AnisotropicPhongNDF(MicrofacetDistribution):
+    r"""The anisotropic Phong lobe of Ashikhmin & Shirley 2000: their half-vector density
+    :math:`p_h = \frac{\sqrt{(n_u+1)(n_v+1)}}{2\pi}(n\cdot h)^{e(h)}`,
+    :math:`e(h) = (n_u h_x^2 + n_v h_y^2)/(1 - h_z^2)`, is :math:`D(h)\cos\theta_h`
+    (so :math:`D = p_h/\cos\theta_h` has unit projected area) and is what :meth:`sample`
+    draws (their importance-sampling section; :math:`\phi_h = \mathrm{atan2}(\sqrt{n_u+1}
+    \sin\psi, \sqrt{n_v+1}\cos\psi)`, :math:`\cos\theta_h = (1-\xi)^{1/(e+1)}`). The
+    exponent is evaluated as :math:`-\frac12 (n_u h_x^2 + n_v h_y^2)/h_z^2\cdot\log(1+t)/t`,
+    :math:`t = \tan^2\theta_h` (no 0/0 at :math:`h = n`). Not a Smith model: no :math:`G_1`.
+
+    Attributes:
+        nu, nv: () or (*B,) exponents along the tangent and bitangent.
+    """
+
+    nu: torch.Tensor
+    nv: torch.Tensor
+    anisotropic = True
+
+    def log_lobe(self, h: torch.Tensor) -> torch.Tensor:
+        r""":math:`\log (n\cdot h)^{e(h)}` for half vectors (*B, 3) of any positive length: (*B,)."""
+        hz2 = (h[..., 2] ** 2).clamp_min(_floor(h.dtype))
+        return -0.5 * (self.nu * h[..., 0] ** 2 + self.nv * h[..., 1] ** 2) / hz2 * _log1p_over(_tan2(h))
+
+    def pdf(self, wo, h):
+        return torch.sqrt((self.nu + 1.0) * (self.nv + 1.0)) / (2.0 * math.pi) * torch.exp(self.log_lobe(h))
+
+    def D(self, h):
+        cos_h = h[..., 2] / torch.linalg.vector_norm(h, dim=-1).clamp_min(_floor(h.dtype))
+        return self.pdf(None, h) / cos_h.clamp_min(_floor(h.dtype))
+
+    def G1_over_cos(self, w):
+        raise NotImplementedError("the Ashikhmin-Shirley lobe is not a Smith microfacet model")
+
+    def sample(self, wo, u):
+        psi = 2.0 * math.pi * u[..., 0]
+        phi = torch.atan2(torch.sqrt(self.nu + 1.0) * torch.sin(psi), torch.sqrt(self.nv + 1.0) * torch.cos(psi))
+        e = self.nu * torch.cos(phi) ** 2 + self.nv * torch.sin(phi) ** 2
+        lg = torch.log(_open_unit(u[..., 1]))
+        return _polar(-torch.expm1(2.0 * lg / (e + 1.0)), phi)
+
+
+class MicrofacetMixture(BRDF):
+    """Sampling shared by the microfacet models: with the probability ``_p_spec(wo)`` (*B,)
+    reflect ``wo`` about a half vector of :meth:`microfacet_distribution`, else the cosine
+    lobe (:func:`mixture_sample`); ``pdf_local`` is the mixture's exact density."""
+
+    def microfacet_distribution(self, dtype: torch.dtype) -> MicrofacetDistribution:
+        """The model's distribution of microfacet normals, built from its current parameters."""
+        raise NotImplementedError
+
+    def _p_spec(self, wo: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def sample_local(self, wo, u):
+        dist = self.microfacet_distribution(wo.dtype)
+        wi = mixture_sample(wo, u, self._p_spec(wo), dist.sample_reflection)
+        return wi, self.pdf_local(wi, wo)
+
+    def pdf_local(self, wi, wo):
+        si, so, _ = safe_pair(wi, wo)
+        pdf_s = self.microfacet_distribution(wi.dtype).reflection_pdf(so, half_terms(si, so))
+        return mixture_pdf(wi, wo, self._p_spec(so), pdf_s)
+
+
 # -- Cook-Torrance ---------------------------------------------------------------------------
 _DISTRIBUTIONS = ("beckmann", "ggx")
 
 
 @register("cook_torrance")
-class CookTorrance(BRDF):
+class CookTorrance(MicrofacetMixture):
     r"""Cook-Torrance microfacet BRDF with an optional Lambertian base,
 
     .. math:: f = \frac{k_d}{\pi} + \frac{F(\omega_i\cdot h)\,D(h)\,G_1(\omega_i)G_1(\omega_o)}
@@ -398,9 +566,10 @@ class CookTorrance(BRDF):
     (:meth:`albedo_bound`).
 
     Sampling: with probability from :func:`lobe_weight` the specular lobe, else the cosine
-    lobe. GGX samples visible normals (Heitz 2018): :math:`\mathrm{pdf} = G_1(\omega_o)D(h)
-    /(4\cos\theta_o)`; Beckmann samples :math:`D(h)\cos\theta_h`: :math:`\mathrm{pdf} =
-    D(h)\cos\theta_h/(4\,\omega_o\cdot h)`.
+    lobe. The distribution (:meth:`microfacet_distribution`, a :class:`GGXNDF` or
+    :class:`BeckmannNDF`) samples the half vector: GGX its visible normals (Heitz 2018):
+    :math:`\mathrm{pdf} = G_1(\omega_o)D(h)/(4\cos\theta_o)`; Beckmann
+    :math:`D(h)\cos\theta_h`: :math:`\mathrm{pdf} = D(h)\cos\theta_h/(4\,\omega_o\cdot h)`.
 
     Args:
         distribution: ``"beckmann"`` or ``"ggx"``.
@@ -421,22 +590,18 @@ class CookTorrance(BRDF):
         self.register_constrained("f0", f0, Clamped(0.0, 1.0), shape=(3,))
         self.register_constrained("kd", kd, Clamped(0.0, 1.0), shape=(3,))
 
-    def _alpha(self, dtype):
-        return self.roughness.to(dtype).clamp_min(ALPHA_MIN)
-
-    def _d(self, h, alpha):
-        return ggx_d(h, alpha) if self.distribution == "ggx" else beckmann_d(h, alpha)
-
-    def _g1c(self, w, alpha):
-        return ggx_g1_over_cos(w, alpha) if self.distribution == "ggx" else beckmann_g1_over_cos(w, alpha)
+    def microfacet_distribution(self, dtype: torch.dtype) -> GGXNDF | BeckmannNDF:
+        """The :class:`MicrofacetDistribution` of the current roughness (clamped at ``ALPHA_MIN``)."""
+        a = self.roughness.to(dtype).clamp_min(ALPHA_MIN)
+        return GGXNDF(a) if self.distribution == "ggx" else BeckmannNDF(a)
 
     def eval_local(self, wi, wo):
         dt = wi.dtype
-        a = self._alpha(dt)
+        dist = self.microfacet_distribution(dt)
         wi, wo, up = safe_pair(wi, wo)
         ht = half_terms(wi, wo)
         fr = schlick_fresnel(self.f0.to(dt), ht.one_minus_cos_d)
-        spec = (0.25 * self._d(ht.s, a) * self._g1c(wi, a) * self._g1c(wo, a)).unsqueeze(-1) * fr
+        spec = (0.25 * dist.D(ht.s) * dist.G1_over_cos(wi) * dist.G1_over_cos(wo)).unsqueeze(-1) * fr
         f = self.kd.to(dt) / math.pi + spec
         return torch.where(up.unsqueeze(-1), f, torch.zeros((), dtype=dt))
 
@@ -446,26 +611,6 @@ class CookTorrance(BRDF):
         f0 = self.f0.to(dt)
         spec = (f0 + (1.0 - f0) * one_minus**5).mean(-1)
         return lobe_weight(spec, self.kd.to(dt).mean().expand_as(spec))
-
-    def _sample_spec(self, wo, u):
-        a = self._alpha(wo.dtype)
-        h = sample_ggx_vndf(wo, u, a) if self.distribution == "ggx" else sample_beckmann_h(u, a)
-        return reflect(wo, h)
-
-    def _pdf_spec(self, wi, wo):
-        a = self._alpha(wi.dtype)
-        ht = half_terms(wi, wo)
-        if self.distribution == "ggx":
-            return 0.25 * ggx_g1_over_cos(wo, a) * ggx_d(ht.s, a)
-        return half_vector_pdf(beckmann_d(ht.s, a) * ht.cos_h, ht.cos_d)
-
-    def sample_local(self, wo, u):
-        wi = mixture_sample(wo, u, self._p_spec(wo), self._sample_spec)
-        return wi, self.pdf_local(wi, wo)
-
-    def pdf_local(self, wi, wo):
-        si, so, _ = safe_pair(wi, wo)
-        return mixture_pdf(wi, wo, self._p_spec(so), self._pdf_spec(si, so))
 
     def albedo_bound(self, wo: torch.Tensor) -> torch.Tensor:
         """Documented upper bound of the directional albedo: kd + 1, shape (*B, 3)."""

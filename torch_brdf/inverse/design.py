@@ -24,7 +24,8 @@ from pathlib import Path
 import torch
 
 from ..errors import FileFormatError, TorchBRDFError
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
+from ..records.cache import Checkpoint
 from ..scene.scene import Scene
 from .solve import fit, save_fit
 from .strokes import Brush, Stroke, paint
@@ -122,15 +123,8 @@ def design(
     t0 = time.perf_counter()
     px = object_pixels(scene, config.object, solve_cam)
     settings = {"scene": scene.name, **asdict(config), "size": [solve_cam.width, solve_cam.height]}
-    cache = out / "transfer.npz"
-    rec = None
-    if cache.exists():
-        try:
-            old = BasisImage.load(cache, dtype=torch.float64)
-            if old.meta.get("settings") == json.loads(json.dumps(settings)):
-                rec = old
-        except FileFormatError:
-            rec = None
+    cache = Checkpoint(out / "transfer.npz", BasisImage.kind, settings, on_corrupt="recompute")
+    rec = cache.load_record(BasisImage, dtype=torch.float64)
     if rec is None:
         g = torch.Generator().manual_seed(config.seed)
         ls = LightSamples.from_environment(scene.environment, config.light_samples, g)
@@ -144,7 +138,7 @@ def design(
             progress=progress,
             meta={"settings": settings},
         )
-        rec.save(cache, storage="float64")
+        cache.save_record(rec, storage="float64")
     transfer_s = time.perf_counter() - t0
     kd3 = torch.full((1, 3), float(config.kd), dtype=torch.float64)
     before = rec.pixel_values(torch.cat((torch.zeros(rec.num_basis - 1, 3, dtype=torch.float64), kd3)))

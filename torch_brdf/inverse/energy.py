@@ -21,7 +21,7 @@ Quadrature: the integral is taken over the half vector, :math:`d\omega_i = 4(\om
 hemisphere (``n_theta`` x ``n_phi`` nodes; :math:`\omega_i = 2(\omega_o\cdot h)h - \omega_o`,
 zero where it falls below the horizon). The SRBF lobes (:math:`\lambda \approx 81`, half width
 7.5 degrees) span about 30 nodes at the defaults, so the rule is converged to ~1e-6 relative;
-the tests check it against :meth:`BRDF.albedo` of the same BRDF.
+the tests check it against :meth:`~torch_brdf.brdf.base.BRDF.albedo` of the same BRDF.
 
 With Schlick's Fresnel :math:`F = F_0 + (1 - F_0)(1-\omega_i\cdot h)^5` the rows are
 :math:`g = F_0\,g^{(0)} + (1 - F_0)\,g^{(5)}`; both parts are precomputed once per basis

@@ -24,7 +24,7 @@ ProxQP/Clarabel are compared with), ``violation`` the largest constraint violati
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
@@ -32,8 +32,8 @@ from .._checks import check_finite
 from .._threads import single_thread
 from ..brdf.srbf import SRBFBasis
 from ..errors import InfeasibleError, ShapeError, ValueRangeError
-from ..io.arrays import load_arrays, save_arrays
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
+from ..records.fits import FitResult
 from ._util import f64
 from .energy import EnergyRows, energy_rows
 from .qp import solve_qp
@@ -42,7 +42,7 @@ from .transfer import split_record
 
 __all__ = ["FitResult", "NormalEquations", "fit", "load_fit", "normal_equations", "save_fit"]
 
-FIT_KIND = "inverse-fit"
+FIT_KIND = FitResult.kind
 
 
 @dataclass(frozen=True)
@@ -157,37 +157,6 @@ def normal_equations(
     return problems
 
 
-@dataclass(frozen=True)
-class FitResult:
-    """Result of :func:`fit`.
-
-    Attributes:
-        coefficients: (J, 3) float64 SRBF coefficients of :math:`p(h)` per channel.
-        kd: (3,) diffuse albedo used; f0: (3,) Fresnel :math:`F_0` of the record.
-        objective: weighted sum of squares (all channels).
-        violation: largest violation of :math:`c \\ge 0` and the energy rows (0 unconstrained).
-        iterations: solver iterations (interior point or ADMM), summed over the channel problems.
-        seconds: solve time (normal equations + QPs).
-        constrained: whether the constraints were imposed.
-        max_energy: :math:`\\max_l \\rho_d + \\sum_j g_j^l c_j` over channels (<= 1 when constrained).
-    """
-
-    coefficients: torch.Tensor
-    kd: torch.Tensor
-    f0: torch.Tensor
-    objective: float
-    violation: float
-    iterations: int
-    seconds: float
-    constrained: bool
-    max_energy: float
-    meta: dict = field(default_factory=dict)
-
-    def record_coefficients(self) -> torch.Tensor:
-        """(J + 1, 3) coefficients for the transfer record: SRBF part and :math:`\\rho_d` last."""
-        return torch.cat((self.coefficients, self.kd[None]), 0)
-
-
 def fit(
     record: BasisImage,
     target: StrokeTarget,
@@ -264,32 +233,9 @@ def _fit(record, target, kd, constrained, shared, energy, basis, tol, method) ->
 
 def save_fit(path, result: FitResult) -> None:
     """Write a :class:`FitResult` atomically (versioned, checksummed; no pickle)."""
-    arrays = {"coefficients": result.coefficients.numpy(), "kd": result.kd.numpy(), "f0": result.f0.numpy()}
-    meta = {
-        "objective": result.objective,
-        "violation": result.violation,
-        "iterations": result.iterations,
-        "seconds": result.seconds,
-        "constrained": result.constrained,
-        "max_energy": result.max_energy,
-        "meta": result.meta,
-    }
-    save_arrays(path, arrays, kind=FIT_KIND, meta=meta)
+    result.save(path)
 
 
 def load_fit(path) -> FitResult:
     """Read a file written by :func:`save_fit` (kind, version and checksum verified)."""
-    arrays, meta = load_arrays(path, kind=FIT_KIND)
-    t = {k: torch.from_numpy(v.copy()).double() for k, v in arrays.items()}
-    return FitResult(
-        t["coefficients"],
-        t["kd"],
-        t["f0"],
-        float(meta["objective"]),
-        float(meta["violation"]),
-        int(meta["iterations"]),
-        float(meta["seconds"]),
-        bool(meta["constrained"]),
-        float(meta["max_energy"]),
-        dict(meta.get("meta", {})),
-    )
+    return FitResult.load(path)

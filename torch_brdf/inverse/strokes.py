@@ -32,7 +32,7 @@ import torch.nn.functional as F
 
 from .._checks import check_finite
 from ..errors import ShapeError, ValueRangeError
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
 from ._util import f64
 
 __all__ = ["Brush", "Stroke", "StrokeTarget", "paint", "stroke_distance", "target_from_image"]

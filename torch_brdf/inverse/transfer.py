@@ -36,7 +36,7 @@ per-pixel visibility (no per-vertex interpolation), so the saving is in the SRBF
 not the ray casts.
 
 Records: :func:`transfer_functions` returns the package's shared "pixels x basis x channels"
-record, :class:`~torch_brdf.render.record.BasisImage`, with J + 1 basis functions: the J
+record, :class:`~torch_brdf.records.BasisImage`, with J + 1 basis functions: the J
 transfer functions and, last, :math:`E(x)` for the diffuse albedo. Its ``image`` evaluates
 Eq. 5/22 for ``torch.cat([c, rho_d[None]])`` (coefficients (J + 1, C)).
 """
@@ -50,17 +50,16 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
-from ..errors import SceneError, ShapeError, ValueRangeError
-from ..frame import Frame
-from ..render.record import BasisImage
+from ..errors import ShapeError, ValueRangeError
+from ..frame import Frame, half_terms
+from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
-from ..scene.envmap import EnvironmentMap
-from ..scene.lights import luminance
+from ..scene.gbuffer import GBuffer, trace_gbuffer
+from ..scene.lights import LightSamples, luminance
 from ..scene.scene import Scene
 from .energy import default_basis
 
@@ -76,78 +75,12 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class LightSamples:
-    """S distant light directions shared by every pixel.
-
-    Attributes:
-        directions: (S, 3) unit world directions towards the light, float64.
-        weight: (S, 3) :math:`L(\\omega_s) / (S\\,\\mathrm{pdf}(\\omega_s))`, float64 (RGB).
-    """
-
-    directions: torch.Tensor
-    weight: torch.Tensor
-
-    def __post_init__(self):
-        d, w = self.directions, self.weight
-        if d.ndim != 2 or d.shape[-1] != 3 or w.shape != (d.shape[0], 3) or d.shape[0] < 1:
-            raise ShapeError(f"Expected directions (S, 3) and weight (S, 3); got {tuple(d.shape)}, {tuple(w.shape)}")
-        check_finite(d, "light directions")
-        check_finite(w, "light weights")
-
-    @property
-    def count(self) -> int:
-        return self.directions.shape[0]
-
-    @classmethod
-    def from_environment(
-        cls, env: EnvironmentMap, count: int = 1024, generator: torch.Generator | None = None
-    ) -> LightSamples:
-        """Importance-sample ``count`` directions from ``env`` (luminance x solid angle).
-
-        Args:
-            env: the environment map (rotated maps sample their rotated radiance).
-            count: S >= 1 (a power of two if visibility cuts will be used).
-            generator: random source (seed it for reproducible records).
-        """
-        if not isinstance(env, EnvironmentMap):
-            raise SceneError(f"expected an EnvironmentMap; got {type(env).__name__}")
-        if int(count) < 1:
-            raise ValueRangeError(f"light sample count must be >= 1; got {count}")
-        d, pdf = env.sample_directions(int(count), generator=generator, dtype=torch.float64)
-        L = env.eval_miss(d)
-        w = torch.where(pdf[:, None] > 0, L / (pdf[:, None].clamp_min(1e-300) * int(count)), torch.zeros_like(L))
-        return cls(d, w)
+#: the pixels of one object in one view: a :class:`~torch_brdf.scene.gbuffer.GBuffer` (former name).
+ObjectPixels = GBuffer
 
 
-@dataclass(frozen=True)
-class ObjectPixels:
-    """The pixels of one object in one view (a small G-buffer), float64.
-
-    Attributes:
-        pixels: (P,) int64 flat row-major indices into the ``height x width`` frame.
-        height, width: frame size.
-        position: (P, 3) hit points; geometric_normal, normal: (P, 3) face and shading normals.
-        wo: (P, 3) unit directions towards the camera.
-        object_id: the object's index in the scene.
-    """
-
-    pixels: torch.Tensor
-    height: int
-    width: int
-    position: torch.Tensor
-    geometric_normal: torch.Tensor
-    normal: torch.Tensor
-    wo: torch.Tensor
-    object_id: int
-
-    @property
-    def count(self) -> int:
-        return self.pixels.shape[0]
-
-
-def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) -> ObjectPixels:
-    """Trace one primary ray per pixel centre and keep the pixels whose closest hit is ``obj``.
+def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) -> GBuffer:
+    """The G-buffer of the pixels whose closest primary hit is ``obj`` (:func:`trace_gbuffer`).
 
     Args:
         scene: the scene.
@@ -157,32 +90,11 @@ def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) ->
     Raises:
         SceneError: unknown object, or the object covers no pixel of the view.
     """
-    oid = scene.object_id(obj) if isinstance(obj, str) else int(obj)
-    if not 0 <= oid < len(scene.objects):
-        raise SceneError(f"object id {oid} out of range for {len(scene.objects)} objects")
-    cam = camera if camera is not None else scene.camera
-    o, d = cam.generate_rays(dtype=torch.float64)
-    hits = scene.trace(o, d)
-    keep = hits.object_id == oid
-    if not bool(keep.any()):
-        raise SceneError(f"object {scene.objects[oid].name!r} covers no pixel of the {cam.width}x{cam.height} view")
-    idx = torch.nonzero(keep).squeeze(1)
-    return ObjectPixels(
-        pixels=idx,
-        height=cam.height,
-        width=cam.width,
-        position=hits.position[idx].double(),
-        # embree's float32 normals renormalised in float64: the shading frames must be orthonormal
-        # to float64 precision, or local directions are off unit length by ~1e-7
-        geometric_normal=F.normalize(hits.geometric_normal[idx].double(), dim=-1),
-        normal=F.normalize(hits.normal[idx].double(), dim=-1),
-        wo=-d[idx].double(),
-        object_id=oid,
-    )
+    return trace_gbuffer(scene, camera, objects=obj)
 
 
 def cosine_visibility(
-    scene: Scene, px: ObjectPixels, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool = False
+    scene: Scene, px: GBuffer, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool = False
 ) -> torch.Tensor:
     r"""Cosine-weighted visibility :math:`\tilde V(x_p, \omega_s) = V\max(0, n_p\cdot\omega_s)`.
 
@@ -270,15 +182,11 @@ class _LightTree:
 def _static_weighted(wi: torch.Tensor, wo: torch.Tensor, f0: torch.Tensor, weight: torch.Tensor):
     r"""Local half vectors (n, 3) and ``weight * F(wi.h) / den`` (n, 3) of Eq. 11's static factor
     :math:`s` for local unit pairs (n, 3) (0 where either direction is at or below the horizon)."""
-    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    hs = wi + wo
-    length = hs.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    h = hs / length
-    one_minus = (1 - 0.5 * length).clamp(0, 1)  # 1 - wi.h = 1 - |wi + wo| / 2
+    ht = half_terms(wi, wo)
     ci, co = wi[:, 2:3].clamp(0, 1), wo[:, 2:3].clamp(0, 1)
     den = (ci + co - ci * co).clamp_min(1e-300)
-    s = (f0 + (1 - f0) * one_minus**5) * (weight / den)
-    return h, torch.where(up[:, None], s, torch.zeros((), dtype=s.dtype))
+    s = (f0 + (1 - f0) * ht.one_minus_cos_d[:, None] ** 5) * (weight / den)
+    return ht.h, torch.where(ht.up[:, None], s, torch.zeros((), dtype=s.dtype))
 
 
 def _srbf(basis: SRBFBasis, h: torch.Tensor) -> torch.Tensor:
@@ -312,14 +220,8 @@ def _accumulate(T, ii, wi, wo, weight, f0, basis, chunk: int = 1 << 14) -> None:
                 T[:, c] += A @ G
 
 
-def _frames(normal: torch.Tensor) -> torch.Tensor:
-    """Rows s, t, n of the shading frames (Frame.from_normal): (P, 3, 3); local = F @ world."""
-    f = Frame.from_normal(normal)
-    return torch.stack((f.s, f.t, f.n), -2)
-
-
 def transfer_functions(
-    px: ObjectPixels,
+    px: GBuffer,
     samples: LightSamples,
     visibility: torch.Tensor,
     basis: SRBFBasis | None = None,
@@ -331,7 +233,7 @@ def transfer_functions(
     r"""Transfer functions :math:`T_j(x)` (Eq. 6; Eq. 21 with ``cuts``) and :math:`E(x)` for one object.
 
     Args:
-        px: the object's pixels (:func:`object_pixels`).
+        px: the object's pixels (:func:`object_pixels`, a G-buffer).
         samples: the light directions (:class:`LightSamples`).
         visibility: (P, S) :math:`\tilde V` from :func:`cosine_visibility`.
         basis: the SRBFs (default 147 hemicube lobes, :math:`\sigma = \pi/40`).
@@ -354,7 +256,7 @@ def transfer_functions(
         raise ValueRangeError(f"f0 must lie in [0, 1]; got {f0t.tolist()}")
     J = basis.K
     vis = visibility.double()
-    frames = _frames(px.normal)  # (P, 3, 3)
+    frames = Frame.from_normal(px.normal).matrix()  # (P, 3, 3): local = frames @ world
     wo_l = (frames @ px.wo[:, :, None])[..., 0]  # (P, 3)
     T = torch.zeros(P, 3, J, dtype=torch.float64)
     t0 = time.perf_counter()

@@ -6,21 +6,21 @@ and other linear functionals of the BRDF blend with the same weights b.
 
 * :mod:`.kernel`: shifted SE kernel (Eq. 5), Cholesky with jitter escalation.
 * :mod:`.gplvm`: Gram-matrix fit (Eq. 6), :class:`GPLVM` interpolation / variance / projection.
-* :mod:`.data`: MERL grids, observation matrices (NBRDF, ``.binary``), split, metrics, PCA.
+* :mod:`.data`: MERL grids, observation matrices (NBRDF, ``.binary``), split, PCA
+  (the held-out metrics live in :mod:`torch_brdf.metrics`).
 * :mod:`.evaluate`: held-out reconstruction against PCA.
 * :mod:`.paths`: latent slices, best paths, limitation diagnostics.
-* :mod:`.render`: blending per-material images (fixed view, GI).
+* :mod:`.materials`: per-material image records and the sphere scene (rendered by :mod:`torch_brdf.render.manifold`).
 * :mod:`.zh`: real SH / rotated ZH shading of interpolated materials.
 """
 
+from ..metrics import cosine_weighted_rmse, log_relative_rmse  # re-exported from torch_brdf.metrics
 from .data import (
     MERLGrid,
     Observations,
     analytic_observations,
-    cosine_weighted_rmse,
     default_grid,
     fit_pca,
-    log_relative_rmse,
     nbrdf_observations,
     read_split,
     split_names,
@@ -28,8 +28,8 @@ from .data import (
 from .evaluate import HeldOut, heldout_reconstruction
 from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms
 from .kernel import JitterWarning, cholesky_jitter, kernel_matrix
+from .materials import material_record, merl_material, random_record, sphere_scene, with_material
 from .paths import LatentPath, LatentSlice, best_path, directional_albedo, interpolant_diagnostics, latent_slice
-from .render import blend, material_record, render_rows, sphere_scene
 from .zh import ZHCoefficients, env_sh, rows_brdf, zh_coefficients, zh_shade
 
 __all__ = [
@@ -44,7 +44,6 @@ __all__ = [
     "ZHCoefficients",
     "analytic_observations",
     "best_path",
-    "blend",
     "cholesky_jitter",
     "cosine_weighted_rmse",
     "default_grid",
@@ -60,13 +59,15 @@ __all__ = [
     "log_likelihood",
     "log_relative_rmse",
     "material_record",
+    "merl_material",
     "nbrdf_observations",
     "projection_terms",
+    "random_record",
     "read_split",
-    "render_rows",
     "rows_brdf",
     "sphere_scene",
     "split_names",
+    "with_material",
     "zh_coefficients",
     "zh_shade",
 ]

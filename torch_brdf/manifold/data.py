@@ -9,7 +9,7 @@ direction (for :math:`\phi_h = 0`, lower-edge angles) is at or below the horizon
 dropped (the NBRDF tables mark them missing; real MERL files also miss data there). A row of
 ``Z`` is ``[R bins, G bins, B bins]`` over the valid bins, in 1/sr with MERL's scale applied.
 Missing measurements of a real file (negative values) in a valid bin are bad input for the
-manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`GPLVM.project` with a mask
+manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`~torch_brdf.manifold.gplvm.GPLVM.project` with a mask
 for partially observed BRDFs.
 
 **Sources.** :func:`nbrdf_observations` tabulates the NBRDF networks (an *approximation* of
@@ -20,14 +20,11 @@ MERL, see ``../shared/data/merl/README.md``) through
 column blocks for :func:`~torch_brdf.manifold.gplvm.gram`, so the full-resolution Gram matrix
 never needs the whole ``Z`` in memory.
 
-**Metrics** (held-out reconstruction, after Nielsen, Jensen and Ramamoorthi 2015, "On Optimal,
-Minimal BRDF Sampling for Reflectance Acquisition"): the cosine map
-:math:`c = \cos\theta_i\cos\theta_o` clipped to [0.01, 1]; the log mapping
-:math:`m(\rho) = \log((\rho c + \varepsilon)/(\rho_{\mathrm{ref}} c + \varepsilon))` with the
-per-bin median :math:`\rho_{\mathrm{ref}}` of the training set and :math:`\varepsilon = 10^{-3}`;
-log-relative RMSE = RMSE of :math:`m(\hat\rho) - m(\rho)` (the reference cancels in the
-difference; kept for the mapping's definition); interpolants are clamped at 0 inside the
-log (negative values have no log). Cosine-weighted RMSE = RMSE of :math:`c(\hat\rho - \rho)`.
+**Metrics** of held-out reconstructions: :func:`~torch_brdf.metrics.log_relative_rmse` (after
+Nielsen, Jensen and Ramamoorthi 2015, with the per-bin median of the training set as
+:math:`\rho_{\mathrm{ref}}`) and :func:`~torch_brdf.metrics.cosine_weighted_rmse`, both on
+the cosine map :math:`c = \cos\theta_i\cos\theta_o` clipped to [0.01, 1]; they live in
+:mod:`torch_brdf.metrics` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -45,8 +42,10 @@ from tqdm.auto import tqdm
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
-from ..io.arrays import load_arrays, save_arrays
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
+from ..metrics import cosine_weighted_rmse as cosine_weighted_rmse  # re-exported
+from ..metrics import log_relative_rmse as log_relative_rmse  # re-exported
+from ..records.cache import Checkpoint
 
 OBS_KIND = "merl-observations"
 
@@ -203,7 +202,7 @@ def nbrdf_observations(
 ) -> Observations:
     """Tabulate NBRDF networks on ``grid`` into an observation matrix (an APPROXIMATION of MERL).
 
-    With ``cache`` the matrix is stored through :func:`~torch_brdf.io.save_arrays` (atomic,
+    With ``cache`` the matrix is stored as a :class:`~torch_brdf.records.cache.Checkpoint` (atomic,
     checksummed) every ``save_every`` materials and at the end; a later call with the same
     weights file, names and grid resumes from it (or just loads it). A cache written for other
     settings is recomputed; a corrupt cache raises :class:`~torch_brdf.errors.FileFormatError`.
@@ -226,18 +225,18 @@ def nbrdf_observations(
     b = grid.num_valid
     z = np.zeros((len(names), 3 * b), dtype=np.float32)
     done = 0
-    if cache is not None and Path(cache).exists():
-        arrays, m = load_arrays(cache, kind=OBS_KIND)
-        if {k: m.get(k) for k in meta} == meta and arrays.get("z", np.empty(0)).shape == z.shape:
-            z = np.asarray(arrays["z"], dtype=np.float32).copy()
-            done = int(m.get("done", 0))
+    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta)
+    saved = None if ckpt is None else ckpt.load()
+    if saved is not None and saved[0].get("z", np.empty(0)).shape == z.shape:
+        z = np.asarray(saved[0]["z"], dtype=np.float32).copy()
+        done = int(saved[1].get("done", 0))
     valid = grid.valid()
     bar = tqdm(range(done, len(names)), initial=done, total=len(names), desc="tabulate NBRDF", disable=not progress)
     for i in bar:
         t = tabulate_nbrdf(NBRDF(names[i], w), *grid.indices, mask_horizon=False)
         z[i] = t[:, valid].reshape(-1).numpy().astype(np.float32)
-        if cache is not None and ((i + 1) % save_every == 0 or i + 1 == len(names)):
-            save_arrays(cache, {"z": z}, kind=OBS_KIND, meta={**meta, "done": i + 1})
+        if ckpt is not None and ((i + 1) % save_every == 0 or i + 1 == len(names)):
+            ckpt.save({"z": z}, meta={**meta, "done": i + 1})
     return Observations(torch.from_numpy(z), names, grid, "nbrdf")
 
 
@@ -326,42 +325,7 @@ def read_split(path: str | os.PathLike) -> tuple[list[str], list[str]]:
     return train, test
 
 
-# -- metrics and the PCA baseline ------------------------------------------------------------------
-def log_relative_rmse(
-    pred: torch.Tensor, true: torch.Tensor, cosine: torch.Tensor, eps: float = 1e-3, reference=None
-) -> torch.Tensor:
-    r"""Log-relative RMSE per row (Nielsen et al. 2015 mapping, see the module docstring).
-
-    Args:
-        pred, true: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
-        eps: :math:`\varepsilon`. reference: optional per-bin :math:`\rho_{ref}` (cancels; accepted for clarity).
-    Returns:
-        (M,) or () float64.
-    """
-    pred, true = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(true, dtype=torch.float64)
-    c = _cos_like(cosine, true)
-    ref = torch.zeros_like(c) if reference is None else torch.as_tensor(reference, dtype=torch.float64) * c
-    mp = torch.log(pred.clamp_min(0) * c + eps) - torch.log(ref + eps)
-    mt = torch.log(true.clamp_min(0) * c + eps) - torch.log(ref + eps)
-    return ((mp - mt) ** 2).mean(-1).sqrt()
-
-
-def cosine_weighted_rmse(pred: torch.Tensor, true: torch.Tensor, cosine: torch.Tensor) -> torch.Tensor:
-    """RMSE of ``cosine * (pred - true)`` per row: (M,) or ()."""
-    pred, true = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(true, dtype=torch.float64)
-    c = _cos_like(cosine, true)
-    return (((pred - true) * c) ** 2).mean(-1).sqrt()
-
-
-def _cos_like(cosine, like: torch.Tensor) -> torch.Tensor:
-    c = torch.as_tensor(cosine, dtype=torch.float64)
-    if c.numel() * 3 == like.shape[-1]:
-        c = c.repeat(3)
-    if c.shape != (like.shape[-1],):
-        raise ShapeError(f"cosine map of shape {tuple(c.shape)} does not match rows of width {like.shape[-1]}")
-    return c
-
-
+# -- the PCA baseline ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class PCABasis:
     """Linear baseline: mean (d,) and q orthonormal components (q, d) of weighted rows."""

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .data import Observations, cosine_weighted_rmse, fit_pca, log_relative_rmse
+from ..metrics import cosine_weighted_rmse, log_relative_rmse
+from .data import Observations, fit_pca
 from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, projection_terms
 
 

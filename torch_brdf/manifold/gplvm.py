@@ -38,20 +38,17 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
-from ..errors import FileFormatError, NumericalError, ShapeError, ValueRangeError
-from ..io.arrays import load_arrays, save_arrays
+from ..errors import NumericalError, ShapeError, ValueRangeError
+from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
 
-FIT_KIND = "gplvm-fit"
+FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
 
 
@@ -169,83 +166,6 @@ def pca_latents(s: torch.Tensor, q: int) -> torch.Tensor:
     x = evecs * evals.sqrt()[None, :]
     sd = x[:, 0].std()
     return (x / sd if float(sd) > 0 else x).contiguous()
-
-
-# -- the fit record ---------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class GPLVMFit:
-    """Result of :func:`fit_gplvm` (frozen).
-
-    Attributes:
-        latents: (N, Q) float64 optimised latents :math:`X`.
-        lengthscale, mu: kernel hyperparameters used (Eq. 5).
-        jitter: extra diagonal added to K beyond ``mu`` to factorise it (0 when none was needed);
-            interpolation uses :math:`\\mu + \\text{jitter}` consistently.
-        loglik: (T,) float64 log-likelihood after each accepted iteration, starting with the
-            initial latents; non-decreasing.
-        d: number of columns of Z. data_scale: the factor ``S`` was divided by (1 = none).
-        method: optimiser. iterations: accepted iterations. rejected: rejected steps.
-        seconds: wall-clock time of the optimisation (informative only).
-        names: optional row labels (material names).
-    """
-
-    latents: torch.Tensor
-    lengthscale: float
-    mu: float
-    jitter: float
-    loglik: torch.Tensor
-    d: int
-    data_scale: float = 1.0
-    method: str = "lbfgs"
-    iterations: int = 0
-    rejected: int = 0
-    seconds: float = 0.0
-    names: tuple[str, ...] = ()
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def q(self) -> int:
-        return self.latents.shape[1]
-
-    @property
-    def n(self) -> int:
-        return self.latents.shape[0]
-
-    @property
-    def final_loglik(self) -> float:
-        return float(self.loglik[-1])
-
-    @property
-    def mu_effective(self) -> float:
-        """:math:`\\mu` plus the jitter: the diagonal shift of the K that interpolation inverts."""
-        return self.mu + self.jitter
-
-    def save(self, path: str | Path) -> Path:
-        """Write atomically as a versioned, checksummed array file (no pickle)."""
-        meta = {
-            "lengthscale": self.lengthscale, "mu": self.mu, "jitter": self.jitter, "d": self.d,
-            "data_scale": self.data_scale, "method": self.method, "iterations": self.iterations,
-            "rejected": self.rejected, "seconds": self.seconds, "names": list(self.names), "meta": self.meta,
-        }  # fmt: skip
-        arrays = {"latents": self.latents.numpy(), "loglik": self.loglik.numpy()}
-        return save_arrays(path, arrays, kind=FIT_KIND, meta=meta)
-
-    @classmethod
-    def load(cls, path: str | Path) -> GPLVMFit:
-        """Read a file written by :meth:`save` (kind, version and checksum verified)."""
-        arrays, m = load_arrays(path, kind=FIT_KIND)
-        try:
-            x = torch.from_numpy(np.asarray(arrays["latents"], dtype=np.float64))
-            ll = torch.from_numpy(np.asarray(arrays["loglik"], dtype=np.float64))
-            if x.ndim != 2 or not bool(torch.isfinite(x).all()):
-                raise ValueError("latents must be a finite (N, Q) array")
-            return cls(
-                x, float(m["lengthscale"]), float(m["mu"]), float(m["jitter"]), ll, int(m["d"]),
-                float(m["data_scale"]), str(m["method"]), int(m["iterations"]), int(m["rejected"]),
-                float(m["seconds"]), tuple(m.get("names", ())), dict(m.get("meta", {})),
-            )  # fmt: skip
-        except (KeyError, ValueError, TypeError) as exc:
-            raise FileFormatError(f"{path}: not a valid GPLVM fit ({exc})") from exc
 
 
 # -- optimisers ----------------------------------------------------------------------------------

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import torch
 
 from ..errors import ShapeError, ValueRangeError
+from ..frame import Frame
 from .data import MERLGrid, to_table
 
 
@@ -256,18 +257,18 @@ def rows_brdf(z: torch.Tensor, grid: MERLGrid):
 
 # -- shading ---------------------------------------------------------------------------------------------
 def _frames(normals: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rotation R (P, 3, 3) local->world (columns t, b, n; view at azimuth 0) and cos(theta_o) (P,)."""
+    """Rotation R (P, 3, 3) local->world (columns t, b, n; view at azimuth 0) and cos(theta_o) (P,).
+
+    The tangent is the view's component in the tangent plane (:meth:`Frame.from_normal`). A view
+    along the normal has none; then the x axis (the y axis for normals near it) is used, the
+    tangent the ZH tables were validated with: the truncated ZH expansion is not exactly zonal,
+    so this choice, arbitrary in principle, changes the shading at the percent level."""
     n = torch.nn.functional.normalize(normals.double(), dim=-1)
     v = torch.nn.functional.normalize(views.double(), dim=-1)
     cos_o = (n * v).sum(-1)
-    t = v - cos_o[:, None] * n
-    tn = t.norm(dim=-1, keepdim=True)
-    # view along the normal: any tangent will do (isotropy)
-    alt = torch.where(n[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=n.dtype), torch.tensor([0, 1.0, 0]))
-    alt = alt - (alt * n).sum(-1, keepdim=True) * n
-    t = torch.where(tn > 1e-9, t / tn.clamp_min(1e-300), torch.nn.functional.normalize(alt, dim=-1))
-    b = torch.cross(n, t, dim=-1)
-    return torch.stack((t, b, n), -1), cos_o
+    along = (v - cos_o[:, None] * n).norm(dim=-1, keepdim=True) <= math.sqrt(torch.finfo(n.dtype).eps)
+    axis = torch.where(n[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=n.dtype), torch.tensor([0, 1.0, 0]))
+    return Frame.from_normal(n, torch.where(along, axis, v)).matrix().transpose(-1, -2), cos_o
 
 
 def zh_shade(

@@ -1,5 +1,25 @@
-"""Modules that turn precomputed records plus coefficients into images."""
+"""Modules that turn precomputed records plus coefficients into images.
 
-from .record import BasisImage, BasisImageRenderer, float16_error
+- :class:`BasisImageRenderer`: any :class:`~torch_brdf.records.BasisImage` (first-order
+  multibounce term, inverse-design transfer functions, the manifold's per-material images);
+- :class:`PolynomialRenderer`: the multibounce polynomial tensors (Ben-Artzi et al. 2008);
+- :class:`TripleProductRenderer`: all-frequency relighting from per-vertex visibility (Inger et al.);
+- :mod:`.manifold`: images of interpolated materials by blending per-material renders (Soler et al.).
+"""
 
-__all__ = ["BasisImage", "BasisImageRenderer", "float16_error"]
+from ..records.basis_image import BasisImage, float16_error
+from .manifold import blend, gi_blend_error, render_rows
+from .polynomial import PolynomialRenderer
+from .record import BasisImageRenderer
+from .triple import TripleProductRenderer
+
+__all__ = [
+    "BasisImage",
+    "BasisImageRenderer",
+    "PolynomialRenderer",
+    "TripleProductRenderer",
+    "blend",
+    "float16_error",
+    "gi_blend_error",
+    "render_rows",
+]

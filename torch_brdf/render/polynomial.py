@@ -35,10 +35,10 @@ from torch import nn
 
 from .._checks import as_float_tensor, check_finite
 from ..brdf import BRDF, Lambert, create
-from ..brdf.band_albedo import band_albedos
-from ..brdf.bands import Factored1D, FresnelFactored1D, coarsen_coefficients, project
+from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
-from ..transport.polynomial import ObjectBasis, PolynomialTensors
+from ..metrics import relative_rmse as relative_rmse  # re-exported; defined in torch_brdf.metrics
+from ..records.polynomial import ObjectBasis, PolynomialTensors
 
 
 def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None) -> torch.Tensor:
@@ -61,7 +61,7 @@ def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None
 
 
 class PolynomialRenderer(nn.Module):
-    """Renders :class:`~torch_brdf.transport.polynomial.PolynomialTensors` for edited BRDFs.
+    """Renders :class:`~torch_brdf.records.polynomial.PolynomialTensors` for edited BRDFs.
 
     Args:
         tensors: the precomputed tensors.
@@ -81,7 +81,6 @@ class PolynomialRenderer(nn.Module):
     ):
         super().__init__()
         self.tensors = tensors
-        self.dtype = dtype
         self.height, self.width = tensors.height, tensors.width
         nb = tensors.series.bounces
         self.max_bounces = nb if max_bounces is None else int(max_bounces)
@@ -113,6 +112,30 @@ class PolynomialRenderer(nn.Module):
         unknown = sorted(set(materials) - set(tensors.object_names))
         if unknown:
             raise SceneError(f"materials for unknown objects: {unknown}")
+
+    # -- module state -----------------------------------------------------------------------
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the tensors and coefficients (follows ``.to(dtype)``)."""
+        return self.emission.dtype
+
+    def _apply(self, fn, recurse=True):
+        """``.to(dtype/device)``, ``.double()``, ...: the buffers, and also the coefficients, weight
+        maps, entry coordinates and frozen tensors held outside them (autograd graphs are kept)."""
+        super()._apply(fn, recurse)
+
+        def conv(t):
+            return None if t is None else fn(t)
+
+        self.c = [conv(t) for t in self.c]
+        self.c_hat = [conv(t) for t in self.c_hat]
+        self.d = [fn(t) for t in self.d]
+        self.weight_maps = {k: fn(v) for k, v in self.weight_maps.items()}
+        self._map_means = {k: fn(v) for k, v in self._map_means.items()}
+        self._coords = [tuple(fn(x) for x in c) for c in self._coords]
+        if self._frozen is not None:
+            self._frozen = {k: fn(v) if isinstance(v, torch.Tensor) else v for k, v in self._frozen.items()}
+        return self
 
     # -- materials --------------------------------------------------------------------------
     def _basis(self, obj) -> tuple[int, ObjectBasis]:
@@ -381,20 +404,6 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is None:
             return 0
         return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
-
-
-def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    r"""Relative RMSE :math:`\sqrt{\sum (I - R)^2 / \sum R^2}` over pixels (and channels) where
-    ``mask`` (H, W) holds (default all). Images (H, W, C)."""
-    if image.shape != reference.shape:
-        raise ShapeError(f"image {tuple(image.shape)} and reference {tuple(reference.shape)} differ in shape")
-    a, b = image.detach().double(), reference.detach().double()
-    if mask is not None:
-        a, b = a[mask], b[mask]
-    den = float((b * b).sum())
-    if not den > 0:
-        raise ValueRangeError("the reference is zero where compared; relative RMSE is undefined")
-    return math.sqrt(float(((a - b) ** 2).sum()) / den)
 
 
 def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:

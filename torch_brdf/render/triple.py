@@ -48,6 +48,7 @@ an image by interpolating vertex colours at the camera's primary hits. Baselines
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -59,15 +60,17 @@ from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
+from ..metrics import psnr
+from ..records.visibility import VertexVisibility
+from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
+from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
 from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
-from ..transport.visibility import VertexVisibility
-from ..transport.visibility_codec import BlockVisibility
 
 __all__ = [
     "METHODS",
@@ -392,34 +395,29 @@ class FrameStats:
 
 @dataclass(frozen=True)
 class View:
-    """What a camera sees, cached across frames until the camera moves.
+    """The renderer's state for one camera, cached across frames until the camera moves.
 
     Attributes:
-        camera: the camera.
-        eye: (3,) float64 camera position.
-        vertex_ids: (P,) int64 vertices of the triangles hit by primary rays (culling).
-        pixel: (K,) int64 flat pixels with a hit.
-        corners: (K, 3) int64 rows into ``vertex_ids`` of the hit triangle's corners.
-        weights: (K, 3) barycentric weights.
-        background: (H*W, C) float32 environment radiance of the primary rays (misses).
-        blocks: the visibility of ``vertex_ids``.
+        gbuffer: what the camera sees (:func:`~torch_brdf.scene.gbuffer.trace_gbuffer`): the
+            vertices to shade (``gbuffer.vertex_ids``, culled to the triangles hit), the eye,
+            and per pixel the hit triangle's corners and barycentric weights.
+        background: (H*W, C) float32 environment radiance of the primary rays (0 where they hit).
+        blocks: the visibility of ``gbuffer.vertex_ids``.
     """
 
-    camera: Camera
-    eye: torch.Tensor
-    vertex_ids: torch.Tensor
-    pixel: torch.Tensor
-    corners: torch.Tensor
-    weights: torch.Tensor
+    gbuffer: GBuffer
     background: torch.Tensor
     blocks: BlockVisibility
 
     @property
+    def vertex_ids(self) -> torch.Tensor:
+        """(P,) int64 the vertices shaded (the G-buffer's)."""
+        return self.gbuffer.vertex_ids
+
+    @property
     def mask(self) -> torch.Tensor:
         """(H, W) bool: pixels that see the scene."""
-        m = torch.zeros(self.camera.height * self.camera.width, dtype=torch.bool)
-        m[self.pixel] = True
-        return m.view(self.camera.height, self.camera.width)
+        return self.gbuffer.mask
 
 
 class TripleProductRenderer(nn.Module):
@@ -455,8 +453,6 @@ class TripleProductRenderer(nn.Module):
         self.register_buffer("positions", v.positions.to(torch.float64))
         self.register_buffer("normals", v.normals.to(torch.float64))
         self.register_buffer("object_ids", v.object_ids)
-        self.register_buffer("object_offsets", v.offsets)
-        self.faces = [torch.as_tensor(o.mesh.faces, dtype=torch.int64) for o in scene.objects]
         env = envmap if envmap is not None else scene.environment
         if env is None:
             raise SceneError(f"scene {scene.name!r} has no environment map; pass envmap=")
@@ -466,8 +462,20 @@ class TripleProductRenderer(nn.Module):
     # -- state ----------------------------------------------------------------------------
     def set_lighting(self, envmap: EnvironmentMap) -> None:
         """New lighting (e.g. ``envmap.rotated(angle)``): recompute the block representations."""
-        self.envmap = envmap
+        # the map is the scene's (an input, float64 rotation): not a submodule, so that
+        # ``.to(dtype)`` on the renderer neither converts nor mutates it
+        self.__dict__["envmap"] = envmap
         self.lighting = block_lighting(envmap, self.geometry, self.lighting_samples, self.dtype)
+
+    def _apply(self, fn, recurse=True):
+        """``.to(dtype/device)``, ``.double()``, ...: the buffers and BRDFs, and the products'
+        dtype with the lighting and DCT bases recomputed in it (not rounded from the old dtype)."""
+        super()._apply(fn, recurse)
+        self.dtype = fn(torch.zeros((), dtype=self.dtype)).dtype
+        lighting = block_lighting(self.envmap, self.geometry, self.lighting_samples, self.dtype)
+        self.lighting = BlockLighting(*(fn(getattr(lighting, f.name)) for f in dataclasses.fields(lighting)))
+        self._bases = {l: fn(dct_basis(self.geometry.block, l, self.dtype)) for l in (2, 4)}
+        return self
 
     def set_material(self, obj: str | int, brdf: BRDF | dict | str) -> None:
         """Give object ``obj`` (name or id) a new BRDF (module, material dict or registry name)."""
@@ -478,50 +486,30 @@ class TripleProductRenderer(nn.Module):
 
     # -- views ----------------------------------------------------------------------------
     def view(self, camera: Camera | None = None) -> View:
-        """Cast the primary rays of ``camera`` (default: the scene's) and cull the vertices."""
+        """The G-buffer of ``camera`` (default: the scene's), culling the vertices to those of
+        the triangles hit, with their visibility and the environment behind the misses."""
         cam = camera if camera is not None else self.scene.camera
-        o, d = cam.generate_rays(dtype=torch.float32)
-        hits = self.scene.trace(o, d)
-        hit = hits.hit
-        pixel = hit.nonzero().squeeze(-1)
-        obj, prim = hits.object_id[pixel], hits.prim_id[pixel]
-        corners = torch.empty(len(pixel), 3, dtype=torch.int64)
-        for k, f in enumerate(self.faces):
-            sel = obj == k
-            corners[sel] = f[prim[sel]] + self.object_offsets[k]
-        vids, inverse = torch.unique(corners.reshape(-1), return_inverse=True)
-        uv = hits.barycentrics[pixel].to(torch.float64)
-        w = torch.stack((1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]), -1)
-        bg = self.envmap.eval_miss(d.to(torch.float64)).float()
-        bg[pixel] = 0
-        eye = torch.tensor(cam.origin, dtype=torch.float64)
-        return View(cam, eye, vids, pixel, inverse.view(-1, 3), w, bg, self.visibility.blocks.select(vids))
+        gb = trace_gbuffer(self.scene, cam)
+        _, d = cam.generate_rays(dtype=torch.float64)
+        bg = self.envmap.eval_miss(d).float()
+        bg[gb.pixels] = 0
+        return View(gb, bg, self.visibility.blocks.select(gb.vertex_ids))
 
     def all_vertices(self, eye) -> View:
         """A view of every vertex from the point ``eye`` (no image; for tests and baselines)."""
-        e = torch.as_tensor(eye, dtype=torch.float64).reshape(3)
-        vids = torch.arange(len(self.positions))
-        empty = torch.zeros(0, dtype=torch.int64)
-        return View(
-            self.scene.camera,
-            e,
-            vids,
-            empty,
-            empty.view(0, 3),
-            torch.zeros(0, 3, dtype=torch.float64),
-            torch.zeros(0, 3),
-            self.visibility.blocks,
-        )
+        cam = self.scene.camera
+        gb = GBuffer.of_vertices(torch.arange(len(self.positions)), eye, cam.height, cam.width)
+        return View(gb, torch.zeros(0, 3), self.visibility.blocks)
 
     def image(self, view: View, radiance: torch.Tensor, background: bool = True) -> torch.Tensor:
         """Interpolate per-vertex radiance (P, C) at the primary hits: (H, W, C) float32."""
         if radiance.shape[0] != len(view.vertex_ids):
             raise ShapeError(f"Expected radiance for {len(view.vertex_ids)} vertices; got {tuple(radiance.shape)}")
-        cam = view.camera
+        gb = view.gbuffer
         img = view.background.clone() if background else torch.zeros_like(view.background)
         rad = radiance.to(torch.float64)
-        img[view.pixel] = (rad[view.corners] * view.weights[..., None]).sum(1).float()
-        return img.view(cam.height, cam.width, -1)
+        img[gb.pixels] = (rad[gb.corners] * gb.weights[..., None]).sum(1).float()
+        return img.view(gb.height, gb.width, -1)
 
     def render(self, camera: Camera | None = None, method: str = "adaptive", **kwargs):
         """An image: ``(H, W, C)`` float32 and the frame statistics (adaptive only, else None).
@@ -546,7 +534,7 @@ class TripleProductRenderer(nn.Module):
         vid = view.vertex_ids
         pos = self.positions[vid].to(self.dtype)
         nrm = self.normals[vid].to(self.dtype)
-        wo = view.eye.to(self.dtype) - pos
+        wo = view.gbuffer.eye.to(self.dtype) - pos
         wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
         frames = Frame.from_normal(nrm)
         return nrm, frames, frames.to_local(wo), self.object_ids[vid]
@@ -748,26 +736,3 @@ def _entries(offsets: torch.Tensor, ids: torch.Tensor) -> tuple[torch.Tensor, to
     first = torch.cumsum(counts, 0) - counts
     ent = torch.repeat_interleave(start - first, counts) + torch.arange(int(counts.sum()))
     return row, ent
-
-
-# ---------------------------------------------------------------------------------- metrics
-def psnr(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None, peak: float | None = None):
-    r"""Peak signal-to-noise ratio in dB, :math:`10\log_{10}(\mathrm{peak}^2/\mathrm{MSE})`.
-
-    Args:
-        image, reference: (H, W, C) (or any equal shapes) linear images.
-        mask: optional (H, W) bool; only those pixels count.
-        peak: default the reference's maximum over the counted pixels.
-    Returns:
-        float (``inf`` for identical images).
-    """
-    if image.shape != reference.shape:
-        raise ShapeError(f"image {tuple(image.shape)} and reference {tuple(reference.shape)} differ")
-    a, b = image.to(torch.float64), reference.to(torch.float64)
-    if mask is not None:
-        a, b = a[mask], b[mask]
-    mse = float(((a - b) ** 2).mean())
-    p = float(b.max()) if peak is None else float(peak)
-    if mse == 0:
-        return float("inf")
-    return 10 * math.log10(p * p / mse)

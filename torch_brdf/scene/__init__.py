@@ -1,4 +1,4 @@
-"""Scenes: meshes, embree ray tracing, camera, lights and built-in scenes."""
+"""Scenes: meshes, embree ray tracing, camera, what the camera sees (G-buffer), lights and built-in scenes."""
 
 from .builtin import (
     BUILTIN_SCENES,
@@ -12,7 +12,8 @@ from .builtin import (
 )
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
-from .lights import AreaLight, DirectionalLight, Light, LightSample
+from .gbuffer import GBuffer, trace_gbuffer
+from .lights import AreaLight, DirectionalLight, Light, LightSample, LightSamples, PointLights
 from .mesh import DegenerateFacesWarning, load_mesh, mesh_from_arrays
 from .raytrace import Hits, RayTracer
 from .scene import Scene, SceneObject
@@ -24,10 +25,13 @@ __all__ = [
     "DegenerateFacesWarning",
     "DirectionalLight",
     "EnvironmentMap",
+    "GBuffer",
     "Hits",
     "Light",
     "LightSample",
+    "LightSamples",
     "PointLightSet",
+    "PointLights",
     "RayTracer",
     "Scene",
     "SceneObject",
@@ -40,4 +44,5 @@ __all__ = [
     "mesh_from_arrays",
     "ring",
     "teatray",
+    "trace_gbuffer",
 ]

@@ -28,7 +28,6 @@ from __future__ import annotations
 import heapq
 import math
 import os
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -43,39 +42,9 @@ from ..sphere.latlong import (
     texel_centers,
     texel_solid_angles,
 )
-from .lights import Light, LightSample, luminance
+from .lights import Light, LightSample, PointLightSet, luminance
 
 __all__ = ["EnvironmentMap", "PointLightSet"]
-
-
-@dataclass(frozen=True)
-class PointLightSet:
-    r"""K distant point lights standing in for a map (see :meth:`EnvironmentMap.point_lights`).
-
-    Attributes:
-        directions: (K, 3) unit directions towards the lights (world space).
-        radiance: (K, 3) mean RGB radiance of each light's region of the map.
-        solid_angle: (K,) solid angle of each region (sums to :math:`4\pi`).
-    """
-
-    directions: torch.Tensor
-    radiance: torch.Tensor
-    solid_angle: torch.Tensor
-
-    @property
-    def intensity(self) -> torch.Tensor:
-        """(K, 3) radiance x solid angle: the region's power (irradiance at normal incidence)."""
-        return self.radiance * self.solid_angle[:, None]
-
-    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
-        r"""Irradiance :math:`\sum_k I_k \max(0, n\cdot\omega_k)`: unit normals (N, 3) -> (N, 3)."""
-        n = check_vectors(normals, "normals")
-        cos = (n @ self.directions.to(n).T).clamp_min(0)
-        return cos @ self.intensity.to(n)
-
-    def to(self, *args, **kwargs) -> PointLightSet:
-        """A copy with every tensor moved/cast by ``Tensor.to(*args, **kwargs)``."""
-        return PointLightSet(*(t.to(*args, **kwargs) for t in (self.directions, self.radiance, self.solid_angle)))
 
 
 def _rotation_y(angle: float) -> torch.Tensor:

@@ -1,4 +1,7 @@
-r"""Lights: the common interface, a directional light and emissive-triangle area lights.
+r"""Lights: the common interface, a directional light, emissive-triangle area lights, and the
+one home of distant light sets (:class:`PointLights` for next-event estimation,
+:class:`PointLightSet` from an environment map's median cut, :class:`LightSamples`
+importance-sampled from it).
 
 Every light answers two questions for a batch of shading points:
 
@@ -17,14 +20,15 @@ interface.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
-from .._checks import check_rgb, check_vectors
-from ..errors import MeshError, ValueRangeError
+from .._checks import check_finite, check_rgb, check_vectors
+from ..errors import MeshError, SceneError, ShapeError, ValueRangeError
 
 
 @dataclass(frozen=True)
@@ -109,6 +113,126 @@ class DirectionalLight(Light):
 
     def power_estimate(self) -> float:
         return float(luminance(self.irradiance.double()))
+
+
+class PointLights(Light):
+    """K distant point lights, e.g. an environment map's median-cut set
+    (:meth:`~torch_brdf.scene.envmap.EnvironmentMap.point_lights`); next-event estimation picks
+    one per point in proportion to its luminance (``weight`` = intensity / selection probability).
+
+    Args:
+        directions: (K, 3) unit directions towards the lights.
+        intensity: (K, 3) RGB irradiance each light gives a surface facing it.
+    """
+
+    is_delta = True
+    is_infinite = True
+
+    def __init__(self, directions: torch.Tensor, intensity: torch.Tensor):
+        super().__init__()
+        self.register_buffer("directions", directions.float())
+        self.register_buffer("intensity", intensity.float())
+        p = luminance(self.intensity).clamp_min(0)
+        if not float(p.sum()) > 0:
+            p = torch.ones_like(p)
+        self.register_buffer("prob", p / p.sum())
+
+    def sample(self, points, generator=None):
+        n = points.shape[0]
+        k = torch.multinomial(self.prob, n, replacement=True, generator=generator) if n else torch.zeros(0).long()
+        w = self.intensity[k] / self.prob[k, None]
+        d = self.directions[k].to(points.dtype)
+        inf = torch.full((n,), math.inf, dtype=points.dtype)
+        return LightSample(d, inf, w.to(points.dtype), inf)
+
+    def power_estimate(self) -> float:
+        return float(luminance(self.intensity).sum())
+
+
+@dataclass(frozen=True)
+class PointLightSet:
+    r"""K distant point lights standing in for a map (see :meth:`EnvironmentMap.point_lights`).
+
+    Attributes:
+        directions: (K, 3) unit directions towards the lights (world space).
+        radiance: (K, 3) mean RGB radiance of each light's region of the map.
+        solid_angle: (K,) solid angle of each region (sums to :math:`4\pi`).
+    """
+
+    directions: torch.Tensor
+    radiance: torch.Tensor
+    solid_angle: torch.Tensor
+
+    @property
+    def intensity(self) -> torch.Tensor:
+        """(K, 3) radiance x solid angle: the region's power (irradiance at normal incidence)."""
+        return self.radiance * self.solid_angle[:, None]
+
+    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+        r"""Irradiance :math:`\sum_k I_k \max(0, n\cdot\omega_k)`: unit normals (N, 3) -> (N, 3)."""
+        n = check_vectors(normals, "normals")
+        cos = (n @ self.directions.to(n).T).clamp_min(0)
+        return cos @ self.intensity.to(n)
+
+    def as_light(self) -> PointLights:
+        """The set as a :class:`Light` for next-event estimation."""
+        return PointLights(self.directions, self.intensity)
+
+    def to(self, *args, **kwargs) -> PointLightSet:
+        """A copy with every tensor moved/cast by ``Tensor.to(*args, **kwargs)``."""
+        return PointLightSet(*(t.to(*args, **kwargs) for t in (self.directions, self.radiance, self.solid_angle)))
+
+
+@dataclass(frozen=True)
+class LightSamples:
+    """S distant light directions shared by every pixel.
+
+    Attributes:
+        directions: (S, 3) unit world directions towards the light, float64.
+        weight: (S, 3) :math:`L(\\omega_s) / (S\\,\\mathrm{pdf}(\\omega_s))`, float64 (RGB).
+    """
+
+    directions: torch.Tensor
+    weight: torch.Tensor
+
+    def __post_init__(self):
+        d, w = self.directions, self.weight
+        if d.ndim != 2 or d.shape[-1] != 3 or w.shape != (d.shape[0], 3) or d.shape[0] < 1:
+            raise ShapeError(f"Expected directions (S, 3) and weight (S, 3); got {tuple(d.shape)}, {tuple(w.shape)}")
+        check_finite(d, "light directions")
+        check_finite(w, "light weights")
+
+    @property
+    def count(self) -> int:
+        return self.directions.shape[0]
+
+    def as_light(self) -> PointLights:
+        """The samples as a :class:`Light` for next-event estimation (``weight`` as intensities)."""
+        return PointLights(self.directions, self.weight)
+
+    @classmethod
+    def from_environment(
+        cls,
+        env: Light,
+        count: int = 1024,
+        generator: torch.Generator | None = None,
+    ) -> LightSamples:
+        """Importance-sample ``count`` directions from ``env`` (luminance x solid angle).
+
+        Args:
+            env: the :class:`~torch_brdf.scene.envmap.EnvironmentMap` (rotated maps sample their
+                rotated radiance).
+            count: S >= 1 (a power of two if visibility cuts will be used).
+            generator: random source (seed it for reproducible records).
+        """
+        if not callable(getattr(env, "sample_directions", None)):  # an EnvironmentMap (it imports this module)
+            raise SceneError(f"expected an EnvironmentMap; got {type(env).__name__}")
+        if int(count) < 1:
+            raise ValueRangeError(f"light sample count must be >= 1; got {count}")
+        d, pdf = env.sample_directions(int(count), generator=generator, dtype=torch.float64)
+        L = env.eval_miss(d)
+        w = torch.where(pdf[:, None] > 0, L / (pdf[:, None].clamp_min(1e-300) * int(count)), torch.zeros_like(L))
+        return cls(d, w)
 
 
 class AreaLight(Light):

@@ -1,6 +1,7 @@
 """Light transport: the reference path tracer, the precomputations (multibounce tensors) and the
 differential block visibility of all-frequency relighting."""
 
+from ..records.visibility_codec import BlockVisibility
 from .pathtrace import path_trace, reference_path_trace
 from .polynomial import (
     Mixture,
@@ -13,7 +14,6 @@ from .polynomial import (
     precompute_polynomial,
 )
 from .visibility import SceneVertices, VertexVisibility, precompute_visibility, scene_vertices
-from .visibility_codec import BlockVisibility
 
 __all__ = [
     "BlockVisibility",

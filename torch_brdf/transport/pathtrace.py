@@ -29,7 +29,7 @@ from .._checks import check_count, check_seed
 from ..brdf import BRDF, create
 from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
-from ..io.arrays import load_arrays, save_arrays
+from ..records.cache import Checkpoint
 from ..scene.scene import Scene
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
@@ -107,8 +107,9 @@ def sample_light(scene: Scene, light, pos, ng, ns, gen):
     """Next-event estimation towards ``light`` from every vertex.
 
     Returns:
-        (ls, cos, candidates, visible): the :class:`LightSample`, the cosine at the shading
-        normal (n,), how many shadow rays were cast, and the rows (long) that see the light.
+        (ls, cos, candidates, visible): the :class:`~torch_brdf.scene.lights.LightSample`, the
+        cosine at the shading normal (n,), how many shadow rays were cast, and the rows (long)
+        that see the light.
     """
     ls = light.sample(pos, gen)
     cos = (ls.direction * ns).sum(-1)
@@ -179,7 +180,8 @@ def path_trace(
         seed: the render is a deterministic function of (scene, spp, max_bounces, seed).
         chunk: rays traced together (memory vs. overhead).
         checkpoint: file to save progress to every ``checkpoint_every`` passes and to
-            resume from when it exists with matching settings (npz, versioned, checksummed).
+            resume from when it exists with matching settings (a
+            :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic).
         checkpoint_every: passes between checkpoint saves.
         progress: show a tqdm bar over sample passes.
     Raises:
@@ -194,11 +196,11 @@ def path_trace(
     settings = {"scene": scene.name, "width": w, "height": h, "spp": spp, "max_bounces": max_bounces, "seed": seed}
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
-    if checkpoint is not None and Path(checkpoint).exists():
-        arrays, meta = load_arrays(checkpoint, kind=CHECKPOINT_KIND)
-        if meta.get("settings") == settings:
-            total = torch.from_numpy(arrays["sum"])
-            start = int(meta["passes_done"])
+    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, settings)
+    saved = None if ckpt is None else ckpt.load()
+    if saved is not None:
+        total = torch.from_numpy(saved[0]["sum"])
+        start = int(saved[1]["passes_done"])
     bar = tqdm(range(start, spp), total=spp, initial=start, desc=f"path trace {scene.name}", disable=not progress)
     for s in bar:
         gen = seeded_generator(seed, s)
@@ -207,13 +209,8 @@ def path_trace(
             sl = slice(a, min(a + chunk, h * w))
             total[sl] += _radiance(scene, o[sl], d[sl], brdfs, max_bounces, gen).double()
         done = s + 1
-        if checkpoint is not None and (done % checkpoint_every == 0 or done == spp):
-            save_arrays(
-                checkpoint,
-                {"sum": total.numpy()},
-                kind=CHECKPOINT_KIND,
-                meta={"settings": settings, "passes_done": done},
-            )
+        if ckpt is not None and (done % checkpoint_every == 0 or done == spp):
+            ckpt.save({"sum": total.numpy()}, meta={"settings": settings, "passes_done": done})
     return (total / spp).to(torch.float32).reshape(h, w, 3)
 
 

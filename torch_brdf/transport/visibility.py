@@ -2,7 +2,7 @@ r"""Per-vertex visibility cubemaps by ray casting (Inger et al., Sec. 4.2 and 5)
 
 Every vertex of the scene gets a ``6 x R x R`` cubemap in the one world orientation of
 :class:`~torch_brdf.sphere.cubemap.CubemapBlocks`, split into ``16 x 16`` blocks and stored
-differentially (:class:`~torch_brdf.transport.visibility_codec.BlockVisibility`): binary maps
+differentially (:class:`~torch_brdf.records.visibility_codec.BlockVisibility`): binary maps
 as the indices where visibility flips, anti-aliased maps from ``k x k`` supersampled binary
 rays with quantised derivatives.
 
@@ -24,154 +24,26 @@ chunking or on the number of ray-casting processes.
 
 from __future__ import annotations
 
-import hashlib
-import json
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
-from ..errors import FileFormatError, SceneError, ValueRangeError
-from ..io.arrays import load_arrays, save_arrays
+from ..errors import ValueRangeError
+from ..records.cache import TileCache
+from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
+from ..records.visibility_codec import BlockVisibility
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
-from .visibility_codec import BlockVisibility
 
 __all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices"]
 
-KIND = "vertex-visibility"
 CHUNK_KIND = "vertex-visibility-chunk"
 BITS = (0, 2, 6, 8)
 #: a texel is above the horizon when n . w > HORIZON_EPS (texels exactly on it are dropped,
 #: whatever the summation order of the dot product)
 HORIZON_EPS = 1e-9
-
-
-@dataclass(frozen=True)
-class SceneVertices:
-    """The shading vertices of a scene: all objects' vertices, in object order.
-
-    Attributes:
-        positions: (P, 3) float64.
-        normals: (P, 3) float64 unit vertex normals.
-        object_ids: (P,) int64.
-        offsets: (O + 1,) int64; object ``o`` owns rows ``offsets[o]:offsets[o+1]``.
-    """
-
-    positions: torch.Tensor
-    normals: torch.Tensor
-    object_ids: torch.Tensor
-    offsets: torch.Tensor
-
-    def __len__(self) -> int:
-        return self.positions.shape[0]
-
-    @property
-    def fingerprint(self) -> str:
-        """SHA-256 of the float32 positions and normals (ties a record to its scene)."""
-        h = hashlib.sha256()
-        for a in (self.positions, self.normals):
-            h.update(a.to(torch.float32).numpy().tobytes())
-        return h.hexdigest()
-
-
-def scene_vertices(scene: Scene) -> SceneVertices:
-    """Collect the scene's vertices and unit vertex normals (trimesh's area-weighted ones)."""
-    pos, nrm, oid, off = [], [], [], [0]
-    for o, obj in enumerate(scene.objects):
-        v = torch.tensor(np.array(obj.mesh.vertices), dtype=torch.float64)
-        n = torch.tensor(np.array(obj.mesh.vertex_normals), dtype=torch.float64)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        pos.append(v)
-        nrm.append(n)
-        oid.append(torch.full((len(v),), o, dtype=torch.int64))
-        off.append(off[-1] + len(v))
-    if off[-1] == 0:
-        raise SceneError(f"scene {scene.name!r} has no vertices")
-    return SceneVertices(torch.cat(pos), torch.cat(nrm), torch.cat(oid), torch.tensor(off, dtype=torch.int64))
-
-
-@dataclass(frozen=True)
-class VertexVisibility:
-    """Differential visibility of every scene vertex.
-
-    Attributes:
-        geometry: the cubemap and block layout.
-        vertices: the vertices the maps belong to.
-        blocks: (P vertices x NB blocks) differential visibility.
-        supersample: k, rays per texel side (1 = binary maps).
-        bits: derivative quantisation (0 = binary).
-    """
-
-    geometry: CubemapBlocks
-    vertices: SceneVertices
-    blocks: BlockVisibility
-    supersample: int = 1
-    bits: int = 0
-
-    @property
-    def bytes_per_vertex(self) -> float:
-        """Mean size of the varint-serialised maps per vertex (what :meth:`save` stores)."""
-        return float(self.blocks.nbytes_per_vertex)
-
-    def settings(self) -> dict:
-        return {
-            "resolution": self.geometry.resolution,
-            "block": self.geometry.block,
-            "supersample": self.supersample,
-            "bits": self.bits,
-            "vertices": len(self.vertices),
-            "fingerprint": self.vertices.fingerprint,
-        }
-
-    def check_scene(self, scene: Scene) -> None:
-        """Raise SceneError unless the record was computed for this scene's vertices."""
-        fp = scene_vertices(scene).fingerprint
-        if fp != self.vertices.fingerprint:
-            raise SceneError(
-                f"visibility record does not belong to scene {scene.name!r} (vertex fingerprint differs); "
-                "recompute it with precompute_visibility"
-            )
-
-    def save(self, path: str | Path) -> Path:
-        """Write the record (varint stream + vertices), versioned, checksummed and atomic."""
-        stream, voff = self.blocks.to_bytes()
-        v = self.vertices
-        arrays = {
-            "stream": np.asarray(stream, dtype=np.uint8),
-            "vertex_offsets": np.asarray(voff, dtype=np.int64),
-            "positions": v.positions.numpy(),
-            "normals": v.normals.numpy(),
-            "object_ids": v.object_ids.numpy(),
-            "object_offsets": v.offsets.numpy(),
-        }
-        return save_arrays(path, arrays, KIND, meta=self.settings())
-
-    @classmethod
-    def load(cls, path: str | Path) -> VertexVisibility:
-        """Read a record written by :meth:`save` (FileFormatError if corrupt or inconsistent)."""
-        arrays, meta = load_arrays(path, KIND)
-        try:
-            geom = CubemapBlocks(int(meta["resolution"]), int(meta["block"]))
-            verts = SceneVertices(
-                torch.from_numpy(arrays["positions"]),
-                torch.from_numpy(arrays["normals"]),
-                torch.from_numpy(arrays["object_ids"]),
-                torch.from_numpy(arrays["object_offsets"]),
-            )
-            blocks = BlockVisibility.from_bytes(
-                arrays["stream"], arrays["vertex_offsets"], geom.block_count, int(meta["bits"])
-            )
-        except (KeyError, ValueRangeError) as exc:
-            raise FileFormatError(f"{path}: incomplete visibility record ({exc})") from exc
-        if len(verts) != int(meta["vertices"]) or blocks.counts.shape[0] != len(verts):
-            raise FileFormatError(f"{path}: {blocks.counts.shape[0]} maps for {len(verts)} vertices")
-        if verts.fingerprint != meta["fingerprint"]:
-            raise FileFormatError(f"{path}: vertex arrays do not match the stored fingerprint")
-        return cls(geom, verts, blocks, int(meta["supersample"]), int(meta["bits"]))
 
 
 def _chunk_visibility(
@@ -197,10 +69,6 @@ def _chunk_visibility(
     return BlockVisibility.encode(V, bits=bits)
 
 
-def _settings_key(settings: dict) -> str:
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def precompute_visibility(
     scene: Scene,
     resolution: int = 64,
@@ -221,7 +89,8 @@ def precompute_visibility(
         supersample: k; ``k x k`` rays per texel. ``k > 1`` needs ``bits`` in {2, 6, 8}.
         bits: 0 for binary maps, else the derivative quantisation of graded maps.
         chunk: vertices per work unit (and checkpoint file).
-        checkpoint: folder for finished chunks; a run with the same settings resumes from it.
+        checkpoint: folder for finished chunks (a :class:`~torch_brdf.records.cache.TileCache`); a
+            run with the same settings resumes from it.
         progress: tqdm bar over chunks.
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
     Returns:
@@ -257,19 +126,16 @@ def precompute_visibility(
         "fingerprint": verts.fingerprint,
         "chunk": chunk,
     }
-    key = _settings_key(settings)
-    ckdir = None if checkpoint is None else Path(checkpoint)
-    if ckdir is not None:
-        ckdir.mkdir(parents=True, exist_ok=True)
+    cache = TileCache(checkpoint, CHUNK_KIND, settings, prefix="vis")
     dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
     starts = list(range(0, len(verts), chunk))
     parts: list[BlockVisibility | None] = [None] * len(starts)
     done = 0
     bar = tqdm(starts, desc=f"visibility {scene.name} ({resolution}^2x6)", unit="chunk", disable=not progress)
     for c, s in enumerate(bar):
-        path = None if ckdir is None else ckdir / f"vis_{key}_{c:06d}.npz"
-        if path is not None and path.is_file():
-            arrays, _meta = load_arrays(path, CHUNK_KIND)
+        finished = cache.load(c)
+        if finished is not None:
+            arrays = finished[0]
             parts[c] = BlockVisibility.from_bytes(arrays["stream"], arrays["vertex_offsets"], geom.block_count, bits)
             continue
         if max_chunks is not None and done >= max_chunks:
@@ -277,9 +143,8 @@ def precompute_visibility(
             return None
         e = min(s + chunk, len(verts))
         part = _chunk_visibility(scene, geom, verts.positions[s:e], verts.normals[s:e], dirs, bits)
-        if path is not None:
-            stream, voff = part.to_bytes()
-            save_arrays(path, {"stream": stream, "vertex_offsets": voff}, CHUNK_KIND, meta={"chunk": c, "key": key})
+        stream, voff = part.to_bytes()
+        cache.save(c, {"stream": stream, "vertex_offsets": voff}, meta={"chunk": c})
         parts[c] = part
         done += 1
     return VertexVisibility(geom, verts, BlockVisibility.concat(parts), supersample, bits)

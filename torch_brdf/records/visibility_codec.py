@@ -47,14 +47,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
-from ..io.arrays import load_arrays, save_arrays
+from .codec import Record
 
 VISIBILITY_KIND = "block-visibility"
 #: texels per block (16 x 16); indices into a block's visibility vector fit in a uint8
@@ -262,7 +261,7 @@ def _raise_bad_visibility(x: np.ndarray, bad: np.ndarray, first_pair: int, nb: i
 # the record
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)  # identity equality: elementwise == of tensors has no truth value
-class BlockVisibility:
+class BlockVisibility(Record):
     r"""Sparse differential visibility of ``P`` vertices x ``NB`` blocks of 256 texels.
 
     Build with :meth:`encode` (from dense maps), :meth:`from_bytes`, :meth:`load` or
@@ -295,6 +294,9 @@ class BlockVisibility:
     delta: torch.Tensor | None
     states: torch.Tensor
     meta: dict[str, Any] = field(default_factory=dict)
+
+    kind = VISIBILITY_KIND
+    version = 1
 
     def __post_init__(self):
         nb = self.block_count
@@ -635,16 +637,9 @@ class BlockVisibility:
         return cls._from_entries(nb, bits, counts, index, delta, meta)
 
     # -- files --------------------------------------------------------------------------
-    def save(self, path: str | Path, meta: dict[str, Any] | None = None) -> Path:
-        """Write the varint form atomically (versioned, checksummed, no pickle).
-
-        Args:
-            path: destination ``.npz``.
-            meta: JSON-serialisable metadata, merged over the record's ``meta``.
-
-        Returns:
-            The path written.
-        """
+    def to_arrays(self, meta: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The varint form for :meth:`save` (``save(path, meta=...)``: atomic, versioned,
+        checksummed, no pickle); ``meta`` (JSON-serialisable) is merged over the record's ``meta``."""
         stream, vertex_offsets = self.to_bytes()
         header = {
             "block_count": self.block_count,
@@ -653,36 +648,30 @@ class BlockVisibility:
             "entries": self.num_entries,
             "meta": {**self.meta, **(meta or {})},
         }
-        arrays = {"stream": stream, "vertex_offsets": vertex_offsets}
-        return save_arrays(path, arrays, kind=VISIBILITY_KIND, meta=header)
+        return {"stream": stream, "vertex_offsets": vertex_offsets}, header
 
     @classmethod
-    def load(cls, path: str | Path, vertices=None) -> BlockVisibility:
-        """Read a file written by :meth:`save` and rebuild the in-memory CSR.
+    def from_arrays(cls, arrays, meta, vertices=None) -> BlockVisibility:
+        """Rebuild the in-memory CSR (``load(path, vertices=...)``).
 
         Args:
-            path: the ``.npz`` file.
             vertices: ``(K,)`` ids of the vertices to keep (default all).
 
         Raises:
-            FileFormatError: missing, wrong kind, corrupt, or inconsistent with its header.
+            FileFormatError: incomplete, corrupt, or inconsistent with its header.
         """
-        arrays, header = load_arrays(path, kind=VISIBILITY_KIND)
         try:
             stream, vertex_offsets = arrays["stream"], arrays["vertex_offsets"]
-            nb, bits, n_vertices = int(header["block_count"]), int(header["bits"]), int(header["vertices"])
+            nb, bits, n_vertices = int(meta["block_count"]), int(meta["bits"]), int(meta["vertices"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise FileFormatError(f"{path}: incomplete block-visibility file ({exc!r})") from exc
+            raise FileFormatError(f"incomplete block-visibility file ({exc!r})") from exc
         if vertex_offsets.shape != (n_vertices + 1,):
             raise FileFormatError(
-                f"{path}: header says {n_vertices} vertices but there are {vertex_offsets.size} vertex offsets"
+                f"header says {n_vertices} vertices but there are {vertex_offsets.size} vertex offsets"
             )
-        try:
-            rec = cls.from_bytes(stream, vertex_offsets, nb, bits, vertices, header.get("meta", {}))
-        except FileFormatError as exc:
-            raise FileFormatError(f"{path}: {exc}") from exc
-        if vertices is None and "entries" in header and rec.num_entries != int(header["entries"]):
-            raise FileFormatError(f"{path}: {rec.num_entries} entries decoded, header says {header['entries']}")
+        rec = cls.from_bytes(stream, vertex_offsets, nb, bits, vertices, meta.get("meta", {}))
+        if vertices is None and "entries" in meta and rec.num_entries != int(meta["entries"]):
+            raise FileFormatError(f"{rec.num_entries} entries decoded, header says {meta['entries']}")
         return rec
 
 

@@ -1,20 +1,13 @@
-r"""Rendering interpolated materials by blending (seed Sec. 3.3).
+r"""The BRDF manifold's material records and scene (seed Sec. 3.3), with no rendering.
 
-* (a) Fixed view, direct lighting (seed Eq. 8): :math:`I_* = \sum_i b_i I_i`. The per-material
-  images are one :class:`~torch_brdf.render.record.BasisImage` with ``J = N`` materials
-  (:func:`material_record`), so blending is ``record.image(b)``.
-* (c) Global illumination (seed Eq. 11-12): images :math:`I_i` rendered with full path tracing
-  are blended the same way; this drops the paths that meet the edited material twice or more
-  (:math:`L_{2+}`). :func:`gi_blend_error` measures that error against a true render of the
-  interpolated BRDF.
+* :func:`material_record`: the per-material images as one
+  :class:`~torch_brdf.records.BasisImage` with ``J = N`` materials, so that blending them
+  (:func:`torch_brdf.render.manifold.blend`) is ``record.image(b)``;
+* :func:`merl_material` / :func:`with_material`: a row of ``Z`` as a ``"merl"`` scene material
+  (negative interpolant values clamped at 0, which is what the MERL lookup does anyway);
+* :func:`sphere_scene`: the sphere-on-a-plane scene the manifold's materials are shown in.
 
-Renders use :func:`torch_brdf.transport.pathtrace.path_trace` with the material as a
-``"merl"`` table (:class:`~torch_brdf.brdf.measured.MERLTabulated`, nearest lookup). That
-lookup treats negative entries as missing (0), so an interpolant with negative values is
-rendered clamped at 0 (:func:`merl_material`): blending and rendering-the-blend then differ
-by exactly the negative part (the seed's stated limitation); with ``max_bounces=1`` and a fixed
-seed the path tracer is otherwise exactly linear in a non-negative table (NEE and the
-continuation directions do not depend on the table), which the tests check.
+The images themselves are rendered by :func:`torch_brdf.render.manifold.render_rows`.
 """
 
 from __future__ import annotations
@@ -25,15 +18,16 @@ from collections.abc import Sequence
 
 import torch
 import trimesh
-from tqdm.auto import tqdm
 
 from ..errors import SceneError, ShapeError
-from ..render.record import BasisImage
+from ..records.basis_image import BasisImage
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.mesh import mesh_from_arrays
 from ..scene.scene import Scene, SceneObject
 from .data import MERLGrid, to_table
+
+__all__ = ["material_record", "merl_material", "random_record", "sphere_scene", "with_material"]
 
 
 def sphere_scene(resolution: int = 64, envmap: EnvironmentMap | None = None) -> Scene:
@@ -76,38 +70,6 @@ def with_material(scene: Scene, material_key: str, material: dict) -> Scene:
     return dataclasses.replace(scene, materials={**scene.materials, material_key: material})
 
 
-def render_rows(
-    scene: Scene,
-    material_key: str,
-    rows: torch.Tensor,
-    grid: MERLGrid,
-    spp: int = 4,
-    max_bounces: int = 1,
-    seed: int = 0,
-    progress: bool = True,
-) -> torch.Tensor:
-    """Path-trace ``scene`` once per row of ``Z`` used as the material ``material_key``.
-
-    The same seed for every material, so the images share their random numbers (the blend
-    of images then has no extra noise against a render of the blend).
-
-    Args:
-        rows: (N, 3 * B) BRDF rows on ``grid``.
-    Returns:
-        (N, H, W, 3) float32 linear radiance.
-    """
-    from ..transport.pathtrace import path_trace
-
-    rows = torch.as_tensor(rows)
-    if rows.ndim != 2:
-        raise ShapeError(f"Expected rows of shape (N, 3 * B); got {tuple(rows.shape)}")
-    out = []
-    for r in tqdm(rows, desc="render materials", disable=not progress):
-        sc = with_material(scene, material_key, merl_material(r, grid))
-        out.append(path_trace(sc, spp=spp, max_bounces=max_bounces, seed=seed, progress=False))
-    return torch.stack(out)
-
-
 def material_record(
     images: torch.Tensor, names: Sequence[str] = (), constant: torch.Tensor | None = None, meta: dict | None = None
 ) -> BasisImage:
@@ -141,41 +103,7 @@ def material_record(
     )
 
 
-def blend(record: BasisImage, weights: torch.Tensor) -> torch.Tensor:
-    """Seed Eq. 8 / 12: :math:`I_* = \\sum_i b_i I_i` as an (H, W, C) image from ``weights`` (N,)."""
-    return record.image(torch.as_tensor(weights).to(record.values.dtype))
-
-
-def gi_blend_error(blended: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
-    """Relative errors of a blended GI image against a render of the interpolated BRDF.
-
-    Returns:
-        ``{"rel_l1": sum|a-b| / sum|b|, "rel_rmse": rms(a-b) / rms(b)}``.
-    """
-    a, b = torch.as_tensor(blended, dtype=torch.float64), torch.as_tensor(reference, dtype=torch.float64)
-    if a.shape != b.shape:
-        raise ShapeError(f"image shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
-    den1 = float(b.abs().sum()) or 1.0
-    den2 = float(b.pow(2).mean().sqrt()) or 1.0
-    return {
-        "rel_l1": float((a - b).abs().sum()) / den1,
-        "rel_rmse": float((a - b).pow(2).mean().sqrt()) / den2,
-    }
-
-
 def random_record(n: int, height: int, width: int, generator: torch.Generator | None = None) -> BasisImage:
     """A synthetic (N, H, W, 3) material record with random values (for timing the blend only)."""
     v = torch.rand(3, n, height * width, generator=generator)
     return BasisImage(v, torch.arange(height * width), height, width, basis=f"materials:{n}:random")
-
-
-__all__ = [
-    "blend",
-    "gi_blend_error",
-    "material_record",
-    "merl_material",
-    "random_record",
-    "render_rows",
-    "sphere_scene",
-    "with_material",
-]

@@ -6,7 +6,8 @@ import torch
 from tests.conftest import RTOL
 from tests.manifold.common import SMALL_GRID, small_family
 from torch_brdf.errors import SceneError, ShapeError
-from torch_brdf.manifold.render import blend, material_record, render_rows, sphere_scene, with_material
+from torch_brdf.manifold.materials import material_record, sphere_scene, with_material
+from torch_brdf.render.manifold import blend, render_rows
 
 
 def test_blending_equals_rendering_the_blend_for_direct_light():

@@ -11,8 +11,8 @@ import torch
 
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.io.arrays import save_arrays
-from torch_brdf.transport import BlockVisibility
-from torch_brdf.transport.visibility_codec import (
+from torch_brdf.records import BlockVisibility
+from torch_brdf.records.visibility_codec import (
     OCCLUDED,
     PARTIAL,
     UNOCCLUDED,
@@ -378,7 +378,7 @@ def test_corrupted_real_streams(gen, tmp_path):
 def test_chunked_encoding_matches_one_chunk(gen, monkeypatch):
     """Chunk boundaries (here every 7 pairs, inside vertices) change nothing, and a bad texel in a
     later chunk is reported at its own vertex and block."""
-    from torch_brdf.transport import visibility_codec
+    from torch_brdf.records import visibility_codec
 
     v = random_spans(5, 6, gen).float()
     maps = {0: v, 6: v * torch.rand(5, 6, 256, generator=gen)}

@@ -51,11 +51,12 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from ..errors import FileFormatError, ValueRangeError
-from ..frame import half_diff_to_directions, spherical_angles
-from ..io.arrays import load_arrays, save_arrays
-from ..sphere.warps import square_to_cosine_hemisphere
-from .bands import BandBasis, Factored1D, Quotient, make_quotient
+from ...errors import FileFormatError, ValueRangeError
+from ...frame import half_diff_to_directions, spherical_angles
+from ...io.arrays import load_arrays, save_arrays
+from ...sphere.warps import square_to_cosine_hemisphere
+from .basis import BandBasis
+from .quotients import Quotient, make_quotient
 
 __all__ = ["EquivalentAlbedoCacheWarning", "band_albedos", "cache_dir", "equivalent_albedo"]
 
@@ -242,14 +243,15 @@ def _ratio_azimuths(n_u: float, a: torch.Tensor, b: torch.Tensor, u: torch.Tenso
     return edges[cell] + frac * width[cell], p / width[cell]
 
 
-def equivalent_albedo(factored: Factored1D, e: torch.Tensor | None = None, **kwargs) -> torch.Tensor:
+def equivalent_albedo(factored, e: torch.Tensor | None = None, **kwargs) -> torch.Tensor:
     r"""Diffuse-equivalent albedo :math:`d = \frac1\pi\sum_j c_j e_j` (Eq. 37), RGB.
 
-    Differentiable in the coefficients. For a :class:`~.bands.FresnelFactored1D` the band
+    Differentiable in the coefficients. For a :class:`~.factored.FresnelFactored1D` the band
     albedos of its full Fresnel quotient are used.
 
     Args:
-        factored: a :class:`~.bands.Factored1D`.
+        factored: a :class:`~.factored.Factored1D` (anything with ``basis``,
+            ``coefficients`` and ``albedo_quotient()``).
         e: (J,) or (J, 3) precomputed :math:`e_j`; default :func:`band_albedos` of the
             factored BRDF's basis and quotient with ``kwargs``.
     Returns:

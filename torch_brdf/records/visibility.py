@@ -1,0 +1,150 @@
+r"""The per-vertex visibility record of all-frequency relighting (Inger et al., Sec. 4.2 and 5).
+
+:class:`VertexVisibility` is what :func:`~torch_brdf.transport.visibility.precompute_visibility`
+produces and :class:`~torch_brdf.render.triple.TripleProductRenderer` reads: the scene's
+vertices (:class:`SceneVertices`, fingerprinted so a record cannot be used with another scene)
+and their differential block visibility (:class:`~torch_brdf.records.visibility_codec.BlockVisibility`)
+in the cubemap layout of :class:`~torch_brdf.sphere.cubemap.CubemapBlocks`. The conventions
+the maps follow (horizon, graded maps) are stated in :mod:`torch_brdf.transport.visibility`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import FileFormatError, SceneError
+from ..scene.scene import Scene
+from ..sphere.cubemap import CubemapBlocks
+from .codec import Record
+from .visibility_codec import BlockVisibility
+
+__all__ = ["KIND", "SceneVertices", "VertexVisibility", "scene_vertices"]
+
+KIND = "vertex-visibility"
+
+
+@dataclass(frozen=True)
+class SceneVertices:
+    """The shading vertices of a scene: all objects' vertices, in object order.
+
+    Attributes:
+        positions: (P, 3) float64.
+        normals: (P, 3) float64 unit vertex normals.
+        object_ids: (P,) int64.
+        offsets: (O + 1,) int64; object ``o`` owns rows ``offsets[o]:offsets[o+1]``.
+    """
+
+    positions: torch.Tensor
+    normals: torch.Tensor
+    object_ids: torch.Tensor
+    offsets: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def fingerprint(self) -> str:
+        """SHA-256 of the float32 positions and normals (ties a record to its scene)."""
+        h = hashlib.sha256()
+        for a in (self.positions, self.normals):
+            h.update(a.to(torch.float32).numpy().tobytes())
+        return h.hexdigest()
+
+
+def scene_vertices(scene: Scene) -> SceneVertices:
+    """Collect the scene's vertices and unit vertex normals (trimesh's area-weighted ones)."""
+    pos, nrm, oid, off = [], [], [], [0]
+    for o, obj in enumerate(scene.objects):
+        v = torch.tensor(np.array(obj.mesh.vertices), dtype=torch.float64)
+        n = torch.tensor(np.array(obj.mesh.vertex_normals), dtype=torch.float64)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        pos.append(v)
+        nrm.append(n)
+        oid.append(torch.full((len(v),), o, dtype=torch.int64))
+        off.append(off[-1] + len(v))
+    if off[-1] == 0:
+        raise SceneError(f"scene {scene.name!r} has no vertices")
+    return SceneVertices(torch.cat(pos), torch.cat(nrm), torch.cat(oid), torch.tensor(off, dtype=torch.int64))
+
+
+@dataclass(frozen=True)
+class VertexVisibility(Record):
+    """Differential visibility of every scene vertex.
+
+    Attributes:
+        geometry: the cubemap and block layout.
+        vertices: the vertices the maps belong to.
+        blocks: (P vertices x NB blocks) differential visibility.
+        supersample: k, rays per texel side (1 = binary maps).
+        bits: derivative quantisation (0 = binary).
+    """
+
+    geometry: CubemapBlocks
+    vertices: SceneVertices
+    blocks: BlockVisibility
+    supersample: int = 1
+    bits: int = 0
+
+    kind = KIND
+    version = 1
+
+    @property
+    def bytes_per_vertex(self) -> float:
+        """Mean size of the varint-serialised maps per vertex (what :meth:`save` stores)."""
+        return float(self.blocks.nbytes_per_vertex)
+
+    def settings(self) -> dict:
+        return {
+            "resolution": self.geometry.resolution,
+            "block": self.geometry.block,
+            "supersample": self.supersample,
+            "bits": self.bits,
+            "vertices": len(self.vertices),
+            "fingerprint": self.vertices.fingerprint,
+        }
+
+    def check_scene(self, scene: Scene) -> None:
+        """Raise SceneError unless the record was computed for this scene's vertices."""
+        fp = scene_vertices(scene).fingerprint
+        if fp != self.vertices.fingerprint:
+            raise SceneError(
+                f"visibility record does not belong to scene {scene.name!r} (vertex fingerprint differs); "
+                "recompute it with precompute_visibility"
+            )
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """The varint stream and the vertices for :meth:`save` (versioned, checksummed, atomic)."""
+        stream, voff = self.blocks.to_bytes()
+        v = self.vertices
+        arrays = {
+            "stream": np.asarray(stream, dtype=np.uint8),
+            "vertex_offsets": np.asarray(voff, dtype=np.int64),
+            "positions": v.positions.numpy(),
+            "normals": v.normals.numpy(),
+            "object_ids": v.object_ids.numpy(),
+            "object_offsets": v.offsets.numpy(),
+        }
+        return arrays, self.settings()
+
+    @classmethod
+    def from_arrays(cls, arrays, meta) -> VertexVisibility:
+        """The record of :meth:`to_arrays` output (FileFormatError if inconsistent)."""
+        geom = CubemapBlocks(int(meta["resolution"]), int(meta["block"]))
+        verts = SceneVertices(
+            torch.from_numpy(arrays["positions"]),
+            torch.from_numpy(arrays["normals"]),
+            torch.from_numpy(arrays["object_ids"]),
+            torch.from_numpy(arrays["object_offsets"]),
+        )
+        blocks = BlockVisibility.from_bytes(
+            arrays["stream"], arrays["vertex_offsets"], geom.block_count, int(meta["bits"])
+        )
+        if len(verts) != int(meta["vertices"]) or blocks.counts.shape[0] != len(verts):
+            raise FileFormatError(f"{blocks.counts.shape[0]} maps for {len(verts)} vertices")
+        if verts.fingerprint != meta["fingerprint"]:
+            raise FileFormatError("vertex arrays do not match the stored fingerprint")
+        return cls(geom, verts, blocks, int(meta["supersample"]), int(meta["bits"]))

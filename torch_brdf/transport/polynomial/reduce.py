@@ -1,0 +1,129 @@
+"""Reduction of path contributions to tensor entries (Ben-Artzi et al. 2008, Sec. 5.1, bookkeeping).
+
+Per pass group the entries are summed per path (so the per-entry Monte Carlo variance is the
+variance over paths, not over light samples); a tile's sums become one sparse
+:class:`~torch_brdf.records.polynomial.TensorBlock` per (eye object, bounce), and the terms
+that occur are numbered into one :class:`~torch_brdf.records.polynomial.TermTable` per bounce.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ...errors import ValueRangeError
+from ...records.polynomial import TensorBlock, TermTable
+
+
+def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
+    key = torch.zeros_like(cols[0][0])
+    total = 1
+    for x, size in cols:
+        total *= max(size, 1)
+        if total >= 2**62:
+            raise ValueRangeError("too many distinct tensor entries per tile for 64-bit keys; use smaller tiles")
+        key = key * max(size, 1) + x
+    return key
+
+
+def _multiset_ids(counts: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Dense ids of the distinct rows of ``counts`` (n, M) int8: one exact int64 code per row
+    (base = max count + 1) when it fits in 62 bits, else ``unique(dim=0)``."""
+    m = counts.shape[1]
+    base = int(counts.max()) + 1 if counts.numel() else 1
+    if m * math.log2(max(base, 2)) < 62:
+        powers = base ** torch.arange(m, dtype=torch.long)
+        code = (counts.long() * powers).sum(-1)
+        uniq, zid = torch.unique(code, return_inverse=True)
+        return zid, uniq.numel()
+    uniq, zid = torch.unique(counts, dim=0, return_inverse=True)
+    return zid, uniq.shape[0]
+
+
+def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) -> dict[str, torch.Tensor]:
+    """Sum rows with equal (record, object, bounce, j, w, counts[, path]) keys.
+
+    Returns unique rows with ``sum`` (U, 3) float64 (and ``sq``: the sum of per-path squares
+    when ``by_path``; otherwise ``sq`` is summed from the input's ``sq``)."""
+    if not d:
+        return {}
+    zid, nz = _multiset_ids(d["counts"])
+    cols = [
+        (d["rec"], sizes["rec"]),
+        (d["obj"], sizes["obj"]),
+        (d["bounce"], sizes["bounce"]),
+        (d["j"], sizes["j"]),
+        (d["w"] + 1, sizes["w"] + 1),
+        (zid, nz),
+    ]
+    if by_path:
+        cols.append((d["path"], sizes["path"]))
+    key = _radix_key(cols)
+    uniq, inv = torch.unique(key, return_inverse=True)
+    u = uniq.numel()
+    first = torch.full((u,), key.numel(), dtype=torch.long).scatter_reduce(
+        0, inv, torch.arange(key.numel()), reduce="amin"
+    )
+    w = d["weight"].double()
+    s = torch.zeros(u, 3, dtype=torch.float64).index_add_(0, inv, w)
+    out = {k: d[k][first] for k in ("rec", "obj", "bounce", "j", "w", "counts")}
+    if by_path:
+        out["sum"], out["sq"] = s, s * s
+    else:
+        out["sum"] = s
+        out["sq"] = torch.zeros(u, 3, dtype=torch.float64).index_add_(0, inv, d["sq"])
+    return out
+
+
+def _blocks_from_entries(
+    red: dict[str, torch.Tensor], pixels: torch.Tensor, bases, spp: int, term_index: dict[int, dict]
+) -> list[TensorBlock]:
+    """Dense blocks per (eye object, bounce) over the terms and pixels that occur."""
+    if not red:
+        return []
+    out = []
+    mean = red["sum"] / spp
+    var = ((red["sq"] / spp - mean * mean) / max(spp - 1, 1)).clamp_min(0)
+    group = red["obj"] * 1000 + red["bounce"]
+    for gkey in group.unique().tolist():
+        m = group == gkey
+        obj, bounce = divmod(int(gkey), 1000)
+        rec = red["rec"][m]
+        upix, prow = torch.unique(rec, return_inverse=True)
+        table = term_index.setdefault(bounce, {})
+        tw, tc = red["w"][m], red["counts"][m]
+        zid, nz = _multiset_ids(tc)
+        pid = (tw + 1) * nz + zid
+        upid, pinv = torch.unique(pid, return_inverse=True)
+        first = torch.full((upid.numel(),), pid.numel(), dtype=torch.long).scatter_reduce(
+            0, pinv, torch.arange(pid.numel()), reduce="amin"
+        )
+        gids = []
+        for w_, row in zip(tw[first].tolist(), tc[first].tolist(), strict=True):
+            t = (w_, *row)
+            if t not in table:
+                table[t] = len(table)
+            gids.append(table[t])
+        gids = torch.tensor(gids, dtype=torch.long)
+        order = torch.argsort(gids)
+        rank = torch.empty_like(order)
+        rank[order] = torch.arange(order.numel())
+        tid = rank[pinv]
+        J = 1 if bases[obj] is None else bases[obj].size
+        z, p = upid.numel(), upix.numel()
+        flat = (red["j"][m] * z + tid) * p + prow  # unique per entry
+        flat, perm = torch.sort(flat)
+        vals, vv = mean[m][perm].T.float().contiguous(), var[m][perm].T.float().contiguous()
+        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], J, flat, vals, vv))
+    return out
+
+
+def _term_tables(term_index: dict[int, dict], num_objects: int, bounces: int) -> dict[int, TermTable]:
+    out = {}
+    for n in range(1, bounces + 1):
+        rows = sorted(term_index.get(n, {}).items(), key=lambda kv: kv[1])
+        w = torch.tensor([r[0][0] for r in rows], dtype=torch.long)
+        c = torch.tensor([list(r[0][1:]) for r in rows], dtype=torch.long).reshape(-1, num_objects)
+        out[n] = TermTable(w, c)
+    return out

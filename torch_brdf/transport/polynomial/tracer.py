@@ -1,0 +1,325 @@
+r"""The batched symbolic path tracer of the multibounce precomputation (Ben-Artzi et al. 2008, Sec. 5.1).
+
+A wavefront path tracer from the eye on embree. Directions come from the BRDF-independent
+:class:`~.sampler.Mixture`; at every vertex each light of the scene gets one next-event sample,
+and each light sample adds its weight to one entry per basis layer (Eq. 22-24): the band of
+:math:`(\omega_i, \omega_o)` at the eye vertex, the second-bounce slot for a low-frequency
+second bounce, and the multiset of the objects of the diffuse-equivalent vertices. The live
+paths of a batch are one :class:`PathState`; each light sample is one :class:`LightHit`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import torch
+
+from ...brdf import BRDF
+from ...brdf.bands import BandBasis, Quotient
+from ...records.polynomial import ObjectBasis, Series
+from ...scene.lights import Light
+from ...scene.scene import Scene
+from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
+from .sampler import Mixture
+
+__all__ = ["LightHit", "PathState"]
+
+
+@dataclass
+class PathState:
+    """The live paths of one batch after some vertices (one row per path still alive).
+
+    Attributes:
+        idx: (n,) ray id of each path (its pixel record is ``rec[idx]``).
+        m1: (n,) object seen at the eye vertex.
+        raw: (n, 3) throughput without editable factors and without the 1/pi of diffuse equivalents.
+        A_i, A_w: (n, L1) eye-vertex slots and (n, L1, 3) their layer weights.
+        B_i, B_w: (n, L2) second-bounce slots (-1: none) and (n, L2, 3) their weights.
+        counts: (n, M) int8 occurrences of each object among the diffuse-equivalent vertices.
+        oracle: tests only: local directions and objects to re-evaluate each entry, or None.
+    """
+
+    idx: torch.Tensor
+    m1: torch.Tensor
+    raw: torch.Tensor
+    A_i: torch.Tensor
+    A_w: torch.Tensor
+    B_i: torch.Tensor
+    B_w: torch.Tensor
+    counts: torch.Tensor
+    oracle: dict | None = None
+
+    @classmethod
+    def start(cls, idx: torch.Tensor, m1: torch.Tensor, num_objects: int, oracle: bool) -> PathState:
+        """Paths that just hit their eye vertex (no factors yet)."""
+        k = idx.numel()
+        rec_p = {"wi1": None, "wo1": None, "wi2": None, "wo2": None, "m2": None, "objs": []} if oracle else None
+        return cls(
+            idx,
+            m1,
+            torch.ones(k, 3),
+            torch.zeros(k, 1, dtype=torch.long),
+            torch.ones(k, 1, 3),
+            torch.full((k, 1), -1, dtype=torch.long),
+            torch.ones(k, 1, 3),
+            torch.zeros(k, num_objects, dtype=torch.int8),
+            rec_p,
+        )
+
+    def keep(self, rows: torch.Tensor) -> PathState:
+        """The paths ``rows`` (index tensor) only."""
+        out = {f.name: getattr(self, f.name)[rows] for f in fields(self) if f.name != "oracle"}
+        rec_p = self.oracle
+        if rec_p is not None:
+            rec_p = {k: (None if v is None else v[rows]) for k, v in rec_p.items() if k != "objs"}
+            rec_p["objs"] = [t[rows] for t in self.oracle["objs"]]
+        return PathState(**out, oracle=rec_p)
+
+
+@dataclass
+class LightHit:
+    """The light samples that reach paths ``kk`` of a :class:`PathState` at one vertex.
+
+    Attributes:
+        kk: (n,) rows of the path state. wl: (n, 3) local direction to the light.
+        wo: (n, 3) local outgoing direction. ob: (n,) object at the vertex.
+        ed: (n,) bool, the object is editable. lw: (n, 3) light weight times cosine.
+    """
+
+    kk: torch.Tensor
+    wl: torch.Tensor
+    wo: torch.Tensor
+    ob: torch.Tensor
+    ed: torch.Tensor
+    lw: torch.Tensor
+
+
+class _Layers:
+    """Band index and quotient weight of every (object, layer) at a banded vertex."""
+
+    def __init__(self, bases: list[ObjectBasis | None], brdfs: list[BRDF], level: int, offsets: list[int]):
+        self.level = level  # 1: eye vertex, 2: low-frequency second bounce
+        self.brdfs = brdfs
+        self.max_layers = max([1] + [b.layers for b in bases if b is not None])
+        self.per_object: list[tuple[BandBasis, list[Quotient], int, int] | None] = []
+        for b, off in zip(bases, offsets, strict=True):
+            if b is None:
+                self.per_object.append(None)
+                continue
+            basis = b.band_basis() if level == 1 else b.second_basis()
+            self.per_object.append((basis, b.quotients(), basis.J, off))
+
+    def __call__(self, oid: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor):
+        """-> index (n, L) long and weight (n, L, 3): slot of each layer and its factor
+        (quotient for editable objects; the full BRDF f for fixed ones, index -1 at level 2
+        and 0 at level 1). Pairs below either horizon get weight 0."""
+        n, L = oid.numel(), self.max_layers
+        idx = torch.full((n, L), -1 if self.level == 2 else 0, dtype=torch.long)
+        wgt = torch.zeros(n, L, 3, dtype=wi.dtype)
+        up = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).to(wi.dtype)[:, None]
+        for o, m in rows_by_object(oid):
+            spec = self.per_object[o]
+            wim, wom = wi[m], wo[m]
+            if spec is None:
+                wgt[m, 0] = self.brdfs[o].eval_local(wim, wom).to(wi.dtype)
+                continue
+            basis, quotients, J, off = spec
+            band = basis.index(basis.gamma(wim, wom))
+            for layer, q in enumerate(quotients):
+                qv = q(wim, wom).to(wi.dtype)
+                qv = qv[:, None].expand(-1, 3) if qv.ndim == 1 else qv
+                idx[m, layer] = off + layer * J + band
+                wgt[m, layer] = qv * up[m]
+        return idx, wgt
+
+
+@dataclass
+class _Entries:
+    """Path contributions: one row per (path, bounce, layer combination)."""
+
+    path: list[torch.Tensor] = field(default_factory=list)
+    obj: list[torch.Tensor] = field(default_factory=list)
+    bounce: list[torch.Tensor] = field(default_factory=list)
+    j: list[torch.Tensor] = field(default_factory=list)
+    w: list[torch.Tensor] = field(default_factory=list)
+    counts: list[torch.Tensor] = field(default_factory=list)
+    weight: list[torch.Tensor] = field(default_factory=list)
+
+    def add(self, path, obj, bounce, j, w, counts, weight):
+        keep = weight.abs().amax(-1) > 0
+        if not bool(keep.any()):
+            return
+        for lst, x in zip(
+            (self.path, self.obj, self.bounce, self.j, self.w, self.counts, self.weight),
+            (path, obj, bounce, j, w, counts, weight),
+            strict=True,
+        ):
+            lst.append(x[keep] if x.ndim else x.expand(keep.numel())[keep])
+
+    def cat(self) -> dict[str, torch.Tensor]:
+        names = ("path", "obj", "bounce", "j", "w", "counts", "weight")
+        lists = (self.path, self.obj, self.bounce, self.j, self.w, self.counts, self.weight)
+        if not self.path:
+            return {}
+        return {k: torch.cat(v) for k, v in zip(names, lists, strict=True)}
+
+
+class _Tracer:
+    """The batched symbolic path tracer (one instance per precomputation)."""
+
+    def __init__(self, scene: Scene, bases, series: Series, mixture: Mixture, lights: list[Light]):
+        self.scene, self.series, self.mixture, self.lights = scene, series, mixture, lights
+        self.brdfs = material_brdfs(scene)
+        self.bases = bases
+        self.num_objects = len(scene.objects)
+        self.editable = torch.tensor([b is not None for b in bases])
+        self.level1 = _Layers(bases, self.brdfs, 1, [0] * len(bases))
+        offs, off = [], 0
+        for b in bases:
+            offs.append(off)
+            if b is not None and series.two_level:
+                off += b.second_size
+        self.level2 = _Layers(bases, self.brdfs, 2, offs) if series.two_level else None
+        self.rays = {"closest": 0, "shadow": 0}
+
+    def _trace(self, o, d):
+        self.rays["closest"] += o.shape[0]
+        return self.scene.trace(o, d)
+
+    def _fixed_f(self, oid, wi, wo):
+        """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""
+        out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
+        for o, m in rows_by_object(oid):
+            if not self.editable[o]:
+                out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
+        return out
+
+    @torch.no_grad()
+    def run(self, origins, directions, rec, gen, paths: dict | None = None):
+        """Trace one path per ray. ``rec`` (n,) is the path's pixel record id.
+
+        Returns the emission seen directly (n, 3) and the :class:`_Entries`. With ``paths``
+        (a dict), also records for every entry the raw weight without editable factors and
+        the local directions and objects needed to re-evaluate it with explicit BRDFs (the
+        exactness oracle of the tests).
+        """
+        scene, nb = self.scene, self.series.bounces
+        ent = _Entries()
+        hits = self._trace(origins, directions)
+        emis = emission_seen(scene, directions, hits)
+        idx = torch.nonzero(hits.hit).squeeze(1)
+        d_in, pos = directions[idx], hits.position[idx]
+        ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+        st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        for v in range(1, nb + 1):
+            if st.idx.numel() == 0:
+                break
+            ng, ns, frame, wo = shading_frame(d_in, ng, ns)
+            ed = self.editable[oid]
+            for light in self.lights:
+                ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
+                self.rays["shadow"] += cast
+                if kk.numel() == 0:
+                    continue
+                wl = frame.to_local(ls.direction)[kk]
+                hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None])
+                self._emit(ent, st, v, hit, paths, rec)
+            if v == nb:
+                break
+            u = torch.rand(st.idx.numel(), 3, generator=gen)
+            wi, pdf = self.mixture.sample(wo, u)
+            ok = (pdf > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+            cosw = torch.where(ok, wi[:, 2] / pdf.clamp_min(1e-30), torch.zeros_like(pdf))
+            rec_p = st.oracle
+            if v == 1:
+                st.A_i, st.A_w = self.level1(oid, wi, wo)
+                st.raw = st.raw * cosw[:, None]
+                if rec_p is not None:
+                    rec_p["wi1"], rec_p["wo1"] = wi.clone(), wo.clone()
+            elif v == 2 and self.level2 is not None:
+                st.B_i, st.B_w = self.level2(oid, wi, wo)
+                st.raw = st.raw * cosw[:, None]
+                if rec_p is not None:
+                    rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
+            else:
+                f = self._fixed_f(oid, wi, wo)
+                st.raw = st.raw * f * cosw[:, None]
+                st.counts = st.counts.clone()
+                st.counts[ed, oid[ed]] += 1
+                if rec_p is not None:
+                    rec_p["objs"].append(torch.where(ed, oid, -1))
+            wworld = frame.to_world(wi)
+            alive = ok & ((wworld * ng).sum(-1) > 0) & (st.raw.amax(-1) > 0)
+            alive &= (st.A_w.abs().amax((-1, -2)) > 0) & (st.B_w.abs().amax((-1, -2)) > 0)
+            a = torch.nonzero(alive).squeeze(1)
+            sub = self._trace(scene.spawn(pos[a], ng[a], wworld[a]), wworld[a])
+            keep = a[sub.hit]
+            st, d_in = st.keep(keep), wworld[keep]
+            pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
+        return emis, ent
+
+    def _emit(self, ent: _Entries, st: PathState, v: int, hit: LightHit, paths: dict | None, rec: torch.Tensor):
+        """Add the entries of the light samples ``hit`` at vertex ``v`` of the paths ``st``."""
+        kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
+        n = kk.numel()
+        cnt = st.counts[kk]
+        if v == 1:
+            j, q = self.level1(ob, wl, wo)  # (n, L1), (n, L1, 3)
+            w = torch.full_like(j, -1)
+            wts = q * lw[:, None, :]
+            combos = [(j[:, a], w[:, a], wts[:, a]) for a in range(j.shape[1])]
+            extra = None
+        elif v == 2 and self.level2 is not None:
+            k2, q2 = self.level2(ob, wl, wo)
+            base = st.raw[kk] * lw
+            combos = [
+                (st.A_i[kk, a], k2[:, b], base * st.A_w[kk, a] * q2[:, b])
+                for a in range(st.A_i.shape[1])
+                for b in range(k2.shape[1])
+            ]
+            extra = None
+        else:
+            f = torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))  # D = cos/pi
+            cnt = cnt.clone()
+            cnt[ed, ob[ed]] += 1
+            scale = math.pi ** -(cnt.sum(-1).double() - ed.double()).float()  # 1/pi of earlier D vertices
+            base = st.raw[kk] * lw * f * scale[:, None]
+            combos = [
+                (st.A_i[kk, a], st.B_i[kk, b], base * st.A_w[kk, a] * st.B_w[kk, b])
+                for a in range(st.A_i.shape[1])
+                for b in range(st.B_i.shape[1])
+            ]
+            extra = torch.where(ed, ob, -1)
+        bounce = torch.full((n,), v, dtype=torch.long)
+        for j, w, wt in combos:
+            ent.add(rec[st.idx[kk]], st.m1[kk], bounce, j, w, cnt, wt)
+        if paths is not None:
+            self._record(paths, st, v, hit, rec, extra)
+
+    def _record(self, paths: dict, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, extra):
+        """Raw path data for the exactness oracle (tests)."""
+        kk, wl, wo, ob = hit.kk, hit.wl, hit.wo, hit.ob
+        n = kk.numel()
+        fixed_f = (
+            torch.where(self.editable[ob][:, None], torch.ones(1, 3), self._fixed_f(ob, wl, wo))
+            if v > 1 and not (v == 2 and self.level2 is not None)
+            else torch.ones(n, 3)
+        )
+        row = {
+            "rec": rec[st.idx[kk]],
+            "m1": st.m1[kk],
+            "bounce": torch.full((n,), v),
+            "raw": st.raw[kk] * hit.lw * fixed_f,
+            "wl": wl,
+            "wo": wo,
+            "ob": ob,
+        }
+        rec_p = st.oracle
+        for key in ("wi1", "wo1", "wi2", "wo2", "m2"):
+            row[key] = None if rec_p[key] is None else rec_p[key][kk]
+        objs = [t[kk] for t in rec_p["objs"]]
+        if extra is not None:
+            objs.append(extra)
+        row["objs"] = torch.stack(objs, -1) if objs else torch.zeros(n, 0, dtype=torch.long)
+        paths.setdefault("rows", []).append(row)
