@@ -22,9 +22,10 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.render`: modules that turn records plus coefficients into images
   (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
 * :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.
+* :mod:`torch_brdf.editor`: the interactive material editor in the browser (ipywidgets, Voilà).
 """
 
-from . import errors
+from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
 from .errors import TorchBRDFError
 
 __version__ = "0.1.0"

@@ -1,24 +1,406 @@
-"""Thread settings for small dense kernels."""
+r"""The one place that decides torch_brdf's parallelism: processes, intra-op threads, BLAS threads.
+
+- :func:`usable_cores`: the CPUs this process may run on (``os.sched_getaffinity``) capped by
+  the cgroup v2 (``cpu.max``) or v1 (``cpu.cfs_quota_us`` / ``cpu.cfs_period_us``) CPU quota.
+- :func:`worker_count`: processes that trace rays (the caller plus forked children); argument,
+  else ``TORCH_BRDF_WORKERS``, else the usable cores (at most :data:`MAX_DEFAULT_WORKERS`).
+- :func:`intra_op_threads`: torch threads of the calling process; argument, else
+  ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set on import).
+- :func:`configure_worker`: what every worker process runs first: one torch thread and one
+  BLAS thread (a worker is one of several processes that share the cores).
+- :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
+  block (../shared/FACTS.md: OpenBLAS inside a torch loop is 5-6x slower per call when both
+  run their own threads on 2 cores).
+- :func:`tuned`: the renderer's freeze and frame paths run with the thread count that was
+  fastest for their (op, size class): each candidate is timed on real calls (no extra work),
+  the fastest is kept in memory, and a call much slower than measured (another program took a
+  core) starts a new measurement. ``TORCH_BRDF_THREADS``, :func:`set_threads` or the
+  ``threads`` argument fix the count instead.
+
+Busy cores: GNU OpenMP (torch's CPU backend, ``libgomp``) lets idle worker threads spin for
+up to ~300k pause loops after each parallel region unless ``OMP_WAIT_POLICY=PASSIVE``; that
+spinning takes a core from any other program (and from our own forked workers). libgomp reads
+the variable once, when torch loads it, so this module sets it (unless the user did) before
+importing torch; ``import torch_brdf`` before ``import torch`` to get it, or export it.
+:func:`omp_wait_policy` says what the loaded runtime got.
+"""
 
 from __future__ import annotations
 
+import functools
+import math
+import operator
+import os
+import sys
+import threading
+import time
+import warnings
 from contextlib import contextmanager
+from pathlib import Path
 
-import torch
+_TORCH_FIRST = "torch" in sys.modules
+if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective before that
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+_WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY")
+
+import torch  # noqa: E402  (after OMP_WAIT_POLICY)
+
+from .errors import ValueRangeError  # noqa: E402
+
+#: environment variable: torch intra-op threads of the calling process (a positive integer).
+ENV_THREADS = "TORCH_BRDF_THREADS"
+#: environment variable: processes that trace rays, the caller included (a positive integer).
+ENV_WORKERS = "TORCH_BRDF_WORKERS"
+#: default cap on tracing processes: a round of the trace pool has 32 chunks to share.
+MAX_DEFAULT_WORKERS = 8
+
+_CGROUP_ROOT = "/sys/fs/cgroup"
+_PROC_CGROUP = "/proc/self/cgroup"
+
+
+# -- cores --------------------------------------------------------------------------------------
+def _affinity_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return None
+
+
+def _quota(quota: str | None, period: str | None) -> float | None:
+    """CPUs allowed by a (quota, period) pair; None when unlimited or unreadable."""
+    if quota is None or period is None or quota in ("max", "-1"):
+        return None
+    try:
+        q, p = int(quota), int(period)
+    except ValueError:
+        return None
+    return q / p if q > 0 and p > 0 else None
+
+
+def cgroup_cpu_limit(root: str | os.PathLike = _CGROUP_ROOT, proc_cgroup: str | os.PathLike = _PROC_CGROUP):
+    """The CPU quota of this process's cgroup in CPUs (e.g. 1.5), or None when there is none.
+
+    Reads cgroup v2 ``cpu.max`` ("max 100000" or "150000 100000") along the process's path
+    and its parents, else cgroup v1 ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (quota -1 =
+    unlimited); the tightest limit on the path counts.
+
+    Args:
+        root: the cgroup mount (tests pass a temporary folder).
+        proc_cgroup: the process's cgroup membership file (``/proc/self/cgroup``).
+    """
+    root = Path(root)
+    lines = (_read(Path(proc_cgroup)) or "").splitlines()
+    limits = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, rel = parts
+        rel = rel.lstrip("/")
+        if controllers == "":  # cgroup v2 unified hierarchy
+            hybrid = root / "unified"  # v2 mounted beside the v1 controllers (hybrid)
+            bases = [hybrid if hybrid.is_dir() else root]
+            pairs = lambda d: (_read(d / "cpu.max") or "").split()  # noqa: E731
+        elif "cpu" in controllers.split(","):  # cgroup v1 cpu controller
+            bases = [root / controllers, root / "cpu,cpuacct", root / "cpu"]
+            pairs = lambda d: [_read(d / "cpu.cfs_quota_us"), _read(d / "cpu.cfs_period_us")]  # noqa: E731
+        else:
+            continue
+        for base in bases:
+            if not base.is_dir():
+                continue
+            d = base / rel
+            while True:
+                qp = pairs(d)
+                if len(qp) == 2:
+                    limit = _quota(*qp)
+                    if limit is not None:
+                        limits.append(limit)
+                if d == base or base not in d.parents:
+                    break
+                d = d.parent
+            break
+    return min(limits) if limits else None
+
+
+def usable_cores(root: str | os.PathLike = _CGROUP_ROOT, proc_cgroup: str | os.PathLike = _PROC_CGROUP) -> int:
+    """CPUs this process can use: its affinity mask, capped by the cgroup CPU quota (rounded
+    up: a quota of 1.5 CPUs keeps two threads busy part of the time); at least 1."""
+    cores = _affinity_count()
+    limit = cgroup_cpu_limit(root, proc_cgroup)
+    if limit is not None:
+        cores = min(cores, math.ceil(limit - 1e-9))
+    return max(1, cores)
+
+
+# -- counts ---------------------------------------------------------------------------------------
+def _positive(value, what: str) -> int:
+    """``value`` (an int, or a string of one) as a positive int, else :class:`ValueRangeError`."""
+    try:
+        n = int(value.strip()) if isinstance(value, str) else operator.index(value)
+    except (TypeError, ValueError):
+        n = 0
+    if isinstance(value, bool) or n < 1:
+        raise ValueRangeError(f"{what} must be a positive integer; got {value!r}")
+    return n
+
+
+def _from_env(name: str) -> int | None:
+    raw = os.environ.get(name)
+    if raw is None or raw.strip() == "" or raw.strip().lower() == "auto":
+        return None
+    return _positive(raw, f"environment variable {name}")
+
+
+def worker_count(workers: int | None = None) -> int:
+    """Processes that trace a large batch of rays, the caller included.
+
+    Args:
+        workers: explicit count (wins); None reads ``TORCH_BRDF_WORKERS`` (a positive
+            integer; unset, empty or ``auto`` = default), else the usable cores, at most
+            :data:`MAX_DEFAULT_WORKERS`.
+    Raises:
+        ValueRangeError: a count that is not a positive integer.
+    """
+    if workers is not None:
+        return _positive(workers, "workers")
+    env = _from_env(ENV_WORKERS)
+    return env if env is not None else min(usable_cores(), MAX_DEFAULT_WORKERS)
+
+
+def intra_op_threads(threads: int | None = None) -> int:
+    """torch intra-op threads for the calling process: the argument, else ``TORCH_BRDF_THREADS``,
+    else torch's own count capped at the usable cores (torch counts the affinity mask but not a
+    cgroup quota). Raises :class:`ValueRangeError` on a count that is not a positive integer."""
+    if threads is not None:
+        return _positive(threads, "threads")
+    env = _from_env(ENV_THREADS)
+    return env if env is not None else max(1, min(torch.get_num_threads(), usable_cores()))
+
+
+def omp_wait_policy() -> str:
+    """``OMP_WAIT_POLICY`` as torch's OpenMP runtime read it when torch loaded: the value (e.g.
+    "PASSIVE"), or "default" (libgomp spins a while, then sleeps). When torch was imported
+    before torch_brdf the current value is reported with " (if set before torch loaded)"."""
+    if _TORCH_FIRST:
+        value = os.environ.get("OMP_WAIT_POLICY")
+        return "default" if value is None else f"{value.upper()} (if set before torch loaded)"
+    return (_WAIT_POLICY_AT_LOAD or "default").upper()
+
+
+# -- applying them ------------------------------------------------------------------------------------
+_BLAS = None
+
+
+def _blas_controller():
+    global _BLAS
+    if _BLAS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS = ThreadpoolController()
+    return _BLAS
+
+
+@contextmanager
+def limit_threads(n: int, blas: bool = True):
+    """``n`` torch intra-op threads (and ``n`` BLAS threads when ``blas``) inside the block;
+    both restored on exit."""
+    n = _positive(n, "threads")
+    old = torch.get_num_threads()
+    if n != old:
+        torch.set_num_threads(n)
+    try:
+        if blas:
+            with _blas_controller().limit(limits=n, user_api="blas"):
+                yield
+        else:
+            yield
+    finally:
+        if n != old:
+            torch.set_num_threads(old)
 
 
 @contextmanager
 def single_thread(enabled: bool = True):
-    """Use one torch intra-op thread inside the block (restored on exit).
+    """One torch thread and one BLAS thread inside the block (restored on exit).
 
     Small kernels (a 147 x 192 product, a 100 x 100 Cholesky) are up to ~10-40x slower with two
-    threads on a shared 2-core machine (thread hand-off under load; cf. OPENBLAS_NUM_THREADS=1
-    in ../shared/FACTS.md). ``enabled=False`` leaves the setting alone.
+    threads on a shared 2-core machine (thread hand-off under load), and scipy's OpenBLAS inside
+    a torch loop 5-6x (../shared/FACTS.md). ``enabled=False`` leaves the settings alone.
     """
-    n = torch.get_num_threads()
-    if enabled:
-        torch.set_num_threads(1)
-    try:
+    if not enabled:
         yield
-    finally:
+        return
+    with limit_threads(1):
+        yield
+
+
+def prepare_fork() -> None:
+    """Call in the parent before forking workers: finds the BLAS libraries now, so that
+    :func:`configure_worker` in a child only calls into them (no ``dlopen`` after fork)."""
+    _blas_controller()
+
+
+def configure_worker(threads: int = 1) -> None:
+    """Run first in every worker process: ``threads`` torch threads and BLAS threads (one
+    worker per core; a worker's own threads would compete with its siblings). BLAS threads
+    are set when the parent called :func:`prepare_fork` (else the environment variables
+    below reach only libraries loaded later)."""
+    os.environ["OMP_NUM_THREADS"] = os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
+    os.environ["MKL_NUM_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+    if _BLAS is not None:
+        _BLAS.limit(limits=threads, user_api="blas")
+
+
+def cap_to_usable() -> None:
+    """Set torch's thread count to :func:`intra_op_threads` (never more than the usable cores;
+    ``TORCH_BRDF_THREADS`` sets it outright). Called on import."""
+    n = intra_op_threads()
+    if n != torch.get_num_threads():
         torch.set_num_threads(n)
+
+
+# -- measured thread counts --------------------------------------------------------------------------
+#: calls per candidate count while measuring (the fastest of them counts).
+TRIALS = 2
+#: a chosen count is measured again after this many consecutive calls slower than
+#: ``SLOW_FACTOR`` times its measured time (another program now shares the cores).
+SLOW_CALLS = 5
+SLOW_FACTOR = 1.8
+
+_override: int | None = None
+
+
+def set_threads(n: int | None) -> None:
+    """Fix the thread count of every :func:`tuned` path (None = measure again)."""
+    global _override
+    _override = None if n is None else _positive(n, "threads")
+
+
+def candidates(cores: int | None = None) -> list[int]:
+    """Thread counts worth trying: 1, powers of two below the core count, and the core count."""
+    cores = usable_cores() if cores is None else cores
+    out, n = [1], 2
+    while n < cores:
+        out.append(n)
+        n *= 2
+    if cores > 1:
+        out.append(cores)
+    return out
+
+
+def size_class(size: int) -> int:
+    """The bucket of a work size that shares a measurement: ``floor(log2(size))``."""
+    return max(0, int(size)).bit_length()
+
+
+class _Tuning:
+    """Measurements of one (op, size class)."""
+
+    def __init__(self, counts: list[int]):
+        self.counts = counts
+        self.times: dict[int, list[float]] = {n: [] for n in counts}
+        self.chosen: int | None = None
+        self.slow = 0
+
+    def next_count(self) -> int:
+        if self.chosen is not None:
+            return self.chosen
+        return min(self.counts, key=lambda n: (len(self.times[n]), n))  # round robin, 1 first
+
+    def record(self, n: int, seconds: float) -> None:
+        if self.chosen is None:
+            self.times[n].append(seconds)
+            if all(len(t) >= TRIALS for t in self.times.values()):
+                self.chosen = min(self.counts, key=lambda k: (min(self.times[k]), k))
+            return
+        best = min(self.times[n])
+        self.slow = self.slow + 1 if seconds > SLOW_FACTOR * best else 0
+        if self.slow >= SLOW_CALLS:  # conditions changed: measure again
+            self.times = {k: [] for k in self.counts}
+            self.chosen, self.slow = None, 0
+
+
+_tunings: dict[tuple[str, int], _Tuning] = {}
+_lock = threading.Lock()
+
+
+def tuning_state() -> dict[tuple[str, int], dict]:
+    """What :func:`tuned` measured: (op, size class) -> chosen count and per-count seconds."""
+    with _lock:
+        return {k: {"chosen": t.chosen, "times": {n: list(v) for n, v in t.times.items()}} for k, t in _tunings.items()}
+
+
+def reset_tuning() -> None:
+    """Forget every measurement (the next calls measure again)."""
+    with _lock:
+        _tunings.clear()
+
+
+@contextmanager
+def tuned(op: str, size: int, threads: int | None = None):
+    """Run the block with the torch thread count that is fastest for ``op`` at ``size``.
+
+    The first calls of an (op, size class) try each of :func:`candidates` in turn
+    (:data:`TRIALS` each, timed); later calls use the fastest. The count is fixed instead by
+    ``threads``, then :func:`set_threads`, then ``TORCH_BRDF_THREADS``. BLAS threads are left
+    alone (these paths call none). Yields the count used.
+
+    Args:
+        op: the operation's name, e.g. ``"polynomial.frame"``.
+        size: its work size (e.g. elements streamed); sizes within a factor 2 share a measurement.
+        threads: fixed count (wins over everything).
+    """
+    fixed = threads if threads is not None else _override
+    if fixed is None:
+        fixed = _from_env(ENV_THREADS)
+    if fixed is not None:
+        with limit_threads(_positive(fixed, "threads"), blas=False):
+            yield torch.get_num_threads()
+        return
+    key = (op, size_class(size))
+    with _lock:
+        t = _tunings.get(key)
+        if t is None:
+            t = _tunings[key] = _Tuning(candidates(intra_op_threads()))
+        n = t.next_count()
+    with limit_threads(n, blas=False):
+        t0 = time.perf_counter()
+        yield n
+        dt = time.perf_counter() - t0
+    with _lock:
+        t.record(n, dt)
+
+
+def tuned_method(op: str, size):
+    """Decorate a method so that it runs under :func:`tuned` (the instance's ``threads``
+    attribute, when set, fixes the count).
+
+    Args:
+        op: the operation's name.
+        size: ``size(self, *args, **kwargs) -> int``, the call's work size.
+    """
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def run(self, *args, **kwargs):
+            with tuned(op, size(self, *args, **kwargs), getattr(self, "threads", None)):
+                return fn(self, *args, **kwargs)
+
+        return run
+
+    return decorate
+
+
+try:
+    cap_to_usable()
+except ValueRangeError as exc:  # reported again where the count is used
+    warnings.warn(f"torch_brdf: {exc}; keeping torch's {torch.get_num_threads()} threads", stacklevel=2)

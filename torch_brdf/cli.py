@@ -1,5 +1,5 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``,
-``fit-strokes``, ``precompute-visibility`` and ``relight``.
+``fit-strokes``, ``precompute-visibility``, ``relight`` and ``editor``.
 
 Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
 never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
@@ -350,6 +350,28 @@ def relight(
     if stats is not None:
         info["stats"] = stats.as_dict()
     typer.echo(json.dumps(info))
+
+
+@app.command()
+@_cli
+def editor(
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    scene: str = typer.Option(None, help="The scene of a tensors file (default: the one named in the file)."),
+    resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
+    spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
+    series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
+    cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
+    gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
+    port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
+):
+    """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
+    from .editor.server import serve
+    from .transport.polynomial import Series
+
+    check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
+    config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
+    config["gplvm"] = str(gplvm.resolve()) if gplvm else None
+    serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
 
 
 if __name__ == "__main__":  # pragma: no cover

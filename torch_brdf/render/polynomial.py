@@ -34,6 +34,7 @@ import torch
 from torch import nn
 
 from .._checks import as_float_tensor, check_finite
+from .._threads import tuned_method
 from ..brdf import BRDF, Lambert, create
 from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
@@ -70,7 +71,12 @@ class PolynomialRenderer(nn.Module):
             objects not given start as Lambert of albedo 0.5.
         dtype: dtype of the tensors and coefficients (float32 default; float64 for tests).
         max_bounces: render only bounces 1..max_bounces (default all precomputed).
+
+    ``threads``: torch threads of :meth:`freeze` and frozen frames; None (default) uses the
+    count measured fastest for their size (:func:`torch_brdf._threads.tuned`).
     """
+
+    threads: int | None = None
 
     def __init__(
         self,
@@ -307,6 +313,7 @@ class PolynomialRenderer(nn.Module):
         return imgs if per_bounce else sum(imgs[1:], imgs[0])
 
     # -- object freezing ------------------------------------------------------------------------
+    @tuned_method("polynomial.freeze", lambda r, *a, **k: sum(b.values.numel() for b in r.blocks))
     def freeze(self, obj) -> None:
         """Precompute :math:`F_{jk'}` (Eq. 27, §5.2) for the pixels of ``obj`` and the
         polynomials :math:`V_{k'}` of all other pixels, so that :meth:`forward` while only
@@ -363,6 +370,7 @@ class PolynomialRenderer(nn.Module):
     def frozen_object(self) -> str | None:
         return None if self._frozen is None else self.tensors.object_names[self._frozen["object"]]
 
+    @tuned_method("polynomial.frame", lambda r: r.frozen_nbytes)
     def _frozen_frame(self) -> torch.Tensor:
         fz = self._frozen
         i, nb, K = fz["object"], self.max_bounces, fz["K"]

@@ -56,6 +56,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from .._threads import tuned_method
 from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..errors import SceneError, ShapeError, ValueRangeError
@@ -431,7 +432,12 @@ class TripleProductRenderer(nn.Module):
             :class:`GenericRule` for other models).
         dtype: float32 (default) or float64 for the products.
         lighting_samples: k x k lat-long lookups averaged per cube texel.
+
+    ``threads``: torch threads of :meth:`shade`; None (default) uses the count measured
+    fastest for the number of vertices (:func:`torch_brdf._threads.tuned`).
     """
+
+    threads: int | None = None
 
     def __init__(
         self,
@@ -539,6 +545,7 @@ class TripleProductRenderer(nn.Module):
         frames = Frame.from_normal(nrm)
         return nrm, frames, frames.to_local(wo), self.object_ids[vid]
 
+    @tuned_method("triple.frame", lambda r, view, *a, **k: len(view.vertex_ids))
     @torch.no_grad()
     def shade(self, view: View, rule: SamplingRule | None = None) -> tuple[torch.Tensor, FrameStats]:
         """Outgoing radiance of the view's vertices by Algorithm 1.

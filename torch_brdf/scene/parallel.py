@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._threads import configure_worker, prepare_fork, worker_count
+
 #: rays per embree call; results do not depend on it being shared by every process.
 CHUNK = 1 << 14
 #: chunks that go through embree before their hits are computed (at most).
@@ -243,6 +245,7 @@ def _worker_main(kernel: TraceKernel, shared: _Shared, workers: int, conn, paren
     parent_end.close()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it closes us
     gc.disable()  # never run finalisers of inherited (torch) objects here; fewer copied pages
+    configure_worker()  # one torch thread, one BLAS thread: a worker shares the cores with its siblings
     src = (shared.o, shared.d, shared.t_max)
     while True:
         try:
@@ -285,13 +288,9 @@ def _shutdown(owner: int, procs: list, conns: list, terminate: bool = False) -> 
 
 
 def default_workers() -> int:
-    """Processes that trace a large batch: the usable cores, at most 2 (measured on 2 cores;
-    ``benchmarks/raytrace.py`` shows the gain), 1 on a single core."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(2, cores))
+    """Processes that trace a large batch: :func:`torch_brdf._threads.worker_count` (the usable
+    cores, affinity and cgroup quota, at most 8; ``TORCH_BRDF_WORKERS`` overrides)."""
+    return worker_count()
 
 
 class TracePool:
@@ -330,6 +329,7 @@ class TracePool:
             return
         self._procs, self._conns = [], []  # after a fork: the parent's children are not ours
         self.kernel.commit()
+        prepare_fork()
         ctx = multiprocessing.get_context("fork")
         ppid = os.getpid()
         self._shared = _Shared(ROUND, ctx.Lock())

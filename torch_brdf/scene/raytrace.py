@@ -112,7 +112,7 @@ class RayTracer:
             equal the face normal (False).
         workers: processes that trace batches of at least :data:`PARALLEL_MIN_RAYS` rays,
             this one included; ``None`` = :func:`~torch_brdf.scene.parallel.default_workers`
-            (the usable cores, at most 2), 1 = never fork. Children are forked on first use
+            (the usable cores, ``TORCH_BRDF_WORKERS`` overrides), 1 = never fork. Children are forked on first use
             and stopped by :meth:`close` (or garbage collection, or exit).
     """
 

@@ -84,7 +84,7 @@ class Scene:
 
     The object id of ``objects[i]`` is ``i``; :class:`Hits` report it. ``workers`` is the
     number of processes that trace large batches (see :class:`RayTracer`): ``None`` picks
-    the usable cores up to 2, 1 never forks; results are the same either way.
+    the usable cores (``TORCH_BRDF_WORKERS`` overrides), 1 never forks; results are the same either way.
     """
 
     objects: list[SceneObject]

@@ -1,0 +1,230 @@
+"""The editor in a real browser: a Voilà server on 127.0.0.1 and Debian's chromium driven by
+Playwright, both started (and stopped) here. Locally the tests skip with the reason when
+chromium, Voilà, anywidget or Playwright is missing; in CI (``CI`` set) that is a failure,
+as ``.ci/run`` installs them.
+
+Screenshots go to the test's temp folder, or to ``$TORCH_BRDF_EDITOR_SCREENSHOTS`` if set.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.conftest import corrupted_copy
+from torch_brdf.editor import object_id_buffer
+from torch_brdf.editor.server import CHROMIUM, launch_chromium
+
+MAIN = ".tb-frame-wrap:has(canvas.tb-main)"
+LOAD_S = 240  # a Voilà kernel on a loaded 2-core machine: imports, tensors, freeze
+
+
+def _missing() -> str | None:
+    if not os.path.exists(CHROMIUM):
+        return f"{CHROMIUM} not found (apt-get install -y chromium)"
+    for mod in ("voila", "playwright", "anywidget"):
+        if importlib.util.find_spec(mod) is None:
+            return f"{mod} is not installed (pip install -e '.[dev,editor]')"
+    return None
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory) -> Path:
+    out = os.environ.get("TORCH_BRDF_EDITOR_SCREENSHOTS")
+    p = Path(out) if out else tmp_path_factory.mktemp("editor_shots")
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+@pytest.fixture(scope="module")
+def page(small_tensors_file, small_fit):
+    reason = _missing()
+    if reason:
+        if os.environ.get("CI"):
+            pytest.fail(f"CI must run the browser tests: {reason}")
+        pytest.skip(reason)
+    from playwright.sync_api import sync_playwright
+
+    from torch_brdf.editor.server import EditorServer
+
+    config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2}
+    if small_fit is not None:  # the measured-material map needs the shared NBRDF data
+        config["gplvm"] = str(small_fit)
+    with EditorServer(config) as server, sync_playwright() as p:
+        browser = launch_chromium(p)
+        try:
+            pg = browser.new_page(viewport={"width": 1280, "height": 1200})
+            pg.set_default_timeout(LOAD_S * 1000)
+            pg.goto(server.url)
+            pg.wait_for_function(f"() => Number(document.querySelector('{MAIN}')?.dataset.frames) > 0")
+            yield pg
+        finally:
+            browser.close()
+
+
+@pytest.fixture(scope="module")
+def ids(small_tensors_file, small_scene):
+    return object_id_buffer(small_tensors_file[1], small_scene)[0], small_tensors_file[1].object_names
+
+
+def frames(pg) -> int:
+    return int(pg.eval_on_selector(MAIN, "e => Number(e.dataset.frames) || 0"))
+
+
+def settle(pg, after: int, quiet: float = 1.5) -> int:
+    """Wait for a frame newer than ``after`` and then for ``quiet`` seconds without one."""
+    pg.wait_for_function(f"() => Number(document.querySelector('{MAIN}').dataset.frames) > {after}")
+    n, t = frames(pg), time.monotonic()
+    while time.monotonic() - t < quiet:
+        time.sleep(0.25)
+        if frames(pg) != n:
+            n, t = frames(pg), time.monotonic()
+    return n
+
+
+def pixels(pg) -> torch.Tensor:
+    """The displayed frame as (H, W, 3) uint8, read back from the canvas."""
+    w, h, data = pg.eval_on_selector(
+        "canvas.tb-main",
+        "c => [c.width, c.height, Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data)]",
+    )
+    return torch.tensor(data, dtype=torch.uint8).reshape(h, w, 4)[..., :3]
+
+
+def interior_pixel(ids: torch.Tensor, m: int) -> tuple[int, int]:
+    """(x, y) of the pixel of object ``m`` nearest its centroid whose 4 neighbours are ``m`` too."""
+    mask = ids == m
+    inner = mask.clone()
+    inner[1:-1, 1:-1] &= mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
+    inner[[0, -1], :] = False
+    inner[:, [0, -1]] = False
+    ys, xs = torch.nonzero(inner, as_tuple=True)
+    cy, cx = ys.float().mean(), xs.float().mean()
+    k = int(((ys - cy) ** 2 + (xs - cx) ** 2).argmin())
+    return int(xs[k]), int(ys[k])
+
+
+def click_pixel(pg, x: int, y: int) -> None:
+    box = pg.query_selector("canvas.tb-main").bounding_box()
+    w, h = pg.eval_on_selector("canvas.tb-main", "c => [c.width, c.height]")
+    pg.mouse.click(box["x"] + (x + 0.5) * box["width"] / w, box["y"] + (y + 0.5) * box["height"] / h)
+
+
+def selected(pg, name: str) -> None:
+    pg.wait_for_selector(f".tb-selected[data-object='{name}']")
+
+
+# -- the acceptance points, in page order (one page for the module) ----------------------------
+def test_page_loads_and_shows_the_frame(page, shots):
+    img = pixels(page)
+    assert img.shape == (32, 32, 3)
+    assert float(img.float().mean()) > 10  # a lit Cornell box, not a black canvas
+    assert "frame" in page.inner_text(f"{MAIN} .tb-caption")
+    page.screenshot(path=str(shots / "editor_loaded.png"), full_page=True)
+
+
+def test_clicking_the_back_wall_selects_it(page, ids):
+    buf, names = ids
+    click_pixel(page, *interior_pixel(buf, names.index("left")))
+    selected(page, "left")
+    click_pixel(page, *interior_pixel(buf, names.index("back")))
+    selected(page, "back")
+
+
+def test_dragging_the_exponent_changes_the_wall(page, ids, shots):
+    buf, names = ids
+    selected(page, "back")
+    before = pixels(page).float()
+    lobe = page.inner_html(".tb-lobe")
+    handle = page.query_selector(".tb-param-exponent .noUi-handle").bounding_box()
+    x, y = handle["x"] + handle["width"] / 2, handle["y"] + handle["height"] / 2
+    n = frames(page)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 25, y, steps=5)  # about one decade up
+    page.mouse.up()
+    settle(page, n)
+    after = pixels(page).float()
+    page.wait_for_function(
+        "l => document.querySelector('.tb-lobe').innerHTML !== l", arg=lobe
+    )  # redrawn after the drag
+    change = (after - before).abs().amax(-1)
+    wall = buf == names.index("back")
+    light = buf == names.index("light")
+    assert float(page.input_value(".tb-typed-exponent input")) > 200  # the exponent went up from 100
+    assert float(change[wall].mean()) > 3.0  # 8-bit levels
+    assert float(change[light].max()) == 0.0  # the emitter's pixels do not depend on the wall
+    # the wall's light reaches the rest of the box only through its diffuse equivalent d
+    assert float(change[~wall & ~light].mean()) < 0.25 * float(change[wall].mean())
+    page.screenshot(path=str(shots / "editor_exponent.png"), full_page=True)
+
+
+def test_switching_to_ggx_shows_its_sliders(page, shots):
+    assert page.query_selector(".tb-param-roughness") is None
+    n = frames(page)
+    page.select_option("select:near(:text('model'))", label="GGX (cook_torrance)")
+    page.wait_for_selector(".tb-param-roughness .noUi-handle")
+    assert page.query_selector(".tb-param-exponent") is None
+    settle(page, n)
+    page.screenshot(path=str(shots / "editor_ggx.png"), full_page=True)
+
+
+def test_reference_button_shows_a_difference_image(page, shots):
+    page.click("button:has-text('Reference')")
+    page.wait_for_selector(".tb-rmse")
+    rmse = float(page.inner_text(".tb-rmse").split()[-1])
+    assert 0 < rmse < 5
+    diff = page.eval_on_selector(
+        "canvas.tb-difference",
+        "c => Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data)",
+    )
+    assert len(diff) == 32 * 32 * 4 and max(diff[0::4]) + max(diff[2::4]) > 0
+    page.screenshot(path=str(shots / "editor_reference.png"), full_page=True)
+
+
+def test_a_latent_map_click_changes_the_material(page, ids, small_fit, shots):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz (the latent map's materials)")
+    buf, names = ids
+    click_pixel(page, *interior_pixel(buf, names.index("back")))
+    selected(page, "back")
+    before = pixels(page).float()
+    n = frames(page)
+    box = page.query_selector("canvas.tb-latent").bounding_box()
+    page.mouse.click(box["x"] + 0.3 * box["width"], box["y"] + 0.6 * box["height"])
+    page.wait_for_selector(".tb-latent-pick")
+    page.wait_for_selector(".tb-blend")
+    settle(page, n)
+    wall = buf == names.index("back")
+    assert float((pixels(page).float() - before).abs().amax(-1)[wall].mean()) > 1.0
+    page.screenshot(path=str(shots / "editor_latent.png"), full_page=True)
+
+
+def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small_tensors_file):
+    # a value typed out of range (GGX roughness <= 1)
+    if page.query_selector(".tb-typed-roughness") is None:  # after a measured blend: back to GGX
+        page.select_option("select:near(:text('model'))", label="Beckmann (cook_torrance)")
+        page.select_option("select:near(:text('model'))", label="GGX (cook_torrance)")
+        page.wait_for_selector(".tb-typed-roughness input")
+    page.fill(".tb-typed-roughness input", "7")
+    page.press(".tb-typed-roughness input", "Enter")
+    page.wait_for_selector(".tb-error:has-text('roughness')")
+    # a corrupt tensors file and a scene that fails to load
+    bad = corrupted_copy(Path(small_tensors_file[0]), tmp_path / "corrupt.npz")
+    toml = tmp_path / "broken.toml"
+    toml.write_text('[camera]\norigin = [0, 1, -4]\n[[objects]]\nname = "x"\nmesh = "nope.ply"\nmaterial = "m"\n')
+    for source, words in ((str(bad), "corrupt.npz"), (str(toml), "broken.toml")):
+        page.fill("input[placeholder^='tensors .npz']", source)
+        page.click("button:has-text('Open')")
+        page.wait_for_selector(f".tb-error:has-text('{words}')")
+    page.screenshot(path=str(tmp_path / "editor_error.png"), full_page=True)
+    # still alive: the previous session keeps rendering
+    n = frames(page)
+    page.focus(".tb-param-roughness .noUi-handle")
+    page.keyboard.press("ArrowRight")
+    settle(page, n, quiet=0.5)

@@ -1,0 +1,39 @@
+"""``torch-brdf editor``: prints the URL of a Voilà server that answers, and stops it on SIGTERM."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+
+import pytest
+
+
+def test_editor_command_serves_and_stops(small_tensors_file, tmp_path):
+    if importlib.util.find_spec("voila") is None:
+        if os.environ.get("CI"):
+            pytest.fail("CI must run the editor command test: voila is not installed")
+        pytest.skip("voila is not installed (pip install -e '.[editor]')")
+    cmd = [sys.executable, "-m", "torch_brdf.cli", "editor", str(small_tensors_file[0]), "--cache", str(tmp_path)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    try:
+        line = ""
+        deadline = time.monotonic() + 240
+        while "http://127.0.0.1:" not in line and time.monotonic() < deadline and proc.poll() is None:
+            line = proc.stdout.readline()
+        assert "http://127.0.0.1:" in line, line
+        url = line.split()[2]
+        with urllib.request.urlopen(url + "voila/static/voila.js", timeout=60) as r:  # static: no kernel
+            assert r.status == 200
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0
+        with pytest.raises(OSError):
+            urllib.request.urlopen(url + "voila/static/voila.js", timeout=5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)

@@ -1,0 +1,507 @@
+"""The material editor as an ipywidgets application (JupyterLab or a Voilà page).
+
+``EditorApp(config).show()`` in a notebook; ``torch-brdf editor SCENE_OR_TENSORS`` serves it
+through Voilà (:mod:`torch_brdf.editor.server`). Layout: the frame (click an object to
+select and freeze it), the per-bounce view and bounce count, exposure; the material panel
+(model menu, one control per parameter of the model's own list, a typed-value box that the
+model validates, Fresnel ``f0`` where the tensors have the layer); the lobe (polar plot and
+lit sphere); the reference (background path trace, progress, cancel, difference image and
+relative RMSE); an "open" box to load other tensors or another scene. Every error is shown
+as a message on the page; the kernel and the server stay up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import html
+import math
+import time
+import traceback
+from typing import Any
+
+import ipywidgets as W
+import torch
+from IPython.display import display
+
+from ..brdf import Factored1D, create
+from ..errors import TorchBRDFError
+from ..io.png import to_srgb8
+from .lobe import lit_sphere, lobe_svg
+from .params import ModelChoice, hex_to_linear, linear_to_hex, material_values, model_choices, param_specs
+from .session import EditorSession, ReferenceJob, checked_create, load_source
+from .widgets import FrameView
+
+DEFAULTS: dict[str, Any] = {
+    "source": "cornell_box_glossy",
+    "scene": None,
+    "resolution": 128,
+    "series": "64,1,1,1",
+    "spp": 16,
+    "seed": 0,
+    "cache_dir": None,
+    "reference_spp": 16,
+    "display_width": 512,
+    # torch threads of the kernel: "auto" times three frozen frames on 1 and on 2 threads when
+    # a view opens and keeps 2 only if clearly faster. On a loaded 2-core machine two OpenMP
+    # threads that spin-wait made a 128² edit 20-100x slower (projection 155 ms vs 2.3 ms, frame
+    # 120 vs 9 ms at load 18); on a quiet one they halve a 512² frame. An int fixes the count;
+    # 0 leaves torch's setting alone.
+    "threads": "auto",
+    # a GPLVM fit (GPLVMFit file) of NBRDF materials: shows the measured-material latent map
+    "gplvm": None,
+    "nbrdf_weights": None,
+}
+
+
+_LUT_SIZE = 65536
+_lut: torch.Tensor | None = None
+
+
+def srgb8_fast(img: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
+    """(H, W, 3) linear radiance -> uint8 sRGB, as :func:`~torch_brdf.io.to_srgb8` (clip tone
+    map) within one level: a 65,536-entry table made once by ``to_srgb8`` itself, indexed by
+    the clipped value. ``to_srgb8`` computes the curve in float64 by colour-science, 0.34 s
+    for a 512² frame on a loaded machine; the table takes a tenth of that."""
+    global _lut
+    if _lut is None:
+        ramp = torch.linspace(0, 1, _LUT_SIZE, dtype=torch.float64).reshape(1, -1, 1).expand(1, _LUT_SIZE, 3)
+        _lut = to_srgb8(ramp.contiguous())[0, :, 0].contiguous()
+    x = img.detach().float() * (2.0**exposure)
+    idx = (x.clamp(0, 1) * (_LUT_SIZE - 1) + 0.5).long()
+    return _lut[idx]
+
+
+def _rgb8(img: torch.Tensor, exposure: float = 0.0):
+    return srgb8_fast(img, exposure).numpy()
+
+
+def _difference_rgb(diff: torch.Tensor) -> torch.Tensor:
+    """Signed luminance difference (H, W, 3) -> false colour (red: editor brighter, blue:
+    reference brighter), scaled so the 99th percentile of |difference| is full intensity."""
+    d = (diff * torch.tensor([0.2126, 0.7152, 0.0722])).sum(-1)
+    scale = float(torch.quantile(d.abs().flatten().double(), 0.99)) or 1.0
+    v = (d / scale).clamp(-1, 1)
+    out = torch.stack([v.clamp_min(0), torch.zeros_like(v), (-v).clamp_min(0)], -1)
+    return out.float()
+
+
+class EditorApp:
+    """The editor page. ``config`` keys: see :data:`DEFAULTS` (``source``: tensors file or
+    scene; ``scene``: the scene of a tensors file; precomputation settings for a scene)."""
+
+    def __init__(self, config: dict[str, Any] | None = None):
+        self.config = {**DEFAULTS, **(config or {})}
+        threads = self.config.get("threads")
+        if threads and threads != "auto":
+            torch.set_num_threads(int(threads))
+        self.session: EditorSession | None = None
+        self.job: ReferenceJob | None = None
+        self._busy = False  # True while controls are rebuilt (their observers stay quiet)
+        self._lobe_timer: asyncio.TimerHandle | None = None
+        self.choices, self.skipped = model_choices()
+        self._build()
+        self.open(self.config["source"], self.config.get("scene"))
+
+    # -- layout ----------------------------------------------------------------------------------
+    def _build(self) -> None:
+        dw = int(self.config["display_width"])
+        self.title = W.HTML("<h3 style='margin:4px 0'>torch_brdf material editor</h3>")
+        self.status = W.HTML("", layout=W.Layout(min_height="20px"))
+        self.message = W.HTML("", layout=W.Layout(min_height="20px"))
+        self.frame = FrameView(role="tb-main", measure=True, display_width=dw)
+        self.frame.on_msg(self._on_frame_msg)
+        self.view = W.Dropdown(options=["image"], value="image", description="view")
+        self.bounces = W.IntSlider(value=1, min=1, max=1, description="bounces", continuous_update=False)
+        self.exposure = W.FloatSlider(value=0.0, min=-4, max=4, step=0.25, description="exposure")
+        for w in (self.view, self.bounces, self.exposure):
+            w.observe(lambda _c: self._redraw(), "value")
+        self.selected = W.HTML("<b>click an object</b> in the frame to edit its material")
+        self.model = W.Dropdown(options=[c.label for c in self.choices], description="model")
+        self.model.observe(self._on_model, "value")
+        self.form = W.VBox([])
+        self.f0 = W.FloatSlider(value=1.0, min=0.0, max=1.0, step=0.01, description="Fresnel f0")
+        self.f0.observe(lambda _c: self._apply(), "value")
+        self.f0_box = W.VBox([])
+        self.lobe = W.HTML("")
+        self.sphere = FrameView(role="tb-sphere", display_width=160)
+        self.theta_i = W.FloatSlider(value=45.0, min=0.0, max=85.0, step=1.0, description="θi (lobe)")
+        self.theta_i.observe(lambda _c: self._draw_lobe(), "value")
+        self.ref_spp = W.BoundedIntText(value=int(self.config["reference_spp"]), min=1, max=65536, description="spp")
+        self.ref_button = W.Button(description="Reference", button_style="info", icon="play")
+        self.ref_button.on_click(lambda _b: self.start_reference())
+        self.cancel_button = W.Button(description="Cancel", icon="stop", disabled=True)
+        self.cancel_button.on_click(lambda _b: self.cancel_reference())
+        self.ref_progress = W.IntProgress(value=0, min=0, max=1, description="reference")
+        self.ref_result = W.HTML("")
+        self.ref_image = FrameView(role="tb-reference", display_width=dw // 2)
+        self.diff_image = FrameView(role="tb-difference", display_width=dw // 2)
+        self.latent = None
+        self.latent_view = FrameView(role="tb-latent", display_width=192)
+        self.latent_view.on_msg(self._on_latent_msg)
+        self.latent_info = W.HTML("")
+        self.latent_box = W.VBox([])
+        self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
+        self.open_button = W.Button(description="Open")
+        self.open_button.on_click(lambda _b: self.open(self.open_path.value.strip()))
+        note = "; ".join(f"{k}: {v.split(' (')[0]}" for k, v in sorted(self.skipped.items()))
+        left = W.VBox([self.frame, W.HBox([self.view, self.bounces]), self.exposure])
+        right = W.VBox(
+            [self.selected, self.model, self.form, self.f0_box, W.HTML(f"<small>not in the menu: {note}</small>")],
+            layout=W.Layout(min_width="380px"),
+        )
+        lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
+        self.latent_box.children = [
+            W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            W.HBox([self.latent_view, self.latent_info]),
+        ]
+        self.latent_box.layout.display = "none"
+        reference = W.VBox(
+            [
+                W.HTML("<b>reference</b>: path trace of the current materials, compared with the editor"),
+                W.HBox([self.ref_spp, self.ref_button, self.cancel_button]),
+                self.ref_progress,
+                self.ref_result,
+                W.HBox([self.ref_image, self.diff_image]),
+            ]
+        )
+        self.root = W.VBox(
+            [
+                self.title,
+                self.status,
+                self.message,
+                W.HBox([left, W.VBox([right, lobe, self.theta_i, self.latent_box])]),
+                reference,
+                W.HBox([self.open_path, self.open_button]),
+            ]
+        )
+
+    def show(self) -> None:
+        display(self.root)
+
+    # -- messages --------------------------------------------------------------------------------
+    def error(self, text: str) -> None:
+        self.message.value = f"<div class='tb-error' style='color:#b00020'><b>error:</b> {html.escape(text)}</div>"
+
+    def info(self, text: str) -> None:
+        self.message.value = f"<div class='tb-info' style='color:#555'>{html.escape(text)}</div>"
+
+    def _guard(self, fn, *args):
+        """Run a handler; bad input becomes a message, never an exception out of the kernel."""
+        try:
+            return fn(*args)
+        except TorchBRDFError as exc:
+            self.error(str(exc))
+        except Exception as exc:  # the page must survive anything a handler meets
+            self.error(f"{type(exc).__name__}: {exc}")
+            traceback.print_exc()
+        return None
+
+    # -- loading ---------------------------------------------------------------------------------
+    def open(self, source: str, scene: str | None = None) -> None:
+        """Load tensors or a scene (precomputing if needed); on failure show why and keep the
+        current session (if any)."""
+        if not source:
+            self.error("nothing to open: give a tensors file, a built-in scene name or a scene .toml")
+            return
+        self.status.value = f"loading {html.escape(source)} …"
+        c = self.config
+        try:
+            tensors, sc, note = load_source(
+                source, scene, c["resolution"], c["series"], c["spp"], c["seed"], c["cache_dir"], progress=False
+            )
+            session = EditorSession(tensors, sc)
+        except TorchBRDFError as exc:
+            self.status.value = "" if self.session is None else self.status.value
+            self.error(f"could not open {source!r}: {exc}")
+            return
+        except Exception as exc:
+            self.error(f"could not open {source!r}: {type(exc).__name__}: {exc}")
+            return
+        self.session = session
+        self.cancel_reference()
+        self.status.value = html.escape(
+            f"{note} · {tensors.width}x{tensors.height}, series {tensors.series.key}, "
+            f"{tensors.series.bounces} bounces · object ids from {session.ids_source}"
+            + ("" if sc is not None else " · no scene: no reference")
+        )
+        self.message.value = ""
+        self._busy = True
+        self.view.options, self.view.value = session.views(), "image"
+        self.bounces.max, self.bounces.value = session.bounces, session.bounces
+        self._busy = False
+        self.ref_button.disabled = sc is None
+        if c.get("gplvm") and self.latent is None:
+            self._guard(self._load_latent)
+        start = "back" if "back" in session.editable else session.editable[0]
+        self._guard(self.select, start)
+        if self.config.get("threads") == "auto" and session.selected is not None:
+            n = self._pick_threads()
+            self.status.value += f" · {n} torch thread{'s' if n > 1 else ''} (timed)"
+        self._redraw()
+
+    def _pick_threads(self) -> int:
+        """1 or 2 torch threads, whichever renders the frozen frame faster (median of 3)."""
+        import os
+
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        best = {}
+        for n in (1, 2) if cores > 1 else (1,):
+            torch.set_num_threads(n)
+            times = []
+            for _ in range(3):
+                self.session.render()
+                times.append(self.session.last_frame_s)
+            best[n] = sorted(times)[1]
+        n = 2 if 2 in best and best[2] < 0.7 * best[1] else 1
+        torch.set_num_threads(n)
+        return n
+
+    # -- measured materials ------------------------------------------------------------------------
+    def _load_latent(self) -> None:
+        from .latent import LatentMap
+
+        self.latent = LatentMap(self.config["gplvm"], self.config.get("nbrdf_weights"))
+        self.latent_view.show(self.latent.image(), f"{len(self.latent.names)} materials, latent dims 0-1")
+        self.latent_box.layout.display = None
+
+    def _on_latent_msg(self, _widget, content, _buffers) -> None:
+        if isinstance(content, dict) and content.get("event") == "click":
+            self._guard(self.pick_latent, int(content["x"]), int(content["y"]))
+
+    def pick_latent(self, x: int, y: int) -> None:
+        """Give the selected object the measured blend at latent-map pixel (x, y)."""
+        s = self.session
+        if self.latent is None or s is None or s.selected is None:
+            return
+        self.latent_info.value = "projecting the measured materials onto the bands …"
+        c, info = self.latent.pick(s, s.selected, x, y)
+        s.set_material(s.selected, self.latent.material(s, s.selected, c))
+        heavy = ", ".join(f"{n} {w:+.2f}" for n, w in info["heaviest"])
+        self.latent_info.value = html.escape(
+            f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
+        )
+        self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
+        self._show_blend_form()
+        self.message.value = ""
+        self._redraw()
+        self._draw_lobe()
+
+    def _show_blend_form(self) -> None:
+        self._busy = True
+        self.controls = {}
+        self.form.children = [
+            W.HTML("<i class='tb-blend'>measured blend on the bands (pick a model to edit values)</i>")
+        ]
+        self._busy = False
+
+    # -- selection -------------------------------------------------------------------------------
+    def _on_frame_msg(self, _widget, content, _buffers) -> None:
+        if isinstance(content, dict) and content.get("event") == "click":
+            self._guard(self.click, int(content["x"]), int(content["y"]))
+
+    def click(self, x: int, y: int) -> None:
+        """Select the object seen at pixel (x, y)."""
+        if self.session is None:
+            return
+        obj = self.session.object_at(x, y)
+        if obj is None:
+            self.info(f"nothing at pixel ({x}, {y})")
+            return
+        self.select(obj)
+
+    def select(self, obj: str) -> None:
+        s = self.session
+        secs = s.select(obj)  # SceneError for fixed objects -> message
+        self.message.value = ""
+        mat = s.materials[obj]
+        b = s.basis(obj)
+        bands = f"{b.J} band{'s' if b.J > 1 else ''} over {b.variable}"
+        hint = " (one band: glossy models show as their diffuse equivalent)" if b.J == 1 else ""
+        self.selected.value = (
+            f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
+            f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
+        )
+        if mat.get("type") == "factored_1d":
+            self._show_blend_form()
+        else:
+            choice = self._choice_for(mat)
+            self._busy = True
+            self.model.value = choice.label
+            self._busy = False
+            self._build_form(choice, material_values(mat, param_specs(choice.model, dict(choice.fixed))))
+        self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
+        self._draw_lobe()
+
+    def _choice_for(self, material: dict[str, Any]) -> ModelChoice:
+        for c in self.choices:
+            if c.model == material.get("type") and all(material.get(k, v) == v for k, v in c.fixed):
+                return c
+        raise TorchBRDFError(f"the material {material!r} has no editable model in the menu")
+
+    # -- the material form -----------------------------------------------------------------------
+    def _current_choice(self) -> ModelChoice:
+        return next(c for c in self.choices if c.label == self.model.value)
+
+    def _build_form(self, choice: ModelChoice, values: dict[str, Any]) -> None:
+        """One control per parameter of ``choice``'s own list (see :mod:`.params`)."""
+        self._busy = True
+        self.controls: dict[str, W.Widget] = {}
+        rows = []
+        for spec in param_specs(choice.model, dict(choice.fixed)):
+            v = values.get(spec.name, spec.default)
+            if spec.kind == "rgb":
+                ctl = W.ColorPicker(value=linear_to_hex(v), description=spec.name, concise=False)
+                rows.append(ctl)
+            else:
+                if spec.kind == "log":
+                    ctl = W.FloatLogSlider(
+                        value=v, base=10, min=math.log10(spec.lo), max=math.log10(spec.hi), step=0.02
+                    )
+                else:
+                    ctl = W.FloatSlider(value=v, min=spec.lo, max=spec.hi, step=(spec.hi - spec.lo) / 200)
+                ctl.description, ctl.readout = spec.name, False
+                ctl.continuous_update = True
+                ctl.add_class(f"tb-param-{spec.name}")
+                typed = W.Text(value=f"{v:.4g}", continuous_update=False, layout=W.Layout(width="90px"))
+                typed.add_class(f"tb-typed-{spec.name}")
+                typed.observe(lambda ch, n=spec.name: self._guard(self._on_typed, n, ch["new"]), "value")
+                ctl.observe(lambda ch, t=typed: setattr(t, "value", f"{ch['new']:.4g}"), "value")
+                rows.append(W.HBox([ctl, typed]))
+            ctl.observe(lambda _c: self._apply(), "value")
+            self.controls[spec.name] = ctl
+        self.form.children = rows
+        self._busy = False
+
+    def _values(self) -> dict[str, Any]:
+        out = {}
+        for name, ctl in self.controls.items():
+            out[name] = hex_to_linear(ctl.value) if isinstance(ctl, W.ColorPicker) else float(ctl.value)
+        return out
+
+    def _on_typed(self, name: str, text: str) -> None:
+        """A typed value: the model checks it; in range it moves the slider, else a message."""
+        if self._busy:
+            return
+        ctl = self.controls[name]
+        try:
+            value = float(text)
+        except ValueError:
+            raise TorchBRDFError(f"{name}: {text!r} is not a number") from None
+        if math.isclose(value, float(ctl.value), rel_tol=1e-3):
+            return
+        checked_create(self._current_choice().material({**self._values(), name: value}))  # out of range: raises
+        ctl.value = value
+
+    def _on_model(self, _change) -> None:
+        if self._busy or self.session is None or self.session.selected is None:
+            return
+        choice = self._current_choice()
+        old = self.session.materials[self.session.selected]
+        self._build_form(choice, material_values(old, param_specs(choice.model, dict(choice.fixed))))
+        self._apply()
+
+    def _apply(self) -> None:
+        if self._busy or self.session is None or self.session.selected is None:
+            return
+        self._guard(self._apply_material)
+
+    def _apply_material(self) -> None:
+        s = self.session
+        obj = s.selected
+        f0 = float(self.f0.value) if s.has_fresnel(obj) else None
+        # no controls: a measured blend is shown; only f0 can change it
+        material = self._current_choice().material(self._values()) if self.controls else s.materials[obj]
+        s.set_material(obj, material, f0=f0)
+        self.message.value = ""
+        self._redraw()
+        self._schedule_lobe()
+
+    def _schedule_lobe(self, delay: float = 0.15) -> None:
+        """Redraw the lobe once the edits pause for ``delay`` s (in a kernel's event loop), so
+        that a drag's next input does not wait for it; immediately outside an event loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            self._draw_lobe()
+            return
+        if self._lobe_timer is not None:
+            self._lobe_timer.cancel()
+        self._lobe_timer = loop.call_later(delay, self._draw_lobe)
+
+    # -- drawing ---------------------------------------------------------------------------------
+    def _redraw(self) -> None:
+        if self._busy or self.session is None:
+            return
+        s = self.session
+        t0 = time.perf_counter()
+        img = self._guard(s.render, self.view.value, self.bounces.value)
+        if img is None:
+            return
+        rgb = _rgb8(img, self.exposure.value)
+        total = time.perf_counter() - t0
+        info = (
+            f"frame {s.last_frame_s * 1e3:.1f} ms · projection {s.last_set_s * 1e3:.1f} ms · "
+            f"kernel {total * 1e3 + s.last_set_s * 1e3:.1f} ms"
+        )
+        self.frame.show(rgb, info)
+
+    def _draw_lobe(self) -> None:
+        s = self.session
+        if s is None or s.selected is None:
+            return
+        try:
+            brdf = create(s.materials[s.selected])
+            b = s.basis(s.selected)
+            c = s.projected.get(s.selected)
+            c = s.coefficients(s.selected, brdf) if c is None else c
+            curve = Factored1D(b.band_basis(), c.float(), b.quotient)
+            self.lobe.value = lobe_svg(brdf, curve, self.theta_i.value)
+            self.sphere.show(_rgb8(lit_sphere(brdf)), s.selected)
+        except TorchBRDFError as exc:
+            self.lobe.value = f"<i>no lobe: {html.escape(str(exc))}</i>"
+
+    # -- reference -------------------------------------------------------------------------------
+    def start_reference(self) -> None:
+        """Path-trace the current materials in the background; compare when done."""
+        s = self.session
+        if s is None or s.scene is None:
+            self.error("no scene: the reference needs the scene the tensors were precomputed from")
+            return
+        self.cancel_reference()
+        with torch.no_grad():
+            editor_image = s.renderer.evaluate()  # the materials the reference will trace
+        spp = int(self.ref_spp.value)
+        self.ref_progress.max, self.ref_progress.value = spp, 0
+        self.ref_result.value = f"path tracing {spp} spp …"
+        self.ref_button.disabled, self.cancel_button.disabled = True, False
+
+        def progress(done: int, total: int) -> None:
+            self.ref_progress.value = done
+
+        def finished(job: ReferenceJob) -> None:
+            self.ref_button.disabled, self.cancel_button.disabled = False, True
+            if job.error:
+                self.ref_result.value = f"<span class='tb-error' style='color:#b00020'>{html.escape(job.error)}</span>"
+            elif job.image is None:
+                self.ref_result.value = f"cancelled after {job.done} of {job.spp} spp"
+            else:
+                self._guard(self._show_reference, editor_image, job)
+
+        self.job = ReferenceJob(s.reference_scene(), spp, s.bounces, seed=1, on_progress=progress, on_done=finished)
+        self.job.start()
+
+    def _show_reference(self, editor_image: torch.Tensor, job: ReferenceJob) -> None:
+        from ..metrics import relative_rmse
+
+        rmse = relative_rmse(editor_image, job.image, self.session.mask)
+        diff = editor_image - job.image
+        self.ref_image.show(_rgb8(job.image, self.exposure.value), f"reference {job.spp} spp, {job.seconds:.1f} s")
+        self.diff_image.show(_rgb8(_difference_rgb(diff)), "difference (red: editor brighter)")
+        self.ref_result.value = (
+            f"<span class='tb-rmse'>relative RMSE {rmse:.4f}</span> (pixels that see no emitter; "
+            f"{job.spp} spp reference, {job.seconds:.1f} s; part of it is the reference's own noise)"
+        )
+
+    def cancel_reference(self) -> None:
+        if self.job is not None and self.job.running:
+            self.job.cancel()

@@ -1,0 +1,452 @@
+r"""The editor's state without any user interface: tensors, renderer, selection, materials.
+
+:class:`EditorSession` owns a :class:`~torch_brdf.render.polynomial.PolynomialRenderer` and
+keeps it frozen on the selected object (Ben-Artzi et al. 2008, Eq. 27-28), so that a
+material edit costs a projection onto the object's bands and one frozen frame. The widget
+application (:mod:`torch_brdf.editor.app`) and the tests drive the same session.
+
+Projection at interactive rates. :func:`torch_brdf.brdf.project` is the float64
+cosine-weighted least squares on a ~410k-pair quadrature (about a second per call on two
+shared cores). The session keeps a :class:`FastProjector` per object: the same normal
+equations on a coarser rule (``n_theta_d=2, n_phi_d=4, order=2``: ~10k pairs; the
+:math:`\theta_h` cells keep the band edges, so band boxes are still integrated cell-exactly),
+with the quadrature nodes, band memberships and the matrix assembled once. An edit then
+evaluates the BRDF on the stored pairs and solves a J x J system per channel. With the
+library's rule it reproduces :func:`~torch_brdf.brdf.project` (tested); the coarse rule's
+difference is tested too (Blinn-Phong, a function of :math:`\theta_h` alone, agrees to
+~1e-6; GGX to a few per cent, its Fresnel and masking depend on :math:`\theta_d`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..brdf import BRDF, Factored1D, Lambert, PairQuadrature, create, make_quotient
+from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
+from ..metrics import relative_rmse
+from ..records import PolynomialTensors
+from ..render import PolynomialRenderer
+from ..render.polynomial import emitter_mask
+from ..scene import trace_gbuffer
+from ..transport import path_trace, precompute_polynomial
+
+#: the coarse pair quadrature of interactive projection (see the module docstring)
+FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
+
+
+class FastProjector:
+    """:func:`torch_brdf.brdf.project` with the quadrature, memberships and normal matrix
+    assembled once for one basis and quotient.
+
+    Args:
+        basis: the object's :class:`~torch_brdf.brdf.BandBasis`.
+        quotient: its quotient name or object.
+        anisotropic: integrate over :math:`\\phi_h` too (anisotropic BRDFs).
+        quad_kwargs: :meth:`PairQuadrature.build` resolutions (default :data:`FAST_QUADRATURE`).
+    """
+
+    def __init__(self, basis, quotient="one", anisotropic: bool = False, **quad_kwargs):
+        q = make_quotient(quotient)
+        rule = PairQuadrature.build(basis, anisotropic or q.anisotropic, **(quad_kwargs or FAST_QUADRATURE))
+        J = self.J = basis.J
+        wis, wos, aa, bb, ws = [], [], [], [], []
+        M = torch.zeros(J * J, 3, dtype=torch.float64)
+        with torch.no_grad():
+            for wi, wo, w in rule.chunks():
+                keep = w > 0
+                wi, wo, w = wi[keep], wo[keep], w[keep]
+                qv = q(wi, wo).to(torch.float64)
+                qv = qv.unsqueeze(-1).expand(-1, 3) if qv.ndim == 1 else qv
+                a, b = basis.membership(wi, wo)
+                wq2 = (0.25 * w).unsqueeze(-1) * qv * qv
+                for x, y in ((a, a), (a, b), (b, a), (b, b)):
+                    M.index_add_(0, x * J + y, wq2)
+                wis.append(wi), wos.append(wo), aa.append(a), bb.append(b), ws.append((0.5 * w).unsqueeze(-1) * qv)
+        self.wi, self.wo = torch.cat(wis).double(), torch.cat(wos).double()
+        self.a, self.b, self.w = torch.cat(aa), torch.cat(bb), torch.cat(ws)
+        M = M.reshape(J, J, 3).permute(2, 0, 1)
+        diag = torch.diagonal(M, dim1=-2, dim2=-1)
+        scale = diag.amax(-1, keepdim=True).clamp_min(1e-300)
+        self.matrix = M + torch.diag_embed((1e-13 * scale).expand_as(diag))
+        self.reached = (diag > 1e-14 * scale).T  # (J, 3): bands the rule reaches
+
+    @property
+    def pairs(self) -> int:
+        """Quadrature pairs evaluated per projection."""
+        return self.wi.shape[0]
+
+    def __call__(self, brdf: BRDF) -> torch.Tensor:
+        """Coefficients (J, 3) float64 of ``brdf`` (clamped at 0, as ``project``)."""
+        with torch.no_grad():
+            rho = brdf.eval_local(self.wi, self.wo).to(torch.float64)
+            if rho.ndim == 1:
+                rho = rho.unsqueeze(-1).expand(-1, 3)
+            wr = self.w * rho
+            r = torch.zeros(self.J, 3, dtype=torch.float64).index_add_(0, self.a, wr).index_add_(0, self.b, wr)
+            c = torch.linalg.solve(self.matrix, r.T.unsqueeze(-1)).squeeze(-1).T
+        return torch.where(self.reached, c, torch.zeros_like(c)).clamp_min(0)
+
+
+def object_id_buffer(tensors: PolynomialTensors, scene=None) -> tuple[torch.Tensor, str]:
+    """Which object each pixel shows: (H, W) int64 object ids (-1: nothing), and how it was found.
+
+    The tensors do not store a primary-hit buffer. With ``scene`` (the scene the tensors were
+    precomputed from, same camera size and object names) the buffer comes from the scene's
+    G-buffer, primary rays through the pixel centres (``"primary rays"``). Without it, from
+    the tensors: every
+    entry names its eye object (the block's object), and each pixel takes the object most of
+    its entries name (``"tensor entries"``; pixels that see only an emitter or nothing get -1).
+    """
+    h, w = tensors.height, tensors.width
+    if scene is not None and (scene.camera.width, scene.camera.height) == (w, h):
+        if [o.name for o in scene.objects] == list(tensors.object_names):
+            g = trace_gbuffer(scene)
+            ids = torch.full((h * w,), -1, dtype=torch.int64)
+            ids[g.pixels] = g.object_id
+            return ids.reshape(h, w), "primary rays"
+    counts = torch.zeros(tensors.num_objects, h * w)
+    for b in tensors.blocks:  # every block's entries belong to its eye object, whatever the bounce
+        pix = b.pixels[b.coordinates()[2]]
+        counts[b.object_id].index_add_(0, pix, torch.ones(pix.shape[0]))
+    ids = torch.where(counts.sum(0) > 0, counts.argmax(0), -1)
+    return ids.reshape(h, w), "tensor entries"
+
+
+def scene_with_materials(scene, materials: dict[str, dict[str, Any]]):
+    """A copy of ``scene`` whose named objects use the given material dicts (the geometry and
+    its ray tracer are shared; other objects keep their materials)."""
+    out = copy.copy(scene)
+    out.materials = dict(scene.materials)
+    objects = []
+    for o in scene.objects:
+        if o.name in materials:
+            key = f"editor:{o.name}"
+            out.materials[key] = dict(materials[o.name])
+            o = dataclasses.replace(o, material=key)
+        objects.append(o)
+    out.objects = objects
+    return out
+
+
+class ReferenceJob:
+    """A cancellable background path trace of the current materials (the unbiased reference).
+
+    Passes of one sample per pixel (:func:`~torch_brdf.transport.path_trace` with seed
+    ``seed * 1_000_003 + s`` for pass ``s``) are averaged, so progress is reported and a
+    cancel takes effect between passes.
+
+    Args:
+        scene: the scene with the materials to render (see :func:`scene_with_materials`).
+        spp: passes (samples per pixel).
+        max_bounces: surface vertices per path (the tensors' bounce count).
+        on_progress: called with (passes done, spp) after each pass (from the worker thread).
+        on_done: called with the job when it ends (finished, cancelled or failed).
+    """
+
+    def __init__(
+        self,
+        scene,
+        spp: int,
+        max_bounces: int,
+        seed: int = 0,
+        on_progress: Callable[[int, int], None] | None = None,
+        on_done: Callable[[ReferenceJob], None] | None = None,
+    ):
+        if spp < 1:
+            raise ValueRangeError(f"reference spp must be >= 1; got {spp}")
+        self.scene, self.spp, self.max_bounces, self.seed = scene, int(spp), int(max_bounces), int(seed)
+        self.on_progress, self.on_done = on_progress, on_done
+        self.done = 0
+        self.image: torch.Tensor | None = None
+        self.error: str | None = None
+        self.seconds = 0.0
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="torch_brdf-reference", daemon=True)
+
+    def start(self) -> ReferenceJob:
+        self._thread.start()
+        return self
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the job; True if it has ended."""
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def _run(self) -> None:
+        t0 = time.perf_counter()
+        total = None
+        try:
+            for s in range(self.spp):
+                if self._cancel.is_set():
+                    break
+                img = path_trace(self.scene, 1, self.max_bounces, self.seed * 1_000_003 + s, progress=False)
+                total = img.double() if total is None else total + img.double()
+                self.done = s + 1
+                if self.on_progress is not None:
+                    self.on_progress(self.done, self.spp)
+            if not self._cancel.is_set() and total is not None:
+                self.image = (total / self.done).float()
+        except TorchBRDFError as exc:
+            self.error = str(exc)
+        except Exception as exc:  # a failed reference must not take the editor down: report it
+            self.error = f"{type(exc).__name__}: {exc}"
+        self.seconds = time.perf_counter() - t0
+        if self.on_done is not None:
+            self.on_done(self)
+
+
+def load_scene(spec: str, resolution: int | None = None):
+    """A built-in scene by name or a TOML scene file (``resolution``: square image size).
+
+    The same rule as the CLI's loader; kept here because the CLI imports the editor, which
+    must not import the CLI back (layers)."""
+    from ..scene import BUILTIN_SCENES, Scene
+
+    if spec in BUILTIN_SCENES:
+        return BUILTIN_SCENES[spec](resolution or 128)
+    if spec.endswith(".toml") or Path(spec).is_file():
+        scene = Scene.from_toml(spec)
+        return scene.with_resolution(resolution) if resolution else scene
+    raise SceneError(f"unknown scene {spec!r}: give a tensors .npz, a TOML file or one of {sorted(BUILTIN_SCENES)}")
+
+
+def _cache_name(scene, spec: str, series: str, spp: int, seed: int) -> str:
+    key = f"{spec}|{scene.name}|{scene.camera.width}x{scene.camera.height}|{series}|{spp}|{seed}"
+    if Path(spec).is_file():
+        key += "|" + hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+    digest = hashlib.sha256(key.encode()).hexdigest()[:16]
+    return f"{scene.name}_{scene.camera.width}x{scene.camera.height}_{spp}spp_{digest}.npz"
+
+
+def load_source(
+    source: str,
+    scene: str | None = None,
+    resolution: int | None = None,
+    series: str = "64,1,1,1",
+    spp: int = 16,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+):
+    """Tensors and (if known) the scene for ``source``: a tensors file (``.npz``) or a scene.
+
+    Args:
+        source: a multibounce tensor file written by ``torch-brdf precompute``, or a built-in
+            scene name / TOML scene file (then the tensors are precomputed, or read from
+            ``cache_dir`` where an earlier run with the same settings left them).
+        scene: the scene of a tensors file (default: the built-in scene named in the file's
+            settings, if there is one; else no scene: no reference, ids from the tensors).
+        resolution, series, spp, seed: precomputation settings for a scene.
+        progress: tqdm bar of the precomputation.
+    Returns:
+        (tensors, scene or None, note): ``note`` says where the tensors came from.
+    Raises:
+        TorchBRDFError: the source does not load (missing, corrupt, unknown scene).
+    """
+    path = Path(source)
+    if path.suffix == ".npz" or (path.is_file() and not source.endswith(".toml")):
+        if not path.is_file():
+            raise FileFormatError(f"no tensors file at {source!r}")
+        tensors = PolynomialTensors.load(path)
+        name = scene or tensors.meta.get("scene")
+        sc = None
+        if name:
+            try:
+                sc = load_scene(str(name)).with_resolution(tensors.width, tensors.height)
+            except TorchBRDFError:
+                if scene is not None:
+                    raise
+        return tensors, sc, f"tensors {path.name}"
+    sc = load_scene(source, resolution)
+    if cache_dir is not None:
+        cached = Path(cache_dir) / _cache_name(sc, source, series, spp, seed)
+        if cached.is_file():
+            return PolynomialTensors.load(cached), sc, f"cached precomputation {cached.name}"
+    tensors = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=progress)
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        tensors.save(cached)
+    return tensors, sc, f"precomputed {sc.name} ({series}, {spp} spp)"
+
+
+def checked_create(material: dict[str, Any]) -> BRDF:
+    """``create(material)``, with a refusal naming the parameter at fault (the transforms'
+    own message says only "value must lie in [0.0, 1.0]")."""
+    try:
+        return create(material)
+    except ValueRangeError as exc:
+        model = material.get("type")
+        for key, value in material.items():
+            if key == "type":
+                continue
+            try:
+                create({"type": model, key: value})
+            except ValueRangeError:
+                raise ValueRangeError(f"{model} {key}: {exc}") from None
+        raise
+
+
+class EditorSession:
+    """Materials of a precomputed view, edited one object at a time.
+
+    Args:
+        tensors: the multibounce tensors.
+        scene: the scene they were precomputed from (for the object ids by primary rays,
+            the starting materials and the reference); None: tensors only.
+    """
+
+    def __init__(self, tensors: PolynomialTensors, scene=None):
+        self.tensors, self.scene = tensors, scene
+        names = list(tensors.object_names)
+        self.editable = [n for n, b in zip(names, tensors.bases, strict=True) if b is not None]
+        mats: dict[str, dict[str, Any]] = {}
+        if scene is not None and [o.name for o in scene.objects] == names:
+            mats = {o.name: dict(scene.materials[o.material]) for o in scene.objects if o.name in self.editable}
+        self.materials = {n: mats.get(n, {"type": "lambert", "albedo": 0.5}) for n in self.editable}
+        self.f0: dict[str, Any] = {n: None for n in self.editable}
+        self.renderer = PolynomialRenderer(tensors, self.materials)
+        self.ids, self.ids_source = object_id_buffer(tensors, scene)
+        self.mask = emitter_mask(tensors)
+        self.selected: str | None = None
+        self._projectors: dict[tuple[str, bool], FastProjector] = {}
+        self.projected: dict[str, torch.Tensor] = {}  # obj -> (J, 3) last projected curve
+        self.last_frame_s = 0.0
+        self.last_set_s = 0.0
+
+    # -- selection ----------------------------------------------------------------------------
+    @property
+    def bounces(self) -> int:
+        return self.renderer.max_bounces
+
+    def object_at(self, x: int, y: int) -> str | None:
+        """The object seen at pixel column ``x``, row ``y`` (None: nothing or out of the image)."""
+        if not (0 <= x < self.tensors.width and 0 <= y < self.tensors.height):
+            return None
+        m = int(self.ids[y, x])
+        return None if m < 0 else self.tensors.object_names[m]
+
+    def select(self, obj: str) -> float:
+        """Select and freeze an editable object; returns the freeze time in seconds.
+
+        Raises:
+            SceneError: unknown or fixed object (fixed objects' BRDFs are baked in).
+        """
+        if obj not in self.tensors.object_names:
+            raise SceneError(f"unknown object {obj!r}; objects: {self.tensors.object_names}")
+        if obj not in self.editable:
+            raise SceneError(f"{obj!r} is fixed: its BRDF was baked into the precomputation, it cannot be edited")
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            self.renderer.freeze(obj)
+        self.selected = obj
+        return time.perf_counter() - t0
+
+    def basis(self, obj: str):
+        return self.tensors.bases[self.tensors.object_id(obj)]
+
+    def has_fresnel(self, obj: str) -> bool:
+        return bool(self.basis(obj).fresnel)
+
+    # -- materials ----------------------------------------------------------------------------
+    def coefficients(self, obj: str, brdf: BRDF) -> torch.Tensor:
+        """The object's eye-vertex coefficients (J, 3) for ``brdf`` (fast projection; Lambert
+        on a one-band constant quotient exactly, as the renderer does)."""
+        b = self.basis(obj)
+        if type(brdf) is Lambert and b.quotient == "one":
+            return (brdf.reflectance.detach().double() / math.pi).reshape(1, 3).expand(b.J, 3)
+        basis = b.band_basis()
+        if type(brdf) is Factored1D and torch.equal(brdf.basis.edges, basis.edges) and brdf.quotient.key == b.quotient:
+            return brdf.coefficients.detach().double()  # a curve on these bands is used as is
+        key = (obj, bool(brdf.anisotropic))
+        if key not in self._projectors:
+            self._projectors[key] = FastProjector(basis, b.quotient, brdf.anisotropic)
+        return self._projectors[key](brdf)
+
+    def set_material(self, obj: str, material: dict[str, Any], f0=None) -> float:
+        """Give ``obj`` a material dict (validated by the model itself); returns the seconds spent.
+
+        Raises:
+            ValueRangeError: a value out of the model's range, an unknown model, or ``f0``
+                outside [0, 1] / on an object precomputed without the Fresnel layer.
+            SceneError: unknown or fixed object.
+        """
+        if obj not in self.editable:
+            self.select(obj)  # raises the readable error
+        t0 = time.perf_counter()
+        brdf = checked_create(material)
+        b = self.basis(obj)
+        base = self.coefficients(obj, brdf)
+        if b.fresnel:
+            f = torch.as_tensor(1.0 if f0 is None else f0, dtype=torch.float64).reshape(-1).expand(3)
+            if bool(((f < 0) | (f > 1)).any()) or not bool(torch.isfinite(f).all()):
+                raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
+            c = torch.cat([base * f, base * (1 - f)], 0)
+        elif f0 is not None:
+            raise ValueRangeError(f"{obj!r} was precomputed without a Fresnel layer: f0 cannot be edited")
+        else:
+            c = base
+        self.renderer.set_coefficients(obj, c)
+        self.materials[obj], self.f0[obj] = dict(material), f0
+        self.projected[obj] = base
+        if self.selected is not None and self.renderer.frozen_object is None:
+            self.select(self.selected)  # another object's constants changed: freeze again
+        self.last_set_s = time.perf_counter() - t0
+        return self.last_set_s
+
+    # -- images -------------------------------------------------------------------------------
+    def views(self) -> list[str]:
+        """Names of the per-bounce views: ``image``, ``emission``, ``bounce 1`` ... ``bounce N``."""
+        return ["image", "emission"] + [f"bounce {n}" for n in range(1, self.bounces + 1)]
+
+    def render(self, view: str = "image", bounces: int | None = None) -> torch.Tensor:
+        """The current frame (H, W, 3) linear radiance; ``view`` one of :meth:`views`,
+        ``bounces`` the number of bounces summed in the ``image`` view (default all). The
+        full image with all bounces uses the frozen fast path."""
+        nb = self.bounces if bounces is None else int(bounces)
+        if not 1 <= nb <= self.bounces:
+            raise ValueRangeError(f"bounces must lie in [1, {self.bounces}]; got {bounces}")
+        if view not in self.views():
+            raise ValueRangeError(f"unknown view {view!r}; views: {self.views()}")
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            if view == "image" and nb == self.bounces:
+                img = self.renderer()
+            else:
+                parts = self.renderer.evaluate(per_bounce=True)
+                img = sum(parts[1 : nb + 1], parts[0]) if view == "image" else parts[self.views().index(view) - 1]
+        self.last_frame_s = time.perf_counter() - t0
+        return img
+
+    def reference_scene(self):
+        """The scene with the editor's current materials (None without a scene)."""
+        if self.scene is None:
+            return None
+        return scene_with_materials(self.scene, self.materials)
+
+    def compare(self, reference: torch.Tensor) -> tuple[torch.Tensor, float]:
+        """Full evaluation against ``reference`` (H, W, 3): the difference image (H, W, 3) and
+        the relative RMSE over the pixels that see no emitter (:func:`emitter_mask`)."""
+        with torch.no_grad():
+            img = self.renderer.evaluate()
+        return img - reference, relative_rmse(img, reference, self.mask)
