@@ -5,7 +5,6 @@ from __future__ import annotations
 import errno
 import json
 
-import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -181,8 +180,27 @@ def test_debug_shows_the_traceback(tmp_path, monkeypatch):
     assert res.exit_code == 1 and "Traceback" in res.stderr and "error: disk full" in res.stderr
 
 
+class _FullDisk:
+    """A file whose writes fail with ENOSPC (the file itself is created, as on a full disk)."""
+
+    def __init__(self, path, mode="r", *args, **kwargs):
+        self.f = open(path, mode, *args, **kwargs)
+        self.name = path
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device", self.name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
 def test_disk_full_during_a_record_save_is_one_line(tmp_path, monkeypatch):
-    monkeypatch.setattr(np, "savez", _raiser(OSError(errno.ENOSPC, "No space left on device")))
+    import torch_brdf.io.arrays
+
+    monkeypatch.setattr(torch_brdf.io.arrays, "open", _FullDisk, raising=False)
     args = ["precompute", "cornell_box", "--resolution", "8", "--spp", "1", "--series", "2,1", "--no-resume"]
     _one_line_error(runner.invoke(app, [*args, "--out", str(tmp_path / "t.npz")]), 1, "disk full")
     assert [p.name for p in tmp_path.iterdir()] == []  # no temporary file left behind
