@@ -26,7 +26,13 @@ Prints progress lines, then one JSON object as the last line:
   three QPs through qpsolvers (ProxQP eps_abs 1e-10, Clarabel defaults; best of ``repeats``),
   and ``solve_over_proxqp`` = solve_s / proxqp_solve_s, ``objective_rel_diff_proxqp``;
 * ``fit_s``: the whole ``fit()`` call (normal equations + solve + report) with the default
-  method (ADMM).
+  method (interior point with polishing, minimum-norm ridge 1e-8);
+* ``qp_set``: the QP set of ``tests/inverse/qp_set.py`` (partial masks, zero-residual targets,
+  rank-deficient H, an out-of-family Ward target, shared, rho_d -> 1) built on this view:
+  ``problems``; per solver (``default`` = ``solve_qp`` interior point, ``admm`` without its
+  fallback, ``admm_fallback``, ``proxqp`` at eps 1e-10, ``clarabel`` defaults): ``solved``
+  (objective within 1e-6 relative of the reference -- ProxQP at eps 1e-12, Clarabel where it
+  returns nothing -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
 
 The reference solvers need the ``reference`` extra; without it their fields are null.
 """
@@ -39,7 +45,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # ../shared/FACTS.md: scipy 
 
 import argparse
 import json
+import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -61,6 +70,9 @@ from torch_brdf.inverse import (
 )
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.scene import teatray
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' QP set
+from tests.inverse.qp_set import objective_gap, qp_set, reference_solution, violation
 
 F0, KD = 0.9, 0.3
 
@@ -101,6 +113,62 @@ def _reference(problems, solver, repeats):
     seconds, xs = best_of(run, repeats)
     obj = sum(pr.sum_of_squares(torch.from_numpy(x)) for pr, x in zip(problems, xs, strict=True))
     return seconds, obj
+
+
+def _qp_solvers():
+    """name -> solve(pr) -> x (J,) float64, or raises / returns None on failure."""
+    import qpsolvers
+    from scipy.sparse import csc_matrix
+
+    def ref(solver, **kw):
+        def run(pr):
+            a = (pr.H.numpy(), -pr.f.numpy(), pr.G.numpy(), pr.h.numpy())
+            if solver == "clarabel":
+                a = (csc_matrix(a[0]), a[1], csc_matrix(a[2]), a[3])
+            x = qpsolvers.solve_qp(*a, lb=np.zeros(pr.H.shape[0]), solver=solver, **kw)
+            return None if x is None else torch.from_numpy(x)
+
+        return run
+
+    return {
+        "default": lambda pr: solve_qp(pr.H, pr.f, pr.G, pr.h).x,
+        "admm": lambda pr: solve_qp(pr.H, pr.f, pr.G, pr.h, method="admm", fallback=False).x,
+        "admm_fallback": lambda pr: solve_qp(pr.H, pr.f, pr.G, pr.h, method="admm").x,
+        "proxqp": ref("proxqp", eps_abs=1e-10, eps_rel=0.0),
+        "clarabel": ref("clarabel"),
+    }
+
+
+def qp_set_benchmark(px, ls, vis, rec) -> dict:
+    """Success counts and times of every solver over the QP set (see the module docstring)."""
+    try:
+        solvers = _qp_solvers()
+    except ImportError:
+        return {"error": "qpsolvers not installed"}
+    problems = qp_set(px, ls, vis, rec)
+    refs = [reference_solution(pr)[0] for _, pr in problems]
+    out = {"problems": len(problems)}
+    for name, solve in solvers.items():
+        times, solved, failed = [], 0, []
+        for (label, pr), ref in zip(problems, refs, strict=True):
+            t0 = time.perf_counter()
+            try:
+                x = solve(pr)
+            except Exception:  # a failure is what is counted here
+                x = None
+            times.append(time.perf_counter() - t0)
+            ok = x is not None and abs(objective_gap(pr, x, ref)) <= 1e-6 and violation(pr, x) <= 1e-8
+            solved += int(ok)
+            if not ok:
+                failed.append(label)
+        out[name] = {
+            "solved": solved,
+            "total_s": round(sum(times), 4),
+            "median_s": round(statistics.median(times), 5),
+            "failed": failed,
+        }
+        print(f"QP set, {name}: {solved}/{len(problems)} solved, {sum(times):.2f} s", flush=True)
+    return out
 
 
 def main() -> None:
@@ -144,6 +212,7 @@ def main() -> None:
     admm_viol = max(r.violation for r in admm)
     print(f"admm {admm_s * 1e3:.1f} ms, objective {admm_obj:.6g}, violation {admm_viol:.2e}", flush=True)
     fit_s, res = best_of(lambda: fit(rec, target, kd=KD, energy=energy), repeats)
+    print(f"fit (default) {fit_s * 1e3:.1f} ms", flush=True)
 
     proxqp_s, proxqp_obj = _reference(problems, "proxqp", repeats)
     clarabel_s, clarabel_obj = _reference(problems, "clarabel", repeats)
@@ -177,6 +246,7 @@ def main() -> None:
         "clarabel_objective": clarabel_obj,
         "solve_over_proxqp": None if proxqp_s is None else round(solve_s / proxqp_s, 3),
         "objective_rel_diff_proxqp": None if proxqp_obj is None else (objective - proxqp_obj) / proxqp_obj,
+        "qp_set": qp_set_benchmark(px, ls, vis, rec),
         "quick": bool(args.quick),
     }
     print(json.dumps(out))

@@ -120,7 +120,7 @@ def test_precompute_visibility_and_relight(tmp_path):
     assert res.exit_code == 0, res.output
     info = json.loads(res.output[res.output.index('{"out"') :].splitlines()[0])
     assert info["vertices"] == 13 and info["bytes_per_vertex"] > 0
-    assert len(VertexVisibility.load(out).vertices) == 13 and not (tmp_path / "vis.npz.chunks").exists()
+    assert len(VertexVisibility.load(out).vertices) == 13 and not (tmp_path / "vis.chunks").exists()
     img_out = tmp_path / "frame"
     res = runner.invoke(app, ["relight", str(toml), "--visibility", str(out), "--out", str(img_out), "--rotate", "0.5"])
     assert res.exit_code == 0, res.output

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torch_brdf.errors import ShapeError, ValueRangeError
-from torch_brdf.metrics import cosine_weighted_rmse, log_relative_rmse, psnr, relative_l1, relative_rmse
+from torch_brdf.metrics import cosine_weighted_rmse, hdr_flip, log_relative_rmse, psnr, relative_l1, relative_rmse
 
 F64 = torch.float64
 
@@ -132,3 +132,17 @@ def test_bad_input_is_refused():
             metric(a, a, torch.ones(2, 3))
     with pytest.raises(ShapeError):
         cosine_weighted_rmse(torch.ones(6), torch.ones(6), torch.ones(4))
+
+
+def test_hdr_flip_orders_errors(gen):
+    pytest.importorskip("flip_evaluator")
+    ref = torch.rand(32, 32, 3, generator=gen) * 4
+    assert hdr_flip(ref, ref) == pytest.approx(0.0, abs=1e-6)
+    small = ref * (1 + 0.05 * torch.randn(32, 32, 3, generator=gen)).clamp_min(0)
+    big = ref * (1 + 0.5 * torch.randn(32, 32, 3, generator=gen)).clamp_min(0)
+    assert 0 < hdr_flip(small, ref) < hdr_flip(big, ref) <= 1
+    m = torch.zeros(32, 32, dtype=torch.bool)
+    m[:16] = True
+    assert math.isfinite(hdr_flip(big, ref, m))
+    with pytest.raises(ShapeError):
+        hdr_flip(ref[:2], ref)

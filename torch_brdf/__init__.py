@@ -8,7 +8,8 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.io`: EXR / PNG images, the versioned checksummed array files, MERL files.
 * :mod:`torch_brdf.sphere`: sampling warps and pdfs, lat-long maps, cubemap blocks, DCT, Haar.
 * :mod:`torch_brdf.frame`: local shading frames, half/difference angles.
-* :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, log-RMSE ...).
+* :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, HDR-FLIP, log-RMSE ...).
+* :mod:`torch_brdf.linalg`: dense linear algebra shared by the package (the Cholesky with jitter).
 * :mod:`torch_brdf.brdf`: the BRDF base class, analytic, microfacet, measured and SRBF models,
   1-D band bases.
 * :mod:`torch_brdf.scene`: meshes, embree ray tracing, camera and its G-buffer, lights,
@@ -19,6 +20,8 @@ one; ``tests/test_layers.py`` keeps it so):
   tensors, vertex visibility, Mitsuba comparisons).
 * :mod:`torch_brdf.manifold`: the GPLVM manifold of measured BRDFs, its materials and evaluation.
 * :mod:`torch_brdf.inverse`: paint strokes, transfer functions and constrained BRDF fits.
+* :mod:`torch_brdf.denoise`: guide buffers and denoisers of precomputed basis images (a linear
+  guide-only à-trous filter, Open Image Denoise) that keep every edit exact; OIDN per frame.
 * :mod:`torch_brdf.render`: modules that turn records plus coefficients into images
   (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
 * :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.

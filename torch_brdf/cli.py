@@ -1,5 +1,5 @@
-"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``,
-``fit-strokes``, ``precompute-visibility``, ``relight`` and ``editor``.
+"""The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
+``fit-strokes``, ``precompute-visibility``, ``relight``, ``editor`` and ``fetch-data``.
 
 Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
 never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
@@ -49,11 +49,29 @@ MAX_BOUNCES = 64
 
 _STATE = {"debug": False}
 
+#: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
+PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"torch_brdf {version('torch_brdf')}")
+        except PackageNotFoundError:  # pragma: no cover - a source tree that is not installed
+            typer.echo("torch_brdf (not installed)")
+        raise typer.Exit()
+
 
 @app.callback()
-def _main(
+def main(
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the package version and exit."
+    ),
     debug: bool = typer.Option(False, "--debug", help="On failure print the full traceback, not just one line."),
 ):
+    """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
 
 
@@ -132,18 +150,20 @@ def load_scene(spec: str, resolution: int | None = None):
     raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
 
 
-def _render_to(scene, out: Path, spp: int, bounces: int, seed: int, exposure: float, checkpoint: bool) -> dict:
-    from .io import write_exr, write_png
+def _render_to(
+    scene, out: Path, spp: int, bounces: int, seed: int, exposure, checkpoint: bool, progress: bool | None = None
+) -> dict:
+    from .io import write_exr
     from .transport.pathtrace import path_trace
 
     out = out.with_suffix("")
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
-    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt)
+    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
-    write_png(out.with_suffix(".png"), image, exposure=exposure)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
     if ckpt is not None and ckpt.exists():
         ckpt.unlink()
     return {
@@ -153,7 +173,18 @@ def _render_to(scene, out: Path, spp: int, bounces: int, seed: int, exposure: fl
         "spp": spp,
         "max_bounces": bounces,
         "size": [scene.camera.width, scene.camera.height],
+        "exposure": stops,
     }
+
+
+def _preview(path: Path, image, exposure: float | None) -> float:
+    """Write the sRGB PNG preview; ``exposure`` None: automatic (the 99th percentile of the
+    lit pixels' luminance at white). Returns the exposure used (stops)."""
+    from .io import auto_exposure, write_png
+
+    stops = auto_exposure(image) if exposure is None else float(exposure)
+    write_png(path, image, exposure=stops)
+    return round(stops, 3)
 
 
 _RESOLUTION = {"min": 8, "max": MAX_IMAGE_SIDE}
@@ -169,10 +200,12 @@ def demo(
     spp: int = typer.Option(16, **_SPP, help="Samples per pixel."),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
+    progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
     scene = load_scene("cornell_box", resolution)
-    typer.echo(json.dumps(_render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False)))
+    info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
+    typer.echo(json.dumps(info))
 
 
 @app.command()
@@ -184,12 +217,15 @@ def render(
     spp: int = typer.Option(16, **_SPP),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0),
-    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
+    progress: bool = PROGRESS,
 ):
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
-    check_real(exposure, "--exposure")
-    info = _render_to(load_scene(scene, resolution), out, spp, bounces, seed, exposure, checkpoint=resume)
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    sc = load_scene(scene, resolution)
+    info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -215,7 +251,10 @@ def precompute(
     bases: str = typer.Option(None, help='JSON per-object basis overrides, e.g. \'{"left": {"J": 8}}\'.'),
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
     storage: str = typer.Option("float32", help="float32 or float16 (half the bytes, rel. error <= 4.9e-4)."),
-    resume: bool = typer.Option(True, help="Keep finished tiles in OUT.tiles/ and resume from them."),
+    resume: bool = typer.Option(
+        True, help="Keep finished tiles in OUT with .tiles for .npz (out/tensors.tiles/) and resume from them."
+    ),
+    progress: bool = PROGRESS,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -236,7 +275,14 @@ def precompute(
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
     T = precompute_polynomial(
-        sc, parsed, spp=spp, seed=seed, bases=overrides, env_point_lights=env_point_lights, checkpoint=tiles
+        sc,
+        parsed,
+        spp=spp,
+        seed=seed,
+        bases=overrides,
+        env_point_lights=env_point_lights,
+        checkpoint=tiles,
+        progress=progress,
     )
     seconds = time.perf_counter() - t0
     T.save(out, storage=storage)
@@ -244,6 +290,62 @@ def precompute(
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": series, "spp": spp, "mb_per_bounce": mb}
     info["rays"] = T.meta["rays"]
+    typer.echo(json.dumps(info))
+
+
+def _parse_set(item: str) -> tuple[str, str, object]:
+    """``OBJECT.PARAM=VALUE`` -> (object, param, value); VALUE is JSON or else a plain word."""
+    key, sep, raw = item.partition("=")
+    obj, dot, param = key.strip().rpartition(".")
+    if not sep or not dot or not obj or not param:
+        raise ValueRangeError(f"--set expects OBJECT.PARAM=VALUE (e.g. back.exponent=400); got {item!r}")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw.strip()
+    return obj, param, value
+
+
+@app.command()
+@_cli
+def edit(
+    tensors: Path = typer.Argument(..., help="Tensors written by precompute."),
+    sets: list[str] = typer.Option(
+        [], "--set", help="OBJECT.PARAM=VALUE, repeatable: back.exponent=400, back.kd=[0.2,0.1,0.1], back.type=phong."
+    ),
+    scene: str = typer.Option(
+        None, help="The precomputed scene, for its materials (default: the name saved in TENSORS)."
+    ),
+    out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+):
+    """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
+    from .io import write_exr
+    from .records import PolynomialTensors
+    from .render import PolynomialRenderer
+
+    edits = [_parse_set(s) for s in sets]  # before loading anything
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    T = PolynomialTensors.load(tensors)
+    sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
+    editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
+    by_name = {o.name: o for o in sc.objects}
+    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
+    for obj, param, value in edits:
+        if obj not in materials:
+            raise SceneError(f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}")
+        materials[obj][param] = value
+    t0 = time.perf_counter()
+    image = PolynomialRenderer(T, materials)().detach()
+    seconds = time.perf_counter() - t0
+    out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out.with_suffix(".exr"), image)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
+    info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+    info["exposure"] = stops
+    info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
     typer.echo(json.dumps(info))
 
 
@@ -264,6 +366,7 @@ def fit_strokes(
     cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
     seed: int = typer.Option(0, min=0),
+    progress: bool = PROGRESS,
 ):
     """Inverse BRDF design: fit SRBF coefficients to painted strokes and re-render (Iwasaki et al.)."""
     from .inverse.design import DesignConfig, design, load_strokes
@@ -274,19 +377,24 @@ def fit_strokes(
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
     cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
-    typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size)))
+    typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
 
 
 @app.command("precompute-visibility")
 @_cli
 def precompute_visibility_cmd(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
-    out: Path = typer.Option(Path("out/visibility.npz"), help="Output record (.npz, versioned, checksummed)."),
-    resolution: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
+    out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
+    resolution: int = typer.Option(
+        64, "--resolution", "--cubemap", help="Cubemap texels per face side (a multiple of 16: 64 or 128)."
+    ),
     supersample: int = typer.Option(1, min=1, max=16, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
     bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
     chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
-    resume: bool = typer.Option(True, help="Keep finished chunks in OUT.chunks/ and resume from them."),
+    resume: bool = typer.Option(
+        True, help="Keep finished chunks in OUT with .chunks for .npz (out/vis.chunks/) and resume from them."
+    ),
+    progress: bool = PROGRESS,
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     from .records.cache import remove_cache
@@ -298,9 +406,9 @@ def precompute_visibility_cmd(
     if bits not in BITS:
         raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
     sc = load_scene(scene)
-    ck = out.parent / (out.name + ".chunks") if resume else None
+    ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
-    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck)
+    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)
@@ -319,34 +427,38 @@ def precompute_visibility_cmd(
 @_cli
 def relight(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
-    visibility: Path = typer.Option(..., help="Record written by precompute-visibility."),
+    visibility: Path = typer.Option(Path("out/vis.npz"), help="Record written by precompute-visibility."),
     out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
-    exposure: float = typer.Option(0.0, help="PNG exposure in stops."),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+    resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
-    from .io import write_exr, write_png
+    from .io import write_exr
     from .render.triple import METHODS, TripleProductRenderer
     from .transport.visibility import VertexVisibility
 
     if method not in METHODS:
         raise ValueRangeError(f"--method must be one of {METHODS}; got {method!r}")
     check_real(rotate, "--rotate")
-    check_real(exposure, "--exposure")
-    sc = load_scene(scene)
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    sc = load_scene(scene, resolution)
     vis = VertexVisibility.load(visibility)
     r = TripleProductRenderer(sc, vis)
     if rotate:
         r.set_lighting(r.envmap.rotated(rotate))
     t0 = time.perf_counter()
-    image, stats = r.render(method=method)
+    image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
     seconds = time.perf_counter() - t0
     out = out.with_suffix("")
     out.parent.mkdir(parents=True, exist_ok=True)
     write_exr(out.with_suffix(".exr"), image)
-    write_png(out.with_suffix(".png"), image, exposure=exposure)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
     info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+    info["exposure"] = stops
     if stats is not None:
         info["stats"] = stats.as_dict()
     typer.echo(json.dumps(info))
@@ -372,6 +484,21 @@ def editor(
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
+
+
+@app.command("fetch-data")
+@_cli
+def fetch_data_cmd(
+    dest: Path = typer.Option(None, help="Data folder (default $TORCH_BRDF_DATA, else ~/.cache/torch_brdf/data)."),
+    url: str = typer.Option(None, help="Base URL of a mirror of the data folder (default $TORCH_BRDF_DATA_URL)."),
+    file: list[str] = typer.Option(None, help="Only these files (relative paths, repeatable)."),
+    progress: bool = PROGRESS,
+):
+    """Download the shared data (meshes, HDR maps, NBRDF weights) and verify pinned SHA-256s."""
+    from .data import fetch_data
+
+    paths = fetch_data(dest, url, file or None, progress)
+    typer.echo(json.dumps({"files": [str(p) for p in paths]}))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,7 +9,9 @@ of the pixels that count (all channels of a counted pixel count):
 - :func:`relative_rmse`: :math:`\sqrt{\sum (I - R)^2 / \sum R^2}`, the relative L2 error
   (equal to :math:`\mathrm{rms}(I - R)/\mathrm{rms}(R)`);
 - :func:`relative_l1`: :math:`\sum |I - R| / \sum |R|`;
-- :func:`psnr`: :math:`10\log_{10}(\mathrm{peak}^2/\mathrm{MSE})` in dB.
+- :func:`psnr`: :math:`10\log_{10}(\mathrm{peak}^2/\mathrm{MSE})` in dB;
+- :func:`hdr_flip`: NVIDIA's perceptual HDR-FLIP (``flip-evaluator``, Andersson et al. 2021,
+  the optional extra ``denoise``), the mean of its per-pixel map (0 = identical).
 
 BRDF rows on a MERL grid, ``(M, 3 B)`` or ``(3 B,)`` (RGB blocks of B bins), scored after
 Nielsen, Jensen and Ramamoorthi 2015 ("On Optimal, Minimal BRDF Sampling for Reflectance
@@ -27,11 +29,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from .errors import ShapeError, ValueRangeError
+from .errors import ShapeError, TorchBRDFError, ValueRangeError
 
-__all__ = ["cosine_weighted_rmse", "log_relative_rmse", "psnr", "relative_l1", "relative_rmse"]
+__all__ = ["cosine_weighted_rmse", "hdr_flip", "log_relative_rmse", "psnr", "relative_l1", "relative_rmse"]
 
 F64 = torch.float64
 
@@ -101,6 +104,32 @@ def psnr(
     if mse == 0:
         return math.inf
     return 10 * math.log10(p * p / mse)
+
+
+def hdr_flip(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """Mean HDR-FLIP error of ``image`` against ``reference`` (0 = identical; higher worse).
+
+    Args:
+        image, reference: (H, W, 3) linear radiance (negative values clamped to 0).
+        mask: (H, W) bool pixels to average over (default all); FLIP itself sees the whole
+            images (its filters are spatial).
+    Returns:
+        The mean of the per-pixel FLIP map (default viewing: 67 pixels per degree; exposure
+        range and tone mapper (ACES) chosen by FLIP from the reference).
+    """
+    if image.shape != reference.shape or image.ndim != 3 or image.shape[-1] != 3:
+        raise ShapeError(f"expected two (H, W, 3) images; got {tuple(image.shape)} and {tuple(reference.shape)}")
+    try:
+        import flip_evaluator
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise TorchBRDFError("HDR-FLIP needs the optional extra: pip install 'torch_brdf[denoise]'") from exc
+    ref = np.ascontiguousarray(reference.detach().float().clamp_min(0).numpy())
+    test = np.ascontiguousarray(image.detach().float().clamp_min(0).numpy())
+    err_map, mean, _ = flip_evaluator.evaluate(ref, test, "HDR", applyMagma=False)
+    if mask is None:
+        return float(mean)
+    err = np.asarray(err_map).reshape(image.shape[0], image.shape[1], -1)[..., 0]
+    return float(err[mask.numpy()].mean())
 
 
 def _cosine_map(cosine, like: torch.Tensor) -> torch.Tensor:

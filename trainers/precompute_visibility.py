@@ -3,7 +3,7 @@
     python trainers/precompute_visibility.py bunny_relight --resolution 64 --out out/bunny_vis.npz
 
 The same as ``torch-brdf precompute-visibility`` (see ``--help``): finished chunks of vertices
-are checkpointed next to the output (``OUT.chunks/``), so an interrupted run (Ctrl-C)
+are checkpointed next to the output (``out/bunny_vis.chunks/``), so an interrupted run (Ctrl-C)
 continues where it stopped when run again with the same arguments; the record is written
 atomically with a format version and a checksum (the maps as a base-128 varint stream).
 Open it with ``VertexVisibility.load`` and render with ``TripleProductRenderer`` or

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_brdf.errors import InfeasibleError, ShapeError, ValueRangeError
+from torch_brdf.errors import InfeasibleError, NumericalError, ShapeError, ValueRangeError
 from torch_brdf.inverse import StrokeTarget, energy_rows, fit, solve_qp
 
 METHODS = ["interior_point", "admm"]
@@ -123,8 +123,9 @@ def test_methods_agree_on_random_problems(seed):
     H, f, G, h = _problem(gen, n=200 + 50 * seed, singular=seed % 2 == 1)
     h = h * (0.3 + 0.2 * seed)
     ip = solve_qp(H, f, G, h, method="interior_point")
-    ad = solve_qp(H, f, G, h)  # the default
-    assert ad.method == "admm"
+    assert solve_qp(H, f, G, h).method == "interior_point"  # the default
+    ad = solve_qp(H, f, G, h, method="admm")
+    assert ad.method == "admm" and not ad.fallback
     assert int(((G @ ip.x - h) > -1e-9).sum()) >= 1  # active energy rows
     assert ad.polished and ad.violation <= 1e-10 and bool((ad.x >= 0).all())
     assert ad.objective == pytest.approx(ip.objective, rel=1e-9)
@@ -147,7 +148,7 @@ def test_admm_without_polishing_and_warm_start(gen):
 
 
 def test_fit_with_admm_matches_interior_point(view, target_render):
-    """``fit`` (ADMM by default) against ``method="interior_point"`` on the recovery problem of
+    """``fit(method="admm")`` against the default ``method="interior_point"`` on the recovery problem of
     test_solve (whole object painted with a known p(h)) and on a few-pixel, near-singular one:
     same objective, exact bounds."""
     rec = view[-1]
@@ -158,8 +159,8 @@ def test_fit_with_admm_matches_interior_point(view, target_render):
     few = StrokeTarget(target_render, w, w > 0)
     for target in (whole, few):
         ip = fit(rec, target, kd=(0.25, 0.375, 0.125), method="interior_point")
-        ad = fit(rec, target, kd=(0.25, 0.375, 0.125))  # the default
-        assert ad.meta["method"] == "admm"
+        ad = fit(rec, target, kd=(0.25, 0.375, 0.125), method="admm")
+        assert ad.meta["method"] == "admm"  # (the few-pixel fit falls back to the interior point)
         # (the few-pixel fit is exact: both objectives ~1e-10 of the target's 1e2 sum of squares)
         assert ad.objective == pytest.approx(ip.objective, rel=1e-6, abs=1e-8)
         assert ad.violation <= 1e-8 and bool((ad.coefficients >= 0).all())
@@ -170,13 +171,38 @@ def test_fit_with_admm_matches_interior_point(view, target_render):
 @pytest.mark.parametrize("singular", [False, True])
 def test_admm_at_the_albedo_extreme(singular):
     """rho_d -> 1 leaves h = 1e-9 (a near-LP): ADMM stays feasible relative to h and is at least
-    as good as the interior point method run to a tight tolerance."""
+    as good as the interior point method run to a tight tolerance (and polished)."""
     gen = torch.Generator().manual_seed(1 if singular else 0)
     H, f, G, h = _problem(gen, n=150, singular=singular)
     h = torch.full_like(h, 1e-9)
-    ad = solve_qp(H, f, G, h)
+    ad = solve_qp(H, f, G, h, method="admm")
     ip = solve_qp(H, f, G, h, method="interior_point", tol=1e-14)
-    assert ad.polished and bool((ad.x >= 0).all())
+    assert ad.polished and not ad.fallback and bool((ad.x >= 0).all())
     assert ad.violation <= 1e-10 * 1e-9
     assert ad.objective == pytest.approx(ip.objective, rel=1e-6)
     assert ad.objective <= ip.objective + 1e-9 * abs(ip.objective)
+
+
+def test_admm_falls_back_to_the_interior_point(gen):
+    """ADMM stopped long before convergence (10 iterations, no polishing): the default returns
+    the interior point solution and says so; ``fallback=False`` raises instead."""
+    H, f, G, h = _problem(gen, singular=True)
+    ip = solve_qp(H, f, G, h)
+    r = solve_qp(H, f, G, h, method="admm", max_iter=10, polish=False)
+    assert r.fallback and r.method == "interior_point"
+    assert torch.equal(r.x, ip.x)
+    with pytest.raises(NumericalError, match="ADMM did not converge"):
+        solve_qp(H, f, G, h, method="admm", max_iter=10, polish=False, fallback=False)
+    ok = solve_qp(H, f, G, h, method="admm")
+    assert not ok.fallback and ok.method == "admm"
+
+
+def test_interior_point_polishing_is_exact(gen):
+    """The polished interior point solution satisfies the KKT conditions to rounding; without
+    polishing it is the (slightly interior) iterate, not better."""
+    H, f, G, h = _problem(gen, singular=True)
+    pol = solve_qp(H, f, G, h)
+    raw = solve_qp(H, f, G, h, polish=False)
+    assert pol.polished and not raw.polished
+    _kkt(H, f, G, h, pol, tol=1e-10)
+    assert pol.objective <= raw.objective + 1e-12 * abs(raw.objective)

@@ -273,3 +273,44 @@ def test_interpolants_are_reciprocal(gen):
     zi = model.predict(xs)
     assert float(zi.abs().max()) > 0
     torch.testing.assert_close(zi[:, :half], zi[:, half:], rtol=1e-10, atol=1e-10)
+
+
+def _row_jump(model, eps: float) -> torch.Tensor:
+    """(N,) relative max difference of the interpolated rows at x_i + eps and at x_i."""
+    at = model.predict(model.latents)
+    near = model.predict(model.latents + eps)
+    return (near - at).abs().max(1).values / at.abs().max(1).values
+
+
+def test_continuous_predictor_is_continuous_at_training_latents():
+    """The smooth GP mean (``continuous=True``) moves by < 1% between x_i and x_i + 1e-6 for
+    every material and reproduces the rows up to mu (K^-1 Z)_i; the seed's interpolant jumps
+    there by far more than its own move (the delta term of Eq. 5)."""
+    model, obs, _ = small_model(q=2)
+    smooth = GPLVM(model.fit, obs.z.double(), continuous=True)
+    assert float(_row_jump(smooth, 1e-6).max()) < 0.01
+    z = obs.z.double()
+    kinv_z = torch.cholesky_solve(z, smooth.chol)
+    want = z - smooth.mu * kinv_z
+    torch.testing.assert_close(smooth.predict(smooth.latents), want, rtol=1e-6, atol=1e-9 * float(z.abs().max()))
+    assert float(_row_jump(model, 1e-6).max()) > float(_row_jump(smooth, 1e-6).max())
+    # away from the training latents both predictors are the same
+    x = model.latents.mean(0, keepdim=True) + 0.123
+    torch.testing.assert_close(smooth.weights(x), model.weights(x))
+
+
+def test_heldout_in_the_log_metric_is_never_worse_than_the_nearest_material():
+    """Held-out placement in the perceptual (log) mapping: the training latents are candidates and
+    the seed interpolant reproduces their rows, so the GPLVM is never worse than the nearest
+    training material in that mapping; the prediction is b(x*)^T Z (linear in the data)."""
+    from torch_brdf.manifold.evaluate import heldout_reconstruction
+
+    obs, _ = small_family(20)
+    names = list(obs.names)
+    h = heldout_reconstruction(obs, names[:16], names[16:], 2, max_iter=60, generator=torch.Generator().manual_seed(0))
+    assert bool((h.gplvm_logrmse <= h.nearest_logrmse + 1e-12).all())
+    model = GPLVM(h.fit, obs.rows(names[:16]).double())
+    pred = model.predict(h.latents)
+    assert h.gplvm_negative is not None and torch.equal(h.gplvm_negative, (pred < 0).double().mean(1))
+    with pytest.raises(ValueRangeError, match="metric"):
+        heldout_reconstruction(obs, names[:16], names[16:], 2, metric="l1")

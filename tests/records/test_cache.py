@@ -32,6 +32,15 @@ def test_tiles_resume_only_under_their_key(tmp_path):
     assert off.load(0) is None
 
 
+def test_tile_removal_keeps_other_files(tmp_path):
+    # a checkpoint folder the user shares with other files: only the tiles go
+    (tmp_path / "notes.txt").write_text("mine")
+    cache = TileCache(tmp_path, "test-tile", "k", prefix="vis")
+    cache.save(0, {"x": np.zeros(2)})
+    cache.remove()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 def test_corrupt_tile_is_moved_aside_and_recomputed(tmp_path):
     cache = TileCache(tmp_path, "test-tile", "k")
     cache.save(3, {"x": np.arange(100.0)})

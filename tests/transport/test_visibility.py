@@ -104,8 +104,12 @@ def test_interrupted_precompute_resumes(scene, record, tmp_path):
     ck = tmp_path / "ck"
     assert precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False, max_chunks=2) is None
     assert len(list(ck.glob("*.npz"))) == 2
-    resumed = precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False)
+    resumed = precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False, keep_checkpoint=True)
     assert np.array_equal(resumed.blocks.to_bytes()[0], record.blocks.to_bytes()[0])
+    assert len(list(ck.glob("*.npz"))) > 2  # kept on purpose
+    again = precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False)  # all chunks from the folder
+    assert np.array_equal(again.blocks.to_bytes()[0], record.blocks.to_bytes()[0])
+    assert not ck.exists()  # removed once the run succeeded (keep_checkpoint=False)
     # a different setting does not pick up these chunks
     assert precompute_visibility(scene, 32, chunk=8, checkpoint=ck, progress=False, max_chunks=0) is None
 

@@ -25,7 +25,7 @@ import torch
 
 from ..errors import FileFormatError, TorchBRDFError
 from ..records.basis_image import BasisImage
-from ..records.cache import Checkpoint
+from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
 from .solve import fit, save_fit
 from .strokes import Brush, Stroke, paint
@@ -98,7 +98,12 @@ class DesignConfig:
 
 
 def design(
-    scene: Scene, strokes: list[Stroke], config: DesignConfig, out: str | Path, display_size=None, progress: bool = True
+    scene: Scene,
+    strokes: list[Stroke],
+    config: DesignConfig,
+    out: str | Path,
+    display_size=None,
+    progress: bool | None = None,
 ) -> dict:
     """Run the stroke fit end to end and write ``fit.npz``, ``transfer.npz``, ``render.exr/.png``.
 
@@ -123,7 +128,8 @@ def design(
     t0 = time.perf_counter()
     px = object_pixels(scene, config.object, solve_cam)
     settings = {"scene": scene.name, **asdict(config), "size": [solve_cam.width, solve_cam.height]}
-    cache = Checkpoint(out / "transfer.npz", BasisImage.kind, settings, on_corrupt="recompute")
+    key = settings_key(settings, scene)  # an edited scene (mesh, env map, camera) recomputes
+    cache = Checkpoint(out / "transfer.npz", BasisImage.kind, key, on_corrupt="recompute")
     rec = cache.load_record(BasisImage, dtype=torch.float64)
     if rec is None:
         g = torch.Generator().manual_seed(config.seed)
@@ -152,6 +158,7 @@ def design(
         max(1, round(cam.width * config.render_scale)), max(1, round(cam.height * config.render_scale))
     )
     g = torch.Generator().manual_seed(config.seed + 1)
+    t1 = time.perf_counter()
     image = rerender(
         scene,
         config.object,
@@ -162,6 +169,7 @@ def design(
         generator=g,
         progress=progress,
     )
+    render_s = time.perf_counter() - t1  # the re-render at render_scale x display size
     write_exr(out / "render.exr", image.float())
     write_png(out / "render.png", image.float())
     return {
@@ -173,5 +181,7 @@ def design(
         "max_energy": result.max_energy,
         "solve_s": round(result.seconds, 4),
         "transfer_s": round(transfer_s, 3),
+        "render_s": round(render_s, 3),
+        "render_size": [rcam.width, rcam.height],
         "files": [str(out / n) for n in ("fit.npz", "transfer.npz", "render.exr", "render.png")],
     }

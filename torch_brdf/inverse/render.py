@@ -52,7 +52,7 @@ def rerender(
     basis: SRBFBasis | None = None,
     generator: torch.Generator | None = None,
     background: float = 0.0,
-    progress: bool = False,
+    progress: bool | None = None,
 ) -> torch.Tensor:
     """Render ``obj`` with the fitted BRDF under a new view and/or environment (Eq. 22).
 

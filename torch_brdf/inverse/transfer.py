@@ -54,6 +54,7 @@ from tqdm.auto import tqdm
 
 from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
+from ..data import progress_default
 from ..errors import ShapeError, ValueRangeError
 from ..frame import Frame, half_terms
 from ..records.basis_image import BasisImage
@@ -94,7 +95,7 @@ def object_pixels(scene: Scene, obj: str | int, camera: Camera | None = None) ->
 
 
 def cosine_visibility(
-    scene: Scene, px: GBuffer, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool = False
+    scene: Scene, px: GBuffer, samples: LightSamples, chunk_rays: int = 1 << 20, progress: bool | None = None
 ) -> torch.Tensor:
     r"""Cosine-weighted visibility :math:`\tilde V(x_p, \omega_s) = V\max(0, n_p\cdot\omega_s)`.
 
@@ -109,7 +110,7 @@ def cosine_visibility(
     cos = (px.normal @ dirs.T).clamp_min(0)  # (P, S)
     out = torch.zeros(P, S, dtype=torch.float64)
     step = max(1, chunk_rays // S)
-    for a in tqdm(range(0, P, step), desc="visibility", disable=not progress):
+    for a in tqdm(range(0, P, step), desc="visibility", disable=not progress_default(progress)):
         b = min(P, a + step)
         need = cos[a:b] > 0
         ii, ss = torch.nonzero(need, as_tuple=True)
@@ -227,7 +228,7 @@ def transfer_functions(
     basis: SRBFBasis | None = None,
     f0=1.0,
     cuts: CutOptions | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     meta: dict | None = None,
 ) -> BasisImage:
     r"""Transfer functions :math:`T_j(x)` (Eq. 6; Eq. 21 with ``cuts``) and :math:`E(x)` for one object.
@@ -263,7 +264,7 @@ def transfer_functions(
     info: dict = {}
     if cuts is None:
         step = max(1, (1 << 16) // S)
-        for a in tqdm(range(0, P, step), desc="transfer (dense)", disable=not progress):
+        for a in tqdm(range(0, P, step), desc="transfer (dense)", disable=not progress_default(progress)):
             b = min(P, a + step)
             ii, ss = torch.nonzero(vis[a:b] > 0, as_tuple=True)  # zero terms add nothing
             w = samples.weight[ss] * vis[a:b][ii, ss, None]
@@ -294,7 +295,7 @@ def _cut_transfer(samples, vis, basis, f0t, frames, wo_l, cuts, T, progress) -> 
     lum = tree.lum
     total_nodes = 0
     step = max(1, (1 << 16) // S)
-    for a in tqdm(range(0, P, step), desc="transfer (cuts)", disable=not progress):
+    for a in tqdm(range(0, P, step), desc="transfer (cuts)", disable=not progress_default(progress)):
         b = min(P, a + step)
         vb = v[a:b]
         p = b - a

@@ -11,14 +11,27 @@ timestamps, padding, metadata) is refused before any parsing. The write is atomi
 either the old file or the new one.
 :func:`load_arrays` refuses object arrays (no pickle), a wrong kind, a newer format
 version, another layout version of the kind or a checksum mismatch, with a clear error.
+
+:func:`read_npz` is the one reader of every ``.npz`` (ours, MERL tables, NBRDF weights): it
+bounds what a file declares before allocating (each ``.npy`` header's shape x itemsize equals
+its member's size; the total is at most :func:`max_array_bytes`, ``TORCH_BRDF_MAX_ARRAY_BYTES``,
+default 8 GiB; no deflated member expands more than :data:`MAX_COMPRESSION_RATIO` times beyond
+:data:`RATIO_FREE_BYTES`) and turns every zip, inflate and header error into
+:class:`~torch_brdf.errors.FileFormatError` naming the file.
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import io
 import json
+import math
+import os
+import struct
+import tokenize
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +46,28 @@ _HEADER = "__header__"
 _DIGEST = b"torch_brdf-sha256:"
 _EOCD = 22  # size of the zip end-of-central-directory record without its comment
 
+#: default of :func:`max_array_bytes` (``TORCH_BRDF_MAX_ARRAY_BYTES`` overrides it)
+DEFAULT_MAX_ARRAY_BYTES = 8 << 30
+#: a deflated member may expand at most this many times (beyond :data:`RATIO_FREE_BYTES`);
+#: :func:`save_arrays` stores a member uncompressed rather than write one that would not load
+MAX_COMPRESSION_RATIO = 200
+RATIO_FREE_BYTES = 1 << 20
+_MAX_NPY_HEADER = 1 << 16
+_CHUNK = 1 << 24
+#: everything the zip, inflate and .npy header layers raise on a damaged or crafted file
+_READ_ERRORS = (
+    OSError, EOFError, ValueError, KeyError, IndexError, TypeError, AttributeError,
+    zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, NotImplementedError, RuntimeError,
+    struct.error, OverflowError, MemoryError, SyntaxError, RecursionError, tokenize.TokenError,
+)  # fmt: skip
+
 
 def _checksum(arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for name in sorted(arrays):
         a = np.ascontiguousarray(arrays[name])
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(a.tobytes())
+        h.update(a.reshape(-1).view(np.uint8).data if a.size else b"")  # the bytes, not a copy
     return h.hexdigest()
 
 
@@ -58,7 +86,8 @@ def save_arrays(
         arrays: name -> numeric array (no object dtype).
         kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
         meta: JSON-serialisable metadata (settings, progress).
-        compress: zip-deflate the arrays.
+        compress: zip-deflate the arrays (stored instead when an array would inflate more
+            than :data:`MAX_COMPRESSION_RATIO` times, which :func:`read_npz` refuses).
         kind_version: version of the layout of ``kind`` (checked on load; files written
             before it was recorded count as version 1).
     """
@@ -74,6 +103,11 @@ def save_arrays(
     blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
     buf = io.BytesIO()
     (np.savez_compressed if compress else np.savez)(buf, **arrays, **{_HEADER: blob})
+    if compress:
+        with zipfile.ZipFile(buf) as z:
+            if any(_bomb_like(i) for i in z.infolist()):  # would be refused as a zip bomb: store instead
+                buf = io.BytesIO()
+                np.savez(buf, **arrays, **{_HEADER: blob})
     raw = buf.getbuffer()
     comment = _DIGEST + hashlib.sha256(raw[:-2]).hexdigest().encode()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -115,6 +149,163 @@ def _verify_file_digest(path: Path) -> bool:
     return True
 
 
+def max_array_bytes() -> int:
+    """The cap on the bytes one array file may declare: ``TORCH_BRDF_MAX_ARRAY_BYTES`` (an
+    integer number of bytes) or :data:`DEFAULT_MAX_ARRAY_BYTES` (8 GiB)."""
+    raw = os.environ.get("TORCH_BRDF_MAX_ARRAY_BYTES")
+    if raw is None:
+        return DEFAULT_MAX_ARRAY_BYTES
+    try:
+        cap = int(raw)
+    except ValueError:
+        raise FileFormatError(f"TORCH_BRDF_MAX_ARRAY_BYTES must be an integer number of bytes; got {raw!r}") from None
+    if cap < 1:
+        raise FileFormatError(f"TORCH_BRDF_MAX_ARRAY_BYTES must be >= 1; got {cap}")
+    return cap
+
+
+def check_declared_size(nbytes: int, what: str, path: str | Path) -> None:
+    """Refuse an allocation a file asks for that exceeds :func:`max_array_bytes`.
+
+    Readers call it with sizes computed from a file's headers or metadata (in Python integers,
+    so nothing overflows) before they allocate.
+
+    Raises:
+        FileFormatError: ``nbytes`` above the cap (the message names the file, the size and
+            the environment variable that raises the cap).
+    """
+    cap = max_array_bytes()
+    if nbytes > cap:
+        raise FileFormatError(
+            f"{path}: {what} declares {nbytes:,} bytes, more than the cap of {cap:,} "
+            "(set TORCH_BRDF_MAX_ARRAY_BYTES to read larger files)"
+        )
+
+
+def _bomb_like(info: zipfile.ZipInfo) -> bool:
+    """A deflated member that would expand more than :data:`MAX_COMPRESSION_RATIO` times
+    (members up to :data:`RATIO_FREE_BYTES` are not counted: they cannot hurt)."""
+    return info.file_size > RATIO_FREE_BYTES and info.file_size > MAX_COMPRESSION_RATIO * max(info.compress_size, 1)
+
+
+def _check_members(z: zipfile.ZipFile, size: int, path) -> list[zipfile.ZipInfo]:
+    """The members of an npz, each checked before any byte of it is inflated."""
+    infos = z.infolist()
+    names = [i.filename for i in infos]
+    if len(set(names)) != len(names):
+        raise FileFormatError(f"{path}: duplicate zip members")
+    total = 0
+    for info in infos:
+        if not info.filename.endswith(".npy"):
+            raise FileFormatError(f"{path}: member {info.filename!r} is not an .npy array")
+        if info.flag_bits & 0x1:
+            raise FileFormatError(f"{path}: member {info.filename!r} is encrypted")
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise FileFormatError(f"{path}: member {info.filename!r} uses compression method {info.compress_type}")
+        if info.compress_size > size or info.header_offset > size:
+            raise FileFormatError(f"{path}: member {info.filename!r} claims more bytes than the file holds")
+        if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
+            raise FileFormatError(f"{path}: stored member {info.filename!r} has inconsistent sizes")
+        if _bomb_like(info):
+            raise FileFormatError(
+                f"{path}: member {info.filename!r} would inflate {info.compress_size:,} bytes to "
+                f"{info.file_size:,} (more than {MAX_COMPRESSION_RATIO}:1; a zip bomb?)"
+            )
+        total += info.file_size
+    check_declared_size(total, "its arrays", path)
+    return infos
+
+
+def _read_member(z: zipfile.ZipFile, info: zipfile.ZipInfo, path) -> np.ndarray:
+    """One ``.npy`` member: its header parsed and checked against the member's size before
+    the array is allocated, then the data read in bounded chunks."""
+    with z.open(info) as f:
+        head = f.read(8)  # magic, version
+        if len(head) < 8 or head[:6] != b"\x93NUMPY" or head[6] not in (1, 2, 3):
+            raise FileFormatError(f"{path}: member {info.filename!r} is not an .npy array (version 1-3)")
+        major = head[6]
+        start = 10 if major == 1 else 12
+        head += f.read(start - 8)
+        hlen = int.from_bytes(head[8:start], "little")
+        if len(head) != start or hlen > _MAX_NPY_HEADER or start + hlen > info.file_size:
+            raise FileFormatError(f"{path}: member {info.filename!r} has a corrupt .npy header")
+        f_head = head + f.read(hlen)
+        if len(f_head) != start + hlen:
+            raise FileFormatError(f"{path}: member {info.filename!r} has a corrupt .npy header")
+        text = f_head[start:].decode("latin1" if major < 3 else "utf8")
+        header = ast.literal_eval(text)
+        if not isinstance(header, dict) or set(header) != {"descr", "fortran_order", "shape"}:
+            raise FileFormatError(f"{path}: member {info.filename!r} has a corrupt .npy header")
+        shape, fortran = header["shape"], header["fortran_order"]
+        if not isinstance(shape, tuple) or not all(type(d) is int and d >= 0 for d in shape):
+            raise FileFormatError(f"{path}: member {info.filename!r} declares shape {shape!r}")
+        if not isinstance(fortran, bool):
+            raise FileFormatError(f"{path}: member {info.filename!r} has a corrupt .npy header")
+        dtype = np.lib.format.descr_to_dtype(header["descr"])
+        if dtype.hasobject or dtype.kind not in "biufcSU" or dtype.names or dtype.shape or dtype.itemsize == 0:
+            raise FileFormatError(
+                f"{path}: member {info.filename!r} has dtype {dtype}: "
+                "only numeric or str arrays are read (without pickle)"
+            )
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes != info.file_size - len(f_head):
+            raise FileFormatError(
+                f"{path}: member {info.filename!r} declares {shape} {dtype} ({nbytes:,} bytes) but holds "
+                f"{info.file_size - len(f_head):,}"
+            )
+        check_declared_size(nbytes, f"member {info.filename!r}", path)
+        out = np.empty(math.prod(shape), dtype=dtype)
+        view = memoryview(out.view(np.uint8) if out.size else np.empty(0, np.uint8))
+        pos = 0
+        while pos < nbytes:
+            got = f.readinto(view[pos : pos + _CHUNK])
+            if not got:
+                raise FileFormatError(f"{path}: member {info.filename!r} ends early")
+            pos += got
+        if f.read(1):
+            raise FileFormatError(f"{path}: member {info.filename!r} holds trailing bytes")
+    return out.reshape(shape, order="F" if fortran else "C")
+
+
+def read_npz(path: str | Path, what: str = "array file") -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` without pickle, never allocating what the file only claims.
+
+    The one reader of every array file (:func:`load_arrays`, MERL tables, NBRDF weights):
+    each member's compression method, encryption flag, declared size (against the file's size,
+    :func:`max_array_bytes` and :data:`MAX_COMPRESSION_RATIO`) and ``.npy`` header (shape x
+    itemsize against the member's size; numeric or str dtypes only) are checked before its
+    array is allocated, and any error of the zip, inflate or header layers becomes a
+    :class:`~torch_brdf.errors.FileFormatError` naming the file.
+
+    Args:
+        path: the file. what: what it should be, for messages (e.g. ``"MERL table file"``).
+    Returns:
+        name (without ``.npy``) -> array.
+    Raises:
+        FileFormatError: missing, not a zip of ``.npy`` arrays, corrupt, or above the caps.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"{what} not found: {path}")
+    try:
+        size = path.stat().st_size
+        with zipfile.ZipFile(path) as z:
+            return {i.filename[:-4]: _read_member(z, i, path) for i in _check_members(z, size, path)}
+    except FileFormatError:
+        raise
+    except _READ_ERRORS as exc:
+        raise FileFormatError(
+            f"{what} {path} is not a readable npz without pickle: {type(exc).__name__}: {exc}"
+        ) from exc
+
+
+def _header_int(header: dict, key: str, default: int, path) -> int:
+    value = header.get(key, default)
+    if type(value) is not int:
+        raise FileFormatError(f"{path}: corrupt header ({key} = {value!r} is not an integer)")
+    return value
+
+
 def load_arrays(
     path: str | Path, kind: str | None = None, kind_version: int | None = None
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -134,16 +325,15 @@ def load_arrays(
     if not path.is_file():
         raise FileFormatError(f"array file not found: {path}")
     digested = _verify_file_digest(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise FileFormatError(f"{path} is not a readable torch_brdf array file: {exc}") from exc
-    if _HEADER not in data:
+    data = read_npz(path, "torch_brdf array file")
+    blob = data.pop(_HEADER, None)
+    if blob is None:
         raise FileFormatError(f"{path} has no torch_brdf header")
+    if blob.dtype != np.uint8 or blob.ndim != 1:
+        raise FileFormatError(f"{path}: corrupt header (not a byte string)")
     try:
-        header = json.loads(data.pop(_HEADER).tobytes().decode())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        header = json.loads(blob.tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise FileFormatError(f"{path}: corrupt header") from exc
     if not isinstance(header, dict):
         raise FileFormatError(f"{path}: corrupt header (not a JSON object)")
@@ -151,15 +341,19 @@ def load_arrays(
         raise FileFormatError(f"{path}: the file digest is missing (file corrupt or modified)")
     if header.get("format") != FORMAT:
         raise FileFormatError(f"{path}: format {header.get('format')!r}, expected {FORMAT!r}")
-    if int(header.get("version", -1)) > VERSION:
-        raise FileFormatError(f"{path}: format version {header.get('version')} is newer than this reader ({VERSION})")
+    version = _header_int(header, "version", -1, path)
+    if version > VERSION:
+        raise FileFormatError(f"{path}: format version {version} is newer than this reader ({VERSION})")
     if kind is not None and header.get("kind") != kind:
         raise FileFormatError(f"{path} holds {header.get('kind')!r}, expected {kind!r}")
-    if kind_version is not None and int(header.get("kind_version", 1)) != kind_version:
+    layout = _header_int(header, "kind_version", 1, path)
+    if kind_version is not None and layout != kind_version:
         raise FileFormatError(
-            f"{path}: {header.get('kind')!r} layout version {header.get('kind_version', 1)}, "
-            f"this reader reads version {kind_version}"
+            f"{path}: {header.get('kind')!r} layout version {layout}, this reader reads version {kind_version}"
         )
+    meta = header.get("meta", {})
+    if not isinstance(meta, dict):
+        raise FileFormatError(f"{path}: corrupt header (meta is not a JSON object)")
     if _checksum(data) != header.get("checksum"):
         raise FileFormatError(f"{path}: checksum mismatch (file corrupt or modified)")
-    return data, header.get("meta", {})
+    return data, meta

@@ -51,7 +51,6 @@ import functools
 import math
 import os
 import struct
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +60,7 @@ import numpy as np
 import torch
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
+from .arrays import read_npz
 from .atomic import replacing
 
 #: grid resolution of a MERL table: (theta_h, theta_d, phi_d) bins
@@ -429,18 +429,11 @@ def load_merl_table(path: str | os.PathLike) -> MERLTableData:
             NaN/Inf.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(f"MERL table file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in _TABLE_KEYS if k not in z.files]
-            if missing:
-                _fail(path, f"missing arrays {missing} (has {sorted(z.files)})")
-            d = {k: z[k] for k in _TABLE_KEYS}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        if isinstance(exc, FileFormatError):
-            raise
-        raise FileFormatError(f"MERL table file {path} is not a readable npz without pickle: {exc}") from exc
+    z = read_npz(path, "MERL table file")  # bounded, pickle-free; FileFormatError names the file
+    missing = [k for k in _TABLE_KEYS if k not in z]
+    if missing:
+        _fail(path, f"missing arrays {missing} (has {sorted(z)})")
+    d = {k: z[k] for k in _TABLE_KEYS}
 
     for k, res in zip(_INDEX_KEYS, MERL_RES, strict=True):
         problem = _index_problem(k, d[k], res)
@@ -588,18 +581,11 @@ def load_nbrdf_weights(path: str | os.PathLike) -> NBRDFWeights:
         FileFormatError: missing/unreadable file, missing keys, inconsistent shapes.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileFormatError(f"NBRDF weights file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in ("names", *_NBRDF_KEYS) if k not in z.files]
-            if missing:
-                raise FileFormatError(f"NBRDF weights file {path}: missing arrays {missing}")
-            d = {k: z[k] for k in ("names", *_NBRDF_KEYS)}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        if isinstance(exc, FileFormatError):
-            raise
-        raise FileFormatError(f"NBRDF weights file {path} is not a readable npz without pickle: {exc}") from exc
+    z = read_npz(path, "NBRDF weights file")  # bounded, pickle-free; FileFormatError names the file
+    missing = [k for k in ("names", *_NBRDF_KEYS) if k not in z]
+    if missing:
+        raise FileFormatError(f"NBRDF weights file {path}: missing arrays {missing}")
+    d = {k: z[k] for k in ("names", *_NBRDF_KEYS)}
     names = d.pop("names")
     n = names.shape[0] if names.ndim == 1 else -1
     if names.dtype.kind != "U" or n < 1:
@@ -614,4 +600,6 @@ def load_nbrdf_weights(path: str | os.PathLike) -> NBRDFWeights:
             raise FileFormatError(
                 f"NBRDF weights file {path}: {k} must be float {shape}; got {d[k].shape} {d[k].dtype}"
             )
+        if not np.isfinite(d[k]).all():
+            raise FileFormatError(f"NBRDF weights file {path}: {k} holds NaN/Inf")
     return NBRDFWeights(names=tuple(str(s) for s in names), **{k: d[k].astype(np.float32) for k in _NBRDF_KEYS})

@@ -23,13 +23,30 @@ from .._checks import check_finite
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from .atomic import replacing
 
-__all__ = ["TONEMAPS", "read_png", "to_srgb8", "write_png"]
+__all__ = ["TONEMAPS", "auto_exposure", "read_png", "to_srgb8", "write_png"]
 
 TONEMAPS = ("clip", "reinhard", "aces")
 """Tone maps accepted by :func:`to_srgb8` and :func:`write_png`."""
 
 _LUMA = (0.2126, 0.7152, 0.0722)  # luminance Y of linear sRGB / Rec. 709 primaries
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def auto_exposure(image, percentile: float = 99.0, limit: float = 20.0) -> float:
+    """Exposure in stops for a preview: the ``percentile`` of the luminance of the pixels
+    with light (luminance > 0) goes to 1 (white), clamped to ``[-limit, limit]``; 0 for an
+    all-black image. Only for display (PNG): the EXR stays linear.
+
+    Args:
+        image: (H, W, 3) linear RGB radiance.
+    """
+    x = torch.as_tensor(np.asarray(image) if not torch.is_tensor(image) else image).detach().double()
+    lum = (x[..., 0] * 0.2126 + x[..., 1] * 0.7152 + x[..., 2] * 0.0722).reshape(-1)
+    lum = lum[torch.isfinite(lum) & (lum > 0)]
+    if lum.numel() == 0:
+        return 0.0
+    p = float(torch.quantile(lum, percentile / 100.0)) if lum.numel() < 1 << 24 else float(lum.max())
+    return float(min(limit, max(-limit, -math.log2(p))))
 
 
 def to_srgb8(image, exposure: float = 0.0, tonemap: str = "clip") -> torch.Tensor:

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ..data import progress_default
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
@@ -197,7 +198,7 @@ def nbrdf_observations(
     grid: MERLGrid | None = None,
     names: Sequence[str] | None = None,
     cache: str | os.PathLike | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     save_every: int = 10,
 ) -> Observations:
     """Tabulate NBRDF networks on ``grid`` into an observation matrix (an APPROXIMATION of MERL).
@@ -205,7 +206,8 @@ def nbrdf_observations(
     With ``cache`` the matrix is stored as a :class:`~torch_brdf.records.cache.Checkpoint` (atomic,
     checksummed) every ``save_every`` materials and at the end; a later call with the same
     weights file, names and grid resumes from it (or just loads it). A cache written for other
-    settings is recomputed; a corrupt cache raises :class:`~torch_brdf.errors.FileFormatError`.
+    settings is recomputed; a corrupt cache is moved aside (``<name>.corrupt``, with a
+    :class:`~torch_brdf.records.cache.CorruptCacheWarning`) and recomputed.
 
     Args:
         weights_path: ``nbrdf_merl100_weights.npz``. grid: default :func:`default_grid`.
@@ -225,13 +227,19 @@ def nbrdf_observations(
     b = grid.num_valid
     z = np.zeros((len(names), 3 * b), dtype=np.float32)
     done = 0
-    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta)
+    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta, on_corrupt="recompute")
     saved = None if ckpt is None else ckpt.load()
     if saved is not None and saved[0].get("z", np.empty(0)).shape == z.shape:
         z = np.asarray(saved[0]["z"], dtype=np.float32).copy()
         done = int(saved[1].get("done", 0))
     valid = grid.valid()
-    bar = tqdm(range(done, len(names)), initial=done, total=len(names), desc="tabulate NBRDF", disable=not progress)
+    bar = tqdm(
+        range(done, len(names)),
+        initial=done,
+        total=len(names),
+        desc="tabulate NBRDF",
+        disable=not progress_default(progress),
+    )
     for i in bar:
         t = tabulate_nbrdf(NBRDF(names[i], w), *grid.indices, mask_horizon=False)
         z[i] = t[:, valid].reshape(-1).numpy().astype(np.float32)
@@ -241,7 +249,7 @@ def nbrdf_observations(
 
 
 def binary_observations(
-    paths: Sequence[str | os.PathLike], grid: MERLGrid | None = None, progress: bool = True
+    paths: Sequence[str | os.PathLike], grid: MERLGrid | None = None, progress: bool | None = None
 ) -> Observations:
     """Observation matrix from real MERL ``.binary`` files (the same selection as for NBRDF).
 
@@ -253,7 +261,7 @@ def binary_observations(
     grid = grid or default_grid()
     rows = [
         select(read_merl_binary(p), grid, name=str(p)).to(torch.float32)
-        for p in tqdm(list(paths), desc="read MERL", disable=not progress)
+        for p in tqdm(list(paths), desc="read MERL", disable=not progress_default(progress))
     ]
     if len(rows) < 2:
         raise ShapeError(f"need at least 2 materials; got {len(rows)}")
@@ -404,7 +412,7 @@ def nbrdf_column_blocks(
     names: Sequence[str] | None = None,
     theta_h_per_block: int = 3,
     cosine_weighted: bool = True,
-    progress: bool = True,
+    progress: bool | None = None,
 ) -> Iterator[torch.Tensor]:
     """Stream the NBRDF observation matrix on ``grid`` (e.g. the FULL grid) in column blocks.
 
@@ -425,7 +433,7 @@ def nbrdf_column_blocks(
     wi, wo = grid.directions()
     cos = (wi[..., 2] * wo[..., 2]).clamp(0.01, 1.0)
     steps = range(0, len(th_all), theta_h_per_block)
-    for a in tqdm(steps, desc="NBRDF Gram blocks", disable=not progress):
+    for a in tqdm(steps, desc="NBRDF Gram blocks", disable=not progress_default(progress)):
         sl = slice(a, a + theta_h_per_block)
         idx = (th_all[sl], grid.theta_d_index, grid.phi_d_index)
         v = valid[sl]

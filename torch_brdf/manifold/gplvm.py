@@ -14,10 +14,11 @@ never has to be in memory at once.
 Two optimisers, both monotone (the log-likelihood never decreases over the recorded
 iterations):
 
-* ``"lbfgs"`` (default): L-BFGS (two-loop recursion) on the exact gradient — closed form
-  :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
-  ``autograd=True`` (equal, tested) — with a backtracking Armijo line search: a step is taken
-  only if it raises ``L``; otherwise the curvature memory is dropped, then the fit stops.
+* ``"lbfgs"`` (default): L-BFGS (two-loop recursion, memory 20) on the exact gradient — closed
+  form :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
+  ``autograd=True`` (equal, tested) — with torch's strong-Wolfe line search (c1 = 1e-4,
+  c2 = 0.9) and, where it ends on a point that does not raise ``L``, a backtracking Armijo
+  search; when no step length passes, the curvature memory is dropped, then the fit stops.
 * ``"adam"``: autograd + Adam, a step that lowers ``L`` is undone and the learning rate halved.
 * ``"hooke-jeeves"``: the seed's derivative-free direct search (Hooke and Jeeves 1961),
   one latent coordinate at a time, keeping :math:`K^{-1}`, :math:`\log|K|` and
@@ -41,9 +42,11 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
+from torch.optim.lbfgs import _strong_wolfe  # torch's strong-Wolfe line search (a plain function)
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
+from ..data import progress_default
 from ..errors import NumericalError, ShapeError, ValueRangeError
 from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
@@ -201,7 +204,7 @@ def fit_gplvm(
     autograd: bool = False,
     names: Iterable[str] = (),
     generator: torch.Generator | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     callback: Callable[[int, float], None] | None = None,
 ) -> GPLVMFit:
     r"""Maximise the GPLVM log-likelihood (seed Eq. 6) over the latents, from a PCA start.
@@ -211,7 +214,7 @@ def fit_gplvm(
         d: number of columns of Z (the :math:`d/2\,\log|K|` factor).
         q: latent dimension (the seed uses 2..5).
         lengthscale, mu: kernel hyperparameters (Eq. 5; seed: 1 and 1e-6).
-        method: ``"lbfgs"`` (exact gradient, Armijo backtracking, monotone), ``"adam"``
+        method: ``"lbfgs"`` (exact gradient, strong-Wolfe line search, monotone), ``"adam"``
             (autograd, step halving on a decrease) or ``"hooke-jeeves"`` (the seed's direct search).
         max_iter: iterations (L-BFGS/Adam steps; Hooke–Jeeves sweeps over all coordinates).
         tol: stop when an iteration improves L by less than ``tol * |L|``.
@@ -346,8 +349,27 @@ def _value_and_grad(x: torch.Tensor, s, d, ell, mu, autograd: bool = False) -> t
     return float(ll.detach()), g
 
 
+def _wolfe_step(x, p, f, g, slope, s, d, ell, mu, autograd) -> tuple[float, torch.Tensor | None, float]:
+    """One strong-Wolfe line search (c1 = 1e-4, c2 = 0.9; ``torch.optim.lbfgs._strong_wolfe``) along
+    the ascent direction ``p`` from ``x``: returns (L, grad, step) at the accepted point."""
+    scale = float(x.shape[0] * d)
+    shape = x.shape
+
+    def obj(xf, t, dirn):
+        fv, gv = _value_and_grad((xf + t * dirn).reshape(shape), s, d, ell, mu, autograd)
+        if gv is None:  # K not positive definite: an infinitely bad value (the search bisects)
+            return math.inf, torch.zeros_like(dirn)
+        return -fv / scale, -gv.reshape(-1) / scale
+
+    f_new, g_new, t, _ = _strong_wolfe(obj, x.reshape(-1), 1.0, p.reshape(-1), -f / scale, -g.reshape(-1) / scale,
+                                       -slope / scale)  # fmt: skip
+    if not math.isfinite(float(f_new)):
+        return -math.inf, None, 0.0
+    return -float(f_new) * scale, -g_new.reshape(shape) * scale, float(t)
+
+
 def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
-    """L-BFGS ascent (two-loop recursion) with a backtracking Armijo line search.
+    """L-BFGS ascent (two-loop recursion), strong-Wolfe line search with Armijo backtracking as fallback.
 
     Monotone by construction: a step is taken only if it raises L by at least
     ``1e-4 * t * g.p``; when no step length passes, the curvature memory is dropped and a
@@ -361,7 +383,7 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
     hist = [f]
     pairs: list[tuple[torch.Tensor, torch.Tensor, float]] = []
     rejected = 0
-    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress)
+    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress_default(progress))
     for it in bar:
         # two-loop recursion on the ascent direction of L (descent of -L)
         qv = g.clone()
@@ -386,7 +408,12 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
             slope = float((g * p).sum())
         t = 1.0
         accepted = False
-        for _ in range(60):
+        # strong-Wolfe line search (torch's, on -L / (N d)); the Armijo backtracking below is the
+        # fallback when it ends on a non-finite or non-increasing point
+        fn, gn, t_sw = _wolfe_step(x, p, f, g, slope, s, d, ell, mu + jitter, autograd)
+        if gn is not None and math.isfinite(fn) and fn >= f + 1e-4 * t_sw * slope and t_sw > 0:
+            xn, accepted = x + t_sw * p, True
+        for _ in range(0 if accepted else 60):
             xn = x + t * p
             fn, gn = _value_and_grad(xn, s, d, ell, mu + jitter, autograd)
             if gn is not None and fn >= f + 1e-4 * t * slope:
@@ -422,7 +449,7 @@ def _fit_adam(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, 
     with torch.no_grad():
         hist = [float(log_likelihood(x, s, d, ell, mu + jitter))]
     rejected = 0
-    for it in tqdm(range(max_iter), desc="GPLVM Adam", disable=not progress):
+    for it in tqdm(range(max_iter), desc="GPLVM Adam", disable=not progress_default(progress)):
         saved = x.detach().clone()
         opt.zero_grad()
         ll_t = log_likelihood(x, s, d, ell, mu + jitter)
@@ -507,7 +534,7 @@ def _fit_hooke_jeeves(x0, s, d, ell, mu, jitter, max_iter, tol, step, progress, 
     n, q = st.x.shape
     rejected = 0
     min_step = 1e-6
-    bar = tqdm(range(max_iter), desc="GPLVM Hooke-Jeeves", disable=not progress)
+    bar = tqdm(range(max_iter), desc="GPLVM Hooke-Jeeves", disable=not progress_default(progress))
     for it in bar:
         base = st.x.copy()
         start = st.loglik
@@ -570,11 +597,16 @@ class GPLVM(torch.nn.Module):
         fit: a :class:`GPLVMFit`.
         z: optional (N, d) raw observations (kept as a buffer for :meth:`predict`); any other
             (N, ...) per-material quantity can be blended with :meth:`blend`.
+        continuous: use the smooth GP mean :math:`k_{SE}(x_*)` without the :math:`\mu\delta`
+            term (continuous in :math:`x_*`; at a training latent it returns
+            :math:`z_i - \mu (K^{-1}Z)_i` instead of :math:`z_i`). Default False: the seed's
+            interpolant, exact at the training latents and discontinuous next to them.
     """
 
-    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None):
+    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None, continuous: bool = False):
         super().__init__()
         self.fit = fit
+        self.continuous = bool(continuous)
         x = fit.latents.to(torch.float64)
         if not bool(torch.isfinite(x).all()):
             raise ValueRangeError("GPLVM latents hold NaN/Inf")
@@ -616,7 +648,10 @@ class GPLVM(torch.nn.Module):
     def kvec(self, xs) -> torch.Tensor:
         """(M, N) covariances :math:`k(x_*)` (seed Eq. 3) of query points (M, Q)."""
         xs, _ = self._queries(xs)
-        return cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        return self._cross(xs)
+
+    def _cross(self, xs: torch.Tensor) -> torch.Tensor:
+        return cross_kernel(xs, self.latents, self.fit.lengthscale, 0.0 if self.continuous else self._mu)
 
     def weights(self, xs) -> torch.Tensor:
         r"""Blending weights :math:`b(x_*) = K^{-1} k(x_*)` (seed Eq. 4), batched.
@@ -627,7 +662,7 @@ class GPLVM(torch.nn.Module):
             (M, N) or (N,) float64.
         """
         xs, single = self._queries(xs)
-        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        k = self._cross(xs)
         b = torch.cholesky_solve(k.T, self.chol).T
         return b[0] if single else b
 
@@ -638,7 +673,7 @@ class GPLVM(torch.nn.Module):
             xs: (M, Q) or (Q,). Returns: (M,) or () float64.
         """
         xs, single = self._queries(xs)
-        k = cross_kernel(xs, self.latents, self.fit.lengthscale, self._mu)
+        k = self._cross(xs)
         b = torch.cholesky_solve(k.T, self.chol).T
         v = (1.0 + self._mu - (k * b).sum(-1)).clamp_min(0)
         return v[0] if single else v

@@ -1,4 +1,4 @@
-r"""The shifted squared-exponential kernel and a Cholesky factorisation with jitter escalation.
+r"""The shifted squared-exponential kernel (the Cholesky with jitter lives in :mod:`torch_brdf.linalg`).
 
 Soler, Subr and Nowrouzezahrai, "A Practical Non-Linear Parameterization of the BRDF
 Manifold", INRIA RR-9069, 2017 (the seed), Eq. 5:
@@ -13,19 +13,21 @@ reproduces ``z_i`` exactly, the seed's property 2).
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 
-from ..errors import NumericalError, ShapeError, ValueRangeError
+from ..errors import ShapeError, ValueRangeError
+from ..linalg import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter
 
-#: default jitter floor and cap (absolute, added to the diagonal of a unit-amplitude kernel)
-JITTER_FLOOR = 1e-10
-JITTER_CAP = 1e-2
-
-
-class JitterWarning(UserWarning):
-    """A Cholesky factorisation needed extra diagonal jitter; the message gives its value."""
+__all__ = [
+    "JITTER_CAP",
+    "JITTER_FLOOR",
+    "JitterWarning",
+    "cholesky_jitter",
+    "cross_kernel",
+    "kernel_matrix",
+    "se_kernel",
+    "sq_dist",
+]
 
 
 def sq_dist(x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
@@ -88,50 +90,3 @@ def cross_kernel(xs: torch.Tensor, x: torch.Tensor, lengthscale: float = 1.0, mu
         same = (xs[:, None, :] == x[None, :, :]).all(-1)
         k = k + mu * same.to(k.dtype)
     return k
-
-
-def cholesky_jitter(
-    k: torch.Tensor,
-    floor: float = JITTER_FLOOR,
-    cap: float = JITTER_CAP,
-    what: str = "K",
-    warn: bool = True,
-) -> tuple[torch.Tensor, float]:
-    """Cholesky factor of a symmetric matrix, adding diagonal jitter x10 from ``floor`` to ``cap``.
-
-    NaN/Inf entries are checked first (they are bad input, not an ill-conditioned matrix).
-    Jitter 0 is tried first; then ``floor``, ``10 * floor``, ... up to ``cap``. When jitter was
-    needed a :class:`JitterWarning` names the final value.
-
-    Args:
-        k: (N, N) symmetric matrix (factorised in float64 whatever its dtype).
-        floor, cap: smallest and largest jitter (absolute).
-        what: name for messages.
-        warn: emit :class:`JitterWarning` when jitter > 0 was needed.
-    Returns:
-        (L, jitter): L (N, N) float64 lower triangular with L Lᵀ = k + jitter I; the jitter used.
-    Raises:
-        ValueRangeError: non-finite entries. NumericalError: still not positive definite at ``cap``.
-    """
-    if k.ndim != 2 or k.shape[0] != k.shape[1]:
-        raise ShapeError(f"Expected {what} to be square (N, N); got {tuple(k.shape)}")
-    if not bool(torch.isfinite(k).all()):
-        raise ValueRangeError(f"{what} holds {int((~torch.isfinite(k)).sum())} non-finite entries (NaN/Inf)")
-    if not (0 < floor <= cap):
-        raise ValueRangeError(f"need 0 < floor <= cap; got floor={floor}, cap={cap}")
-    k64 = k.to(torch.float64)
-    eye = torch.eye(k.shape[0], dtype=torch.float64)
-    jitter = 0.0
-    while True:
-        chol, info = torch.linalg.cholesky_ex(k64 + jitter * eye if jitter else k64)
-        if int(info) == 0 and bool(torch.isfinite(chol).all()):
-            if jitter and warn:
-                warnings.warn(f"{what}: Cholesky needed diagonal jitter {jitter:.1e}", JitterWarning, stacklevel=2)
-            return chol, jitter
-        nxt = floor if jitter == 0 else jitter * 10
-        if nxt > cap * (1 + 1e-12):
-            raise NumericalError(
-                f"{what} ({k.shape[0]}x{k.shape[0]}) is not positive definite even with diagonal jitter {jitter:.1e} "
-                f"(the cap); the latents may coincide with mu = 0, or the lengthscale is far too large"
-            )
-        jitter = nxt

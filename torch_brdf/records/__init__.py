@@ -19,7 +19,7 @@ the one checkpoint / resume mechanism of every precomputation.
 
 from .basis_image import BasisImage, float16_error
 from .cache import Checkpoint, CorruptCacheWarning, TileCache, remove_cache, settings_key
-from .codec import Record, load_record, save_record
+from .codec import Member, Record, check_schema, load_record, save_record
 from .fits import FitResult, GPLVMFit
 from .polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock, TermTable
 from .visibility import SceneVertices, VertexVisibility, scene_vertices
@@ -32,6 +32,7 @@ __all__ = [
     "CorruptCacheWarning",
     "FitResult",
     "GPLVMFit",
+    "Member",
     "ObjectBasis",
     "PolynomialTensors",
     "Record",
@@ -41,6 +42,7 @@ __all__ = [
     "TermTable",
     "TileCache",
     "VertexVisibility",
+    "check_schema",
     "float16_error",
     "load_record",
     "remove_cache",

@@ -19,14 +19,14 @@ products that stream the record once (memory-bandwidth bound), never a ``(P, J)`
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from .._checks import as_float_tensor, check_finite
 from ..errors import ShapeError
-from .codec import Record
+from .codec import Member, Record
 
 RECORD_KIND = "basis-image"
 _STORAGE = {"float32": np.float32, "float16": np.float16, "float64": np.float64}
@@ -58,6 +58,12 @@ class BasisImage(Record):
 
     kind = RECORD_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {
+        "values": Member("f", 3, finite=True),
+        "pixels": Member("iu", 1),
+        "constant": Member("f", 2, finite=True, required=False),
+        "variance": Member("f", 3, required=False),
+    }
 
     def __post_init__(self):
         v = self.values

@@ -6,7 +6,8 @@ progress so that an interrupted run resumes where it stopped and gives the same 
 for bit. They all do it through this module:
 
 - :class:`Checkpoint`: one file (progress so far, or a finished record) tied to a *key*, the
-  digest of the settings that decide its content. A file written under another key is
+  digest of everything that decides its content (:func:`settings_key`: the settings, the
+  scene's content digest and the format versions). A file written under another key is
   ignored (the work is redone and the file overwritten); a corrupt file is either refused
   with :class:`~torch_brdf.errors.FileFormatError` (``on_corrupt="raise"``) or moved aside
   to ``<name>.corrupt`` with a :class:`CorruptCacheWarning` and recomputed
@@ -33,10 +34,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import FileFormatError
+from ..io.arrays import VERSION as ARRAYS_VERSION
 from ..io.arrays import load_arrays, save_arrays
+from ..scene.scene import Scene
 from .codec import Record, load_record, save_record
 
-__all__ = ["Checkpoint", "CorruptCacheWarning", "TileCache", "remove_cache", "settings_key"]
+__all__ = ["CACHE_VERSION", "Checkpoint", "CorruptCacheWarning", "TileCache", "remove_cache", "settings_key"]
 
 _KEY = "cache_key"
 
@@ -45,11 +48,38 @@ class CorruptCacheWarning(UserWarning):
     """A cached file was unreadable; it was moved aside and its work is done again."""
 
 
-def settings_key(settings: dict[str, Any] | str) -> str:
-    """16 hex digits of SHA-256 over the sorted JSON of ``settings`` (a string is used as is)."""
+#: bump when a cache's content changes meaning without its settings changing (e.g. a new
+#: sampling scheme): every key then differs and old checkpoints are recomputed, never mixed
+CACHE_VERSION = 2
+
+
+def settings_key(
+    settings: dict[str, Any] | str, scene: Scene | None = None, parts: tuple[str, ...] | None = None
+) -> str:
+    """The resume key: 16 hex digits of SHA-256 over everything a cached result depends on.
+
+    Covers the sorted JSON of ``settings``, the content of ``scene``
+    (:meth:`~torch_brdf.scene.scene.Scene.content_digest`: meshes, materials, lights with their
+    env-map texels, camera; ``parts`` selects a subset, e.g. ``("geometry",)`` for visibility),
+    the array-file format version, :data:`CACHE_VERSION` and the package version. A string
+    is an already computed key and is returned as is.
+
+    Raises:
+        TypeError: ``settings`` is not JSON-serialisable.
+    """
     if isinstance(settings, str):
         return settings
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    content = None
+    if scene is not None:
+        content = scene.content_digest() if parts is None else scene.content_digest(parts)
+    from .. import __version__
+
+    full = {
+        "settings": settings,
+        "scene": content,
+        "formats": [ARRAYS_VERSION, CACHE_VERSION, __version__],
+    }
+    return hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def remove_cache(path: str | os.PathLike | None) -> None:
@@ -157,5 +187,12 @@ class TileCache:
             tile.save(arrays, meta)
 
     def remove(self) -> None:
-        """Delete the folder (after the result is saved)."""
-        remove_cache(self.folder)
+        """Delete this cache's tiles (every ``<prefix>*.npz``, any key, and moved-aside
+        ``.corrupt`` files) after the result is saved, then the folder if that left it empty;
+        other files in the folder are kept."""
+        if self.folder is None or not self.folder.is_dir():
+            return
+        for p in [*self.folder.glob(f"{self.prefix}*.npz"), *self.folder.glob(f"{self.prefix}*.npz.corrupt")]:
+            p.unlink(missing_ok=True)
+        if not any(self.folder.iterdir()):
+            self.folder.rmdir()

@@ -12,6 +12,8 @@ one whose arrays do not make a valid record is refused with
 
 from __future__ import annotations
 
+import fnmatch
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -22,7 +24,7 @@ from ..io.arrays import load_arrays, save_arrays
 
 Arrays = dict[str, np.ndarray]
 
-__all__ = ["Arrays", "Record", "load_record", "save_record"]
+__all__ = ["Arrays", "Member", "Record", "check_schema", "load_record", "save_record"]
 
 
 def save_record(path: str | Path, record: Record, extra: dict[str, Any] | None = None, **options) -> Path:
@@ -31,27 +33,82 @@ def save_record(path: str | Path, record: Record, extra: dict[str, Any] | None =
     return save_arrays(path, arrays, kind=record.kind, meta={**meta, **(extra or {})}, kind_version=record.version)
 
 
+@dataclass(frozen=True)
+class Member:
+    """What one array of a record file must be (an entry of :attr:`Record.schema`).
+
+    Attributes:
+        kinds: allowed numpy dtype kinds (``"f"`` float, ``"i"``/``"u"`` integer, ``"b"`` bool).
+        ndim: required number of dimensions, or None (any).
+        finite: NaN and Inf are refused.
+        required: the file must hold it (patterns such as ``"b*_values"`` are never required).
+    """
+
+    kinds: str
+    ndim: int | None = None
+    finite: bool = False
+    required: bool = True
+
+
+_FINITE_CHUNK = 1 << 22
+
+
+def check_schema(arrays: Arrays, schema: dict[str, Member], what: str) -> None:
+    """Check every array against ``schema`` (name or ``fnmatch`` pattern -> :class:`Member`).
+
+    Raises:
+        FileFormatError: an array the schema does not know, a missing required one, another
+            dtype kind or number of dimensions, NaN/Inf where the schema forbids them.
+    """
+    for name, spec in schema.items():
+        if spec.required and not any(c in name for c in "*?[") and name not in arrays:
+            raise FileFormatError(f"{what}: missing array {name!r} (has {sorted(arrays)})")
+    for name, a in arrays.items():
+        spec = schema.get(name) or next((m for p, m in schema.items() if fnmatch.fnmatchcase(name, p)), None)
+        if spec is None:
+            raise FileFormatError(f"{what}: unexpected array {name!r} (known: {sorted(schema)})")
+        if a.dtype.kind not in spec.kinds or (spec.ndim is not None and a.ndim != spec.ndim):
+            want = f"{spec.ndim}-d " if spec.ndim is not None else ""
+            raise FileFormatError(
+                f"{what}: array {name!r} must be {want}of dtype kind {spec.kinds!r}; got {a.dtype} {a.shape}"
+            )
+        if spec.finite and a.dtype.kind in "fc":
+            flat = a.reshape(-1)
+            for i in range(0, flat.size, _FINITE_CHUNK):  # bounded temporary, not a mask of the whole array
+                if not np.isfinite(flat[i : i + _FINITE_CHUNK]).all():
+                    raise FileFormatError(f"{what}: array {name!r} holds NaN or Inf")
+
+
+#: what a record's ``from_arrays`` may raise on arrays or metadata that do not make a record
+_INVALID = (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RuntimeError, ZeroDivisionError)
+
+
 def load_record(path: str | Path, cls: type[Record], **options) -> tuple[Record, dict[str, Any]]:
-    """Read a file of ``cls`` (kind and layout version verified) -> (record, the file's metadata)."""
+    """Read a file of ``cls`` -> (record, the file's metadata): kind, layout version, checksum
+    and the arrays against ``cls.schema`` verified before ``from_arrays`` sees them."""
     arrays, meta = load_arrays(path, kind=cls.kind, kind_version=cls.version)
+    check_schema(arrays, cls.schema, f"{path} ({cls.kind})")
     try:
         return cls.from_arrays(arrays, meta, **options), meta
     except FileFormatError as exc:
         raise FileFormatError(f"{path}: {exc}") from exc
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
+    except _INVALID as exc:
         raise FileFormatError(f"{path}: not a valid {cls.kind} record ({exc!r})") from exc
 
 
 class Record:
     """Base of the saved records (a mixin for frozen dataclasses).
 
-    Subclasses set ``kind`` and ``version`` and implement :meth:`to_arrays` and
+    Subclasses set ``kind``, ``version`` and ``schema`` (the arrays of the file, their dtype
+    kinds, dimensions and whether NaN/Inf are allowed) and implement :meth:`to_arrays` and
     :meth:`from_arrays`; ``save(path, **options)`` forwards ``options`` to :meth:`to_arrays`
     and ``load(path, **options)`` to :meth:`from_arrays`.
     """
 
     kind: ClassVar[str]
     version: ClassVar[int] = 1
+    #: every array the file may hold (name or pattern -> :class:`Member`); checked on load
+    schema: ClassVar[dict[str, Member]] = {}
 
     def to_arrays(self, **options) -> tuple[Arrays, dict[str, Any]]:
         """-> (name -> numeric array, JSON-serialisable metadata)."""

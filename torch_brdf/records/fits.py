@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from .codec import Record
+from .codec import Member, Record
 
 __all__ = ["GPLVM_FIT_KIND", "INVERSE_FIT_KIND", "FitResult", "GPLVMFit"]
 
@@ -49,6 +49,7 @@ class GPLVMFit(Record):
 
     kind = GPLVM_FIT_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {"latents": Member("f", 2, finite=True), "loglik": Member("f", 1)}
 
     @property
     def q(self) -> int:
@@ -118,6 +119,11 @@ class FitResult(Record):
 
     kind = INVERSE_FIT_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {
+        "coefficients": Member("f", 2, finite=True),
+        "kd": Member("f", 1, finite=True),
+        "f0": Member("f", 1, finite=True),
+    }
 
     def record_coefficients(self) -> torch.Tensor:
         """(J + 1, 3) coefficients for the transfer record: SRBF part and :math:`\\rho_d` last."""

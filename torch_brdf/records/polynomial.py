@@ -15,15 +15,16 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
-from ..errors import SceneError, ValueRangeError
+from ..errors import FileFormatError, SceneError, ValueRangeError
+from ..scene.guides import GuideBuffers
 from .basis_image import BasisImage
-from .codec import Record
+from .codec import Member, Record
 
 __all__ = ["TENSOR_KIND", "ObjectBasis", "PolynomialTensors", "Series", "TensorBlock", "TermTable"]
 
@@ -223,6 +224,8 @@ class PolynomialTensors(Record):
         terms: bounce -> :class:`TermTable`.
         blocks: the entries, per tile, eye object and bounce.
         meta: settings and statistics (spp, seed, mixture, rays cast, seconds).
+        guides: optional per-pixel :class:`~torch_brdf.scene.guides.GuideBuffers` of the view
+            (denoisers' guides; :func:`torch_brdf.denoise.guide_buffers`), saved with the file.
     """
 
     height: int
@@ -234,9 +237,23 @@ class PolynomialTensors(Record):
     terms: dict[int, TermTable]
     blocks: list[TensorBlock]
     meta: dict[str, Any] = field(default_factory=dict)
+    guides: GuideBuffers | None = None
 
     kind = TENSOR_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {
+        "emission": Member("f", 2, finite=True),
+        "terms*_w": Member("i", 1),
+        "terms*_counts": Member("iu", 2),
+        "b*_values": Member("f", 2, finite=True),
+        "b*_variance": Member("f", 2),
+        "b*_index": Member("iu", 1),
+        "b*_pixels": Member("iu", 1),
+        "b*_terms": Member("iu", 1),
+        # optional denoiser guides (scene.guides.GuideBuffers.to_arrays)
+        "guide_meta": Member("f", 1, finite=True, required=False),
+        "guide_*": Member("fiub", None, required=False),
+    }
 
     @property
     def num_objects(self) -> int:
@@ -324,6 +341,8 @@ class PolynomialTensors(Record):
             if b.variance is not None:
                 arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
             index.append([b.object_id, b.bounce, b.J])
+        if self.guides is not None:
+            arrays.update(self.guides.to_arrays())
         meta = {
             "height": self.height,
             "width": self.width,
@@ -360,6 +379,10 @@ class PolynomialTensors(Record):
             for i, (o, n, j) in enumerate(meta["blocks"])
         ]
         bases = [None if b is None else ObjectBasis(**b) for b in meta["bases"]]
+        if t["emission"].shape != (3, int(meta["height"]) * int(meta["width"])):
+            raise FileFormatError(
+                f"emission {tuple(t['emission'].shape)} does not fit {meta['height']}x{meta['width']}"
+            )
         return cls(
             int(meta["height"]),
             int(meta["width"]),
@@ -370,4 +393,5 @@ class PolynomialTensors(Record):
             terms,
             blocks,
             dict(meta.get("meta", {})),
+            GuideBuffers.from_arrays(arrays),
         )

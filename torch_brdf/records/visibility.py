@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -19,7 +20,7 @@ import torch
 from ..errors import FileFormatError, SceneError
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
-from .codec import Record
+from .codec import Member, Record
 from .visibility_codec import BlockVisibility
 
 __all__ = ["KIND", "SceneVertices", "VertexVisibility", "scene_vertices"]
@@ -91,6 +92,14 @@ class VertexVisibility(Record):
 
     kind = KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {
+        "stream": Member("u", 1),
+        "vertex_offsets": Member("iu", 1),
+        "positions": Member("f", 2, finite=True),
+        "normals": Member("f", 2, finite=True),
+        "object_ids": Member("iu", 1),
+        "object_offsets": Member("iu", 1),
+    }
 
     @property
     def bytes_per_vertex(self) -> float:

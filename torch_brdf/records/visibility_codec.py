@@ -47,13 +47,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from ..errors import FileFormatError, ShapeError, ValueRangeError
-from .codec import Record
+from .codec import Member, Record
 
 VISIBILITY_KIND = "block-visibility"
 #: texels per block (16 x 16); indices into a block's visibility vector fit in a uint8
@@ -297,6 +297,7 @@ class BlockVisibility(Record):
 
     kind = VISIBILITY_KIND
     version = 1
+    schema: ClassVar[dict[str, Member]] = {"stream": Member("u", 1), "vertex_offsets": Member("iu", 1)}
 
     def __post_init__(self):
         nb = self.block_count
@@ -633,6 +634,13 @@ class BlockVisibility(Record):
             stream = stream[src]
             vo = np.zeros(ids.size + 1, dtype=np.int64)
             np.cumsum(lengths, out=vo[1:])
+        # every block starts with a count byte, so P x NB cannot exceed the stream's length: bound the
+        # (P, NB) tables before allocating them (small excesses go on to the parser's precise message)
+        if (vo.size - 1) * nb > stream.size + (1 << 16):
+            raise FileFormatError(
+                f"block visibility: {vo.size - 1} vertices x {nb} blocks need at least {(vo.size - 1) * nb:,} "
+                f"count bytes; the stream has {stream.size:,}"
+            )
         counts, index, delta = _parse_stream(stream, vo, nb, bits)
         return cls._from_entries(nb, bits, counts, index, delta, meta)
 

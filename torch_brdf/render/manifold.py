@@ -22,6 +22,7 @@ from __future__ import annotations
 import torch
 from tqdm.auto import tqdm
 
+from ..data import progress_default
 from ..errors import ShapeError
 from ..manifold.data import MERLGrid
 from ..manifold.materials import merl_material, with_material
@@ -39,7 +40,7 @@ def render_rows(
     spp: int = 4,
     max_bounces: int = 1,
     seed: int = 0,
-    progress: bool = True,
+    progress: bool | None = None,
 ) -> torch.Tensor:
     """Path-trace ``scene`` once per row of ``Z`` used as the material ``material_key``.
 
@@ -55,7 +56,7 @@ def render_rows(
     if rows.ndim != 2:
         raise ShapeError(f"Expected rows of shape (N, 3 * B); got {tuple(rows.shape)}")
     out = []
-    for r in tqdm(rows, desc="render materials", disable=not progress):
+    for r in tqdm(rows, desc="render materials", disable=not progress_default(progress)):
         sc = with_material(scene, material_key, merl_material(r, grid))
         out.append(path_trace(sc, spp=spp, max_bounces=max_bounces, seed=seed, progress=False))
     return torch.stack(out)

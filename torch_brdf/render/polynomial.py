@@ -425,7 +425,7 @@ def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:
 
 
 def series_approximations(
-    scene, series="64,1,1,1", spp: int = 64, seed: int = 0, progress: bool = False
+    scene, series="64,1,1,1", spp: int = 64, seed: int = 0, progress: bool | None = None
 ) -> dict[str, Any]:
     """The three approximations of the seed's Fig. 6(b)/7 for ``scene``'s materials.
 

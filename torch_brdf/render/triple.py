@@ -55,10 +55,12 @@ from dataclasses import dataclass, field
 
 import torch
 from torch import nn
+from tqdm.auto import tqdm
 
 from .._threads import tuned_method
 from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
+from ..data import progress_default
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
 from ..metrics import psnr
@@ -615,7 +617,11 @@ class TripleProductRenderer(nn.Module):
 
     @torch.no_grad()
     def shade_standard(
-        self, view: View, chunk: int = 512, dense_visibility: torch.Tensor | None = None
+        self,
+        view: View,
+        chunk: int = 512,
+        dense_visibility: torch.Tensor | None = None,
+        progress: bool | None = None,
     ) -> torch.Tensor:
         """The standard-basis triple product: the dense sum over all texels (the baseline).
 
@@ -624,6 +630,7 @@ class TripleProductRenderer(nn.Module):
             chunk: vertices per batch.
             dense_visibility: optional (P, NB, S^2) visibility already expanded (as a
                 standard-basis system would store it); decoded here otherwise.
+            progress: tqdm bar over vertex chunks (None: on in a terminal or notebook).
         Returns:
             (P, C) radiance.
         """
@@ -631,7 +638,8 @@ class TripleProductRenderer(nn.Module):
         P = len(view.vertex_ids)
         L = self.lighting.texels.reshape(-1, self.lighting.texels.shape[-1])  # (T, C)
         out = torch.zeros(P, L.shape[-1], dtype=self.dtype)
-        for s in range(0, P, chunk):
+        starts = range(0, P, chunk)
+        for s in tqdm(starts, desc="shade standard", unit="chunk", disable=not progress_default(progress)):
             e = min(P, s + chunk)
             rows = torch.arange(s, e)
             if dense_visibility is None:
@@ -643,7 +651,12 @@ class TripleProductRenderer(nn.Module):
 
     @torch.no_grad()
     def shade_haar(
-        self, view: View, fraction: float = 0.01, chunk: int = 256, timings: dict | None = None
+        self,
+        view: View,
+        fraction: float = 0.01,
+        chunk: int = 256,
+        timings: dict | None = None,
+        progress: bool | None = None,
     ) -> torch.Tensor:
         """The Haar-wavelet triple product of Ng et al. 2004 (the wavelet baseline).
 
@@ -655,6 +668,7 @@ class TripleProductRenderer(nn.Module):
         call, and ``timings`` (if given) receives the seconds of each stage separately:
         ``visibility_s``, ``brdf_s`` (sampling every texel + transform + truncation) and
         ``product_s`` (the triple product alone, the figure comparable with a frame of theirs).
+        ``progress``: tqdm bar over vertex chunks (None: on in a terminal or notebook).
 
         Returns:
             (P, C) radiance.
@@ -666,7 +680,8 @@ class TripleProductRenderer(nn.Module):
         out = torch.zeros(P, C, dtype=self.dtype)
         _nrm, frames, wo, oid = self._frames(view)
         t = {"visibility_s": 0.0, "brdf_s": 0.0, "product_s": 0.0}
-        for s in range(0, P, chunk):
+        starts = range(0, P, chunk)
+        for s in tqdm(starts, desc="shade haar", unit="chunk", disable=not progress_default(progress)):
             rows = torch.arange(s, min(P, s + chunk))
             t0 = time.perf_counter()
             V = geom.from_blocks(view.blocks.decode(rows), lead=1)

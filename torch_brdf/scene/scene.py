@@ -39,6 +39,7 @@ types, NaN/Inf, sizes beyond the caps and unknown keys raise :class:`SceneError`
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,6 +57,9 @@ from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight, Light
 from .mesh import load_mesh, mesh_from_arrays, validate_mesh
 from .raytrace import Hits, RayTracer
+
+#: what :meth:`Scene.content_digest` covers, in the order it is hashed
+CONTENT_PARTS = ("geometry", "materials", "lights", "camera")
 
 
 @dataclass
@@ -188,6 +192,46 @@ class Scene:
         out = copy.copy(self)
         out.camera = self.camera.with_size(width, height if height is not None else width)
         return out
+
+    def content_digest(self, parts: tuple[str, ...] = CONTENT_PARTS) -> str:
+        """SHA-256 (64 hex digits) of everything a render or precomputation of this scene reads.
+
+        The resume key of every cache (:func:`torch_brdf.records.cache.settings_key`) holds it,
+        so that a checkpoint written for another scene is never resumed.
+
+        Args:
+            parts: which content to cover, any of ``"geometry"`` (per object: name, vertex and
+                face bytes, ``editable``, ``smooth``), ``"materials"`` (each object's material
+                name and every material dict, tensors by their bytes), ``"lights"`` (each light's
+                type, buffers, e.g. env-map texels, area triangles and radiance, and numeric
+                attributes) and ``"camera"`` (origin, target, up, field of view, size). A
+                visibility precompute, which reads geometry only, passes ``("geometry",)``.
+        Not content: the scene's name, ``workers`` and message-only strings (an env map's
+        ``source``); a material that names a file is covered by that name, not the file's bytes.
+        """
+        unknown = sorted(set(parts) - set(CONTENT_PARTS))
+        if unknown:
+            raise SceneError(f"unknown content parts {unknown}; known: {list(CONTENT_PARTS)}")
+        h = hashlib.sha256(b"torch_brdf-scene-content-1")
+        for part in CONTENT_PARTS:
+            if part not in parts:
+                continue
+            h.update(f"|{part}|".encode())
+            if part == "geometry":
+                for o in self.objects:
+                    _digest(h, [o.name, o.editable, o.smooth, np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces)])
+            elif part == "materials":
+                _digest(h, [[o.name, o.material] for o in self.objects])
+                _digest(h, self.materials)
+            elif part == "lights":
+                for li in self.lights:
+                    plain = {k: v for k, v in vars(li).items() if not k.startswith("_") and k != "training"}
+                    plain = {k: v for k, v in plain.items() if isinstance(v, (bool, int, float))}
+                    _digest(h, [type(li).__name__, plain, dict(li.state_dict())])
+            else:
+                c = self.camera
+                _digest(h, [c.origin, c.target, c.up, float(c.fov_deg), c.width, c.height])
+        return h.hexdigest()
 
     def info(self) -> dict[str, Any]:
         """Statistics for ``torch-brdf info``: objects, triangles, bounds, lights, camera."""
@@ -323,3 +367,34 @@ def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
     if d.get("rotation_deg"):
         env = env.rotated(math.radians(float(d["rotation_deg"])))
     return env
+
+
+def _digest(h, value) -> None:
+    """Feed ``value`` to the hash ``h`` unambiguously: every item is tagged with its type, arrays
+    and tensors with dtype and shape, floats exactly (``float.hex``), dicts in sorted key order."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    if isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        h.update(f"a{a.dtype.str}{a.shape}:".encode())
+        h.update(a.data if a.size else b"")
+    elif isinstance(value, dict):
+        h.update(f"d{len(value)}:".encode())
+        for k in sorted(value, key=str):
+            _digest(h, str(k))
+            _digest(h, value[k])
+    elif isinstance(value, (list, tuple)):
+        h.update(f"l{len(value)}:".encode())
+        for v in value:
+            _digest(h, v)
+    elif isinstance(value, (bool, np.bool_)):
+        h.update(b"b1" if value else b"b0")
+    elif isinstance(value, (int, np.integer)):
+        h.update(f"i{int(value)};".encode())
+    elif isinstance(value, (float, np.floating)):
+        h.update(f"f{float(value).hex()};".encode())
+    elif value is None:
+        h.update(b"n")
+    else:
+        s = str(value).encode()
+        h.update(f"s{len(s)}:".encode() + s)

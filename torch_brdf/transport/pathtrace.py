@@ -6,11 +6,18 @@ The renderer of ``torch-brdf render`` / ``demo``; direct lighting when
 
 Estimator. A path is traced from the eye; at every surface vertex each light is sampled
 once (next-event estimation, with a shadow ray), then the path continues in a direction
-drawn by the BRDF's own importance sampling with throughput ``*= f cos / pdf``. Emission
-is counted only where NEE cannot see it: the environment and emitters seen directly
-from the eye. So the estimator is unbiased for every BRDF, but noisy where a sharp lobe
-reflects a bright, large light (no MIS yet). Surfaces are two-sided: normals are flipped
-to face the arriving ray; shading frames come from the shading normal.
+drawn by the BRDF's own importance sampling with throughput ``*= f cos / pdf``. With
+``mis=True`` (the default) the light the BRDF-sampled ray finds (the environment where it
+escapes, an emitter's front where it hits one) is counted too, and both samples of such a
+light are weighted by Veach's power heuristic :math:`w_a = p_a^2/(p_a^2+p_b^2)` of their
+solid-angle pdfs (Veach 1997, ch. 9), so sharp lobes reflecting large bright lights (a
+glossy wall under an area light, a glossy object under sun and sky) converge without
+fireflies; at the last vertex the BRDF ray is traced only for that emission. Delta lights
+and area lights not bound to an object are found by NEE alone (weight 1). With
+``mis=False`` emission is counted only where NEE cannot see it: the environment and
+emitters seen directly from the eye. Either way the estimator is unbiased for every BRDF.
+Surfaces are two-sided: normals are flipped to face the arriving ray; shading frames come
+from the shading normal.
 
 Reproducibility: every sample pass ``s`` uses its own generator seeded from
 ``(seed, s)``, so a render interrupted after ``k`` passes and resumed from its
@@ -27,9 +34,10 @@ from tqdm.auto import tqdm
 
 from .._checks import check_count, check_seed
 from ..brdf import BRDF, create
+from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
-from ..records.cache import Checkpoint
+from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
@@ -119,11 +127,68 @@ def sample_light(scene: Scene, light, pos, ng, ns, gen):
     return ls, cos, k.numel(), k[scene.visible(pos[k], ng[k], ls.direction[k], ls.distance[k])]
 
 
+def power_heuristic(p_a: torch.Tensor, p_b: torch.Tensor) -> torch.Tensor:
+    r"""Veach's power heuristic (beta = 2) for one sample of each of two strategies:
+    :math:`w_a = p_a^2 / (p_a^2 + p_b^2)` (Veach 1997, eq. 9.13), computed in float64.
+
+    Args:
+        p_a: (n,) solid-angle pdf of the strategy that drew the sample.
+        p_b: (n,) pdf of the other strategy for the same direction.
+    Returns:
+        (n,) float32 weights in [0, 1]; 1 where ``p_b == 0`` or ``p_a`` is infinite (a delta
+        strategy), 0 where ``p_a == 0``.
+    """
+    a, b = p_a.double() ** 2, p_b.double() ** 2
+    w = torch.where(a > 0, a / (a + b).clamp_min(1e-300), 0.0)
+    return torch.where(torch.isinf(a), 1.0, w).to(torch.float32)
+
+
+def _mis_lights(scene: Scene) -> set[int]:
+    """``id()`` of the lights a BRDF-sampled ray can also find: the environment map (rays that
+    miss) and area lights bound to an object (rays that hit it). Delta lights and unbound area
+    lights are reached by next-event estimation alone, so their samples keep weight 1."""
+    found = list(scene.area_lights.values())
+    if scene.environment is not None:
+        found.append(scene.environment)
+    return {id(li) for li in found}
+
+
+def emission_and_light_pdf(scene: Scene, origins, directions, hits) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""What BRDF-sampled rays find on the lights, and how likely next-event estimation was to
+    pick the same direction (the other strategy of MIS).
+
+    Args:
+        origins: (n, 3) path vertices the rays leave from.
+        directions: (n, 3) unit ray directions.
+        hits: the rays' :class:`~torch_brdf.scene.raytrace.Hits`.
+    Returns:
+        (radiance (n, 3), light pdf (n,)): the environment where a ray escapes, an area light's
+        front-side emission where it hits that light's object (solid-angle pdf
+        :math:`r^2 / (|\cos\theta_l| A)` of :meth:`AreaLight.sample`); zeros elsewhere.
+    """
+    le = emission_seen(scene, directions, hits)
+    pdf = torch.zeros(directions.shape[0])
+    env = scene.environment
+    miss = ~hits.hit
+    if env is not None and bool(miss.any()):
+        pdf[miss] = env.pdf(directions[miss]).float()
+    for oid, light in scene.area_lights.items():
+        on = torch.nonzero(hits.object_id == oid).squeeze(1)
+        if on.numel():
+            r2 = ((hits.position[on] - origins[on]) ** 2).sum(-1)
+            cos_l = (directions[on] * hits.geometric_normal[on]).sum(-1).abs().clamp_min(1e-12)
+            pdf[on] = r2 / (cos_l * light.total_area)
+    return le, pdf
+
+
 @torch.no_grad()
-def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces: int, gen) -> torch.Tensor:
-    """One path per ray: (P, 3) radiance estimates (float32)."""
+def _radiance(
+    scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces: int, gen, mis: bool = False
+) -> torch.Tensor:
+    """One path per ray: (P, 3) radiance estimates (float32); ``mis`` as :func:`path_trace`."""
     hits = scene.trace(origins, directions)
     out = emission_seen(scene, directions, hits)
+    mis_lights = _mis_lights(scene) if mis else set()
     # the active paths, compacted: pixel index, arriving direction, surface, throughput
     idx = torch.nonzero(hits.hit).squeeze(1)
     d_in, pos = directions[idx], hits.position[idx]
@@ -139,8 +204,15 @@ def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces:
                 continue
             wi_k, wo_k = frame.to_local(ls.direction)[k], wo[k]
             f = _grouped(oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k: brdfs[o].eval_local(wi_k[m], wo_k[m]), 3)
-            out.index_add_(0, idx[k], beta[k] * f * ls.weight[k] * cos[k, None])
-        if bounce == max_bounces - 1:
+            contrib = beta[k] * f * ls.weight[k] * cos[k, None]
+            if id(light) in mis_lights:  # the BRDF sample below may find this light too
+                pdf_f = _grouped(
+                    oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k: brdfs[o].pdf_local(wi_k[m], wo_k[m])[:, None], 1
+                )
+                contrib = contrib * power_heuristic(ls.pdf[k], pdf_f[:, 0])[:, None]
+            out.index_add_(0, idx[k], contrib)
+        last = bounce == max_bounces - 1
+        if last and not mis_lights:
             break
         # continue the path by the BRDF's own importance sampling: beta *= f cos / pdf
         u = torch.rand(idx.numel(), 2, generator=gen)
@@ -149,12 +221,18 @@ def _radiance(scene: Scene, origins, directions, brdfs: list[BRDF], max_bounces:
             wi_l, pdf = brdfs[o].sample_local(wo[m], u[m])
             f = brdfs[o].eval_local(wi_l, wo[m])
             w = torch.where(pdf > 0, wi_l[:, 2].clamp_min(0) / pdf.clamp_min(1e-30), 0.0)
-            return torch.cat((wi_l, f * w[:, None]), -1)
+            return torch.cat((wi_l, f * w[:, None], pdf[:, None]), -1)
 
-        res = _grouped(oid, step, 6)
-        wi, beta = frame.to_world(res[:, :3]), beta * res[:, 3:]
+        res = _grouped(oid, step, 7)
+        wi, beta = frame.to_world(res[:, :3]), beta * res[:, 3:6]
         ok = torch.nonzero(((wi * ng).sum(-1) > 0) & (beta.amax(-1) > 0)).squeeze(1)
         sub = scene.trace(scene.spawn(pos[ok], ng[ok], wi[ok]), wi[ok])
+        if mis_lights:  # emission the BRDF sample finds, weighted against next-event estimation
+            le, pdf_l = emission_and_light_pdf(scene, pos[ok], wi[ok], sub)
+            w = power_heuristic(res[ok, 6], pdf_l)
+            out.index_add_(0, idx[ok], beta[ok] * le * w[:, None])
+        if last:
+            break
         keep = ok[sub.hit]
         idx, beta, d_in = idx[keep], beta[keep], wi[keep]
         pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
@@ -169,7 +247,8 @@ def path_trace(
     chunk: int = 1 << 16,
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 4,
-    progress: bool = True,
+    progress: bool | None = None,
+    mis: bool = True,
 ) -> torch.Tensor:
     """Render ``scene`` from its camera: (H, W, 3) float32 linear radiance.
 
@@ -180,10 +259,18 @@ def path_trace(
         seed: the render is a deterministic function of (scene, spp, max_bounces, seed).
         chunk: rays traced together (memory vs. overhead).
         checkpoint: file to save progress to every ``checkpoint_every`` passes and to
-            resume from when it exists with matching settings (a
-            :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic).
+            resume from when it exists with matching settings and scene content (a
+            :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic); a
+            checkpoint of other settings or an edited scene is ignored and overwritten, a
+            corrupt one is moved aside to ``<name>.corrupt`` with a warning and the render
+            starts afresh.
         checkpoint_every: passes between checkpoint saves.
         progress: show a tqdm bar over sample passes.
+        mis: combine next-event estimation with BRDF sampling by multiple importance
+            sampling (power heuristic; default on): every vertex also counts the light its
+            BRDF-sampled ray finds (environment, emitter), both weighted, so sharp lobes
+            reflecting large bright lights converge without fireflies. ``False`` is plain
+            next-event estimation. Both are unbiased; only the noise differs.
     Raises:
         ValueRangeError: a count (``spp``, ``max_bounces``, ``chunk``, ``checkpoint_every``)
             that is not a positive integer, or a seed outside ``[0, 2**63)``.
@@ -193,38 +280,59 @@ def path_trace(
     cam = scene.camera
     h, w = cam.height, cam.width
     brdfs = material_brdfs(scene)
-    settings = {"scene": scene.name, "width": w, "height": h, "spp": spp, "max_bounces": max_bounces, "seed": seed}
+    settings = {
+        "scene": scene.name,
+        "width": w,
+        "height": h,
+        "spp": spp,
+        "max_bounces": max_bounces,
+        "seed": seed,
+        "mis": mis,
+    }
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
-    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, settings)
+    key = settings_key(settings, scene)  # the scene's content too: an edited scene starts fresh
+    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, key, on_corrupt="recompute")
     saved = None if ckpt is None else ckpt.load()
     if saved is not None:
         total = torch.from_numpy(saved[0]["sum"])
         start = int(saved[1]["passes_done"])
-    bar = tqdm(range(start, spp), total=spp, initial=start, desc=f"path trace {scene.name}", disable=not progress)
+    bar = tqdm(
+        range(start, spp),
+        total=spp,
+        initial=start,
+        desc=f"path trace {scene.name}",
+        disable=not progress_default(progress),
+    )
     for s in bar:
         gen = seeded_generator(seed, s)
         o, d = cam.generate_rays(jitter=True, generator=gen)
         for a in range(0, h * w, chunk):
             sl = slice(a, min(a + chunk, h * w))
-            total[sl] += _radiance(scene, o[sl], d[sl], brdfs, max_bounces, gen).double()
+            total[sl] += _radiance(scene, o[sl], d[sl], brdfs, max_bounces, gen, mis).double()
         done = s + 1
         if ckpt is not None and (done % checkpoint_every == 0 or done == spp):
             ckpt.save({"sum": total.numpy()}, meta={"settings": settings, "passes_done": done})
     return (total / spp).to(torch.float32).reshape(h, w, 3)
 
 
-def reference_path_trace(scene: Scene, spp: int = 256, max_bounces: int = 4, seed: int = 0, **kwargs) -> torch.Tensor:
+def reference_path_trace(
+    scene: Scene, spp: int = 256, max_bounces: int = 4, seed: int = 0, mis: bool = True, **kwargs
+) -> torch.Tensor:
     """The unbiased reference of the multibounce editor: :func:`path_trace` with every
-    object's full BRDF, BRDF importance sampling and next-event estimation (see the module
-    docstring), to measure what a BRDF series, diffuse equivalents and band projections cost.
+    object's full BRDF, BRDF importance sampling and next-event estimation combined by
+    multiple importance sampling (``mis``, default on; see the module docstring), to
+    measure what a BRDF series, diffuse equivalents and band projections cost.
 
     Args:
         scene, spp, max_bounces, seed: as :func:`path_trace`; ``max_bounces`` counts surface
             vertices, so it matches a series of that length (Mitsuba's ``max_depth`` is
             ``max_bounces + 1``).
+        mis: power-heuristic MIS of light and BRDF sampling (default ``True``); ``False``
+            is next-event estimation alone (same expectation, more fireflies on glossy
+            surfaces under large bright lights).
         kwargs: ``chunk``, ``checkpoint``, ``checkpoint_every``, ``progress``.
     Returns:
         (H, W, 3) float32 linear radiance.
     """
-    return path_trace(scene, spp=spp, max_bounces=max_bounces, seed=seed, **kwargs)
+    return path_trace(scene, spp=spp, max_bounces=max_bounces, seed=seed, mis=mis, **kwargs)

@@ -30,8 +30,9 @@ import torch
 from tqdm.auto import tqdm
 
 from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
+from ..data import progress_default
 from ..errors import ValueRangeError
-from ..records.cache import TileCache
+from ..records.cache import TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BlockVisibility
 from ..scene.scene import Scene
@@ -77,8 +78,9 @@ def precompute_visibility(
     bits: int = 0,
     chunk: int = 256,
     checkpoint: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     max_chunks: int | None = None,
+    keep_checkpoint: bool = False,
 ) -> VertexVisibility:
     """Visibility cubemaps of every vertex of ``scene``.
 
@@ -90,9 +92,10 @@ def precompute_visibility(
         bits: 0 for binary maps, else the derivative quantisation of graded maps.
         chunk: vertices per work unit (and checkpoint file).
         checkpoint: folder for finished chunks (a :class:`~torch_brdf.records.cache.TileCache`); a
-            run with the same settings resumes from it.
-        progress: tqdm bar over chunks.
+            run with the same settings resumes from it; removed on success unless ``keep_checkpoint``.
+        progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
+        keep_checkpoint: keep the finished chunks after success.
     Returns:
         :class:`VertexVisibility` (or None when stopped by ``max_chunks``).
     Raises:
@@ -126,12 +129,15 @@ def precompute_visibility(
         "fingerprint": verts.fingerprint,
         "chunk": chunk,
     }
-    cache = TileCache(checkpoint, CHUNK_KIND, settings, prefix="vis")
+    key = settings_key(settings, scene, parts=("geometry",))  # every mesh (occluders too), not lights
+    cache = TileCache(checkpoint, CHUNK_KIND, key, prefix="vis")
     dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
     starts = list(range(0, len(verts), chunk))
     parts: list[BlockVisibility | None] = [None] * len(starts)
     done = 0
-    bar = tqdm(starts, desc=f"visibility {scene.name} ({resolution}^2x6)", unit="chunk", disable=not progress)
+    bar = tqdm(
+        starts, desc=f"visibility {scene.name} ({resolution}^2x6)", unit="chunk", disable=not progress_default(progress)
+    )
     for c, s in enumerate(bar):
         finished = cache.load(c)
         if finished is not None:
@@ -147,4 +153,6 @@ def precompute_visibility(
         cache.save(c, {"stream": stream, "vertex_offsets": voff}, meta={"chunk": c})
         parts[c] = part
         done += 1
+    if not keep_checkpoint:
+        cache.remove()
     return VertexVisibility(geom, verts, BlockVisibility.concat(parts), supersample, bits)

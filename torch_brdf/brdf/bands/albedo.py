@@ -44,13 +44,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import warnings
-from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
+from ...data import cache_dir
 from ...errors import FileFormatError, ValueRangeError
 from ...frame import half_diff_to_directions, spherical_angles
 from ...io.arrays import load_arrays, save_arrays
@@ -68,12 +67,6 @@ _KIND = "equivalent-albedo"
 class EquivalentAlbedoCacheWarning(UserWarning):
     """A cache entry could not be read (corrupt, wrong kind or version) and was recomputed,
     or could not be written."""
-
-
-def cache_dir() -> Path:
-    """The on-disk cache folder: ``$TORCH_BRDF_CACHE`` or ``~/.cache/torch_brdf``."""
-    env = os.environ.get("TORCH_BRDF_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "torch_brdf"
 
 
 def _key(basis: BandBasis, quotient: Quotient, samples_per_band: int, seed: int) -> tuple[str, dict]:

@@ -12,8 +12,9 @@ import torch
 from tqdm.auto import tqdm
 
 from ..._checks import MAX_BANDS, check_count, check_seed
+from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
-from ...records.cache import TileCache
+from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -29,8 +30,9 @@ __all__ = ["TILE_KIND", "precompute_polynomial"]
 TILE_KIND = "multibounce-tile"
 
 
-def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
-    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key."""
+def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
+    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
+    ``tick()`` (if given) after each pass group."""
     cam = scene.camera
     p = pixels.numel()
     sizes = {
@@ -52,6 +54,8 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None):
         o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
         e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
         emis.index_add_(0, rec, e.double())
+        if tick is not None:
+            tick()
         dd = ent.cat()
         if not dd:
             continue
@@ -91,8 +95,9 @@ def precompute_polynomial(
     tile_rows: int | None = None,
     group: int | None = None,
     checkpoint: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     paths: dict | None = None,
+    keep_checkpoint: bool = False,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -108,9 +113,11 @@ def precompute_polynomial(
         group: passes traced together (default: enough for >= 64k rays per batch, which
             lets embree use both cores).
         checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
-            an interrupted run resumes from it.
-        progress: tqdm bar over tiles.
+            an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
+        progress: tqdm bar over tiles and pass groups (None: on when attached to a terminal
+            or notebook, see :func:`~torch_brdf.records.cache.progress_default`).
         paths: tests only: a dict that receives the raw path records (exactness oracle).
+        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
     Returns:
         :class:`PolynomialTensors`.
     """
@@ -148,13 +155,19 @@ def precompute_polynomial(
         "tile_rows": tile_rows,
         "group": group,
     }
-    cache = TileCache(checkpoint, TILE_KIND, settings)
+    cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
     t0 = time.perf_counter()
-    bar = tqdm(range(len(tiles)), desc=f"precompute {scene.name} ({series.key})", disable=not progress)
-    for ti in bar:
+    groups = math.ceil(spp / group)  # the bar ticks per pass group of every tile
+    bar = tqdm(
+        total=len(tiles) * groups,
+        desc=f"precompute {scene.name} ({series.key})",
+        unit="group",
+        disable=not progress_default(progress),
+    )
+    for ti in range(len(tiles)):
         pix = tiles[ti]
         done = cache.load(ti)
         if done is not None:
@@ -163,14 +176,18 @@ def precompute_polynomial(
             emis = torch.from_numpy(arrays["emission"])
             for k, v in meta.get("rays", {}).items():
                 tracer.rays[k] += int(v)
+            bar.update(groups)
         else:
             before = dict(tracer.rays)
-            emis, red = _tile_entries(tracer, scene, pix, ti, spp, group, seed, paths)
+            emis, red = _tile_entries(tracer, scene, pix, ti, spp, group, seed, paths, tick=lambda: bar.update(1))
             rays = {k: tracer.rays[k] - before[k] for k in before}
             arrays = {"emission": emis.numpy(), **{f"r_{k}": v.numpy() for k, v in red.items()}}
             cache.save(ti, arrays, meta={"settings": settings, "rays": rays})
         emission[:, pix] = (emis / spp).float().T
         blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
+    bar.close()
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     meta = {**settings, "rays": dict(tracer.rays), "seconds": time.perf_counter() - t0}
+    if not keep_checkpoint:
+        cache.remove()
     return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)

@@ -1,0 +1,252 @@
+"""Denoising basis images keeps every edit exact: linearity of the guide-only filter,
+OIDN per basis image (edits exact given the denoised bases), freeze/denoise commutation,
+guide buffers and their file round trip, HDR-FLIP."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from torch_brdf.denoise import (
+    AtrousSettings,
+    EdgeAwareFilter,
+    GuideBuffers,
+    OIDNBasis,
+    denoise_frozen,
+    denoise_tensors,
+    guide_buffers,
+    oidn_available,
+    oidn_frame,
+)
+from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
+from torch_brdf.io.arrays import load_arrays, save_arrays
+from torch_brdf.records import PolynomialTensors
+from torch_brdf.render.polynomial import PolynomialRenderer
+from torch_brdf.scene.builtin import cornell_box
+from torch_brdf.scene.guides import GUIDE_NAMES
+from torch_brdf.transport.polynomial import precompute_polynomial
+
+needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
+SIZE = 24
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sc = cornell_box(SIZE)
+    sc.materials["glossy"] = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 100.0}
+    sc.objects[sc.object_id("back")].material = "glossy"
+    tensors = precompute_polynomial(sc, "8,1,1", spp=4, seed=2, progress=False)
+    mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
+    guides = guide_buffers(sc)
+    return sc, tensors, mats, guides
+
+
+def _random_edit(R, tensors, gen):
+    """Random coefficients (c, d) for every editable object: (H, W, 3) frame of R."""
+    for m, b in enumerate(tensors.bases):
+        if b is None:
+            continue
+        c = torch.rand(b.size, 3, generator=gen, dtype=torch.float64)
+        d = torch.rand(3, generator=gen, dtype=torch.float64)
+        R.set_coefficients(tensors.object_names[m], c, d=d)
+
+
+def _rel(a, b):
+    return float((a - b).abs().max() / b.abs().max())
+
+
+def test_guides_trace_pixel_centres(setup):
+    sc, _, _, g = setup
+    o, d = sc.camera.generate_rays()
+    hits = sc.trace(o, d)
+    assert torch.equal(g.object_id.reshape(-1), hits.object_id)
+    n = g.normal.reshape(-1, 3)[hits.hit]
+    assert bool(((n * d[hits.hit]).sum(-1) <= 1e-6).all())  # facing the eye
+    torch.testing.assert_close(n.norm(dim=-1), torch.ones(n.shape[0]))
+    # the albedo proxy is a function of the object id only
+    for m in g.object_id.unique().tolist():
+        a = g.albedo[g.object_id == m]
+        assert bool((a == a[0]).all())
+    assert bool((g.albedo[g.object_id < 0] == 0).all())
+    # mirror guides: what the mirror ray sees, geometry and lights only
+    sees_light = g.mirror_radiance.sum(-1) > 0
+    assert int(sees_light.sum()) > 0
+    assert bool((g.mirror_id[sees_light] == sc.object_id("light")).all())
+    assert bool((g.mirror_id[g.object_id < 0] == -2).all())
+    assert float(g.light_cos_h.abs().max()) <= 1 + 1e-6
+    assert bool((g.light_cos_h[g.object_id < 0] == 0).all())
+    # the back wall faces the light's reflection: its half-vector cosine comes near 1
+    assert float(g.light_cos_h[g.object_id == sc.object_id("back")].max()) > 0.99
+
+
+def test_guides_file_round_trip_and_version(setup, tmp_path):
+    g = setup[3]
+    p = save_arrays(tmp_path / "g.npz", g.to_arrays(), kind="test")
+    back = GuideBuffers.from_arrays(load_arrays(p, kind="test")[0])
+    for k in GUIDE_NAMES:
+        assert torch.equal(getattr(back, k), getattr(g, k))
+    assert back.pixel_angle == g.pixel_angle
+    assert GuideBuffers.from_arrays({}) is None
+    arrays = g.to_arrays()
+    arrays["guide_meta"] = arrays["guide_meta"].copy()
+    arrays["guide_meta"][1] = 99
+    with pytest.raises(FileFormatError):
+        GuideBuffers.from_arrays(arrays)
+
+
+def test_guides_are_saved_with_the_tensors(setup, tmp_path):
+    _, tensors, _, g = setup
+    assert tensors.guides is None
+    path = dataclasses.replace(tensors, guides=g).save(tmp_path / "t.npz")
+    back = PolynomialTensors.load(path)
+    for k in GUIDE_NAMES:
+        assert torch.equal(getattr(back.guides, k), getattr(g, k))
+    assert PolynomialTensors.load(tensors.save(tmp_path / "plain.npz")).guides is None
+    # the filter of a record is built from its own guides and bases
+    A = EdgeAwareFilter.for_tensors(back)
+    assert A.glossy == tuple(_glossy(tensors))
+    x = torch.rand(3, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(A(x), EdgeAwareFilter(g, glossy=_glossy(tensors))(x))
+    with pytest.raises(ValueRangeError):
+        EdgeAwareFilter.for_tensors(tensors)
+
+
+def test_filter_is_linear_and_respects_object_ids(setup, gen):
+    g = setup[3]
+    A = EdgeAwareFilter(g, glossy=_glossy(setup[1]))
+    x, y = torch.rand(2, 3, SIZE, SIZE, generator=gen, dtype=torch.float64)
+    a, b = 0.7, -1.3
+    torch.testing.assert_close(A(a * x + b * y), a * A(x) + b * A(y), rtol=1e-12, atol=1e-12)
+    # a constant image stays constant (weights sum to 1), and an indicator of one object's
+    # interior pixels never leaks out of them
+    torch.testing.assert_close(
+        A(torch.ones(SIZE, SIZE, dtype=torch.float64)), torch.ones(SIZE, SIZE, dtype=torch.float64)
+    )
+    back = setup[0].object_id("back")
+    inside = A.interior & (g.object_id == back)
+    out = A(inside.double())
+    assert float(out[~inside].abs().max()) == 0.0
+    # silhouette pixels are left as they are
+    sil = ~A.interior
+    torch.testing.assert_close(A(x)[:, sil], x[:, sil])
+    # and the filter does smooth: noise inside a diffuse object drops (on the glossy back wall
+    # the half-vector guide keeps it from smoothing much at this resolution)
+    diffuse = [o for o in g.object_id.unique().tolist() if o >= 0 and o not in _glossy(setup[1])]
+    biggest = max(diffuse, key=lambda o: int((A.interior & (g.object_id == o)).sum()))
+    floor = A.interior & (g.object_id == biggest)
+    assert int(floor.sum()) >= 30
+    noise = torch.rand(SIZE, SIZE, generator=gen, dtype=torch.float64) * floor
+    assert float(A(noise)[floor].std()) < 0.5 * float(noise[floor].std())
+    with pytest.raises(ShapeError):
+        A(torch.zeros(3, 5, 5))
+    with pytest.raises(ValueRangeError):
+        AtrousSettings(levels=0)
+
+
+def _glossy(tensors):
+    return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
+
+
+def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, gen):
+    """(a) linearity: the denoised record at random (c, d) equals the filter applied to the
+    noisy record's frame at the same (c, d) (minus the emission, which is not filtered)."""
+    _, tensors, mats, g = setup
+    A = EdgeAwareFilter(g, glossy=_glossy(tensors))
+    den = denoise_tensors(tensors, A)
+    assert den.meta["denoised"].startswith("linear")
+    R = PolynomialRenderer(tensors, mats, dtype=torch.float64)
+    D = PolynomialRenderer(den, mats, dtype=torch.float64)
+    e = tensors.emission.double().T.reshape(SIZE, SIZE, 3)
+    for _ in range(3):
+        state = gen.get_state()
+        _random_edit(R, tensors, gen)
+        gen.set_state(state)
+        _random_edit(D, tensors, gen)
+        noisy, clean = R.evaluate(), D.evaluate()
+        expected = A((noisy - e).permute(2, 0, 1)).permute(1, 2, 0) + e
+        assert _rel(clean, expected) < 1e-5  # float32 tensors, float64 evaluation
+    with pytest.raises(ValueRangeError):
+        denoise_tensors(tensors, A, max_entries=10)
+
+
+def _frozen_frames(tensors, mats, obj, gen, n=3, den=None):
+    R = PolynomialRenderer(tensors, mats, dtype=torch.float64)
+    R.freeze(obj)
+    if den is not None:
+        R._frozen = denoise_frozen(R._frozen, den, (tensors.height, tensors.width))
+    b = tensors.bases[tensors.object_id(obj)]
+    frames = []
+    for _ in range(n):
+        R.set_coefficients(
+            obj,
+            torch.rand(b.size, 3, generator=gen, dtype=torch.float64),
+            d=torch.rand(3, generator=gen, dtype=torch.float64),
+        )
+        frames.append(R())
+    return frames, R
+
+
+@pytest.mark.parametrize("obj", ["back", "left"])
+def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj):
+    _, tensors, mats, g = setup
+    A = EdgeAwareFilter(g, glossy=_glossy(tensors))
+    after, _ = _frozen_frames(denoise_tensors(tensors, A), mats, obj, torch.Generator().manual_seed(5))
+    before, R = _frozen_frames(tensors, mats, obj, torch.Generator().manual_seed(5), den=A)
+    for a, b in zip(after, before, strict=True):
+        assert _rel(a, b) < 1e-5
+    # the denoised frozen tensor covers about the same pixels as the noisy one (same frame
+    # cost): it gains only interior pixels where no path of these 4 spp left a record
+    _, noisy = _frozen_frames(tensors, mats, obj, torch.Generator(), n=0)
+    for k in ("pix_i", "pix_r"):
+        assert R._frozen[k].numel() <= 1.05 * noisy._frozen[k].numel()
+
+
+@needs_oidn
+def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen):
+    """(b) OIDN is not linear, but it runs once on fixed basis images: afterwards the frozen
+    tensor is fixed data (no OIDN per edit) and every frame is linear in the edited
+    coefficients: frame(c1 + c2) = frame(c1) + frame(c2) - frame(0) at fixed d."""
+    _, tensors, mats, g = setup
+    ob = OIDNBasis(g)
+    _, R = _frozen_frames(tensors, mats, "back", gen, n=0, den=ob)
+    calls, fz = ob.calls, R._frozen
+    assert calls > 0
+    b = tensors.bases[tensors.object_id("back")]
+    d = torch.rand(3, generator=gen, dtype=torch.float64)
+    c1, c2 = torch.rand(2, b.size, 3, generator=gen, dtype=torch.float64)
+    frames = []
+    for c in (c1, c2, c1 + c2, torch.zeros_like(c1)):
+        R.set_coefficients("back", c, d=d)
+        frames.append(R())
+    assert R._frozen is fz and ob.calls == calls  # edits never call the denoiser
+    f1, f2, f12, f0 = frames
+    torch.testing.assert_close(f12, f1 + f2 - f0, rtol=0, atol=1e-6 * float(f12.abs().max()))
+    assert bool(torch.isfinite(f12).all()) and float(f12.min()) >= 0
+
+
+@needs_oidn
+def test_oidn_group_sums_equal_oidn_of_the_group(setup, gen):
+    g = setup[3]
+    ob = OIDNBasis(g, min_occupancy=2.0)  # never satisfied: one group per term
+    imgs = torch.rand(4, 3, SIZE, SIZE, generator=gen) * (torch.rand(4, 1, SIZE, SIZE, generator=gen) < 0.3)
+    out = ob(imgs, torch.zeros(4, dtype=torch.long))
+    from torch_brdf.denoise import oidn_image
+
+    whole = oidn_image(imgs.sum(0).permute(1, 2, 0), g).permute(2, 0, 1)
+    inner = ob.linear.interior
+    lin_sum = ob.linear(imgs).sum(0)
+    keep = inner & (lin_sum > 0).all(0)
+    torch.testing.assert_close(out.sum(0)[:, keep], whole[:, keep], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out[:, :, ~inner], imgs[:, :, ~inner])
+
+
+@needs_oidn
+def test_oidn_frame_reduces_noise_of_a_flat_image(setup, gen):
+    g = setup[3]
+    base = torch.full((SIZE, SIZE, 3), 0.5) * (g.object_id >= 0)[..., None]
+    noisy = base * (1 + 0.5 * torch.randn(SIZE, SIZE, 3, generator=gen)).clamp_min(0)
+    out = oidn_frame(noisy, g)
+    assert out.shape == noisy.shape
+    assert float((out - base).square().mean()) < 0.5 * float((noisy - base).square().mean())

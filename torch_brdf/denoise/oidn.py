@@ -1,0 +1,142 @@
+r"""Intel Open Image Denoise (``pyoidn``, the optional extra ``denoise``) on basis images and
+on final frames, with the guide buffers as its auxiliary albedo and normal inputs.
+
+OIDN is not linear, so :class:`OIDNBasis` is exact *across edits* only in this sense: it is
+applied once to fixed basis images, and every edited frame is the same linear combination
+of the denoised bases (:mod:`.tensors`); it is not OIDN of the edited frame, and scaling a
+basis image before denoising does not scale the result exactly.
+
+Sparse bands. With :math:`J` bands at the eye vertex, each band's image holds only the pixels
+where some path's half-vector fell in that band: at 64 spp and 64 bands most band images
+are a scatter of isolated pixels, which OIDN takes for noise and removes (a bias). So bands
+are grouped: consecutive images of one term (the ``groups`` of :mod:`.tensors`: bands
+:math:`j, j+1, \dots` of one :math:`k'`) are merged until the group's sum covers at least
+``min_occupancy`` of the pixels its term covers; OIDN denoises the group sum :math:`S`, and
+each band gets the share its linear-filtered image has of the linear-filtered sum,
+:math:`D(x_b) = \mathrm{OIDN}(S)\,A(x_b)/A(S)` (per pixel and channel; :math:`A` is
+:class:`~.atrous.EdgeAwareFilter`), so the group's bands sum to OIDN's output. Silhouette
+pixels (see :mod:`.atrous`) keep their values, as with the linear filter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..errors import ShapeError, TorchBRDFError
+from .atrous import EdgeAwareFilter
+from .guides import GuideBuffers
+
+
+def _pyoidn():
+    try:
+        import pyoidn
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise TorchBRDFError("Open Image Denoise needs the optional extra: pip install 'torch_brdf[denoise]'") from exc
+    return pyoidn
+
+
+def oidn_available() -> bool:
+    """True when ``pyoidn`` imports."""
+    try:
+        _pyoidn()
+    except TorchBRDFError:
+        return False
+    return True
+
+
+def oidn_image(image: torch.Tensor, guides: GuideBuffers | None = None, quality: str = "high") -> torch.Tensor:
+    """OIDN's ``RT`` filter in HDR mode on one image.
+
+    Args:
+        image: (H, W, 3) linear radiance, >= 0 (negative values are clamped).
+        guides: albedo proxy and normals as clean auxiliary images (None: colour only).
+        quality: ``"high"``, ``"balanced"`` or ``"fast"``.
+    Returns:
+        (H, W, 3) float32.
+    """
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise ShapeError(f"expected an image (H, W, 3); got {tuple(image.shape)}")
+    oidn = _pyoidn()
+    color = np.ascontiguousarray(image.detach().float().clamp_min(0).numpy())
+    kw = {}
+    if guides is not None:
+        kw = {
+            "albedo": np.ascontiguousarray(guides.albedo.numpy(), dtype=np.float32),
+            "normal": np.ascontiguousarray(guides.normal.numpy(), dtype=np.float32),
+            "clean_aux": True,
+        }
+    out = oidn.denoise(color, hdr=True, quality=quality, **kw)
+    return torch.from_numpy(np.array(out, dtype=np.float32))
+
+
+def oidn_frame(image: torch.Tensor, guides: GuideBuffers, quality: str = "high") -> torch.Tensor:
+    """The path-tracer user's baseline: OIDN on a final frame (H, W, 3) -> (H, W, 3)."""
+    return oidn_image(image, guides, quality)
+
+
+class OIDNBasis:
+    """OIDN per (grouped) basis image, a denoiser for :mod:`.tensors`.
+
+    Args:
+        guides: the view's guides.
+        linear: the linear filter that splits a group's output among its bands (default
+            :class:`EdgeAwareFilter` of the guides).
+        min_occupancy: a group grows until its sum is non-zero on this fraction of the pixels
+            where the whole term is non-zero.
+        quality: OIDN quality.
+    """
+
+    def __init__(
+        self,
+        guides: GuideBuffers,
+        linear: EdgeAwareFilter | None = None,
+        min_occupancy: float = 0.5,
+        quality: str = "high",
+    ):
+        self.guides = guides
+        self.linear = linear or EdgeAwareFilter(guides)
+        self.min_occupancy = float(min_occupancy)
+        self.quality = quality
+        self.calls = 0
+
+    @property
+    def description(self) -> str:
+        return f"oidn per basis group (min_occupancy {self.min_occupancy}, quality {self.quality})"
+
+    def _subgroups(self, images: torch.Tensor, groups: torch.Tensor) -> list[tuple[int, int]]:
+        out = []
+        _, counts = torch.unique_consecutive(groups, return_counts=True)
+        start = 0
+        for n in counts.tolist():
+            occ = (images[start : start + n] != 0).any(1).flatten(1)  # (n, H*W)
+            total = max(int(occ.any(0).sum()), 1)
+            a, have = start, torch.zeros_like(occ[0])
+            for b in range(start, start + n):
+                have |= occ[b - start]
+                if int(have.sum()) >= self.min_occupancy * total:
+                    out.append((a, b + 1))
+                    a, have = b + 1, torch.zeros_like(have)
+            if a < start + n:  # the remainder joins the last subgroup
+                if out and out[-1][1] == a and out[-1][0] >= start:
+                    out[-1] = (out[-1][0], start + n)
+                else:
+                    out.append((a, start + n))
+            start += n
+        return out
+
+    def __call__(self, images: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
+        """images (B, 3, H, W) -> (B, 3, H, W); ``groups`` (B,) as :mod:`.tensors`."""
+        lin = self.linear(images)
+        out = torch.zeros_like(images)
+        inner = self.linear.interior
+        for a, b in self._subgroups(images, groups):
+            s = images[a:b].sum(0)  # (3, H, W)
+            if not bool((s != 0).any()):
+                continue
+            den = oidn_image(s.permute(1, 2, 0), self.guides, self.quality).permute(2, 0, 1).to(images.dtype)
+            self.calls += 1
+            ls = lin[a:b].sum(0)
+            share = torch.where(ls > 0, lin[a:b] / ls.clamp_min(1e-30), 0.0)
+            out[a:b] = den * share
+        return torch.where(inner, out, images)

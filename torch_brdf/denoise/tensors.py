@@ -1,0 +1,187 @@
+r"""Denoise precomputed records along their pixel axis, keeping every BRDF edit exact.
+
+The image is linear in each bounce's coefficients, :math:`B = E + \sum_k g_k(c, \hat c, d)\,T_k`
+(Ben-Artzi et al. 2008, Eq. 26/29), with basis images :math:`T_k` fixed by the
+precomputation. A denoiser :math:`D` applied to every :math:`T_k` once gives new fixed basis
+images :math:`D(T_k)`; every edit is then still the same two matrix products, and the edited
+frame is exactly :math:`E + \sum_k g_k D(T_k)`:
+
+* for a linear :math:`D = A` (:class:`~.atrous.EdgeAwareFilter`) that equals :math:`E + A(B - E)`,
+  the filter applied to the noisy edited frame, for every :math:`(c, \hat c, d)`;
+* for Open Image Denoise (:class:`~.oidn.OIDNBasis`, not linear) the edit is exact *given the
+  denoised bases* (linear in the coefficients, as before); it is not OIDN of the edited frame.
+
+The emission term :math:`E` (emitters and the environment seen directly) is left as it is.
+Denoising commutes with freezing (Eq. 27): :func:`denoise_frozen` on a frozen tensor equals
+freezing the output of :func:`denoise_tensors`, for a linear :math:`D`.
+
+A denoiser here is any callable ``(images (B, 3, H, W), groups (B,) int64) -> (B, 3, H, W)``;
+``groups`` numbers images that a non-linear denoiser may merge (consecutive bands of one
+term), a linear one ignores them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from ..errors import ShapeError, ValueRangeError
+from ..records.polynomial import PolynomialTensors, TensorBlock
+
+Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+#: images filtered together (memory: ``chunk * 3 * H * W`` floats, a few times over)
+DEFAULT_CHUNK = 64
+
+
+def _chunks(groups: torch.Tensor, chunk: int) -> list[tuple[int, int]]:
+    """[start, stop) ranges of about ``chunk`` images that never split a group."""
+    out, start, b = [], 0, groups.numel()
+    while start < b:
+        stop = min(start + chunk, b)
+        while stop < b and groups[stop] == groups[stop - 1]:
+            stop += 1
+        out.append((start, stop))
+        start = stop
+    return out
+
+
+def denoise_planes(
+    den: Denoiser, values: torch.Tensor, pixels: torch.Tensor, hw: tuple[int, int], groups=None, chunk=DEFAULT_CHUNK
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Denoise basis images stored on a pixel subset.
+
+    Args:
+        den: the denoiser.
+        values: (3, B, P) the B basis images on ``pixels``.
+        pixels: (P,) int64 flat row-major pixel indices (ascending).
+        hw: (H, W).
+        groups: (B,) int64 group ids (default: each image its own group).
+    Returns:
+        (values (3, B, P'), pixels (P',)): the denoised images on ``pixels`` and every
+        pixel where some output is non-zero, ascending.
+    """
+    c, b, p = values.shape
+    if c != 3 or pixels.shape != (p,):
+        raise ShapeError(f"expected values (3, B, P) and pixels (P,); got {tuple(values.shape)}, {tuple(pixels.shape)}")
+    h, w = hw
+    groups = torch.arange(b) if groups is None else groups
+    nonzero = torch.zeros(h * w, dtype=torch.bool)
+    rows, outs = _chunks(groups, chunk), []
+    for a, stop in rows:
+        dense = torch.zeros(stop - a, 3, h * w, dtype=values.dtype)
+        dense[:, :, pixels] = values[:, a:stop].permute(1, 0, 2)
+        res = den(dense.reshape(stop - a, 3, h, w), groups[a:stop]).reshape(stop - a, 3, h * w)
+        nonzero |= (res != 0).any(0).any(0)
+        outs.append(res)
+    new_pix = torch.nonzero(nonzero | _mask(pixels, h * w)).squeeze(1)
+    out = torch.zeros(3, b, new_pix.numel(), dtype=values.dtype)
+    for (a, stop), res in zip(rows, outs, strict=True):
+        out[:, a:stop] = res[:, :, new_pix].permute(1, 0, 2)
+    return out, new_pix
+
+
+def _mask(pixels: torch.Tensor, n: int) -> torch.Tensor:
+    m = torch.zeros(n, dtype=torch.bool)
+    m[pixels] = True
+    return m
+
+
+def denoise_frozen(frozen: dict[str, Any], den: Denoiser, hw: tuple[int, int], chunk: int = DEFAULT_CHUNK) -> dict:
+    """Denoise a frozen tensor (the dict :meth:`PolynomialRenderer.freeze` builds: ``F``
+    (C, J, K'·P_i) on pixels ``pix_i``, ``V`` (C, K', P_r) on ``pix_r``; Eq. 27-28).
+
+    Every basis image ``F[:, j, k']`` and ``V[:, k']`` is denoised once; the images of one k'
+    form a group (consecutive bands a non-linear denoiser may merge). Returns a new dict of
+    the same form, so the renderer's frame is unchanged code: assign it to the renderer's
+    frozen state (``renderer._frozen = denoise_frozen(renderer._frozen, den, hw)``).
+
+    Args:
+        frozen: the frozen tensor.
+        den: the denoiser.
+        hw: (H, W) of the view.
+    """
+    need = {"F", "V", "pix_i", "pix_r", "K"}
+    if not need <= set(frozen):
+        raise ValueRangeError(f"not a frozen tensor: missing {sorted(need - set(frozen))}")
+    F, V, K = frozen["F"], frozen["V"], int(frozen["K"])
+    c, j = F.shape[:2]
+    p_i = frozen["pix_i"].numel()
+    f_img = F.reshape(c, j, K, p_i).permute(0, 2, 1, 3).reshape(c, K * j, p_i)  # images ordered (k', j)
+    groups = torch.arange(K).repeat_interleave(j)
+    f_out, pix_i = denoise_planes(den, f_img, frozen["pix_i"], hw, groups, chunk)
+    f_out = f_out.reshape(c, K, j, -1).permute(0, 2, 1, 3).reshape(c, j, -1).contiguous()
+    v_out, pix_r = denoise_planes(den, V, frozen["pix_r"], hw, None, chunk)
+    return {**frozen, "F": f_out, "V": v_out.contiguous(), "pix_i": pix_i, "pix_r": pix_r}
+
+
+def denoise_tensors(
+    tensors: PolynomialTensors, den: Denoiser, chunk: int = DEFAULT_CHUNK, max_entries: int | None = 2**28
+) -> PolynomialTensors:
+    """Denoise every basis image of the multibounce tensors: one image per (eye object,
+    bounce, eye coefficient j, term t), gathered over the tiles.
+
+    The output has one sparse :class:`TensorBlock` per (eye object, bounce) over the whole
+    view (entries that are non-zero after denoising), no variances, and the same emission,
+    terms, bases and series; ``meta["denoised"]`` says what was done. A filter spreads each
+    band's entries to the object's neighbouring pixels, so the record grows towards dense
+    ``J x Z`` per pixel: ``max_entries`` (stored values, channels included) guards memory.
+
+    Args:
+        tensors: the precomputed tensors.
+        den: the denoiser; images of one term over consecutive j form a group.
+        chunk: images denoised together.
+        max_entries: raise :class:`ValueRangeError` before building a larger record.
+    """
+    h, w = tensors.height, tensors.width
+    by_key: dict[tuple[int, int], list[TensorBlock]] = {}
+    for b in tensors.blocks:
+        by_key.setdefault((b.object_id, b.bounce), []).append(b)
+    blocks, total = [], 0
+    for (m, n), bl in sorted(by_key.items()):
+        jj, tt, pp, vv = [], [], [], []
+        for b in bl:
+            j, z, p = b.coordinates()
+            jj.append(j)
+            tt.append(b.terms[z])
+            pp.append(b.pixels[p])
+            vv.append(b.values)
+        j, t, p, v = torch.cat(jj), torch.cat(tt), torch.cat(pp), torch.cat(vv, 1)
+        terms = torch.unique(t)
+        J = bl[0].J
+        pair = torch.searchsorted(terms, t) * J + j  # image id ordered (term, j)
+        ids, inv = torch.unique(pair, return_inverse=True)
+        pix, pinv = torch.unique(p, return_inverse=True)
+        est = ids.numel() * 3 * pix.numel()
+        if max_entries is not None and total + est > max_entries:
+            raise ValueRangeError(
+                f"denoising would store up to {total + est} entries (> max_entries={max_entries}) at "
+                f"(object {m}, bounce {n}); denoise a frozen tensor instead (denoise_frozen)"
+            )
+        vals = torch.zeros(3, ids.numel(), pix.numel(), dtype=v.dtype)
+        vals.index_put_((torch.arange(3)[:, None], inv[None], pinv[None]), v, accumulate=True)
+        out, new_pix = denoise_planes(den, vals, pix, (h, w), torch.div(ids, J, rounding_mode="floor"), chunk)
+        keep = (out != 0).any(0)  # (B, P') entries some channel holds
+        bi, pi = torch.nonzero(keep, as_tuple=True)
+        z, jb = torch.div(ids[bi], J, rounding_mode="floor"), ids[bi] % J
+        index = (jb * terms.numel() + z) * new_pix.numel() + pi
+        order = torch.argsort(index)
+        total += 3 * index.numel()
+        blocks.append(TensorBlock(m, n, new_pix, terms, J, index[order], out[:, bi, pi][:, order].contiguous()))
+    meta = {**tensors.meta, "denoised": getattr(den, "description", type(den).__name__)}
+    return dataclasses.replace(tensors, blocks=blocks, meta=meta)
+
+
+def memory_bytes(tensors: PolynomialTensors) -> int:
+    """Bytes of the record's stored entries (values, indices, variances)."""
+    return sum(b.nbytes for b in tensors.blocks)
+
+
+def dense_fraction(tensors: PolynomialTensors) -> float:
+    """Stored entries over the dense (C, J, Z, P) size of the blocks (1 = dense)."""
+    d = tensors.num_dense_entries
+    return tensors.num_entries / d if d else math.nan
