@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from torch_brdf.cli import app
@@ -127,3 +129,144 @@ def test_precompute_visibility_and_relight(tmp_path):
     assert read_exr(img_out.with_suffix(".exr")).shape == (16, 24, 3)
     bad = runner.invoke(app, ["precompute-visibility", str(toml), "--resolution", "40", "--out", str(out)])
     assert bad.exit_code == 2 and "multiple" in bad.output
+
+
+# -- failures: one line on stderr, a non-zero exit, no traceback (unless --debug) -------------
+def _one_line_error(res, code: int, *words: str) -> str:
+    assert res.exit_code == code, (res.exit_code, res.stdout, res.stderr)
+    # progress bars share stderr; the failure itself is the last line and the only error line
+    lines = [ln for ln in res.stderr.strip().splitlines() if "%|" not in ln]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
+    assert "Traceback" not in res.stderr and res.stderr.rstrip().endswith(lines[0])
+    for w in words:
+        assert w in lines[0], lines[0]
+    return lines[0]
+
+
+def _raiser(exc: BaseException):
+    def go(*args, **kwargs):
+        raise exc
+
+    return go
+
+
+RENDER = ["render", "cornell_box", "--resolution", "8", "--spp", "1", "--bounces", "1", "--no-resume"]
+
+
+@pytest.mark.parametrize(
+    ("exc", "code", "words"),
+    [
+        (OSError(errno.ENOSPC, "No space left on device", "x.exr"), 1, ("disk full", "x.exr")),
+        (PermissionError(errno.EACCES, "Permission denied", "x.exr"), 1, ("permission denied", "x.exr")),
+        (OSError(errno.EROFS, "Read-only file system", "x.exr"), 1, ("read-only file system",)),
+        (MemoryError(), 1, ("out of memory",)),
+        (KeyboardInterrupt(), 130, ("interrupted",)),
+        (RuntimeError("boom"), 1, ("internal error", "RuntimeError: boom", "--debug")),
+    ],
+    ids=["disk-full", "permission", "read-only", "memory", "ctrl-c", "bug"],
+)
+def test_failures_while_writing_are_one_line(tmp_path, monkeypatch, exc, code, words):
+    import torch_brdf.io
+
+    monkeypatch.setattr(torch_brdf.io, "write_exr", _raiser(exc))
+    _one_line_error(runner.invoke(app, [*RENDER, "--out", str(tmp_path / "r")]), code, *words)
+
+
+def test_debug_shows_the_traceback(tmp_path, monkeypatch):
+    import torch_brdf.io
+
+    monkeypatch.setattr(torch_brdf.io, "write_exr", _raiser(OSError(errno.ENOSPC, "No space left on device")))
+    res = runner.invoke(app, ["--debug", *RENDER, "--out", str(tmp_path / "r")])
+    assert res.exit_code == 1 and "Traceback" in res.stderr and "error: disk full" in res.stderr
+
+
+class _FullDisk:
+    """A file whose writes fail with ENOSPC (the file itself is created, as on a full disk)."""
+
+    def __init__(self, path, mode="r", *args, **kwargs):
+        self.f = open(path, mode, *args, **kwargs)
+        self.name = path
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device", self.name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
+def test_disk_full_during_a_record_save_is_one_line(tmp_path, monkeypatch):
+    import torch_brdf.io.arrays
+
+    monkeypatch.setattr(torch_brdf.io.arrays, "open", _FullDisk, raising=False)
+    args = ["precompute", "cornell_box", "--resolution", "8", "--spp", "1", "--series", "2,1", "--no-resume"]
+    _one_line_error(runner.invoke(app, [*args, "--out", str(tmp_path / "t.npz")]), 1, "disk full")
+    assert [p.name for p in tmp_path.iterdir()] == []  # no temporary file left behind
+
+
+def test_output_under_a_file_is_one_line(tmp_path):
+    (tmp_path / "file").write_text("x")
+    _one_line_error(runner.invoke(app, [*RENDER, "--out", str(tmp_path / "file" / "sub" / "r")]), 1, "not a folder")
+
+
+def test_bad_scene_files_are_one_line(tmp_path):
+    (tmp_path / "dir.toml").mkdir()
+    _one_line_error(runner.invoke(app, ["info", str(tmp_path / "dir.toml")]), 2, "is a directory")
+    (tmp_path / "nan.toml").write_text("[camera]\norigin = [0, 0, nan]\ntarget = [0, 0, 0]\n[materials]\n[[objects]]\n")
+    _one_line_error(runner.invoke(app, ["info", str(tmp_path / "nan.toml")]), 2, "camera.origin")
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        ("{not json", ("not valid JSON",)),
+        ('{"strokes": [{"points": [[1, 2]], "diameter": "wide"}]}', ("strokes[0]",)),
+        ('{"strokes": 5}', ("'strokes'",)),
+    ],
+)
+def test_bad_strokes_files_are_one_line(tmp_path, monkeypatch, content, words):
+    import torch_brdf.cli
+
+    monkeypatch.setattr(torch_brdf.cli, "load_scene", _raiser(AssertionError("the scene must not be loaded")))
+    path = tmp_path / "s.json"
+    path.write_text(content)
+    res = runner.invoke(app, ["fit-strokes", "cornell_box", "--object", "back", "--strokes", str(path)])
+    _one_line_error(res, 2, *words)
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["precompute", "cornell_box", "--series", "1000000000,1"], ("--series", "4096")),
+        (["precompute", "cornell_box", "--series", "4,x"], ("series",)),
+        (["precompute", "cornell_box", "--storage", "float8"], ("--storage", "float8")),
+        (["precompute", "cornell_box", "--bases", "{not json"], ("--bases", "JSON")),
+        (["precompute", "cornell_box", "--bases", "[1]"], ("--bases", "object")),
+        (["precompute", "cornell_box", "--bases", '{"left": {"J": 1e12}}'], ("left.J",)),
+        (["precompute-visibility", "cornell_box", "--resolution", "1048576"], ("--resolution", "1024")),
+        (["precompute-visibility", "cornell_box", "--resolution", "40"], ("multiple",)),
+        (["precompute-visibility", "cornell_box", "--bits", "3"], ("--bits",)),
+        (["relight", "cornell_box", "--visibility", "v.npz", "--method", "fast"], ("--method", "fast")),
+        (["relight", "cornell_box", "--visibility", "v.npz", "--rotate", "nan"], ("--rotate",)),
+        (["render", "cornell_box", "--exposure", "inf"], ("--exposure",)),
+        (
+            ["fit-strokes", "cornell_box", "--object", "o", "--strokes", "s", "--width", "16384", "--height", "16384"],
+            (),
+        ),
+    ],
+)
+def test_options_are_checked_before_any_work(monkeypatch, args, words):
+    import torch_brdf.cli
+    from torch_brdf.transport.visibility import VertexVisibility
+
+    monkeypatch.setattr(torch_brdf.cli, "load_scene", _raiser(AssertionError("the scene must not be loaded")))
+    monkeypatch.setattr(VertexVisibility, "load", _raiser(AssertionError("the record must not be loaded")))
+    _one_line_error(runner.invoke(app, args), 2, *words)
+
+
+def test_sizes_beyond_the_caps_are_usage_errors():
+    for args in (["demo", "--resolution", "100000"], ["render", "cornell_box", "--spp", str(2**40)]):
+        res = runner.invoke(app, args)
+        assert res.exit_code == 2 and "Traceback" not in res.stderr and "Invalid value" in res.stderr

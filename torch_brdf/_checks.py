@@ -1,9 +1,23 @@
-"""Input checks for public entry points: shapes, dtypes and finite values.
+"""Input checks for public entry points: shapes, dtypes, finite values, counts and sizes.
 
-Errors follow pytorch3d's habit: say what was expected and what came.
+Errors follow pytorch3d's habit: say what was expected and what came. The caps on sizes
+that come from users (scene files, command-line options) live here too, so one table
+documents them (README, "Errors"):
+
+* :data:`MAX_IMAGE_SIDE` pixels per image side, :data:`MAX_IMAGE_PIXELS` pixels per image;
+* :data:`MAX_BANDS` bands per entry of a BRDF series;
+* :data:`MAX_CUBEMAP_RESOLUTION` texels per cubemap face side, :data:`MAX_ENVMAP_HEIGHT` rows
+  of a procedural environment map.
+
+They bound what a typo can ask the allocator for (``width = 100000`` would be a 120 GB
+float32 RGB image with its per-pixel buffers) while staying far above every size the
+methods are used at (images of 4k x 4k, series of 256 bands, cubemaps of 128 texels).
 """
 
 from __future__ import annotations
+
+import math
+import numbers
 
 import torch
 
@@ -69,3 +83,75 @@ def check_rgb(value, name: str) -> tuple[float, float, float]:
         raise ShapeError(f"Expected {name} to be a scalar or 3 values (RGB); got {t.numel()} values")
     check_nonnegative(t, name)
     return (float(t[0]), float(t[1]), float(t[2]))
+
+
+#: largest image width or height (pixels)
+MAX_IMAGE_SIDE = 16384
+#: largest image (pixels): 8192 x 8192; the renderers keep several float32 RGB buffers per pixel
+MAX_IMAGE_PIXELS = 8192 * 8192
+#: largest number of bands in one entry of a BRDF series (the papers use up to 256)
+MAX_BANDS = 4096
+#: largest cubemap face side (texels); 1024 is 6 Mi texels per vertex
+MAX_CUBEMAP_RESOLUTION = 1024
+#: largest procedural environment map height (rows; the map is H x 2H, built in float64: 200 MB)
+MAX_ENVMAP_HEIGHT = 2048
+#: seeds are non-negative 63-bit integers (what torch.Generator.manual_seed and numpy accept)
+MAX_SEED = 2**63 - 1
+
+
+def check_int(value, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
+    """Return ``value`` as an int after checking it is an integer in ``[minimum, maximum]``.
+
+    Python, numpy and 0-d torch integers are accepted; bools, floats (even ``16.0``), strings
+    and anything else raise :class:`ValueRangeError` naming ``name``.
+    """
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_floating_point():
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueRangeError(f"{name} must be an integer; got {value!r} ({type(value).__name__})")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise ValueRangeError(f"{name} must be >= {minimum}; got {value}")
+    if maximum is not None and value > maximum:
+        raise ValueRangeError(f"{name} must be <= {maximum}; got {value}")
+    return value
+
+
+def check_count(value, name: str, maximum: int | None = None) -> int:
+    """A positive integer (>= 1, <= ``maximum``): counts, sizes, chunk lengths."""
+    return check_int(value, name, 1, maximum)
+
+
+def check_seed(value, name: str = "seed") -> int:
+    """A random seed: an integer in ``[0, 2**63 - 1]``."""
+    return check_int(value, name, 0, MAX_SEED)
+
+
+def check_real(
+    value, name: str, minimum: float | None = None, maximum: float | None = None, finite: bool = True
+) -> float:
+    """Return ``value`` as a float after checking it is a real number (not a bool or a
+    string), finite unless ``finite=False`` (NaN is always refused), in ``[minimum, maximum]``."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueRangeError(f"{name} must be a number; got {value!r} ({type(value).__name__})")
+    value = float(value)
+    if math.isnan(value) or (finite and math.isinf(value)):
+        raise ValueRangeError(f"{name} must be a finite number; got {value}")
+    if minimum is not None and value < minimum:
+        raise ValueRangeError(f"{name} must be >= {minimum:g}; got {value:g}")
+    if maximum is not None and value > maximum:
+        raise ValueRangeError(f"{name} must be <= {maximum:g}; got {value:g}")
+    return value
+
+
+def check_image_size(width, height, name: str = "image") -> tuple[int, int]:
+    """Width and height in ``[1, MAX_IMAGE_SIDE]`` with at most :data:`MAX_IMAGE_PIXELS` pixels."""
+    w = check_count(width, f"{name} width", MAX_IMAGE_SIDE)
+    h = check_count(height, f"{name} height", MAX_IMAGE_SIDE)
+    if w * h > MAX_IMAGE_PIXELS:
+        raise ValueRangeError(
+            f"{name} size {w}x{h} = {w * h} pixels exceeds the cap of {MAX_IMAGE_PIXELS} (8192 x 8192)"
+        )
+    return w, h

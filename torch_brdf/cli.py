@@ -1,17 +1,53 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
-``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``, ``editor`` and ``fetch-data``."""
+``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``, ``editor`` and ``fetch-data``.
+
+Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
+never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
+
+* 2 — bad input: a :class:`~torch_brdf.errors.TorchBRDFError` (bad scene file, option,
+  JSON, record, ...); options are checked before any scene is loaded or work is started;
+* 1 — the system failed us: I/O errors (missing folder, permission denied, read-only file
+  system, disk full, ...), out of memory, or an internal error (a bug: please report it
+  with the ``--debug`` traceback);
+* 130 — interrupted (Ctrl-C); finished tiles/chunks/checkpoints are kept for ``--resume``.
+"""
 
 from __future__ import annotations
 
+import errno
+import functools
 import json
 import time
+import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
 
+from ._checks import (
+    MAX_BANDS,
+    MAX_CUBEMAP_RESOLUTION,
+    MAX_IMAGE_SIDE,
+    check_count,
+    check_image_size,
+    check_int,
+    check_real,
+)
 from .errors import SceneError, TorchBRDFError, ValueRangeError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="torch_brdf: BRDF design in the final scene.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="torch_brdf: BRDF design in the final scene.",
+)
+
+#: samples per pixel (or light samples) accepted on the command line
+MAX_SAMPLES = 1 << 20
+#: surface vertices per path accepted on the command line
+MAX_BOUNCES = 64
+
+_STATE = {"debug": False}
 
 #: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
 PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
@@ -33,8 +69,70 @@ def main(
     version: bool = typer.Option(
         False, "--version", callback=_version, is_eager=True, help="Print the package version and exit."
     ),
+    debug: bool = typer.Option(False, "--debug", help="On failure print the full traceback, not just one line."),
 ):
     """torch_brdf: BRDF design in the final scene."""
+    _STATE["debug"] = debug
+
+
+_OS_ERRORS = {
+    errno.ENOSPC: "disk full",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.ENOENT: "no such file or folder",
+    errno.ENOTDIR: "not a folder",
+    errno.EISDIR: "is a folder",
+    errno.EEXIST: "exists already (a file where a folder is needed?)",
+}
+
+
+def describe_failure(exc: BaseException) -> tuple[str, int]:
+    """The one-line message and exit status of a failed command (module docstring)."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted; finished tiles, chunks and checkpoints are kept for --resume", 130
+    if isinstance(exc, TorchBRDFError):
+        return str(exc), 2
+    if isinstance(exc, MemoryError):
+        return "out of memory; lower --resolution, --spp or the series, or free memory", 1
+    if isinstance(exc, OSError):
+        what = _OS_ERRORS.get(exc.errno, exc.strerror or type(exc).__name__)
+        where = exc.filename if exc.filename is not None else str(exc)
+        return f"{what}: {where}", 1
+    return f"internal error ({type(exc).__name__}: {exc}); rerun with --debug and report the traceback", 1
+
+
+def _cli(fn: Callable) -> Callable:
+    """Run a command; turn any failure into one line on stderr and an exit status."""
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except typer.Exit:
+            raise
+        except (Exception, KeyboardInterrupt) as exc:
+            message, code = describe_failure(exc)
+            if _STATE["debug"]:
+                traceback.print_exc()
+            typer.secho("error: " + " ".join(message.split()), fg=typer.colors.RED, err=True)
+            raise typer.Exit(code=code) from None
+
+    return run
+
+
+def _json_object(text: str | None, option: str) -> dict | None:
+    """Parse a JSON option that must be an object (``None`` stays ``None``)."""
+    if text is None:
+        return None
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueRangeError(f"{option} is not valid JSON: {exc}") from None
+    if not isinstance(value, dict):
+        raise ValueRangeError(f"{option} must be a JSON object; got {type(value).__name__}")
+    return value
 
 
 def load_scene(spec: str, resolution: int | None = None):
@@ -42,6 +140,8 @@ def load_scene(spec: str, resolution: int | None = None):
     a TOML scene file; ``resolution`` overrides the image size (square)."""
     from .scene import BUILTIN_SCENES, Scene
 
+    if resolution is not None:
+        check_image_size(resolution, resolution, "--resolution")
     if spec in BUILTIN_SCENES:
         return BUILTIN_SCENES[spec](resolution or 256)
     if spec.endswith(".toml") or Path(spec).is_file():
@@ -87,67 +187,67 @@ def _preview(path: Path, image, exposure: float | None) -> float:
     return round(stops, 3)
 
 
-def _fail(exc: TorchBRDFError) -> None:
-    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(code=2)
+_RESOLUTION = {"min": 8, "max": MAX_IMAGE_SIDE}
+_SPP = {"min": 1, "max": MAX_SAMPLES}
+_BOUNCES = {"min": 1, "max": MAX_BOUNCES}
 
 
 @app.command()
+@_cli
 def demo(
     out: Path = typer.Option(Path("out/cornell_box"), help="Output path without suffix (.exr and .png are written)."),
-    resolution: int = typer.Option(256, min=8, help="Image width = height."),
-    spp: int = typer.Option(16, min=1, help="Samples per pixel."),
-    bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
-    seed: int = typer.Option(0, help="Random seed."),
+    resolution: int = typer.Option(256, **_RESOLUTION, help="Image width = height."),
+    spp: int = typer.Option(16, **_SPP, help="Samples per pixel."),
+    bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0, min=0, help="Random seed."),
     progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
-    try:
-        scene = load_scene("cornell_box", resolution)
-        info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
-    except TorchBRDFError as exc:
-        _fail(exc)
+    scene = load_scene("cornell_box", resolution)
+    info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
 
 @app.command()
+@_cli
 def render(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
-    resolution: int = typer.Option(None, min=8, help="Override the image size (square)."),
-    spp: int = typer.Option(16, min=1),
-    bounces: int = typer.Option(4, min=1, help="Surface vertices per path (1 = direct lighting)."),
-    seed: int = typer.Option(0),
+    resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    spp: int = typer.Option(16, **_SPP),
+    bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0, min=0),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resume: bool = typer.Option(True, help="Keep a checkpoint next to the output and resume from it."),
     progress: bool = PROGRESS,
 ):
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
-    try:
-        sc = load_scene(scene, resolution)
-        info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
-    except TorchBRDFError as exc:
-        _fail(exc)
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    sc = load_scene(scene, resolution)
+    info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
 
 @app.command()
+@_cli
 def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file.")):
     """Print scene statistics as JSON: objects, triangles, bounds, lights, camera."""
-    try:
-        typer.echo(json.dumps(load_scene(scene).info(), indent=2))
-    except TorchBRDFError as exc:
-        _fail(exc)
+    typer.echo(json.dumps(load_scene(scene).info(), indent=2))
+
+
+_STORAGES = ("float32", "float16")
 
 
 @app.command()
+@_cli
 def precompute(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/tensors.npz"), help="Output tensor file (.npz, versioned, checksummed)."),
     series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
-    spp: int = typer.Option(64, min=1, help="Paths per pixel."),
-    resolution: int = typer.Option(None, min=8, help="Override the image size (square)."),
-    seed: int = typer.Option(0),
+    spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
+    resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    seed: int = typer.Option(0, min=0),
     bases: str = typer.Option(None, help='JSON per-object basis overrides, e.g. \'{"left": {"J": 8}}\'.'),
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
     storage: str = typer.Option("float32", help="float32 or float16 (half the bytes, rel. error <= 4.9e-4)."),
@@ -164,39 +264,41 @@ def precompute(
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
-    from .transport.polynomial import precompute_polynomial
+    from .transport.polynomial import Series, precompute_polynomial
 
-    try:
-        if storage not in ("float32", "float16"):  # before the work, not after it
-            raise ValueRangeError(f"--storage must be float32 or float16; got {storage!r}")
-        sc = load_scene(scene, resolution)
-        overrides = json.loads(bases) if bases else None
-        tiles = out.with_suffix(".tiles") if resume else None
-        t0 = time.perf_counter()
-        T = precompute_polynomial(
-            sc,
-            series,
-            spp=spp,
-            seed=seed,
-            bases=overrides,
-            env_point_lights=env_point_lights,
-            checkpoint=tiles,
-            progress=progress,
-            plan="auto" if error is not None else None,
-            error=error,
-            executor="local" if ray is None else "ray",
-            address=ray,
-        )
-        if "plan" in T.meta:
-            typer.echo(T.meta["plan"], err=True)
-        seconds = time.perf_counter() - t0
-        T.save(out, storage=storage)
-        remove_cache(tiles)
-    except json.JSONDecodeError as exc:
-        typer.secho(f"error: --bases is not valid JSON: {exc}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=2) from None
-    except TorchBRDFError as exc:
-        _fail(exc)
+    # every option is checked before the scene is loaded and the precompute starts
+    parsed = Series.parse(series)
+    check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
+    if storage not in _STORAGES:
+        raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
+    overrides = _json_object(bases, "--bases")
+    for name, spec in (overrides or {}).items():
+        if not isinstance(spec, dict):
+            raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
+        if "J" in spec:
+            check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
+    sc = load_scene(scene, resolution)
+    tiles = out.with_suffix(".tiles") if resume else None
+    t0 = time.perf_counter()
+    T = precompute_polynomial(
+        sc,
+        parsed,
+        spp=spp,
+        seed=seed,
+        bases=overrides,
+        env_point_lights=env_point_lights,
+        checkpoint=tiles,
+        progress=progress,
+        plan="auto" if error is not None else None,
+        error=error,
+        executor="local" if ray is None else "ray",
+        address=ray,
+    )
+    if "plan" in T.meta:
+        typer.echo(T.meta["plan"], err=True)
+    seconds = time.perf_counter() - t0
+    T.save(out, storage=storage)
+    remove_cache(tiles)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": T.series.key, "spp": T.meta["spp"]}
     info["mb_per_bounce"] = mb
@@ -218,6 +320,7 @@ def _parse_set(item: str) -> tuple[str, str, object]:
 
 
 @app.command()
+@_cli
 def edit(
     tensors: Path = typer.Argument(..., help="Tensors written by precompute."),
     sets: list[str] = typer.Option(
@@ -234,28 +337,25 @@ def edit(
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
-    try:
-        edits = [_parse_set(s) for s in sets]  # before loading anything
-        T = PolynomialTensors.load(tensors)
-        sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
-        editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
-        by_name = {o.name: o for o in sc.objects}
-        materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
-        for obj, param, value in edits:
-            if obj not in materials:
-                raise SceneError(
-                    f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}"
-                )
-            materials[obj][param] = value
-        t0 = time.perf_counter()
-        image = PolynomialRenderer(T, materials)().detach()
-        seconds = time.perf_counter() - t0
-        out = out.with_suffix("")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_exr(out.with_suffix(".exr"), image)
-        stops = _preview(out.with_suffix(".png"), image, exposure)
-    except TorchBRDFError as exc:
-        _fail(exc)
+    edits = [_parse_set(s) for s in sets]  # before loading anything
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    T = PolynomialTensors.load(tensors)
+    sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
+    editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
+    by_name = {o.name: o for o in sc.objects}
+    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
+    for obj, param, value in edits:
+        if obj not in materials:
+            raise SceneError(f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}")
+        materials[obj][param] = value
+    t0 = time.perf_counter()
+    image = PolynomialRenderer(T, materials)().detach()
+    seconds = time.perf_counter() - t0
+    out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out.with_suffix(".exr"), image)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
     info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
     info["exposure"] = stops
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
@@ -263,33 +363,34 @@ def edit(
 
 
 @app.command("fit-strokes")
+@_cli
 def fit_strokes(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     obj: str = typer.Option(..., "--object", help="Object whose BRDF is designed."),
     strokes: Path = typer.Option(..., help="Strokes JSON file (see torch_brdf.inverse.design)."),
     out: Path = typer.Option(Path("out/inverse"), help="Output folder."),
-    width: int = typer.Option(640, min=8),
-    height: int = typer.Option(480, min=8),
-    downsample: int = typer.Option(4, min=1, help="Solving frame = display / downsample."),
-    samples: int = typer.Option(1024, min=1, help="Light samples."),
+    width: int = typer.Option(640, **_RESOLUTION),
+    height: int = typer.Option(480, **_RESOLUTION),
+    downsample: int = typer.Option(4, min=1, max=64, help="Solving frame = display / downsample."),
+    samples: int = typer.Option(1024, **_SPP, help="Light samples."),
     kd: float = typer.Option(0.3, help="Diffuse albedo rho_d."),
     f0: float = typer.Option(0.9, help="Schlick F0."),
     unconstrained: bool = typer.Option(False, help="Allow physically impossible BRDFs."),
     cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, min=0),
     progress: bool = PROGRESS,
 ):
     """Inverse BRDF design: fit SRBF coefficients to painted strokes and re-render (Iwasaki et al.)."""
     from .inverse.design import DesignConfig, design, load_strokes
 
-    try:
-        sc = load_scene(scene).with_resolution(width, height)
-        st, size = load_strokes(strokes)
-        cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
-        typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
-    except TorchBRDFError as exc:
-        _fail(exc)
+    check_image_size(width, height, "--width/--height")
+    for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate")):
+        check_real(value, option)
+    st, size = load_strokes(strokes)
+    sc = load_scene(scene).with_resolution(width, height)
+    cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
+    typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
 
 
 @app.command("fit-image")
@@ -307,7 +408,7 @@ def fit_image_cmd(
     smoothness: float = typer.Option(0.0, min=0.0, help="Weight of the first-difference curve regulariser."),
     iterations: int = typer.Option(30, min=1, help="Gauss-Newton iterations."),
 ):
-    """Fit band curves of objects to a target image through the GI polynomial tensors (issue #16)."""
+    """Fit band curves of objects to a target image through the GI polynomial tensors."""
     import numpy as np
     import torch
 
@@ -319,37 +420,34 @@ def fit_image_cmd(
     def read(path: Path):
         return read_exr(path, allow_gray=True) if path.suffix.lower() == ".exr" else read_png(path)
 
-    try:
-        t0 = time.perf_counter()
-        if source.endswith(".npz") and Path(source).is_file():
-            T = PolynomialTensors.load(source)
-            sc = load_scene(scene or T.meta.get("scene", ""), T.width)
-        else:
-            sc = load_scene(source, resolution)
-            T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=False)
-        pre = time.perf_counter() - t0
-        mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
-        R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
-        img = read(target).double()[..., :3]
-        if mask is None:
-            w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
-        else:
-            m = read(mask).double()
-            w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
-        t0 = time.perf_counter()
-        res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations)
-        fit_s = time.perf_counter() - t0
-        out.mkdir(parents=True, exist_ok=True)
-        arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
-        save_arrays(out / "fit.npz", arrays, "gi-image-fit", {"objects": list(res.coefficients)})
-        full = PolynomialRenderer(T, mats, dtype=torch.float64)
-        for k, v in res.coefficients.items():
-            full.set_coefficients(k, v)
-        image = full().detach().float()
-        write_exr(out / "render.exr", image)
-        write_png(out / "render.png", image)
-    except TorchBRDFError as exc:
-        _fail(exc)
+    t0 = time.perf_counter()
+    if source.endswith(".npz") and Path(source).is_file():
+        T = PolynomialTensors.load(source)
+        sc = load_scene(scene or T.meta.get("scene", ""), T.width)
+    else:
+        sc = load_scene(source, resolution)
+        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=False)
+    pre = time.perf_counter() - t0
+    mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
+    R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
+    img = read(target).double()[..., :3]
+    if mask is None:
+        w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
+    else:
+        m = read(mask).double()
+        w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
+    t0 = time.perf_counter()
+    res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations)
+    fit_s = time.perf_counter() - t0
+    out.mkdir(parents=True, exist_ok=True)
+    arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
+    save_arrays(out / "fit.npz", arrays, "gi-image-fit", {"objects": list(res.coefficients)})
+    full = PolynomialRenderer(T, mats, dtype=torch.float64)
+    for k, v in res.coefficients.items():
+        full.set_coefficients(k, v)
+    image = full().detach().float()
+    write_exr(out / "render.exr", image)
+    write_png(out / "render.png", image)
     report = {"out": str(out), "precompute_s": round(pre, 3), "fit_s": round(fit_s, 3), "loss": res.loss}
     report |= {"iterations": res.iterations, "kkt_residual": res.kkt_residual, "violation": res.violation}
     report["albedo"] = {k: np.round(v.numpy(), 6).tolist() for k, v in res.albedo.items()}
@@ -358,13 +456,14 @@ def fit_image_cmd(
 
 
 @app.command("precompute-visibility")
+@_cli
 def precompute_visibility_cmd(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
     resolution: int = typer.Option(
         64, "--resolution", "--cubemap", help="Cubemap texels per face side (a multiple of 16: 64 or 128)."
     ),
-    supersample: int = typer.Option(1, min=1, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
+    supersample: int = typer.Option(1, min=1, max=16, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
     bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
     chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
     resume: bool = typer.Option(
@@ -374,30 +473,33 @@ def precompute_visibility_cmd(
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     from .records.cache import remove_cache
-    from .transport.visibility import precompute_visibility
+    from .sphere.cubemap import CubemapBlocks
+    from .transport.visibility import BITS, precompute_visibility
 
-    try:
-        sc = load_scene(scene)
-        ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
-        t0 = time.perf_counter()
-        vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress)
-        seconds = time.perf_counter() - t0
-        out.parent.mkdir(parents=True, exist_ok=True)
-        vis.save(out)
-        remove_cache(ck)
-        info = {
-            "out": str(out),
-            "vertices": len(vis.vertices),
-            "cubemap": f"{resolution}x{resolution}x6",
-            "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
-            "seconds": round(seconds, 3),
-        }
-        typer.echo(json.dumps(info))
-    except TorchBRDFError as exc:
-        _fail(exc)
+    check_int(resolution, "--resolution", 16, MAX_CUBEMAP_RESOLUTION)
+    CubemapBlocks(resolution, 16)  # a multiple of the block size
+    if bits not in BITS:
+        raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
+    sc = load_scene(scene)
+    ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
+    t0 = time.perf_counter()
+    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress)
+    seconds = time.perf_counter() - t0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    vis.save(out)
+    remove_cache(ck)
+    info = {
+        "out": str(out),
+        "vertices": len(vis.vertices),
+        "cubemap": f"{resolution}x{resolution}x6",
+        "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
+        "seconds": round(seconds, 3),
+    }
+    typer.echo(json.dumps(info))
 
 
 @app.command()
+@_cli
 def relight(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
     visibility: Path = typer.Option(Path("out/vis.npz"), help="Record written by precompute-visibility."),
@@ -405,58 +507,62 @@ def relight(
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
-    resolution: int = typer.Option(None, min=8, help="Override the image size (square), as precomputed scenes allow."),
+    resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
     progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
     from .io import write_exr
-    from .render.triple import TripleProductRenderer
+    from .render.triple import METHODS, TripleProductRenderer
     from .transport.visibility import VertexVisibility
 
-    try:
-        if method not in ("adaptive", "standard", "haar"):  # before loading anything
-            raise ValueRangeError(f"--method must be adaptive, standard or haar; got {method!r}")
-        sc = load_scene(scene, resolution)
-        vis = VertexVisibility.load(visibility)
-        r = TripleProductRenderer(sc, vis)
-        if rotate:
-            r.set_lighting(r.envmap.rotated(rotate))
-        t0 = time.perf_counter()
-        image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
-        seconds = time.perf_counter() - t0
-        out = out.with_suffix("")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_exr(out.with_suffix(".exr"), image)
-        stops = _preview(out.with_suffix(".png"), image, exposure)
-        info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
-        info["exposure"] = stops
-        if stats is not None:
-            info["stats"] = stats.as_dict()
-        typer.echo(json.dumps(info))
-    except TorchBRDFError as exc:
-        _fail(exc)
+    if method not in METHODS:
+        raise ValueRangeError(f"--method must be one of {METHODS}; got {method!r}")
+    check_real(rotate, "--rotate")
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    sc = load_scene(scene, resolution)
+    vis = VertexVisibility.load(visibility)
+    r = TripleProductRenderer(sc, vis)
+    if rotate:
+        r.set_lighting(r.envmap.rotated(rotate))
+    t0 = time.perf_counter()
+    image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
+    seconds = time.perf_counter() - t0
+    out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out.with_suffix(".exr"), image)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
+    info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
+    info["exposure"] = stops
+    if stats is not None:
+        info["stats"] = stats.as_dict()
+    typer.echo(json.dumps(info))
 
 
 @app.command()
+@_cli
 def editor(
     source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
     scene: str = typer.Option(None, help="The scene of a tensors file (default: the one named in the file)."),
-    resolution: int = typer.Option(128, min=8, help="Image size when precomputing a scene."),
-    spp: int = typer.Option(16, min=1, help="Paths per pixel when precomputing a scene."),
+    resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
+    spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
     series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
     cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
-    port: int = typer.Option(None, help="Port on 127.0.0.1 (default: a free one)."),
+    port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
+    from .transport.polynomial import Series
 
+    check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
 
 
 @app.command("fetch-data")
+@_cli
 def fetch_data_cmd(
     dest: Path = typer.Option(None, help="Data folder (default $TORCH_BRDF_DATA, else ~/.cache/torch_brdf/data)."),
     url: str = typer.Option(None, help="Base URL of a mirror of the data folder (default $TORCH_BRDF_DATA_URL)."),
@@ -466,10 +572,7 @@ def fetch_data_cmd(
     """Download the shared data (meshes, HDR maps, NBRDF weights) and verify pinned SHA-256s."""
     from .data import fetch_data
 
-    try:
-        paths = fetch_data(dest, url, file or None, progress)
-    except TorchBRDFError as exc:
-        _fail(exc)
+    paths = fetch_data(dest, url, file or None, progress)
     typer.echo(json.dumps({"files": [str(p) for p in paths]}))
 
 

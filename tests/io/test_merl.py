@@ -43,15 +43,70 @@ def below(x: float) -> float:
 
 
 # -- index conventions ------------------------------------------------------------------------
+def merl_reference(theta_h: float, theta_d: float, phi_d: float) -> tuple[int, int, int]:
+    """BRDFRead.cpp's theta_half_index / theta_diff_index / phi_diff_index, statement by
+    statement, in scalar float64 (each operation correctly rounded on every CPU)."""
+    res_h, res_d, res_p = 90, 90, 360  # BRDF_SAMPLING_RES_THETA_H, _THETA_D, _PHI_D
+    if theta_h <= 0.0:
+        i_h = 0
+    else:
+        theta_half_deg = (theta_h / (math.pi / 2.0)) * res_h
+        i_h = min(max(int(math.sqrt(theta_half_deg * res_h)), 0), res_h - 1)
+    i_d = min(max(int(theta_d / (math.pi * 0.5) * res_d), 0), res_d - 1)
+    if phi_d < 0.0:
+        phi_d += math.pi
+    i_p = min(max(int(phi_d / math.pi * res_p / 2), 0), res_p // 2 - 1)
+    return i_h, i_d, i_p
+
+
+def ulp_neighbours(x: float, k: int = 3) -> list[float]:
+    out = [x]
+    lo = hi = x
+    for _ in range(k):
+        lo, hi = below(lo), float(np.nextafter(hi, np.inf))
+        out += [lo, hi]
+    return out
+
+
+def test_indices_are_merls_lookup_within_ulps_of_every_edge():
+    # The lower edges and +-3 ulps around them are where the last ulp of a square root or a
+    # division decides the bin; the index functions must agree with MERL's scalar lookup there
+    # (they compare against exact edge tables, so this holds on every CPU).
+    for axis, n, edge in (
+        (0, 90, lambda i: (i / 90) ** 2 * math.pi / 2),
+        (1, 90, lambda i: i * (math.pi / 2) / 90),
+        (2, 180, lambda i: i * math.pi / 180),
+    ):
+        xs = [x for i in range(n + 1) for x in ulp_neighbours(edge(i))]
+        xs += [-x for x in xs if axis == 2]  # the negative half of phi_d folds back
+        fn = (merl_theta_h_index, merl_theta_d_index, merl_phi_d_index)[axis]
+        want = [merl_reference(x, x, x)[axis] for x in xs]
+        assert fn(torch.tensor(xs, dtype=F64)).tolist() == want
+
+
+def test_indices_are_merls_lookup_on_random_angles():
+    g = np.random.default_rng(13)
+    th, td = g.uniform(-0.1, 1.7, 4000), g.uniform(-0.1, 1.7, 4000)
+    pd = g.uniform(-math.pi, math.pi, 4000)
+    got = merl_indices(*(torch.from_numpy(a) for a in (th, td, pd)))
+    want = np.array([merl_reference(*v) for v in zip(th.tolist(), td.tolist(), pd.tolist(), strict=True)])
+    for axis in range(3):
+        assert got[axis].tolist() == want[:, axis].tolist()
+
+
 def test_floor_puts_exact_edges_in_the_upper_bin():
-    # Edges that are exact in binary floating point: pi/4 -> theta_d 45, pi/8 -> theta_h 45
-    # (sqrt(1/4) = 1/2 exactly), pi/2 -> phi_d 90.
+    # Edges exact in binary floating point: pi/8 / (pi/2) * 90 * 90 = 2025 and sqrt = 45 exactly;
+    # pi/4 -> theta_d 45; pi/2 -> phi_d 90.
+    assert merl_theta_h_index(t64(math.pi / 8)).item() == 45
     assert merl_theta_d_index(t64(math.pi / 4)).item() == 45
     assert merl_theta_d_index(t64(below(math.pi / 4))).item() == 44
-    assert merl_theta_h_index(t64(math.pi / 8)).item() == 45
-    assert merl_theta_h_index(t64(below(math.pi / 8))).item() == 44
     assert merl_phi_d_index(t64(math.pi / 2)).item() == 90
     assert merl_phi_d_index(t64(below(math.pi / 2))).item() == 89
+    # One ulp below pi/8, MERL's own arithmetic (2025 - 2^-42, whose square root rounds to 45)
+    # still says 45; sqrt(theta/(pi/2)) * 90 in float64 would say 44. MERL's lookup is the
+    # reference, and the answer no longer depends on the CPU's vectorised square root.
+    assert merl_reference(below(math.pi / 8), 0.0, 0.0)[0] == 45
+    assert merl_theta_h_index(t64(below(math.pi / 8))).item() == 45
     assert merl_indices(t64(0.0), t64(0.0), t64(0.0)) == (0, 0, 0)
 
 

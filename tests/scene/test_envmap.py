@@ -324,3 +324,36 @@ def test_bad_arguments_raise():
         e.pdf(torch.tensor([[math.nan, 0.0, 1.0]]))
     with pytest.raises(TorchBRDFError):
         EnvironmentMap.constant((1.0, 2.0))
+
+
+def test_texels_beyond_float32_are_refused_with_a_clear_message():
+    L = np.ones((4, 8, 3))
+    L[1, 2] = 1e300  # finite in float64, Inf in float32
+    with pytest.raises(ValueRangeError, match="1 texels exceed the float32 range"):
+        EnvironmentMap(L)
+
+
+def test_exr_scale_beyond_float32_is_refused(tmp_path):
+    write_exr(tmp_path / "env.exr", torch.ones(4, 8, 3))
+    with pytest.raises(ValueRangeError, match="float32 range"):
+        EnvironmentMap.from_exr(tmp_path / "env.exr", scale=1e300)
+    with pytest.raises(ValueRangeError, match="scale"):
+        EnvironmentMap.from_exr(tmp_path / "env.exr", scale=float("nan"))
+
+
+@pytest.mark.parametrize("angle", [float("nan"), float("inf"), "half"])
+def test_non_finite_rotations_are_refused(angle):
+    env = EnvironmentMap.constant(1.0, height=4)
+    with pytest.raises(ValueRangeError, match="angle_rad"):
+        env.rotated(angle)
+    with pytest.raises(ValueRangeError, match="rotation_y"):
+        EnvironmentMap(env.radiance, rotation_y=angle)
+
+
+def test_procedural_sizes_are_bounded():
+    with pytest.raises(ValueRangeError, match="height must be <= 2048"):
+        EnvironmentMap.constant(1.0, height=100000)
+    with pytest.raises(ValueRangeError, match="height must be an integer"):
+        EnvironmentMap.sky(height=16.5)
+    with pytest.raises(ValueRangeError, match="supersample must be >= 1"):
+        EnvironmentMap.sky(height=8, supersample=-1)

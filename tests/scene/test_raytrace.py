@@ -154,3 +154,21 @@ def test_bad_ray_input():
         scene.trace(torch.zeros(5, 3), torch.ones(4, 3))
     with pytest.raises(ValueRangeError, match="NaN"):
         scene.trace(torch.full((2, 3), float("nan")), torch.ones(2, 3))
+
+
+def test_non_finite_or_half_precision_rays_and_bounds_are_refused():
+    scene = cornell_box(8)
+    o, d = scene.camera.generate_rays()
+    with pytest.raises(ValueRangeError, match="t_max holds 64 NaN"):
+        scene.occluded(o, d, float("nan"))  # used to mean "not occluded"
+    assert bool(scene.occluded(o, d, float("inf")).any())  # inf stays "unbounded"
+    with pytest.raises(ShapeError, match="float16"):
+        scene.trace(o.half(), d.half())
+    with pytest.raises(ShapeError, match="float16"):
+        scene.occluded(o, d.half(), 1.0)
+    with pytest.raises(ValueRangeError, match="position"):
+        scene.spawn(o * float("nan"), d, d)
+    with pytest.raises(ValueRangeError, match="directions"):
+        scene.spawn(o, d, d * float("inf"))
+    with pytest.raises(ValueRangeError, match="raster x"):
+        scene.camera.rays_through(torch.tensor([float("nan")]), torch.tensor([1.0]))

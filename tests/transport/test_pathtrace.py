@@ -140,3 +140,47 @@ def test_glossy_furnace_equals_directional_albedo(material):
     mean_expected = float(expected.mean())
     assert se <= 0.01 * mean_expected
     assert abs(float(x.mean())) <= 4 * se + 0.005 * mean_expected
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"chunk": -1}, "chunk"),
+        ({"chunk": 0}, "chunk"),
+        ({"seed": -1}, "seed"),
+        ({"checkpoint_every": 0}, "checkpoint_every"),
+        ({"spp": 2.5}, "spp"),
+        ({"max_bounces": True}, "max_bounces"),
+        ({"seed": 2**64}, "seed"),
+    ],
+)
+def test_counts_and_seeds_are_checked_before_rendering(kwargs, name):
+    # chunk=-1 used to return a black image, the others raised raw errors mid-render
+    scene = _closed_cube(0.5, 1.0, size=8)
+    with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
+        path_trace(scene, **{"spp": 1, "max_bounces": 1, "progress": False, **kwargs})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [({"group": -1}, "group"), ({"tile_rows": -1}, "tile_rows"), ({"seed": -1}, "seed"), ({"spp": 0}, "spp")],
+)
+def test_precompute_counts_are_checked(kwargs, name):
+    from torch_brdf.transport.polynomial import precompute_polynomial
+
+    scene = _closed_cube(0.5, 1.0, size=8)
+    with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
+        precompute_polynomial(scene, "2,1", **{"spp": 1, "progress": False, **kwargs})
+    with pytest.raises(ValueRangeError, match="series bands per bounce must be <= 4096"):
+        precompute_polynomial(scene, "1000000000,1", spp=1, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [({"resolution": 16.0}, "resolution"), ({"resolution": 2**20}, "resolution"), ({"chunk": 0}, "chunk")],
+)
+def test_visibility_sizes_are_checked(kwargs, name):
+    from torch_brdf.transport.visibility import precompute_visibility
+
+    with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
+        precompute_visibility(_closed_cube(0.5, 1.0, size=8), **{"progress": False, **kwargs})

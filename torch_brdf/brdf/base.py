@@ -87,6 +87,13 @@ def available() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def model_class(name: str) -> type[BRDF]:
+    """The class registered as ``name`` (e.g. to list its parameters)."""
+    if name not in _REGISTRY:
+        raise ValueRangeError(f"unknown BRDF model {name!r}; available: {available()}")
+    return _REGISTRY[name]
+
+
 def create(spec: str | dict[str, Any], **params: Any) -> BRDF:
     """A BRDF from a registry name and parameters, or from a material dict
     ``{"type": name, **params}`` (the scene description's material tables)."""

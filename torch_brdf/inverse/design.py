@@ -35,13 +35,22 @@ __all__ = ["DesignConfig", "design", "load_strokes"]
 
 
 def load_strokes(path: str | Path) -> tuple[list[Stroke], tuple[int, int] | None]:
-    """Read a strokes JSON file (module docstring): (strokes, display size or None)."""
+    """Read a strokes JSON file (module docstring): (strokes, display size or None).
+
+    Raises:
+        FileFormatError: missing or unreadable file, not UTF-8 JSON, or a stroke whose
+            fields have the wrong types (the message names ``strokes[k]``).
+        ShapeError, ValueRangeError: a brush or points out of range (from :class:`Brush`,
+            :class:`Stroke`).
+    """
     path = Path(path)
     try:
-        desc = json.loads(path.read_text())
+        desc = json.loads(path.read_bytes().decode("utf-8"))
     except FileNotFoundError as exc:
         raise FileFormatError(f"strokes file not found: {path}") from exc
-    except json.JSONDecodeError as exc:
+    except OSError as exc:
+        raise FileFormatError(f"cannot read strokes file {path}: {exc.strerror or exc}") from exc
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FileFormatError(f"strokes file {path} is not valid JSON: {exc}") from exc
     items = desc.get("strokes") if isinstance(desc, dict) else None
     if not isinstance(items, list):
@@ -50,15 +59,25 @@ def load_strokes(path: str | Path) -> tuple[list[Stroke], tuple[int, int] | None
     for k, s in enumerate(items):
         if not isinstance(s, dict) or "points" not in s:
             raise FileFormatError(f"{path}: strokes[{k}] needs 'points'")
-        brush = Brush(
-            tuple(s.get("color", (1.0, 1.0, 1.0))) if not isinstance(s.get("color"), (int, float)) else s["color"],
-            float(s.get("diameter", 20.0)),
-            float(s.get("kappa", 0.05)),
-            None if s.get("scale") is None else float(s["scale"]),
-        )
-        strokes.append(Stroke(s["points"], brush))
+        try:
+            color = s.get("color", (1.0, 1.0, 1.0))
+            brush = Brush(
+                tuple(color) if isinstance(color, list | tuple) else color,
+                float(s.get("diameter", 20.0)),
+                float(s.get("kappa", 0.05)),
+                None if s.get("scale") is None else float(s["scale"]),
+            )
+            strokes.append(Stroke(s["points"], brush))
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, TorchBRDFError):
+                raise
+            raise FileFormatError(f"{path}: strokes[{k}] has a field of the wrong type: {exc}") from exc
     size = desc.get("display_size")
-    return strokes, (int(size[0]), int(size[1])) if size else None
+    if size is None:
+        return strokes, None
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+        raise FileFormatError(f"{path}: display_size must be two positive integers [width, height]; got {size!r}")
+    return strokes, (size[0], size[1])
 
 
 @dataclass(frozen=True)

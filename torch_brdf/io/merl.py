@@ -36,14 +36,21 @@ computed in floating point are *not* safe lookup points — rounding puts severa
 one bin low (e.g. :math:`\theta_d` index 19 in float64); address a bin by its centre
 (``at="centre"``).
 
+The index functions reproduce MERL's float64 arithmetic bit for bit (for :math:`\theta_h`
+that is :math:`\sqrt{\theta_h/(\pi/2)\cdot 90\cdot 90}`, which differs from the formula above
+by an ulp at some edges) on every CPU: they compare against tables of exact bin edges
+instead of evaluating square roots in vectorised code (see :func:`merl_theta_h_index`).
+
 **Downsampled table** (``merl100_f16.npz`` / ``merl_nbrdf_sample_f16.npz`` layout):
 :func:`load_merl_table` and :func:`write_merl_table`; see :class:`MERLTableData`.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,8 +93,8 @@ def merl_coordinates(
 
     :math:`u_h = \sqrt{\max(\theta_h, 0)/(\pi/2)} \cdot 90`,
     :math:`u_d = \theta_d/(\pi/2) \cdot 90`, :math:`u_p = \mathrm{fold}(\phi_d)/\pi \cdot 180`.
-    ``floor`` of these, clamped, are the MERL bin indices (:func:`merl_indices`); integer
-    values sit on the lower bin edges.
+    ``floor`` of these, clamped, are the MERL bin indices up to an ulp at bin edges (the
+    exact bins are :func:`merl_indices`); integer values sit on the lower bin edges.
 
     Args:
         theta_h, theta_d, phi_d: (*B,) angles in radians (broadcastable).
@@ -100,39 +107,101 @@ def merl_coordinates(
     return u_h, u_d, u_p
 
 
+# MERL's own lookup (BRDFRead.cpp, theta_half_index / theta_diff_index / phi_diff_index),
+# transliterated as scalar float64 arithmetic without the clamp. Every step is one IEEE
+# operation (division, multiplication, addition, sqrt), correctly rounded on every CPU when
+# done on Python floats, so these define the reference bin of every double exactly.
+def _merl_scalar_h(theta_h: float) -> int:
+    if theta_h <= 0.0:
+        return 0
+    return int(math.sqrt(theta_h / (math.pi / 2.0) * MERL_RES[0] * MERL_RES[0]))
+
+
+def _merl_scalar_d(theta_d: float) -> int:
+    return int(theta_d / (math.pi * 0.5) * MERL_RES[1])
+
+
+def _merl_scalar_p(phi_d: float) -> int:
+    return int((phi_d + math.pi if phi_d < 0.0 else phi_d) / math.pi * (2 * MERL_RES[2]) / 2)
+
+
+def _double_ordinal(x: float) -> int:
+    return struct.unpack("<q", struct.pack("<d", x))[0]
+
+
+def _double_from_ordinal(i: int) -> float:
+    return struct.unpack("<d", struct.pack("<q", i))[0]
+
+
+@functools.cache
+def _merl_edges(axis: str) -> tuple[float, ...]:
+    """For bins 1..n-1 of ``axis``, the smallest double angle >= 0 that MERL's lookup puts in
+    that bin or above (its composition of rounded monotone operations is monotone, so a
+    bisection over the ordered bit patterns of non-negative doubles finds it exactly)."""
+    f, n = {"h": (_merl_scalar_h, MERL_RES[0]), "d": (_merl_scalar_d, MERL_RES[1]), "p": (_merl_scalar_p, MERL_RES[2])}[
+        axis
+    ]
+    edges = []
+    for k in range(1, n):
+        lo, hi = _double_ordinal(0.0), _double_ordinal(4.0)  # f(lo) < k <= f(hi)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if f(_double_from_ordinal(mid)) >= k:
+                hi = mid
+            else:
+                lo = mid
+        edges.append(_double_from_ordinal(hi))
+    return tuple(edges)
+
+
+def _merl_bin(angle: torch.Tensor, axis: str) -> torch.Tensor:
+    # Comparisons against exact edges, never the last ulp of a vectorised sqrt or division:
+    # the bin is the number of edges <= angle (float64; NaN lands in the last bin).
+    x = torch.as_tensor(angle).to(torch.float64)
+    edges = torch.tensor(_merl_edges(axis), dtype=torch.float64, device=x.device)
+    return torch.bucketize(x, edges, right=True)
+
+
 def merl_theta_h_index(theta_h: torch.Tensor) -> torch.Tensor:
-    r"""MERL's :math:`\theta_h` bin: ``floor(sqrt(theta_h / (pi/2)) * 90)`` clamped to 0..89.
+    r"""MERL's :math:`\theta_h` bin: ``floor(sqrt(theta_h / (pi/2) * 90 * 90))`` clamped to 0..89.
+
+    Exactly MERL's ``theta_half_index`` (``BRDFRead.cpp``) on the float64 value of every
+    input, on every CPU: the index is found by comparing against a table of exact bin edges
+    (:func:`_merl_edges`), not by evaluating the square root in vectorised code, whose last
+    ulp differs between CPUs and decides the bin of angles one ulp from an edge.
 
     Args:
-        theta_h: (*B,) radians; values <= 0 give 0.
+        theta_h: (*B,) radians (any floating dtype; float32 inputs are binned by their exact
+            float64 value); values <= 0 give 0.
     Returns:
         (*B,) int64.
     """
-    u = torch.sqrt(theta_h.clamp_min(0) / _HALF_PI) * MERL_RES[0]
-    return u.floor().clamp(0, MERL_RES[0] - 1).long()
+    return _merl_bin(theta_h, "h")
 
 
 def merl_theta_d_index(theta_d: torch.Tensor) -> torch.Tensor:
-    r"""MERL's :math:`\theta_d` bin: ``floor(theta_d / (pi/2) * 90)`` clamped to 0..89.
+    r"""MERL's :math:`\theta_d` bin: ``floor(theta_d / (pi/2) * 90)`` clamped to 0..89
+    (exactly MERL's ``theta_diff_index`` in float64, see :func:`merl_theta_h_index`).
 
     Args:
         theta_d: (*B,) radians.
     Returns:
         (*B,) int64.
     """
-    return (theta_d / _HALF_PI * MERL_RES[1]).floor().clamp(0, MERL_RES[1] - 1).long()
+    return _merl_bin(theta_d, "d")
 
 
 def merl_phi_d_index(phi_d: torch.Tensor) -> torch.Tensor:
     r"""MERL's :math:`\phi_d` bin: fold (add :math:`\pi` if negative), then
-    ``floor(phi_d / pi * 180)`` clamped to 0..179.
+    ``floor(phi_d / pi * 180)`` clamped to 0..179 (exactly MERL's ``phi_diff_index`` in
+    float64, see :func:`merl_theta_h_index`).
 
     Args:
         phi_d: (*B,) radians in :math:`(-\pi, \pi]`.
     Returns:
         (*B,) int64.
     """
-    return (merl_fold_phi_d(phi_d) / math.pi * MERL_RES[2]).floor().clamp(0, MERL_RES[2] - 1).long()
+    return _merl_bin(merl_fold_phi_d(torch.as_tensor(phi_d).to(torch.float64)), "p")
 
 
 def merl_indices(

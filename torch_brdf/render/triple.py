@@ -76,6 +76,7 @@ from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
 
 __all__ = [
+    "METHODS",
     "BlockLighting",
     "FixedRule",
     "FrameStats",
@@ -88,6 +89,8 @@ __all__ = [
 ]
 
 LEVELS = (1, 2, 4, 16)
+#: the shading methods of :meth:`TripleProductRenderer.render`
+METHODS = ("adaptive", "standard", "haar")
 _HORIZON = 1e-4  # samples below the horizon are evaluated at this height
 
 
@@ -523,15 +526,15 @@ class TripleProductRenderer(nn.Module):
             camera: default the scene's.
             method: ``"adaptive"`` (ours), ``"standard"`` or ``"haar"`` (with ``fraction=``).
         """
+        if method not in METHODS:
+            raise ValueRangeError(f"method must be one of {METHODS}; got {method!r}")
         v = self.view(camera)
         if method == "adaptive":
             rad, stats = self.shade(v, **kwargs)
         elif method == "standard":
             rad, stats = self.shade_standard(v, **kwargs), None
-        elif method == "haar":
-            rad, stats = self.shade_haar(v, **kwargs), None
         else:
-            raise ValueRangeError(f"method must be 'adaptive', 'standard' or 'haar'; got {method!r}")
+            rad, stats = self.shade_haar(v, **kwargs), None
         return self.image(v, rad), stats
 
     # -- shading --------------------------------------------------------------------------

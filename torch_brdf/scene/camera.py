@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .._checks import check_vectors
-from ..errors import CameraError
+from .._checks import as_float_tensor, check_finite, check_image_size, check_real, check_vectors
+from ..errors import CameraError, ShapeError, ValueRangeError
 
 
 @dataclass(frozen=True)
@@ -36,15 +36,19 @@ class Camera:
     height: int = 256
 
     def __post_init__(self):
-        for name in ("origin", "target", "up"):
-            v = check_vectors(torch.as_tensor(getattr(self, name), dtype=torch.float64).reshape(1, 3), name)
-            object.__setattr__(self, name, tuple(float(x) for x in v[0]))
-        if not (0.0 < float(self.fov_deg) < 180.0):
+        try:
+            for name in ("origin", "target", "up"):
+                v = check_vectors(getattr(self, name), f"camera {name}", torch.float64, ndim=1)
+                object.__setattr__(self, name, tuple(float(x) for x in v))
+            fov = check_real(self.fov_deg, "camera fov_deg")
+            w, h = check_image_size(self.width, self.height, "camera image")
+        except (ShapeError, ValueRangeError) as exc:
+            raise CameraError(str(exc)) from exc
+        if not (0.0 < fov < 180.0):
             raise CameraError(f"fov_deg must be in (0, 180); got {self.fov_deg}")
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise CameraError(f"image size must be at least 1x1; got {self.width}x{self.height}")
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "fov_deg", float(self.fov_deg))
+        object.__setattr__(self, "width", w)
+        object.__setattr__(self, "height", h)
         f = torch.tensor(self.target, dtype=torch.float64) - torch.tensor(self.origin, dtype=torch.float64)
         if float(f.norm()) == 0.0:
             raise CameraError("camera origin and target coincide: no viewing direction")
@@ -102,9 +106,11 @@ class Camera:
             x: (P,) raster x in [0, W]; y: (P,) raster y in [0, H].
         Returns:
             origins (P, 3), unit directions (P, 3).
+        Raises:
+            ValueRangeError: NaN or Inf raster positions.
         """
-        x = torch.as_tensor(x, dtype=torch.float64)
-        y = torch.as_tensor(y, dtype=torch.float64)
+        x = check_finite(as_float_tensor(x, "x", torch.float64), "raster x")
+        y = check_finite(as_float_tensor(y, "y", torch.float64), "raster y")
         tan_half = math.tan(math.radians(self.fov_deg) / 2)
         aspect = self.width / self.height
         sx = (2 * x / self.width - 1) * tan_half * aspect

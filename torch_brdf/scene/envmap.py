@@ -32,7 +32,7 @@ import os
 import torch
 import torch.nn.functional as F
 
-from .._checks import as_float_tensor, check_rgb, check_vectors
+from .._checks import MAX_ENVMAP_HEIGHT, as_float_tensor, check_count, check_real, check_rgb, check_vectors
 from ..errors import ShapeError, ValueRangeError
 from ..io.exr import read_exr
 from ..sphere.latlong import (
@@ -89,7 +89,13 @@ class EnvironmentMap(Light):
                 f"{source}: environment map radiance must be finite and >= 0; found {n_nan} NaN, "
                 f"{n_inf} Inf and {n_neg} negative texels (of {H * W})"
             )
-        self.source, self.rotation_y = source, float(rotation_y)
+        n_big = int((L > torch.finfo(torch.float32).max).any(-1).sum())
+        if n_big:
+            raise ValueRangeError(
+                f"{source}: {n_big} texels exceed the float32 range (max {torch.finfo(torch.float32).max:.4g}, "
+                f"largest here {float(L.max()):.4g}) and would become Inf; rescale the map"
+            )
+        self.source, self.rotation_y = source, check_real(rotation_y, "rotation_y")
         self.register_buffer("radiance", L.to(torch.float32).contiguous())
         self.register_buffer("to_world", _rotation_y(self.rotation_y).to(L.device))
         omega = texel_solid_angles(H, W, device=L.device)
@@ -116,16 +122,17 @@ class EnvironmentMap(Light):
             FileFormatError: missing or unreadable file, or channels other than R, G, B (+A).
             ShapeError / ValueRangeError: as for the constructor; messages name the file.
         """
-        if not (math.isfinite(scale) and scale >= 0):
-            raise ValueRangeError(f"scale must be finite and >= 0; got {scale}")
+        scale = check_real(scale, "scale", minimum=0.0)
         src = os.fspath(path)
-        return cls(read_exr(src) * scale, rotation_y=rotation_y, source=f"environment map file {src}")
+        # scaled in float64, so a scale that overflows float32 is reported, not turned into Inf
+        return cls(read_exr(src).double() * scale, rotation_y=rotation_y, source=f"environment map file {src}")
 
     @classmethod
     def constant(cls, rgb=1.0, height: int = 64) -> EnvironmentMap:
         """A uniform map of radiance ``rgb`` (scalar or 3 values) with ``height`` rows."""
         c = torch.tensor(check_rgb(rgb, "rgb"), dtype=torch.float32)
-        return cls(c.expand(int(height), 2 * int(height), 3).clone(), source="constant environment map")
+        h = check_count(height, "height", MAX_ENVMAP_HEIGHT)
+        return cls(c.expand(h, 2 * h, 3).clone(), source="constant environment map")
 
     @classmethod
     def sky(
@@ -156,7 +163,9 @@ class EnvironmentMap(Light):
             sun_radiance, zenith_color, horizon_color, ground_color: RGB (scalar or 3 values).
             supersample: subsamples per texel side for the sun's coverage.
         """
-        H, W, s = int(height), 2 * int(height), int(supersample)
+        H, s = check_count(height, "sky: height", MAX_ENVMAP_HEIGHT), check_count(supersample, "sky: supersample", 64)
+        sun_angular_radius_deg = check_real(sun_angular_radius_deg, "sky: sun_angular_radius_deg")
+        W = 2 * H
         if H < 2 or s < 1 or not 0 < sun_angular_radius_deg < 90:
             raise ValueRangeError(
                 f"sky: need height >= 2, supersample >= 1 and 0 < sun radius < 90 deg; got "
@@ -190,7 +199,8 @@ class EnvironmentMap(Light):
 
     def rotated(self, angle_rad: float) -> EnvironmentMap:
         """The map turned by a further ``angle_rad`` about +y (a new module, same radiance)."""
-        return EnvironmentMap(self.radiance, rotation_y=self.rotation_y + float(angle_rad), source=self.source)
+        angle = check_real(angle_rad, "rotated: angle_rad")
+        return EnvironmentMap(self.radiance, rotation_y=self.rotation_y + angle, source=self.source)
 
     def extra_repr(self) -> str:
         H, W = self.radiance.shape[:2]

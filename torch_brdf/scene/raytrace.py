@@ -31,7 +31,7 @@ import torch
 import trimesh
 from embreex import mesh_construction, rtcore_scene
 
-from .._checks import as_float_tensor, check_finite
+from .._checks import as_float_tensor, check_finite, check_vectors
 from ..errors import ShapeError, ValueRangeError
 from .parallel import CHUNK, HitArrays, TraceKernel, TracePool, default_workers
 
@@ -78,7 +78,12 @@ def _ray_array(x, name: str) -> tuple[np.ndarray, torch.dtype]:
     x = as_float_tensor(x, name)
     if x.ndim != 2 or x.shape[-1] != 3:
         raise ShapeError(f"Expected {name} to have shape (N, 3); got {tuple(x.shape)}")
-    a = (x if x.dtype in (torch.float32, torch.float64) else x.float()).detach().cpu().numpy()
+    if x.dtype not in (torch.float32, torch.float64):
+        raise ShapeError(
+            f"Expected {name} as float32 or float64; got {x.dtype}: half precision holds unit directions to "
+            "only ~1e-3 and distances only up to 65504, too coarse for ray tracing"
+        )
+    a = x.detach().cpu().numpy()
     if not np.isfinite(a).all():
         check_finite(x, name)  # raises, with counts
     return np.ascontiguousarray(a, dtype=np.float32), x.dtype
@@ -191,6 +196,8 @@ class RayTracer:
             origins: (P, 3); directions: (P, 3); t_max: (P,) or a scalar (``inf`` allowed).
         Returns:
             (P,) bool tensor.
+        Raises:
+            ShapeError: shapes, or half-precision rays; ValueRangeError: NaN/Inf rays or NaN t_max.
         """
         t0 = time.perf_counter()
         o_np, d_np, _ = _rays_to_numpy(origins, directions)
@@ -200,8 +207,10 @@ class RayTracer:
         tm = np.asarray(t_max)
         try:
             tm = np.broadcast_to(tm.astype(np.float32), len(o_np))
-        except ValueError:
-            raise ShapeError(f"Expected t_max of shape ({len(o_np)},) or a scalar; got {tm.shape}") from None
+        except (TypeError, ValueError):
+            raise ShapeError(f"Expected t_max of numbers, shape ({len(o_np)},) or a scalar; got {tm.shape}") from None
+        if np.isnan(tm).any():
+            raise ValueRangeError(f"t_max holds {int(np.isnan(tm).sum())} NaN values; use inf for an unbounded ray")
         tm_np = np.minimum(tm, np.float32(_EMBREE_FAR))
         out = np.empty(len(o_np), bool)
         if self._parallel(len(o_np)):
@@ -219,7 +228,12 @@ class RayTracer:
             directions: (P, 3) outgoing directions.
         Returns:
             (P, 3) origins ``position + sign(d . n) * ray_epsilon * n``.
+        Raises:
+            ShapeError, ValueRangeError: not (P, 3), or NaN/Inf entries.
         """
+        position = check_vectors(position, "position")
+        geometric_normal = check_vectors(geometric_normal, "geometric_normal")
+        directions = check_vectors(directions, "directions")
         side = torch.where((directions * geometric_normal).sum(-1, keepdim=True) >= 0, 1.0, -1.0)
         return position + (side * self.ray_epsilon).to(position.dtype) * geometric_normal
 

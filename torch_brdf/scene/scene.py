@@ -31,6 +31,9 @@ Materials are dicts with a ``type`` — a model name of the BRDF layer — and t
 parameters (``{"type": "lambert", "albedo": ...}``, ``{"type": "blinn_phong", "kd": ...,
 "ks": ..., "exponent": ...}``); renderers turn them into modules with
 :func:`torch_brdf.brdf.create`.
+
+Descriptions are validated key by key before anything is built (:mod:`.description`): wrong
+types, NaN/Inf, sizes beyond the caps and unknown keys raise :class:`SceneError` naming the key.
 """
 
 from __future__ import annotations
@@ -38,7 +41,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,15 +52,11 @@ import trimesh
 from .._checks import check_rgb
 from ..errors import SceneError, TorchBRDFError
 from .camera import Camera
+from .description import read_scene_file, validate_description
 from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight, Light
 from .mesh import load_mesh, mesh_from_arrays, validate_mesh
 from .raytrace import Hits, RayTracer
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 #: what :meth:`Scene.content_digest` covers, in the order it is hashed
 CONTENT_PARTS = ("geometry", "materials", "lights", "camera")
@@ -284,12 +282,7 @@ class Scene:
     def from_toml(cls, path: str | Path) -> Scene:
         """Build a scene from a TOML description (see the module docstring)."""
         path = Path(path)
-        try:
-            desc = tomllib.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise SceneError(f"scene file not found: {path}") from exc
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(f"scene file {path} is not valid TOML: {exc}") from exc
+        desc = read_scene_file(path)
         desc.setdefault("name", path.stem)
         return cls.from_dict(desc, base_dir=path.parent)
 
@@ -302,9 +295,7 @@ class Scene:
             base_dir: folder that relative mesh and EXR paths are resolved against.
         """
         base_dir = Path(base_dir)
-        for key in ("camera", "materials", "objects"):
-            if key not in desc:
-                raise SceneError(f"scene description lacks {key!r}")
+        desc = validate_description(desc)
         try:
             camera = Camera(**desc["camera"])
         except TypeError as exc:

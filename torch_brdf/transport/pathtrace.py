@@ -32,9 +32,10 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .._checks import check_count, check_seed
 from ..brdf import BRDF, create
 from ..data import progress_default
-from ..errors import SceneError, TorchBRDFError, ValueRangeError
+from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
 from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
@@ -263,15 +264,19 @@ def path_trace(
             checkpoint of other settings or an edited scene is ignored and overwritten, a
             corrupt one is moved aside to ``<name>.corrupt`` with a warning and the render
             starts afresh.
+        checkpoint_every: passes between checkpoint saves.
         progress: show a tqdm bar over sample passes.
         mis: combine next-event estimation with BRDF sampling by multiple importance
             sampling (power heuristic; default on): every vertex also counts the light its
             BRDF-sampled ray finds (environment, emitter), both weighted, so sharp lobes
             reflecting large bright lights converge without fireflies. ``False`` is plain
             next-event estimation. Both are unbiased; only the noise differs.
+    Raises:
+        ValueRangeError: a count (``spp``, ``max_bounces``, ``chunk``, ``checkpoint_every``)
+            that is not a positive integer, or a seed outside ``[0, 2**63)``.
     """
-    if spp < 1 or max_bounces < 1:
-        raise ValueRangeError(f"spp and max_bounces must be >= 1; got spp={spp}, max_bounces={max_bounces}")
+    spp, max_bounces, seed = check_count(spp, "spp"), check_count(max_bounces, "max_bounces"), check_seed(seed)
+    chunk, checkpoint_every = check_count(chunk, "chunk"), check_count(checkpoint_every, "checkpoint_every")
     cam = scene.camera
     h, w = cam.height, cam.width
     brdfs = material_brdfs(scene)

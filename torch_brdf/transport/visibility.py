@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
+from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
 from ..data import progress_default
 from ..errors import ValueRangeError
 from ..records.cache import TileCache, settings_key
@@ -98,8 +99,14 @@ def precompute_visibility(
     Returns:
         :class:`VertexVisibility` (or None when stopped by ``max_chunks``).
     Raises:
-        ValueRangeError: bad resolution, supersample or bits.
+        ValueRangeError: bad resolution (not a positive integer multiple of ``block``, or
+            above :data:`~torch_brdf._checks.MAX_CUBEMAP_RESOLUTION`), supersample, bits or chunk.
     """
+    resolution = check_count(resolution, "resolution", MAX_CUBEMAP_RESOLUTION)
+    block, supersample, chunk = (
+        check_count(v, k) for v, k in ((block, "block"), (supersample, "supersample"), (chunk, "chunk"))
+    )
+    max_chunks = None if max_chunks is None else check_int(max_chunks, "max_chunks", 0)
     geom = CubemapBlocks(resolution, block)
     if bits not in BITS:
         raise ValueRangeError(f"bits must be one of {BITS} (0 = binary); got {bits}")

@@ -11,6 +11,7 @@ from typing import Any
 
 import torch
 
+from ..._checks import MAX_BANDS, check_count, check_seed
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
@@ -212,8 +213,12 @@ def precompute_polynomial(
         out.meta["plan"] = str(plan)
         return out
     series = Series.parse(series)
-    if spp < 1:
-        raise ValueRangeError(f"spp must be >= 1; got {spp}")
+    check_count(series.eye, "series bands per bounce", MAX_BANDS)
+    spp, seed = check_count(spp, "spp"), check_seed(seed)
+    tile_rows, group, env_point_lights = (
+        None if v is None else check_count(v, k)
+        for v, k in ((tile_rows, "tile_rows"), (group, "group"), (env_point_lights, "env_point_lights"))
+    )
     if isinstance(bases, list):
         if len(bases) != len(scene.objects):
             raise ShapeError(f"expected {len(scene.objects)} bases (one per object); got {len(bases)}")
