@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +74,7 @@ def test_old_style_temporaries_are_removed_when_they_predate_the_process(tmp_pat
     target = tmp_path / "ckpt.npz"
     old = tmp_path / ".ckpt.npz.0123456789ab.tmp"
     old.write_bytes(b"x")
-    past = time.time() - 3600
+    past = old.stat().st_mtime - 3600  # an hour before it was written
     os.utime(old, (past, past))
     assert remove_stale_temporaries(target) == [str(old)]
 

@@ -14,7 +14,7 @@ Executors:
   shared 2-core machine torch's second thread spin-waits and made the 64² precompute 30x
   slower under load); ray casting still uses the scene's forked trace workers.
 - ``ray``: one Ray task per tile (``pip install torch_brdf[cluster]``). The context is put
-  into the object store once and each worker process unpickles it once (it is cached per
+  into the object store once and each worker process fetches it once (it is cached per
   worker under its key), so per task only the tile index travels. A task whose worker dies
   is retried by Ray up to ``max_retries`` times; after that :class:`TileError` names the
   tile. Workers trace with one process and one torch thread each (Ray runs one task per CPU).
@@ -22,9 +22,8 @@ Executors:
 
 from __future__ import annotations
 
-import hashlib
-import pickle
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -54,7 +53,7 @@ class TileError(TorchBRDFError, RuntimeError):
     """A tile could not be computed (its worker died more often than the retries allow)."""
 
 
-# per-worker-process cache of unpickled contexts (key -> context); a worker keeps one.
+# per-worker-process cache of fetched contexts (key -> context); a worker keeps one.
 _CONTEXTS: dict[str, Any] = {}
 
 
@@ -78,13 +77,13 @@ def connect_ray(address: str | None = None, **init_kwargs):
 
 
 def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult:
-    """A Ray task's body: the cached context of ``key`` (its pickle fetched from the object
-    store and loaded once per worker process), then tile ``index`` with one torch thread."""
+    """A Ray task's body: the cached context of ``key`` (fetched from the object store once per
+    worker process), then tile ``index`` with one torch thread."""
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         import ray
 
-        ctx = pickle.loads(ray.get(holder[0]))
+        ctx = ray.get(holder[0])  # Ray's own in-memory transport; no file is read
         _CONTEXTS.clear()
         _CONTEXTS[key] = ctx
     configure_worker(1)  # Ray runs one task per CPU; a task's own threads would oversubscribe
@@ -175,9 +174,8 @@ def run_tiles(
 
 def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max_retries: int) -> None:
     ray = connect_ray(address)
-    blob = pickle.dumps(context, protocol=5)
-    key = f"{fn.__module__}.{fn.__qualname__}:{hashlib.sha256(blob).hexdigest()[:16]}"
-    ref = ray.put(blob)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
+    key = f"{fn.__module__}.{fn.__qualname__}:{uuid.uuid4().hex}"  # this run's context
+    ref = ray.put(context)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
     task = ray.remote(num_cpus=1, max_retries=max_retries)(_run_in_worker)
     pending = {task.remote(fn, key, [ref], k): k for k in todo}
     try:
