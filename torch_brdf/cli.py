@@ -187,6 +187,19 @@ def _preview(path: Path, image, exposure: float | None) -> float:
     return round(stops, 3)
 
 
+def _write_image(out: Path, image, exposure: float | None, seconds: float) -> dict:
+    """Write ``out``.exr (linear) and ``out``.png (sRGB preview, :func:`_preview`); returns the
+    summary fields every image-making command prints (paths, seconds, exposure in stops)."""
+    from .io import write_exr
+
+    out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out.with_suffix(".exr"), image)
+    stops = _preview(out.with_suffix(".png"), image, exposure)
+    paths = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png"))}
+    return paths | {"seconds": round(seconds, 3), "exposure": stops}
+
+
 _RESOLUTION = {"min": 8, "max": MAX_IMAGE_SIDE}
 _SPP = {"min": 1, "max": MAX_SAMPLES}
 _BOUNCES = {"min": 1, "max": MAX_BOUNCES}
@@ -333,7 +346,6 @@ def edit(
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
-    from .io import write_exr
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
@@ -352,12 +364,7 @@ def edit(
     t0 = time.perf_counter()
     image = PolynomialRenderer(T, materials)().detach()
     seconds = time.perf_counter() - t0
-    out = out.with_suffix("")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out.with_suffix(".exr"), image)
-    stops = _preview(out.with_suffix(".png"), image, exposure)
-    info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
-    info["exposure"] = stops
+    info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
     typer.echo(json.dumps(info))
 
@@ -511,7 +518,6 @@ def relight(
     progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
-    from .io import write_exr
     from .render.triple import METHODS, TripleProductRenderer
     from .transport.visibility import VertexVisibility
 
@@ -528,12 +534,7 @@ def relight(
     t0 = time.perf_counter()
     image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
     seconds = time.perf_counter() - t0
-    out = out.with_suffix("")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out.with_suffix(".exr"), image)
-    stops = _preview(out.with_suffix(".png"), image, exposure)
-    info = {"exr": str(out.with_suffix(".exr")), "png": str(out.with_suffix(".png")), "seconds": round(seconds, 3)}
-    info["exposure"] = stops
+    info = _write_image(out, image, exposure, seconds)
     if stats is not None:
         info["stats"] = stats.as_dict()
     typer.echo(json.dumps(info))
