@@ -136,18 +136,12 @@ def _json_object(text: str | None, option: str) -> dict | None:
 
 
 def load_scene(spec: str, resolution: int | None = None):
-    """A built-in scene by name (``cornell_box``, ``teatray``, ``ring``, ``bunny_plane``) or
-    a TOML scene file; ``resolution`` overrides the image size (square)."""
-    from .scene import BUILTIN_SCENES, Scene
+    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; ``resolution`` square)."""
+    from .scene import load_scene as load
 
     if resolution is not None:
         check_image_size(resolution, resolution, "--resolution")
-    if spec in BUILTIN_SCENES:
-        return BUILTIN_SCENES[spec](resolution or 256)
-    if spec.endswith(".toml") or Path(spec).is_file():
-        scene = Scene.from_toml(spec)
-        return scene.with_resolution(resolution) if resolution else scene
-    raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
+    return load(spec, resolution)
 
 
 def _render_to(

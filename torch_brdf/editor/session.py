@@ -217,18 +217,10 @@ class ReferenceJob:
 
 
 def load_scene(spec: str, resolution: int | None = None):
-    """A built-in scene by name or a TOML scene file (``resolution``: square image size).
+    """:func:`torch_brdf.scene.load_scene` with the editor's default size (128)."""
+    from ..scene import load_scene as load
 
-    The same rule as the CLI's loader; kept here because the CLI imports the editor, which
-    must not import the CLI back (layers)."""
-    from ..scene import BUILTIN_SCENES, Scene
-
-    if spec in BUILTIN_SCENES:
-        return BUILTIN_SCENES[spec](resolution or 128)
-    if spec.endswith(".toml") or Path(spec).is_file():
-        scene = Scene.from_toml(spec)
-        return scene.with_resolution(resolution) if resolution else scene
-    raise SceneError(f"unknown scene {spec!r}: give a tensors .npz, a TOML file or one of {sorted(BUILTIN_SCENES)}")
+    return load(spec, resolution, default_resolution=128)
 
 
 def _cache_name(scene, spec: str, series: str, spp: int, seed: int) -> str:

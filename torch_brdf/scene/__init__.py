@@ -7,6 +7,7 @@ from .builtin import (
     cornell_box,
     cornell_box_glossy,
     grid_plane,
+    load_scene,
     ring,
     teatray,
 )
@@ -41,6 +42,7 @@ __all__ = [
     "cornell_box_glossy",
     "grid_plane",
     "load_mesh",
+    "load_scene",
     "mesh_from_arrays",
     "ring",
     "teatray",

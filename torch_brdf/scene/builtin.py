@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from .._checks import check_image_size
 from ..data import data_path
-from ..errors import ValueRangeError
+from ..errors import SceneError, ValueRangeError
 from .camera import Camera
 from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight
@@ -302,3 +304,23 @@ BUILTIN_SCENES: dict[str, Callable[..., Scene]] = {
     "bunny_plane": bunny_plane,
     "bunny_relight": bunny_relight,
 }
+
+
+def load_scene(spec: str, resolution: int | None = None, default_resolution: int = 256) -> Scene:
+    """A built-in scene by name (:data:`BUILTIN_SCENES`) or a TOML scene file.
+
+    Args:
+        spec: scene name or path of a ``.toml`` file.
+        resolution: square image size overriding the scene's (None: a built-in scene gets
+            ``default_resolution``, a TOML scene keeps its own camera).
+    Raises:
+        SceneError: neither a built-in name nor a scene file; ValueRangeError: bad size.
+    """
+    if resolution is not None:
+        check_image_size(resolution, resolution, "resolution")
+    if spec in BUILTIN_SCENES:
+        return BUILTIN_SCENES[spec](resolution or default_resolution)
+    if spec.endswith(".toml") or Path(spec).is_file():
+        scene = Scene.from_toml(spec)
+        return scene.with_resolution(resolution) if resolution else scene
+    raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
