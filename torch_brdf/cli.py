@@ -244,6 +244,10 @@ def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML sc
 
 
 _STORAGES = ("float32", "float16")
+#: ``--ray`` of the three precomputations (their tiles run as Ray tasks; default: this process)
+RAY = typer.Option(
+    None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
+)
 
 
 @app.command()
@@ -265,9 +269,7 @@ def precompute(
     error: float = typer.Option(
         None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
     ),
-    ray: str = typer.Option(
-        None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
-    ),
+    ray: str = RAY,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     from .records.cache import remove_cache
@@ -381,6 +383,7 @@ def fit_strokes(
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
     seed: int = typer.Option(0, min=0),
     progress: bool = PROGRESS,
+    ray: str = RAY,
 ):
     """Inverse BRDF design: fit SRBF coefficients to painted strokes and re-render (Iwasaki et al.)."""
     from .inverse.design import DesignConfig, design, load_strokes
@@ -391,7 +394,8 @@ def fit_strokes(
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
     cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
-    typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
+    run = {"executor": "local" if ray is None else "ray", "address": ray}
+    typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress, **run)))
 
 
 @app.command("fit-image")
@@ -471,6 +475,7 @@ def precompute_visibility_cmd(
         True, help="Keep finished chunks in OUT with .chunks for .npz (out/vis.chunks/) and resume from them."
     ),
     progress: bool = PROGRESS,
+    ray: str = RAY,
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     from .records.cache import remove_cache
@@ -484,7 +489,8 @@ def precompute_visibility_cmd(
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
-    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress)
+    run = {"executor": "local" if ray is None else "ray", "address": ray}
+    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress, **run)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)

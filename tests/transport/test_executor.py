@@ -1,17 +1,15 @@
 """The tile executors: local vs Ray bit for bit, a killed Ray worker, a restarted driver.
 
-The Ray tests start their own local instance (``ray.init(num_cpus=2)``) with a temporary
-``RAY_TMPDIR`` and home (Ray writes its auth token under ``~/.ray``) and shut it down; they
-skip when the ``cluster`` extra (Ray) is not installed.
+The Ray tests start their own local instance (``ray.init(num_cpus=2)``) in a private
+temporary folder (:mod:`tests.transport._ray`) and stop it; they skip, saying why, when the
+``cluster`` extra (Ray) is not installed.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
-import shutil
 import signal
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -20,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.transport._ray import init_local, private_ray_env
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.records.cache import TileCache
 from torch_brdf.scene.builtin import cornell_box_glossy
@@ -83,33 +82,13 @@ def test_executor_arguments(scene):
 # -- Ray -----------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def ray_instance():
-    ray = pytest.importorskip("ray")
-    tmp = tempfile.mkdtemp(prefix="tbrt")  # short: Ray's socket paths must fit in 107 bytes
-    saved = {k: os.environ.get(k) for k in ("RAY_TMPDIR", "HOME")}
-    os.environ["RAY_TMPDIR"], os.environ["HOME"] = tmp, tmp
-    try:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
-        yield ray
-    finally:
-        ray.shutdown()
-        _stop_processes_under(tmp)  # what a failed start leaves behind (ray.shutdown does not)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _stop_processes_under(folder: str) -> None:
-    """SIGKILL the processes whose command line names ``folder`` (the Ray processes we started)."""
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit() and int(p.name) != os.getpid():
-            try:
-                if folder.encode() in (p / "cmdline").read_bytes():
-                    os.kill(int(p.name), signal.SIGKILL)
-            except OSError:
-                pass
+    ray = pytest.importorskip("ray", reason="the cluster extra (Ray) is not installed")
+    with private_ray_env() as tmp:
+        try:
+            init_local(ray, tmp, num_cpus=2)
+            yield ray
+        finally:
+            ray.shutdown()
 
 
 def _task_pids() -> list[int]:
@@ -207,3 +186,84 @@ def test_cli_precompute_ray_equals_local(ray_instance, tmp_path):
     b = runner.invoke(app, [*args, "--out", str(tmp_path / "b.npz"), "--ray", "auto"])  # the running instance
     assert a.exit_code == 0 and b.exit_code == 0, a.output + b.output
     _assert_identical(PolynomialTensors.load(tmp_path / "a.npz"), PolynomialTensors.load(tmp_path / "b.npz"))
+
+
+# -- the other two precomputations through the same executor ---------------------------------------
+@pytest.fixture(scope="module")
+def teapot_view():
+    from torch_brdf.inverse import LightSamples, object_pixels
+    from torch_brdf.scene import teatray
+
+    sc = teatray((32, 24))
+    px = object_pixels(sc, "teapot")
+    ls = LightSamples.from_environment(sc.environment, 32, torch.Generator().manual_seed(5))
+    return sc, px, ls
+
+
+def _transfer(view, **kw):
+    from torch_brdf.inverse import CutOptions, precompute_transfer
+
+    sc, px, ls = view
+    return precompute_transfer(sc, px, ls, f0=0.875, tile_pixels=40, progress=False, **kw), CutOptions
+
+
+def test_transfer_tiles_equal_the_untiled_sum(teapot_view, tmp_path):
+    from torch_brdf.inverse import cosine_visibility, transfer_functions
+
+    sc, px, ls = teapot_view
+    rec, _ = _transfer(teapot_view)
+    assert px.count > 2 * 40  # three tiles
+    whole = transfer_functions(px, ls, cosine_visibility(sc, px, ls, progress=False), f0=0.875, progress=False)
+    assert torch.equal(rec.pixels, whole.pixels)
+    torch.testing.assert_close(rec.values, whole.values, rtol=1e-12, atol=1e-14)  # summation order only
+    again, _ = _transfer(teapot_view, checkpoint=tmp_path)  # through a tile checkpoint: the same
+    assert torch.equal(again.values, rec.values) and not tmp_path.exists()
+
+
+def test_visibility_ray_equals_local(ray_instance):
+    from tests.transport.test_visibility import ball_on_plane
+    from torch_brdf.transport.visibility import precompute_visibility
+
+    sc = ball_on_plane()
+    a = precompute_visibility(sc, 32, chunk=16, progress=False)
+    b = precompute_visibility(sc, 32, chunk=16, progress=False, executor="ray")
+    assert -(-len(a.vertices) // 16) >= 3  # several chunks
+    xa, xb = a.to_arrays()[0], b.to_arrays()[0]
+    assert sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)
+
+
+def test_transfer_ray_equals_local(ray_instance, teapot_view):
+    local, CutOptions = _transfer(teapot_view)
+    remote, _ = _transfer(teapot_view, executor="ray")
+    assert torch.equal(local.values, remote.values) and torch.equal(local.pixels, remote.pixels)
+    cut_local, _ = _transfer(teapot_view, cuts=CutOptions())
+    cut_remote, _ = _transfer(teapot_view, cuts=CutOptions(), executor="ray")
+    assert torch.equal(cut_local.values, cut_remote.values)
+    assert cut_local.meta["mean_cut_size"] == cut_remote.meta["mean_cut_size"]
+
+
+def test_cli_visibility_and_fit_strokes_ray_equal_local(ray_instance, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from torch_brdf.cli import app
+    from torch_brdf.inverse import load_fit
+    from torch_brdf.io import load_arrays
+
+    runner = CliRunner()
+    vis = ["precompute-visibility", "cornell_box", "--cubemap", "16", "--chunk", "16", "--no-progress"]
+    strokes = tmp_path / "strokes.json"
+    strokes.write_text(json.dumps({"strokes": [{"points": [[28, 28], [36, 25]], "color": [3, 3, 2.7]}]}))
+    fit = ["fit-strokes", "teatray", "--object", "teapot", "--strokes", str(strokes), "--width", "64"]
+    fit += ["--height", "48", "--downsample", "2", "--samples", "32", "--no-progress"]
+    for args, name in ((vis, "vis"), (fit, "fit")):
+        a = runner.invoke(app, [*args, "--out", str(tmp_path / f"{name}_a" / "x.npz")])
+        b = runner.invoke(app, [*args, "--out", str(tmp_path / f"{name}_b" / "x.npz"), "--ray", "auto"])
+        assert a.exit_code == 0 and b.exit_code == 0, a.output + b.output
+    xa, xb = (load_arrays(tmp_path / f"vis_{s}" / "x.npz")[0] for s in "ab")
+    assert sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)
+    ta, tb = (load_arrays(tmp_path / f"fit_{s}" / "x.npz" / "transfer.npz")[0] for s in "ab")
+    assert all(np.array_equal(ta[k], tb[k]) for k in ta)
+    fa, fb = (load_fit(tmp_path / f"fit_{s}" / "x.npz" / "fit.npz") for s in "ab")
+    assert torch.equal(fa.coefficients, fb.coefficients)

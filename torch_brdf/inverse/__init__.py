@@ -23,6 +23,7 @@ from .transfer import (
     ObjectPixels,
     cosine_visibility,
     object_pixels,
+    precompute_transfer,
     split_record,
     transfer_functions,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "object_pixels",
     "outgoing_directions",
     "paint",
+    "precompute_transfer",
     "rerender",
     "save_fit",
     "solve_qp",

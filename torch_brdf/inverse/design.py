@@ -29,7 +29,7 @@ from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
 from .solve import fit, save_fit
 from .strokes import Brush, Stroke, paint
-from .transfer import CutOptions, LightSamples, cosine_visibility, object_pixels, transfer_functions
+from .transfer import CutOptions, LightSamples, object_pixels, precompute_transfer
 
 __all__ = ["DesignConfig", "design", "load_strokes"]
 
@@ -104,6 +104,8 @@ def design(
     out: str | Path,
     display_size=None,
     progress: bool | None = None,
+    executor: str = "local",
+    address: str | None = None,
 ) -> dict:
     """Run the stroke fit end to end and write ``fit.npz``, ``transfer.npz``, ``render.exr/.png``.
 
@@ -113,6 +115,8 @@ def design(
         config: :class:`DesignConfig`.
         out: output folder.
         display_size: (width, height) of the stroke coordinates (default the camera's).
+        executor, address: where the tiles of the visibility and transfer functions run
+            (``"local"`` or ``"ray"``, :func:`~torch_brdf.inverse.transfer.precompute_transfer`).
     Returns:
         A JSON-serialisable summary (pixels, objective, violation, iterations, timings, files).
     """
@@ -134,15 +138,17 @@ def design(
     if rec is None:
         g = torch.Generator().manual_seed(config.seed)
         ls = LightSamples.from_environment(scene.environment, config.light_samples, g)
-        vis = cosine_visibility(scene, px, ls, progress=progress)
-        rec = transfer_functions(
+        rec = precompute_transfer(
+            scene,
             px,
             ls,
-            vis,
             f0=config.f0,
             cuts=CutOptions() if config.cuts else None,
+            checkpoint=out / "transfer.tiles",
             progress=progress,
             meta={"settings": settings},
+            executor=executor,
+            address=address,
         )
         cache.save_record(rec, storage="float64")
     transfer_s = time.perf_counter() - t0

@@ -35,6 +35,12 @@ the result equals the dense sum. Unlike Akerlund et al. we compute the cut per p
 per-pixel visibility (no per-vertex interpolation), so the saving is in the SRBF products,
 not the ray casts.
 
+Tiles: :func:`precompute_transfer` casts the visibility and sums the transfer functions of
+an object's pixels in tiles of consecutive pixels, through the tile executor shared with the
+other precomputations (:func:`~torch_brdf.transport.executor.run_tiles`: ``local`` or
+``ray``); a tile is a pure function of (scene, pixels, samples, settings, tile index), so the
+record is the same bit for bit whichever executor ran it.
+
 Records: :func:`transfer_functions` returns the package's shared "pixels x basis x channels"
 record, :class:`~torch_brdf.records.BasisImage`, with J + 1 basis functions: the J
 transfer functions and, last, :math:`E(x)` for the diffuse albedo. Its ``image`` evaluates
@@ -43,6 +49,7 @@ Eq. 5/22 for ``torch.cat([c, rho_d[None]])`` (coefficients (J + 1, C)).
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 import warnings
@@ -58,10 +65,12 @@ from ..data import progress_default
 from ..errors import ShapeError, ValueRangeError
 from ..frame import Frame, half_terms
 from ..records.basis_image import BasisImage
+from ..records.cache import TileCache, settings_key
 from ..scene.camera import Camera
 from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.lights import LightSamples, luminance
 from ..scene.scene import Scene
+from ..transport.executor import TileWork, run_tiles
 from .energy import default_basis
 
 __all__ = [
@@ -71,6 +80,7 @@ __all__ = [
     "cosine_visibility",
     "diffuse_index",
     "object_pixels",
+    "precompute_transfer",
     "split_record",
     "transfer_functions",
 ]
@@ -329,6 +339,74 @@ def _cut_transfer(samples, vis, basis, f0t, frames, wo_l, cuts, T, progress) -> 
         "cut_tolerance": cuts.tolerance,
         "cut_max_angle_deg": cuts.max_angle_deg,
     }
+
+
+def _transfer_tile(work: TileWork, k: int):
+    """Tile ``k`` (pixels ``k * tile_pixels ...``): visibility and transfer functions, values
+    (3, J + 1, p); ``work``: scene, px, samples, basis, f0, cuts, tile_pixels."""
+    a = k * work.tile_pixels
+    px = work.px.select(torch.arange(a, min(work.px.count, a + work.tile_pixels)))
+    vis = cosine_visibility(work.scene, px, work.samples, progress=False)
+    rec = transfer_functions(px, work.samples, vis, work.basis, work.f0, work.cuts, progress=False)
+    return {"values": rec.values.numpy()}, {"pixels": px.count, **rec.meta}
+
+
+def precompute_transfer(
+    scene: Scene,
+    px: GBuffer,
+    samples: LightSamples,
+    basis: SRBFBasis | None = None,
+    f0=1.0,
+    cuts: CutOptions | None = None,
+    tile_pixels: int = 4096,
+    checkpoint=None,
+    progress: bool | None = None,
+    meta: dict | None = None,
+    executor: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
+) -> BasisImage:
+    r"""Visibility (:func:`cosine_visibility`) and transfer functions (:func:`transfer_functions`)
+    of ``px`` in tiles of ``tile_pixels`` pixels, through the tile executor.
+
+    Args:
+        scene, px, samples, basis, f0, cuts, meta: as :func:`cosine_visibility` and :func:`transfer_functions`.
+        tile_pixels: pixels per tile (the unit of work, of checkpointing and of a Ray task).
+        checkpoint: folder for finished tiles (resumed from; removed on success), or None.
+        progress: tqdm bar over finished tiles.
+        executor, address, max_retries: ``"local"`` or ``"ray"``, see
+            :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
+    Returns:
+        :class:`BasisImage` as :func:`transfer_functions` (values (3, J + 1, P)); ``meta["seconds"]``
+        sums the tiles' transfer seconds, ``meta["executor"]`` names the executor.
+    """
+    basis = basis if basis is not None else default_basis()
+    if int(tile_pixels) != tile_pixels or tile_pixels < 1:
+        raise ValueRangeError(f"tile_pixels must be an integer >= 1; got {tile_pixels}")
+    f0 = f0.tolist() if isinstance(f0, torch.Tensor) else f0
+    num = -(-px.count // tile_pixels)
+    work = TileWork(scene=scene, px=px, samples=samples, basis=basis, f0=f0, cuts=cuts, tile_pixels=int(tile_pixels))
+    digest = hashlib.sha256()
+    for t in (px.pixels, px.position, px.normal, px.wo, samples.directions, samples.weight, basis.centers):
+        digest.update(t.detach().contiguous().numpy().tobytes())
+    settings = {"inputs": digest.hexdigest(), "f0": f0, "bandwidth": basis.bandwidth, "tile_pixels": tile_pixels}
+    settings["cuts"] = None if cuts is None else [cuts.tolerance, cuts.max_angle_deg]
+    cache = TileCache(checkpoint, "transfer-tile", settings_key(settings, scene))
+    show = progress_default(progress)
+    tiles = run_tiles(_transfer_tile, work, num, cache, executor, address, max_retries, "transfer functions", show)
+    values = torch.cat([torch.from_numpy(a["values"]) for a, _ in tiles], 2) if tiles else None
+    if values is None:
+        values = torch.zeros(3, basis.K + 1, 0, dtype=torch.float64)
+    metas = [m for _, m in tiles]
+    m = {k: v for k, v in (metas[0] if metas else {}).items() if k not in ("pixels", "cached", "seconds")}
+    m["seconds"] = sum(float(x.get("seconds", 0.0)) for x in metas)
+    if cuts is not None and metas:
+        m["mean_cut_size"] = sum(x["mean_cut_size"] * x["pixels"] for x in metas) / max(px.count, 1)
+    m |= {"executor": executor, "tile_pixels": int(tile_pixels), **(meta or {})}
+    cache.remove()
+    return BasisImage(
+        values.contiguous(), px.pixels.clone(), px.height, px.width, None, None, f"srbf:{basis.K}+diffuse", m
+    )
 
 
 def diffuse_index(record: BasisImage) -> int:

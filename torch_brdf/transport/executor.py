@@ -22,6 +22,7 @@ Executors:
 
 from __future__ import annotations
 
+import copy
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -34,7 +35,7 @@ from .._threads import configure_worker, single_thread
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
-__all__ = ["EXECUTORS", "TileError", "connect_ray", "run_tiles"]
+__all__ = ["EXECUTORS", "TileError", "TileWork", "connect_ray", "run_tiles", "single_process"]
 
 EXECUTORS = ("local", "ray")
 
@@ -44,9 +45,14 @@ TileFn = Callable[[Any, int], TileResult]
 
 
 class Tiles(list):
-    """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles."""
+    """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles;
+    ``nodes``: the Ray node ids that computed tiles in this call (empty for ``local``)."""
 
     write_seconds: float = 0.0
+
+    def __init__(self, items):
+        super().__init__(items)
+        self.nodes: set[str] = set()
 
 
 class TileError(TorchBRDFError, RuntimeError):
@@ -76,6 +82,27 @@ def connect_ray(address: str | None = None, **init_kwargs):
     return ray
 
 
+def single_process(scene):
+    """A shallow copy of ``scene`` that traces in the calling process only (``workers = 1``):
+    what a Ray task gets, since Ray already runs one task per CPU. Shares the ray tracer."""
+    out = copy.copy(scene)
+    out.workers = 1
+    return out
+
+
+class TileWork:
+    """A tile function's context as named fields (``TileWork(scene=..., chunk=...)``); Ray
+    workers get :meth:`for_ray`, in which ``scene`` (if any) traces in its own process only."""
+
+    def __init__(self, **fields: Any):
+        self.__dict__.update(fields)
+
+    def for_ray(self) -> TileWork:
+        if "scene" not in self.__dict__:
+            return self
+        return TileWork(**{**self.__dict__, "scene": single_process(self.scene)})
+
+
 def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult:
     """A Ray task's body: the cached context of ``key`` (fetched from the object store once per
     worker process), then tile ``index`` with one torch thread."""
@@ -87,7 +114,10 @@ def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult
         _CONTEXTS.clear()
         _CONTEXTS[key] = ctx
     configure_worker(1)  # Ray runs one task per CPU; a task's own threads would oversubscribe
-    return fn(ctx, index)
+    arrays, meta = fn(ctx, index)
+    import ray
+
+    return arrays, meta, ray.get_runtime_context().get_node_id()
 
 
 def run_tiles(
@@ -103,6 +133,7 @@ def run_tiles(
     ray_context: Any | None = None,
     meta: dict[str, Any] | None = None,
     consume: Callable[[int, dict[str, np.ndarray], dict[str, Any]], None] | None = None,
+    max_new: int | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -116,11 +147,14 @@ def run_tiles(
         max_retries: Ray only: times a tile is run again after its worker died.
         desc, progress: the tqdm bar over finished tiles.
         ray_context: Ray only: the object shipped to workers instead of ``context`` (e.g. the
-            scene without its forked trace workers); default ``context``.
+            scene without its forked trace workers); default ``context.for_ray()`` when
+            ``context`` has it (:class:`TileWork`), else ``context``.
         meta: saved beside every tile (with the tile's own meta).
         consume: ``consume(k, arrays, meta)`` is called for the tiles in tile order as soon as
             tile ``k`` and all before it are finished (so the driver assembles while workers
             compute), with one torch thread; the tile is then dropped from the result.
+        max_new: compute at most this many tiles not in ``cache`` (the first ones missing; the
+            others stay None in the result): for tests of resuming.
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -139,7 +173,9 @@ def run_tiles(
             todo.append(k)
         else:
             out[k] = (done[0], {**done[1], "cached": True})
-    bar = tqdm(total=num_tiles, initial=num_tiles - len(todo), desc=desc, disable=not progress)
+    if max_new is not None:
+        todo = todo[: max(0, max_new)]
+    bar = tqdm(total=num_tiles, initial=sum(x is not None for x in out), desc=desc, disable=not progress)
     nxt = [0]  # the next tile to consume
 
     def drain() -> None:
@@ -166,13 +202,15 @@ def run_tiles(
                 for k in todo:
                     finish(k, fn(context, k))
         elif todo:
-            _run_ray(fn, context if ray_context is None else ray_context, todo, finish, address, max_retries)
+            if ray_context is None:
+                ray_context = context.for_ray() if hasattr(context, "for_ray") else context
+            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes)
     finally:
         bar.close()
     return out
 
 
-def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max_retries: int) -> None:
+def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max_retries: int, nodes: set) -> None:
     ray = connect_ray(address)
     key = f"{fn.__module__}.{fn.__qualname__}:{uuid.uuid4().hex}"  # this run's context
     ref = ray.put(context)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
@@ -190,6 +228,7 @@ def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max
                         f"tile {k} failed on Ray (after up to {max_retries} retries): {type(exc).__name__}: {exc}"
                     ) from exc
                 arrays = {n: v if v.flags.writeable else v.copy() for n, v in res[0].items()}  # zero-copy views
+                nodes.add(res[2])
                 finish(k, (arrays, res[1]))
     finally:
         for r in pending:

@@ -18,8 +18,10 @@ Conventions (fixed here, relied on by :mod:`torch_brdf.render.triple`):
 
 :func:`precompute_visibility` works in chunks of vertices; each finished chunk is written
 atomically to a checkpoint folder, so an interrupted run resumes where it stopped and gives
-the same record. Ray casting is deterministic, so the record does not depend on the
-chunking or on the number of ray-casting processes.
+the same record. The chunks are the tiles of :func:`~torch_brdf.transport.executor.run_tiles`:
+they run in this process (``executor="local"``) or as Ray tasks (``"ray"``). Ray casting is
+deterministic, so the record does not depend on the chunking, the executor or on the number
+of ray-casting processes.
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
 
 from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
 from ..data import progress_default
@@ -37,6 +38,7 @@ from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BlockVisibility
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
+from .executor import TileWork, run_tiles
 
 __all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices"]
 
@@ -70,6 +72,16 @@ def _chunk_visibility(
     return BlockVisibility.encode(V, bits=bits)
 
 
+def _visibility_chunk(work: TileWork, c: int):
+    """Chunk ``c``: its differential stream and vertex offsets (a pure function of the work:
+    scene, geom, positions, normals, dirs, bits, chunk)."""
+    s = c * work.chunk
+    e = min(s + work.chunk, work.positions.shape[0])
+    part = _chunk_visibility(work.scene, work.geom, work.positions[s:e], work.normals[s:e], work.dirs, work.bits)
+    stream, voff = part.to_bytes()
+    return {"stream": stream, "vertex_offsets": voff}, {"chunk": c}
+
+
 def precompute_visibility(
     scene: Scene,
     resolution: int = 64,
@@ -81,6 +93,9 @@ def precompute_visibility(
     progress: bool | None = None,
     max_chunks: int | None = None,
     keep_checkpoint: bool = False,
+    executor: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
 ) -> VertexVisibility:
     """Visibility cubemaps of every vertex of ``scene``.
 
@@ -96,6 +111,8 @@ def precompute_visibility(
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
         keep_checkpoint: keep the finished chunks after success.
+        executor, address, max_retries: where the chunks run (``"local"`` or ``"ray"``), see
+            :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
     Returns:
         :class:`VertexVisibility` (or None when stopped by ``max_chunks``).
     Raises:
@@ -132,27 +149,17 @@ def precompute_visibility(
     key = settings_key(settings, scene, parts=("geometry",))  # every mesh (occluders too), not lights
     cache = TileCache(checkpoint, CHUNK_KIND, key, prefix="vis")
     dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
-    starts = list(range(0, len(verts), chunk))
-    parts: list[BlockVisibility | None] = [None] * len(starts)
-    done = 0
-    bar = tqdm(
-        starts, desc=f"visibility {scene.name} ({resolution}^2x6)", unit="chunk", disable=not progress_default(progress)
+    num = -(-len(verts) // chunk)
+    work = TileWork(scene=scene, geom=geom, positions=verts.positions, normals=verts.normals, dirs=dirs)
+    work.bits, work.chunk = bits, chunk
+    desc = f"visibility {scene.name} ({resolution}^2x6)"
+    show = progress_default(progress)
+    tiles = run_tiles(
+        _visibility_chunk, work, num, cache, executor, address, max_retries, desc, show, max_new=max_chunks
     )
-    for c, s in enumerate(bar):
-        finished = cache.load(c)
-        if finished is not None:
-            arrays = finished[0]
-            parts[c] = BlockVisibility.from_bytes(arrays["stream"], arrays["vertex_offsets"], geom.block_count, bits)
-            continue
-        if max_chunks is not None and done >= max_chunks:
-            bar.close()
-            return None
-        e = min(s + chunk, len(verts))
-        part = _chunk_visibility(scene, geom, verts.positions[s:e], verts.normals[s:e], dirs, bits)
-        stream, voff = part.to_bytes()
-        cache.save(c, {"stream": stream, "vertex_offsets": voff}, meta={"chunk": c})
-        parts[c] = part
-        done += 1
+    if any(t is None for t in tiles):
+        return None  # stopped by max_chunks
+    parts = [BlockVisibility.from_bytes(a["stream"], a["vertex_offsets"], geom.block_count, bits) for a, _ in tiles]
     if not keep_checkpoint:
         cache.remove()
     return VertexVisibility(geom, verts, BlockVisibility.concat(parts), supersample, bits)

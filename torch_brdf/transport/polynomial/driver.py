@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from collections.abc import Sequence
@@ -20,7 +19,7 @@ from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, Tensor
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
 from ...scene.scene import Scene
-from ..executor import run_tiles
+from ..executor import run_tiles, single_process
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
 from .reduce import _blocks_from_entries, _reduce, _term_tables
@@ -184,7 +183,8 @@ def precompute_polynomial(
         ``meta["split"]`` holds the profile split in seconds
         (``rays``, ``sampling``, ``brdf``, ``bookkeeping`` summed over the tiles computed in
         this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
-        ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``.
+        ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
+        Ray nodes that computed tiles (0 for ``local``).
     """
     if plan is not None:
         if isinstance(plan, str):
@@ -251,9 +251,7 @@ def precompute_polynomial(
     cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
     ray_work = None
     if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
-        remote_scene = copy.copy(scene)
-        remote_scene.workers = 1
-        ray_work = _TileWork(remote_scene, plan, series, mixture, lights, tile_rows, spp, group, seed)
+        ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
@@ -302,6 +300,7 @@ def precompute_polynomial(
         "split": split,
         "tiles_cached": cached[0],
         "executor": executor,
+        "ray_nodes": len(results.nodes),
     }
     if not keep_checkpoint:
         cache.remove()

@@ -1,0 +1,69 @@
+"""Ray for the executor tests: a private temporary folder and home per cluster, startup
+timeouts generous enough for a loaded 2-core machine, and a sweep that stops every process
+the tests started (and only those: the ones whose command line names the private folder).
+
+Ray writes its auth token under ``~/.ray`` and its sockets under ``RAY_TMPDIR``; both point
+into the private folder, whose short path keeps Ray's socket paths under 107 bytes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import tempfile
+from pathlib import Path
+
+#: environment of the Ray processes: agents and workers that start slowly under load are
+#: waited for (defaults 15 s / 60 s) instead of failing the node
+SLOW_START = {"RAY_agent_register_timeout_ms": "180000", "RAY_worker_register_timeout_seconds": "300"}
+
+
+@contextlib.contextmanager
+def private_ray_env():
+    """A temporary folder (yielded) set as ``RAY_TMPDIR`` and ``HOME`` with :data:`SLOW_START`;
+    on exit every process naming the folder is killed and the environment restored."""
+    tmp = tempfile.mkdtemp(prefix="tbrt")
+    env = {"RAY_TMPDIR": tmp, "HOME": tmp, **SLOW_START}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield tmp
+    finally:
+        stop_processes_under(tmp)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def stop_processes_under(folder: str) -> list[int]:
+    """SIGKILL the processes whose command line names ``folder`` (the Ray processes we started);
+    returns their PIDs."""
+    killed = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit() and int(p.name) != os.getpid():
+            try:
+                if folder.encode() in (p / "cmdline").read_bytes():
+                    os.kill(int(p.name), signal.SIGKILL)
+                    killed.append(int(p.name))
+            except OSError:
+                pass
+    return killed
+
+
+def init_local(ray, tmp: str, num_cpus: int, attempts: int = 3) -> None:
+    """``ray.init`` of a local instance in ``tmp``; a start that timed out (Ray waits 30 s for
+    its raylet, hard-coded) is retried after stopping what it left."""
+    for k in range(attempts):
+        try:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
+            return
+        except Exception:
+            ray.shutdown()
+            stop_processes_under(tmp)
+            if k == attempts - 1:
+                raise
