@@ -1,6 +1,6 @@
 """BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
 
-    python benchmarks/polynomial.py [--quick]
+    python benchmarks/polynomial.py [--quick] [--precompute-only]
 
 Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
 coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 
 import numpy as np
@@ -118,6 +119,7 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
     args = ap.parse_args()
     q = args.quick
     out: dict = {"quick": q}
@@ -148,6 +150,10 @@ def main() -> None:
         out["precompute_over_mitsuba"] = out["precompute_s"] / mi["seconds"]
         print(f"mitsuba {mi['seconds']:.2f} s ({mi['variant']})", flush=True)
     del T
+    if args.precompute_only:
+        out["load_avg"] = list(os.getloadavg())
+        print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()}))
+        return
 
     # -- freezing and frames at 512^2 ------------------------------------------------------------
     fres, fspp = (128, 2) if q else (512, 4)

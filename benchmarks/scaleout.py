@@ -14,15 +14,22 @@ first runs). Prints progress, then one JSON object as the last line:
   object store; ``context_mb``: the pickled scene and settings, put once;
   ``transfer_s_per_tile``: ``ray.get`` of an object of ``result_mb_per_tile`` from the store.
 * ``tile_s``: worker seconds per tile (``ray1_s / tiles``), ``driver_s_per_tile``: the
-  driver's serial work per tile (writing it and assembling the record, from ``meta["split"]``).
-* the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles of 16 rows
-  (64 tiles, more when there are more workers: 4 per worker) on ``N`` nodes of 2 workers:
-  ``T(N) = max(ceil(n / 2N) * (t_tile + task_overhead + transfer), n * t_driver) + t_driver``
-  (the driver assembles tile k while later tiles compute), with ``t_tile``
-  the measured worker seconds per path times the paths of a tile and ``t_driver`` the
-  measured driver seconds per tile scaled by the entries of a tile (entries per pixel grow as
-  spp^0.54: 11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md);
-  ``predicted_speedup_N = T_1node / T(N)`` for N = 8 and 64, and ``predicted_s_*``.
+  driver's serial work per tile (assembling the record, from ``meta["split"]``, plus
+  ``write_s_per_tile``, writing the tile into a checkpoint folder as the CLI does).
+* the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
+  nodes of 2 workers. Tile sizing for that scene: 16 rows (16k pixels, 16.8M paths, a few
+  minutes of work) while there are at most 64 tiles per 2N workers, otherwise ``n = 4 * 2N``
+  tiles (at N = 64: 512 tiles of 2 rows, 2M paths each), so that each task runs for seconds
+  to minutes and its scheduling round trip and result transfer are a small fraction:
+  ``T(N) = max(R * c, c + n * t_driver) + t_driver`` with ``R = ceil(n / 2N)`` rounds and
+  ``c = t_tile + task_overhead + transfer`` one task (the driver numbers the terms of tile k,
+  in tile order, while later tiles compute; it starts when the first tile arrives), with
+  ``t_tile`` the measured worker seconds per path times the paths of a tile and ``t_driver``
+  the measured driver seconds per tile (numbering the tile's terms, re-sorting its blocks when
+  needed, writing it) scaled by the entries of a tile (entries per pixel grow as spp^0.54:
+  11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md) and ``transfer``
+  the measured ``ray.get`` of a tile's result scaled the same way;
+  ``predicted_speedup_N = T(1) / T(N)`` for N = 8 and 64, and ``predicted_s_*``.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ import shutil
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -68,9 +76,17 @@ def main() -> None:
     out: dict = {"quick": args.quick, "resolution": res, "spp": spp, "tiles": tiles, "cpus": os.cpu_count()}
     out["load_avg_start"] = os.getloadavg()[0]
     out["local_s"], local = best_of(lambda: precompute_polynomial(sc, **kw), 2)
+    ck = tempfile.mkdtemp(prefix="tbck")  # what a tile sends back: the size of its cached arrays
+    written = precompute_polynomial(sc, **kw, checkpoint=ck, keep_checkpoint=True)
+    out["write_s_per_tile"] = written.meta["split"]["write"] / tiles  # the CLI keeps tiles (--resume)
+    tile_bytes = sum(f.stat().st_size for f in Path(ck).glob("*.npz")) / tiles
+    shutil.rmtree(ck, ignore_errors=True)
     print(f"local {out['local_s']:.2f} s", flush=True)
     tmp = tempfile.mkdtemp(prefix="tbso")
     os.environ.setdefault("RAY_TMPDIR", tmp)
+    # agents and workers that start slowly on a loaded machine are waited for (defaults 15 s / 60 s)
+    os.environ.setdefault("RAY_agent_register_timeout_ms", "180000")
+    os.environ.setdefault("RAY_worker_register_timeout_seconds", "300")
     equal = True
     try:
         for n in (1, 2):
@@ -90,7 +106,7 @@ def main() -> None:
                 for i in range(50):
                     ray.get(task.remote(i))
                 out["task_overhead_s"] = (time.perf_counter() - t0) / 50
-                blob = np.zeros(int(sum(v.nbytes for v in local.to_arrays()[0].values()) / tiles) // 8 + 1)
+                blob = np.zeros(int(tile_bytes) // 8 + 1)
                 ref = ray.put(blob)
                 out["transfer_s_per_tile"], _ = best_of(lambda ref=ref: ray.get(ref), 5)
                 out["result_mb_per_tile"] = blob.nbytes / 2**20
@@ -107,7 +123,7 @@ def main() -> None:
     # -- the model ---------------------------------------------------------------------------
     paths = res * res * spp
     out["tile_s"] = out["ray1_s"] / tiles
-    out["driver_s_per_tile"] = (split["assemble"] + split["write"]) / tiles
+    out["driver_s_per_tile"] = split["assemble"] / tiles + out["write_s_per_tile"]
     worker_s_per_path = (out["ray1_s"] - out["driver_s_per_tile"] * tiles - out["task_overhead_s"] * tiles) / paths
     big_res, big_spp, tile_px = 1024, 1024, 16 * 1024
     entries_scale = (tile_px / (res * res / tiles)) * (big_spp / spp) ** 0.54
@@ -117,11 +133,10 @@ def main() -> None:
     def model(nodes: int) -> float:
         n_tiles = max(big_res * big_res // tile_px, 4 * 2 * nodes)
         t_tile = worker_s_per_path * big_res * big_res * big_spp / n_tiles
-        per_tile_driver = t_driver * (big_res * big_res // tile_px) / n_tiles  # same entries, more tiles
+        scale = (big_res * big_res // tile_px) / n_tiles  # the same entries over more tiles
+        per_tile_driver, per_task = t_driver * scale, t_tile + out["task_overhead_s"] + transfer * scale
         rounds = math.ceil(n_tiles / (2 * nodes))
-        # the driver assembles tile k while later tiles compute: the longer of the two, plus the last tile
-        workers = rounds * (t_tile + out["task_overhead_s"] + transfer)
-        return max(workers, n_tiles * per_tile_driver) + per_tile_driver
+        return max(rounds * per_task, per_task + n_tiles * per_tile_driver) + per_tile_driver
 
     base = model(1)
     for n in (8, 64):

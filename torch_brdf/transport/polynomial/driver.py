@@ -22,7 +22,7 @@ from ...scene.scene import Scene
 from ..executor import run_tiles, single_process
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
-from .reduce import _blocks_from_entries, _reduce, _term_tables
+from .reduce import _blocks_from_local, _local_blocks, _reduce, _term_tables
 from .sampler import Mixture
 from .tracer import _Tracer
 
@@ -101,13 +101,21 @@ class _TileWork:
         return torch.arange(r0 * w, min(h, r0 + self.tile_rows) * w)
 
 
+#: names of a tile's block arrays: ``b{g}_{name}`` for the g-th block of :func:`_local_blocks`
+_BLOCK_ARRAYS = ("head", "upix", "tw", "tc", "key", "vals", "var")
+
+
 def _polynomial_tile(work: _TileWork, k: int):
-    """Tile ``k``: arrays (emission, reduced entries) and meta (rays cast, profile split)."""
+    """Tile ``k``: arrays (emission, its blocks with tile-local term and pixel numbers) and
+    meta (rays cast, profile split)."""
     tracer = work.tracer
     rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
     pix = work.pixels(k)
     emis, red = _tile_entries(tracer, work.scene, pix, k, work.spp, work.group, work.seed, work.paths)
-    arrays = {"emission": emis.numpy(), **{f"r_{n}": v.numpy() for n, v in red.items()}}
+    with tracer.clock("blocks"):
+        local = _local_blocks(red, work.plan, work.spp)
+    arrays = {"emission": emis.numpy()}
+    arrays |= {f"b{g}_{n}": b[n].numpy() for g, b in enumerate(local) for n in _BLOCK_ARRAYS}
     rays = {n: tracer.rays[n] - rays0[n] for n in rays0}
     split = {n: v - split0.get(n, 0.0) for n, v in tracer.clock.seconds.items()}
     return arrays, {"rays": rays, "split": split}
@@ -181,8 +189,8 @@ def precompute_polynomial(
     Returns:
         :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
         ``meta["split"]`` holds the profile split in seconds
-        (``rays``, ``sampling``, ``brdf``, ``bookkeeping`` summed over the tiles computed in
-        this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
+        (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
+        computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
         ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
         Ray nodes that computed tiles (0 for ``local``).
     """
@@ -248,7 +256,9 @@ def precompute_polynomial(
         "tile_rows": tile_rows,
         "group": group,
     }
-    cache = TileCache(checkpoint, TILE_KIND, settings_key(settings, scene))  # scene content in the key
+    # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
+    key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
+    cache = TileCache(checkpoint, TILE_KIND, key)
     ray_work = None
     if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
         ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
@@ -256,14 +266,16 @@ def precompute_polynomial(
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
     rays = {"closest": 0, "shadow": 0}
-    split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "assemble": 0.0}
+    split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "blocks": 0.0}
+    split["assemble"] = 0.0
     cached = [0]
 
     def consume(ti: int, arrays: dict, meta: dict) -> None:
         """Tile ``ti`` into the record (in tile order: term ids number in order of appearance)."""
         t = time.perf_counter()
         pix = work.pixels(ti)
-        red = {k[2:]: torch.from_numpy(v) for k, v in arrays.items() if k.startswith("r_")}
+        nblocks = sum(k.endswith("_head") for k in arrays)
+        local = [{n: torch.from_numpy(arrays[f"b{g}_{n}"]) for n in _BLOCK_ARRAYS} for g in range(nblocks)]
         emis = torch.from_numpy(arrays["emission"])
         for k, v in meta.get("rays", {}).items():
             rays[k] += int(v)
@@ -273,7 +285,7 @@ def precompute_polynomial(
             for k, v in meta.get("split", {}).items():
                 split[k] = split.get(k, 0.0) + float(v)
         emission[:, pix] = (emis / spp).float().T
-        blocks.extend(_blocks_from_entries(red, pix, plan, spp, term_index))
+        blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
     t0 = time.perf_counter()

@@ -76,10 +76,16 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
     return out
 
 
-def _blocks_from_entries(
-    red: dict[str, torch.Tensor], pixels: torch.Tensor, bases, spp: int, term_index: dict[int, dict]
-) -> list[TensorBlock]:
-    """Dense blocks per (eye object, bounce) over the terms and pixels that occur."""
+def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int) -> list[dict[str, torch.Tensor]]:
+    """The part of the block assembly that needs only the tile (it runs where the tile ran):
+    per (eye object, bounce) the pixels and terms that occur, numbered locally, and the
+    entries sorted by their local flat index.
+
+    Returns one dict per block: ``head`` (3,) [object, bounce, J]; ``upix`` (P,) tile-local
+    pixel records; ``tw`` (Z,) and ``tc`` (Z, M) the terms (second-bounce slot, multiset) in
+    local order; ``key`` (E,) ascending ``(j * Z + z) * P + p`` with local z and p; ``vals``
+    and ``var`` (C, E) float32 mean and Monte Carlo variance.
+    """
     if not red:
         return []
     out = []
@@ -89,34 +95,70 @@ def _blocks_from_entries(
     for gkey in group.unique().tolist():
         m = group == gkey
         obj, bounce = divmod(int(gkey), 1000)
-        rec = red["rec"][m]
-        upix, prow = torch.unique(rec, return_inverse=True)
-        table = term_index.setdefault(bounce, {})
+        upix, prow = torch.unique(red["rec"][m], return_inverse=True)
         tw, tc = red["w"][m], red["counts"][m]
         zid, nz = _multiset_ids(tc)
-        pid = (tw + 1) * nz + zid
-        upid, pinv = torch.unique(pid, return_inverse=True)
-        first = torch.full((upid.numel(),), pid.numel(), dtype=torch.long).scatter_reduce(
-            0, pinv, torch.arange(pid.numel()), reduce="amin"
+        upid, pinv = torch.unique((tw + 1) * nz + zid, return_inverse=True)
+        first = torch.full((upid.numel(),), pinv.numel(), dtype=torch.long).scatter_reduce(
+            0, pinv, torch.arange(pinv.numel()), reduce="amin"
         )
+        J = 1 if bases[obj] is None else bases[obj].size
+        key, perm = torch.sort((red["j"][m] * upid.numel() + pinv) * upix.numel() + prow)
+        out.append(
+            {
+                "head": torch.tensor([obj, bounce, J]),
+                "upix": upix,
+                "tw": tw[first],
+                "tc": tc[first],
+                "key": key,
+                "vals": mean[m][perm].T.float().contiguous(),
+                "var": var[m][perm].T.float().contiguous(),
+            }
+        )
+    return out
+
+
+def _blocks_from_local(local: list[dict[str, torch.Tensor]], pixels: torch.Tensor, term_index: dict[int, dict]):
+    """The driver's part of the block assembly, in tile order: the tile's terms get their
+    global ids (numbered in order of first appearance over the tiles), and the entries are
+    re-sorted when the global order of the tile's terms differs from the local one.
+
+    Args:
+        local: :func:`_local_blocks` of one tile.
+        pixels: (P_tile,) flat pixel indices of the tile's records.
+        term_index: per bounce, term (w, *counts) -> global id; extended in place.
+    Returns:
+        list of :class:`TensorBlock`.
+    """
+    out = []
+    for b in local:
+        obj, bounce, J = (int(v) for v in b["head"])
+        table = term_index.setdefault(bounce, {})
         gids = []
-        for w_, row in zip(tw[first].tolist(), tc[first].tolist(), strict=True):
+        for w_, row in zip(b["tw"].tolist(), b["tc"].tolist(), strict=True):
             t = (w_, *row)
             if t not in table:
                 table[t] = len(table)
             gids.append(table[t])
         gids = torch.tensor(gids, dtype=torch.long)
         order = torch.argsort(gids)
-        rank = torch.empty_like(order)
-        rank[order] = torch.arange(order.numel())
-        tid = rank[pinv]
-        J = 1 if bases[obj] is None else bases[obj].size
-        z, p = upid.numel(), upix.numel()
-        flat = (red["j"][m] * z + tid) * p + prow  # unique per entry
-        flat, perm = torch.sort(flat)
-        vals, vv = mean[m][perm].T.float().contiguous(), var[m][perm].T.float().contiguous()
-        out.append(TensorBlock(obj, bounce, pixels[upix], gids[order], J, flat, vals, vv))
+        key, vals, vv = b["key"], b["vals"], b["var"]
+        if not torch.equal(order, torch.arange(order.numel())):
+            rank = torch.empty_like(order)
+            rank[order] = torch.arange(order.numel())
+            z, p = order.numel(), b["upix"].numel()
+            jz, prow = torch.div(key, p, rounding_mode="floor"), key % p
+            key, perm = torch.sort((torch.div(jz, z, rounding_mode="floor") * z + rank[jz % z]) * p + prow)
+            vals, vv = vals[:, perm].contiguous(), vv[:, perm].contiguous()
+        out.append(TensorBlock(obj, bounce, pixels[b["upix"]], gids[order], J, key, vals, vv))
     return out
+
+
+def _blocks_from_entries(
+    red: dict[str, torch.Tensor], pixels: torch.Tensor, bases, spp: int, term_index: dict[int, dict]
+) -> list[TensorBlock]:
+    """Sparse blocks per (eye object, bounce) over the terms and pixels that occur (both parts)."""
+    return _blocks_from_local(_local_blocks(red, bases, spp), pixels, term_index)
 
 
 def _term_tables(term_index: dict[int, dict], num_objects: int, bounces: int) -> dict[int, TermTable]:
