@@ -15,7 +15,8 @@ first runs). Prints progress, then one JSON object as the last line:
   ``transfer_s_per_tile``: ``ray.get`` of an object of ``result_mb_per_tile`` from the store.
 * ``tile_s``: worker seconds per tile (``ray1_s / tiles``), ``driver_s_per_tile``: the
   driver's serial work per tile (assembling the record, from ``meta["split"]``, plus
-  ``write_s_per_tile``, writing the tile into a checkpoint folder as the CLI does).
+  ``write_s_per_tile``, writing the tile file a Ray worker encoded into the checkpoint folder
+  as the CLI does; ``local_write_s_per_tile``: encoding and writing it on the driver).
 * the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
   nodes of 2 workers. Tile sizing for that scene: 16 rows (16k pixels, 16.8M paths, a few
   minutes of work) while there are at most 64 tiles per 2N workers, otherwise ``n = 4 * 2N``
@@ -29,17 +30,20 @@ first runs). Prints progress, then one JSON object as the last line:
   needed, writing it) scaled by the entries of a tile (entries per pixel grow as spp^0.54:
   11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md) and ``transfer``
   the measured ``ray.get`` of a tile's result scaled the same way;
-  ``predicted_speedup_N = T(1) / T(N)`` for N = 8 and 64, and ``predicted_s_*``.
+  ``predicted_speedup_N = T(1) / T(N)`` for N = 8 and 64, and ``predicted_s_*``; the
+  ``*_no_checkpoint`` keys: the same without tile files (``t_driver`` = assembly only).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import pickle
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -48,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport.executor import connect_ray
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -57,6 +62,15 @@ from _timing import best_of
 def _same(a, b) -> bool:
     xa, xb = a.to_arrays()[0], b.to_arrays()[0]
     return sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)
+
+
+def _stop_processes_under(folder: str) -> None:
+    """SIGKILL what a failed Ray start left (the processes whose command line names ``folder``)."""
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit() and int(p.name) != os.getpid():
+            with contextlib.suppress(OSError):
+                if folder.encode() in (p / "cmdline").read_bytes():
+                    os.kill(int(p.name), signal.SIGKILL)
 
 
 def _noop(i: int) -> int:
@@ -75,29 +89,23 @@ def main() -> None:
     tiles = -(-res // rows)
     out: dict = {"quick": args.quick, "resolution": res, "spp": spp, "tiles": tiles, "cpus": os.cpu_count()}
     out["load_avg_start"] = os.getloadavg()[0]
-    out["local_s"], local = best_of(lambda: precompute_polynomial(sc, **kw), 2)
-    ck = tempfile.mkdtemp(prefix="tbck")  # what a tile sends back: the size of its cached arrays
-    written = precompute_polynomial(sc, **kw, checkpoint=ck, keep_checkpoint=True)
-    out["write_s_per_tile"] = written.meta["split"]["write"] / tiles  # the CLI keeps tiles (--resume)
-    tile_bytes = sum(f.stat().st_size for f in Path(ck).glob("*.npz")) / tiles
-    shutil.rmtree(ck, ignore_errors=True)
-    print(f"local {out['local_s']:.2f} s", flush=True)
     tmp = tempfile.mkdtemp(prefix="tbso")
     os.environ.setdefault("RAY_TMPDIR", tmp)
+    os.environ["HOME"] = tmp  # Ray's auth token goes to ~/.ray: keep it in the run's folder
     # agents and workers that start slowly on a loaded machine are waited for (defaults 15 s / 60 s)
     os.environ.setdefault("RAY_agent_register_timeout_ms", "180000")
     os.environ.setdefault("RAY_worker_register_timeout_seconds", "300")
-    equal = True
+    results = []
     try:
         for n in (1, 2):
             t0 = time.perf_counter()
-            ray.init(num_cpus=n, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
+            connect_ray(None, attempts=5, num_cpus=n, _temp_dir=tmp)  # retries a start that timed out
             out[f"ray{n}_init_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             T = precompute_polynomial(sc, **kw, executor="ray")
             out[f"ray{n}_cold_s"] = time.perf_counter() - t0
             out[f"ray{n}_s"], T = best_of(lambda: precompute_polynomial(sc, **kw, executor="ray"), 2)
-            equal &= _same(T, local)
+            results.append(T)
             print(f"ray {n} worker(s): {out[f'ray{n}_s']:.2f} s (cold {out[f'ray{n}_cold_s']:.2f} s)", flush=True)
             if n == 1:
                 task = ray.remote(num_cpus=1)(_noop)
@@ -106,17 +114,30 @@ def main() -> None:
                 for i in range(50):
                     ray.get(task.remote(i))
                 out["task_overhead_s"] = (time.perf_counter() - t0) / 50
-                blob = np.zeros(int(tile_bytes) // 8 + 1)
+                # what a tile sends back: about the size of its arrays
+                blob = np.zeros(int(sum(v.nbytes for v in T.to_arrays()[0].values()) / tiles) // 8 + 1)
                 ref = ray.put(blob)
                 out["transfer_s_per_tile"], _ = best_of(lambda ref=ref: ray.get(ref), 5)
                 out["result_mb_per_tile"] = blob.nbytes / 2**20
                 out["context_mb"] = len(pickle.dumps(sc)) / 2**20
                 split = T.meta["split"]
+                ck = tempfile.mkdtemp(prefix="tbck")  # the CLI keeps tiles (--resume): Ray workers encode them
+                written = precompute_polynomial(sc, **kw, executor="ray", checkpoint=ck)
+                out["write_s_per_tile"] = written.meta["split"]["write"] / tiles  # the driver writes bytes
+                shutil.rmtree(ck, ignore_errors=True)
             ray.shutdown()
     finally:
         ray.shutdown()
+        _stop_processes_under(tmp)
         shutil.rmtree(tmp, ignore_errors=True)
-    out["ray_equals_local"] = bool(equal)
+    # local last: Ray starts (its raylet has 30 s) before this process forks its trace workers
+    out["local_s"], local = best_of(lambda: precompute_polynomial(sc, **kw), 2)
+    print(f"local {out['local_s']:.2f} s", flush=True)
+    ck = tempfile.mkdtemp(prefix="tbck")
+    written = precompute_polynomial(sc, **kw, checkpoint=ck)  # local: the driver encodes and writes
+    out["local_write_s_per_tile"] = written.meta["split"]["write"] / tiles
+    shutil.rmtree(ck, ignore_errors=True)
+    out["ray_equals_local"] = all(_same(T, local) for T in results)
     for k in ("local", "ray1", "ray2"):
         out[f"{k}_tiles_per_s"] = tiles / out[f"{k}_s"]
     out["ray2_over_local"] = out["ray2_s"] / out["local_s"]
@@ -124,11 +145,11 @@ def main() -> None:
     paths = res * res * spp
     out["tile_s"] = out["ray1_s"] / tiles
     out["driver_s_per_tile"] = split["assemble"] / tiles + out["write_s_per_tile"]
-    worker_s_per_path = (out["ray1_s"] - out["driver_s_per_tile"] * tiles - out["task_overhead_s"] * tiles) / paths
+    worker_s_per_path = (out["ray1_s"] - split["assemble"] - out["task_overhead_s"] * tiles) / paths
     big_res, big_spp, tile_px = 1024, 1024, 16 * 1024
     entries_scale = (tile_px / (res * res / tiles)) * (big_spp / spp) ** 0.54
-    t_driver = out["driver_s_per_tile"] * entries_scale
     transfer = out["transfer_s_per_tile"] * entries_scale
+    t_driver = 0.0
 
     def model(nodes: int) -> float:
         n_tiles = max(big_res * big_res // tile_px, 4 * 2 * nodes)
@@ -138,11 +159,14 @@ def main() -> None:
         rounds = math.ceil(n_tiles / (2 * nodes))
         return max(rounds * per_task, per_task + n_tiles * per_tile_driver) + per_tile_driver
 
-    base = model(1)
-    for n in (8, 64):
-        out[f"predicted_s_{n}"] = model(n)
-        out[f"predicted_speedup_{n}"] = base / model(n)
-    out["predicted_s_1"] = base
+    # with tile files (the CLI's default --resume), and without (the API's default checkpoint=None)
+    for suffix, per_tile in (("", out["driver_s_per_tile"]), ("_no_checkpoint", split["assemble"] / tiles)):
+        t_driver = per_tile * entries_scale
+        base = model(1)
+        for n in (8, 64):
+            out[f"predicted_s_{n}{suffix}"] = model(n)
+            out[f"predicted_speedup_{n}{suffix}"] = base / model(n)
+        out[f"predicted_s_1{suffix}"] = base
     out["load_avg_end"] = os.getloadavg()[0]
     out = {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
     print(json.dumps(out))

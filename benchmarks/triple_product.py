@@ -1,6 +1,6 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
-    python benchmarks/triple_product.py [--quick] [--checkpoint DIR]
+    python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 
 import torch
@@ -75,6 +76,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene and image")
     ap.add_argument("--checkpoint", default=None, help="folder for resumable visibility chunks")
+    ap.add_argument("--precompute-only", action="store_true", help="stop after the visibility precompute vs embree")
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per frame (best is kept)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     args = ap.parse_args()
@@ -103,6 +105,21 @@ def main() -> None:
     scene.occluded(o, d, float("inf"))
     rays_s = (time.perf_counter() - t) * rays / len(vi)
     del up
+    if args.precompute_only:
+        load = list(os.getloadavg())
+        print(
+            json.dumps(
+                {
+                    "vertices": len(vis.vertices),
+                    "precompute_s": precompute_s,
+                    "rays": rays,
+                    "rays_s": rays_s,
+                    "precompute_over_rays": precompute_s / rays_s,
+                    "load_avg": load,
+                }
+            )
+        )
+        return
     r = TripleProductRenderer(scene, vis)
     env = r.envmap
     lighting_s, _ = best_of(lambda: r.set_lighting(env), 3)

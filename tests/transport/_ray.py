@@ -55,15 +55,9 @@ def stop_processes_under(folder: str) -> list[int]:
     return killed
 
 
-def init_local(ray, tmp: str, num_cpus: int, attempts: int = 3) -> None:
-    """``ray.init`` of a local instance in ``tmp``; a start that timed out (Ray waits 30 s for
-    its raylet, hard-coded) is retried after stopping what it left."""
-    for k in range(attempts):
-        try:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, _temp_dir=tmp)
-            return
-        except Exception:
-            ray.shutdown()
-            stop_processes_under(tmp)
-            if k == attempts - 1:
-                raise
+def init_local(tmp: str, num_cpus: int):
+    """A local Ray instance in ``tmp`` (:func:`~torch_brdf.transport.executor.connect_ray`,
+    which retries a start that timed out); returns the ray module."""
+    from torch_brdf.transport.executor import connect_ray
+
+    return connect_ray(None, num_cpus=num_cpus, _temp_dir=tmp)

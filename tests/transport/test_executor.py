@@ -85,7 +85,7 @@ def ray_instance():
     ray = pytest.importorskip("ray", reason="the cluster extra (Ray) is not installed")
     with private_ray_env() as tmp:
         try:
-            init_local(ray, tmp, num_cpus=2)
+            init_local(tmp, num_cpus=2)
             yield ray
         finally:
             ray.shutdown()
@@ -131,18 +131,18 @@ def test_ray_worker_killed_loses_nothing(ray_instance):
 
 def test_ray_driver_restart_resumes(ray_instance, scene, local, tmp_path, monkeypatch):
     saves = []
-    real = TileCache.save
+    real = TileCache.save_encoded  # Ray workers encode the tile files; the driver writes them
 
-    def dying_save(self, index, arrays, meta=None):
+    def dying_save(self, index, data):
         if len(saves) == 2:
             raise KeyboardInterrupt  # the driver dies after writing two tiles
         saves.append(index)
-        real(self, index, arrays, meta)
+        real(self, index, data)
 
-    monkeypatch.setattr(TileCache, "save", dying_save)
+    monkeypatch.setattr(TileCache, "save_encoded", dying_save)
     with pytest.raises(KeyboardInterrupt):
         precompute_polynomial(scene, **SETTINGS, executor="ray", checkpoint=tmp_path)
-    monkeypatch.setattr(TileCache, "save", real)
+    monkeypatch.setattr(TileCache, "save_encoded", real)
     T = precompute_polynomial(scene, **SETTINGS, executor="ray", checkpoint=tmp_path)
     assert T.meta["tiles_cached"] == 2
     _assert_identical(T, local)

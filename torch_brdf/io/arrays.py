@@ -91,7 +91,18 @@ def save_arrays(
         kind_version: version of the layout of ``kind`` (checked on load; files written
             before it was recorded count as version 1).
     """
-    path = Path(path)
+    return write_encoded(path, encode_arrays(arrays, kind, meta, compress, kind_version))
+
+
+def encode_arrays(
+    arrays: dict[str, np.ndarray],
+    kind: str,
+    meta: dict[str, Any] | None = None,
+    compress: bool = False,
+    kind_version: int = 1,
+) -> bytes:
+    """The bytes :func:`save_arrays` writes (arguments as there): a tile executor's worker
+    encodes (checksums, zip) and the driver only writes them (:func:`write_encoded`)."""
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
     for k, a in arrays.items():
         if a.dtype == object or k == _HEADER:
@@ -110,10 +121,16 @@ def save_arrays(
                 np.savez(buf, **arrays, **{_HEADER: blob})
     raw = buf.getbuffer()
     comment = _DIGEST + hashlib.sha256(raw[:-2]).hexdigest().encode()
+    # the zip as numpy wrote it, up to its (empty) comment length, then the file digest
+    return bytes(raw[:-2]) + len(comment).to_bytes(2, "little") + comment
+
+
+def write_encoded(path: str | Path, data: bytes) -> Path:
+    """Write the bytes of :func:`encode_arrays` to ``path`` atomically."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with replacing(path) as tmp, open(tmp, "wb") as f:
-        f.write(raw[:-2])  # the zip as numpy wrote it, up to its (empty) comment length ...
-        f.write(len(comment).to_bytes(2, "little") + comment)  # ... then the file digest
+        f.write(data)
     return path
 
 

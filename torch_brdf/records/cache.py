@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import FileFormatError
 from ..io.arrays import VERSION as ARRAYS_VERSION
-from ..io.arrays import load_arrays, save_arrays
+from ..io.arrays import encode_arrays, load_arrays, save_arrays, write_encoded
 from ..scene.scene import Scene
 from .codec import Record, load_record, save_record
 
@@ -185,6 +185,19 @@ class TileCache:
         tile = self._tile(index)
         if tile is not None:
             tile.save(arrays, meta)
+
+    def encode(self, arrays: dict[str, np.ndarray], meta: dict[str, Any] | None = None) -> bytes | None:
+        """The file bytes :meth:`save` would write for a tile (None without a folder): a
+        worker encodes, the driver writes them with :meth:`save_encoded`."""
+        if self.folder is None:
+            return None
+        return encode_arrays(arrays, self.kind, {**(meta or {}), _KEY: self.key})
+
+    def save_encoded(self, index: int, data: bytes | None) -> None:
+        """Write the bytes of :meth:`encode` as finished tile ``index``, atomically."""
+        tile = self._tile(index)
+        if tile is not None and data is not None:
+            write_encoded(tile.path, data)
 
     def remove(self) -> None:
         """Delete this cache's tiles (every ``<prefix>*.npz``, any key, and moved-aside

@@ -15,7 +15,9 @@ Executors:
   slower under load); ray casting still uses the scene's forked trace workers.
 - ``ray``: one Ray task per tile (``pip install torch_brdf[cluster]``). The context is put
   into the object store once and each worker process fetches it once (it is cached per
-  worker under its key), so per task only the tile index travels. A task whose worker dies
+  worker under its key), so per task only the tile index travels; the worker also encodes
+  the tile's checkpoint file (checksums, zip) and the driver only writes its bytes (atomically,
+  as for ``local``), which keeps the driver's serial work small. A task whose worker dies
   is retried by Ray up to ``max_retries`` times; after that :class:`TileError` names the
   tile. Workers trace with one process and one torch thread each (Ray runs one task per CPU).
 """
@@ -63,22 +65,32 @@ class TileError(TorchBRDFError, RuntimeError):
 _CONTEXTS: dict[str, Any] = {}
 
 
-def connect_ray(address: str | None = None, **init_kwargs):
+def connect_ray(address: str | None = None, attempts: int = 3, **init_kwargs):
     """Start or join Ray and return the module.
 
     ``address``: None or ``"auto"`` uses the running Ray instance of this process if any, else
     starts a local one (``ray.init()``; ``init_kwargs`` go to it, e.g. ``num_cpus``); any other
-    value is the address of an existing cluster (``ray.init(address=...)``).
+    value is the address of an existing cluster (``ray.init(address=...)``). Ray gives a new
+    node a hard-coded 30 s to come up, which a loaded machine can miss: a start that fails is
+    tried again, ``attempts`` times in all.
     """
     try:
         import ray
     except ImportError as exc:  # pragma: no cover - depends on the extra
         raise TorchBRDFError("executor='ray' needs Ray: pip install 'torch_brdf[cluster]'") from exc
-    if not ray.is_initialized():
-        kwargs = {"include_dashboard": False, "log_to_driver": False, **init_kwargs}
-        if address not in (None, "auto", "local"):
-            kwargs["address"] = address
-        ray.init(**kwargs)
+    kwargs = {"include_dashboard": False, "log_to_driver": False, **init_kwargs}
+    if address not in (None, "auto", "local"):
+        kwargs["address"] = address
+    for attempt in range(max(1, attempts)):
+        if ray.is_initialized():
+            break
+        try:
+            ray.init(**kwargs)
+        except Exception as exc:
+            ray.shutdown()
+            if attempt == max(1, attempts) - 1:
+                where = kwargs.get("address", "a local instance")
+                raise TorchBRDFError(f"Ray did not start or connect ({where}): {exc}") from exc
     return ray
 
 
@@ -103,9 +115,10 @@ class TileWork:
         return TileWork(**{**self.__dict__, "scene": single_process(self.scene)})
 
 
-def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult:
+def _run_in_worker(fn: TileFn, key: str, holder: list, index: int, cache: TileCache, meta: dict):
     """A Ray task's body: the cached context of ``key`` (fetched from the object store once per
-    worker process), then tile ``index`` with one torch thread."""
+    worker process), then tile ``index`` with one torch thread; returns its arrays, meta, the
+    bytes of its checkpoint file (encoded here, so the driver only writes them) and the node."""
     ctx = _CONTEXTS.get(key)
     if ctx is None:
         import ray
@@ -114,10 +127,11 @@ def _run_in_worker(fn: TileFn, key: str, holder: list, index: int) -> TileResult
         _CONTEXTS.clear()
         _CONTEXTS[key] = ctx
     configure_worker(1)  # Ray runs one task per CPU; a task's own threads would oversubscribe
-    arrays, meta = fn(ctx, index)
+    arrays, tile_meta = fn(ctx, index)
     import ray
 
-    return arrays, meta, ray.get_runtime_context().get_node_id()
+    data = cache.encode(arrays, {**meta, **tile_meta})
+    return arrays, tile_meta, data, ray.get_runtime_context().get_node_id()
 
 
 def run_tiles(
@@ -187,9 +201,12 @@ def run_tiles(
                 out[nxt[0]] = None
                 nxt[0] += 1
 
-    def finish(k: int, res: TileResult) -> None:
+    def finish(k: int, res: TileResult, encoded: bytes | None = None) -> None:
         t0 = time.perf_counter()
-        cache.save(k, res[0], {**(meta or {}), **res[1]})
+        if encoded is None:
+            cache.save(k, res[0], {**(meta or {}), **res[1]})
+        else:
+            cache.save_encoded(k, encoded)
         out.write_seconds += time.perf_counter() - t0
         out[k] = (res[0], {**res[1], "cached": False})
         bar.update(1)
@@ -204,18 +221,18 @@ def run_tiles(
         elif todo:
             if ray_context is None:
                 ray_context = context.for_ray() if hasattr(context, "for_ray") else context
-            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes)
+            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {})
     finally:
         bar.close()
     return out
 
 
-def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max_retries: int, nodes: set) -> None:
+def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta) -> None:
     ray = connect_ray(address)
     key = f"{fn.__module__}.{fn.__qualname__}:{uuid.uuid4().hex}"  # this run's context
     ref = ray.put(context)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
     task = ray.remote(num_cpus=1, max_retries=max_retries)(_run_in_worker)
-    pending = {task.remote(fn, key, [ref], k): k for k in todo}
+    pending = {task.remote(fn, key, [ref], k, cache, meta): k for k in todo}
     try:
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
@@ -228,8 +245,8 @@ def _run_ray(fn: TileFn, context: Any, todo: Sequence[int], finish, address, max
                         f"tile {k} failed on Ray (after up to {max_retries} retries): {type(exc).__name__}: {exc}"
                     ) from exc
                 arrays = {n: v if v.flags.writeable else v.copy() for n, v in res[0].items()}  # zero-copy views
-                nodes.add(res[2])
-                finish(k, (arrays, res[1]))
+                nodes.add(res[3])
+                finish(k, (arrays, res[1]), res[2])
     finally:
         for r in pending:
             ray.cancel(r, force=True)
