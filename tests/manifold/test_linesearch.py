@@ -13,6 +13,7 @@ import torch_brdf
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.manifold.gplvm import fit_gplvm, gram, log_likelihood, pca_latents
 from torch_brdf.manifold.linesearch import strong_wolfe
+from torch_brdf.records.fits import GPLVMFit
 
 from .common import small_family
 
@@ -110,7 +111,7 @@ def test_package_uses_no_private_torch_optimiser_api():
     assert offenders == []
 
 
-def test_mu_warmup_is_recorded_and_reaches_at_least_strong_wolfe_lbfgs():
+def test_mu_warmup_is_recorded_and_reaches_at_least_strong_wolfe_lbfgs(tmp_path):
     """At a tiny mu the PCA start is nearly singular; our fit (mu warm-up, then L-BFGS with our
     strong-Wolfe search) must end at least as high as torch.optim.LBFGS(strong_wolfe) on the same
     objective, start and iteration budget, and the warm-up is recorded in the fit's meta."""
@@ -120,6 +121,8 @@ def test_mu_warmup_is_recorded_and_reaches_at_least_strong_wolfe_lbfgs():
     fit = fit_gplvm(s, d, 2, mu=mu, max_iter=budget, generator=torch.Generator().manual_seed(0))
     assert fit.meta["warmup"]["mu"] == 1e-6 and fit.meta["warmup"]["iterations"] <= 12
     assert fit.iterations <= budget - 12
+    fit.save(tmp_path / "fit.npz")  # the warm-up record survives the codec
+    assert GPLVMFit.load(tmp_path / "fit.npz").meta["warmup"] == fit.meta["warmup"]
     ll = fit.loglik
     assert bool((ll[1:] >= ll[:-1]).all())
     sn = s / fit.data_scale
