@@ -26,8 +26,11 @@ def private_ray_env():
     on exit every process naming the folder is killed and the environment restored."""
     tmp = tempfile.mkdtemp(prefix="tbrt")
     env = {"RAY_TMPDIR": tmp, "HOME": tmp, **SLOW_START}
-    saved = {k: os.environ.get(k) for k in env}
+    saved = {k: os.environ.get(k) for k in (*env, "RAY_AUTH_MODE")}
     os.environ.update(env)
+    # a Ray started earlier in this process set RAY_AUTH_MODE=token, with which `ray start`
+    # refuses to create the new cluster's token (in the new home): let each cluster make its own
+    os.environ.pop("RAY_AUTH_MODE", None)
     try:
         yield tmp
     finally:

@@ -21,11 +21,19 @@ import numpy as np
 import pytest
 
 from tests.transport._ray import private_ray_env
+from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 2, "progress": False}
 START_S = 600  # a node start under load 15-20 on 2 cores can take minutes
+DRIVER = """
+from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport.polynomial import precompute_polynomial
+T = precompute_polynomial(cornell_box_glossy(16), **{settings}, executor="ray", address="{address}")
+T.save("{out}")
+print(T.meta["ray_nodes"])
+"""
 
 
 def _free_port() -> int:
@@ -58,10 +66,11 @@ def _alive_nodes(ray) -> int:
     return sum(bool(n["Alive"]) for n in ray.nodes())
 
 
-def test_two_node_cluster_equals_local():
+def test_two_node_cluster_equals_local(tmp_path):
     ray = pytest.importorskip("ray", reason="the cluster extra (Ray) is not installed")
     sc = cornell_box_glossy(16)  # 8 tiles of 2 rows
-    local = precompute_polynomial(sc, **SETTINGS)
+    precompute_polynomial(sc, **SETTINGS).save(tmp_path / "local.npz")  # compared as saved, like T
+    local = PolynomialTensors.load(tmp_path / "local.npz")
     if ray.is_initialized():
         ray.shutdown()
     procs: list[subprocess.Popen] = []
@@ -84,7 +93,15 @@ def test_two_node_cluster_equals_local():
                 assert procs[1].poll() is None, (Path(tmp) / "start_1.log").read_text(errors="replace")
                 assert time.monotonic() < deadline, "the second node did not join"
                 time.sleep(1)
-            T = precompute_polynomial(sc, **SETTINGS, executor="ray", address=address)
+            ray.shutdown()
+            # the driver in a process of its own, as `torch-brdf precompute --ray ADDRESS` runs
+            # (a process that ran another Ray instance before keeps stale Ray state)
+            out = Path(tmp) / "T.npz"
+            code = DRIVER.format(settings=SETTINGS, address=address, out=str(out))
+            run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=START_S)
+            assert run.returncode == 0, run.stdout + run.stderr
+            T = PolynomialTensors.load(out)
+            nodes = int(run.stdout.strip().splitlines()[-1])
         finally:
             ray.shutdown()
             for p in reversed(procs):
@@ -92,4 +109,4 @@ def test_two_node_cluster_equals_local():
     xa, xb = local.to_arrays()[0], T.to_arrays()[0]
     assert sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)
     assert T.meta["rays"] == local.meta["rays"]
-    assert T.meta["ray_nodes"] == 2  # tiles ran on the head and on the joined node
+    assert nodes == 2  # tiles ran on the head and on the joined node
