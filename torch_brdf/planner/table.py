@@ -42,7 +42,10 @@ class Option:
         return dict(self.settings)
 
     def describe(self) -> str:
-        return ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in self.settings)
+        def show(v: Any) -> str:
+            return f"{v:g}" if isinstance(v, float) else f"[{len(v)} names]" if isinstance(v, tuple) else str(v)
+
+        return ", ".join(f"{k} {show(v)}" for k, v in self.settings)
 
 
 def choose(options: Sequence[Option], error: float | None, seconds: float | None) -> Option:
