@@ -106,6 +106,7 @@ def run_scene(sc, error: float, ref_spp: int, max_spp: int, defaults: tuple[str,
         "rays": _rays(T),
     }
     out["prediction_ratio"] = max(a / plan.predicted_error, plan.predicted_error / a)
+    print(f"planned: achieved {a:.4f}, predicted {plan.predicted_error:.4f}, {secs:.2f} s, {_rays(T)} rays", flush=True)
     # every default series on the fine spp grid (steps of sqrt 2 from 8) until it reaches the
     # error; the doubling grid (8, 16, 32, ...) is its every other point
     rows_by_key = {}

@@ -20,7 +20,8 @@ requires, from cheap measurements:
   Monte Carlo error at one spp is
   :math:`\sigma = \sqrt{\sum (I_a - I_b)^2 / (1/s_a + 1/s_b) / \sum \bar I^2}` and
   :math:`\sigma/\sqrt{s}` at :math:`s`; the noise gets what the biases leave,
-  :math:`e_n^2 = e^2 - e_b^2 - e_t^2`;
+  :math:`e_n^2 = (0.95e)^2 - e_b^2 - e_t^2` (the plan aims 5% under the budget: one run's
+  error scatters by a few percent around the prediction);
 * objects not in ``edit`` are fixed (their full BRDF is baked into the path weights).
 
 The predicted error is :math:`\sqrt{e_b^2 + e_t^2 + e_n^2}` with the band error
@@ -53,6 +54,9 @@ __all__ = ["GIPlan", "choose_bands", "pilot_images", "plan_from_pilots", "planne
 #: bounce tail may take up to BOUNCE_SHARE, the bounces are then chosen for the least cost
 BAND_SHARE = 0.3
 BOUNCE_SHARE = 0.6
+#: the plan aims its predicted error at this fraction of the budget: one run's achieved error
+#: scatters by a few percent around the prediction (pilot noise in sigma, the run's own noise)
+AIM = 0.95
 SECOND_SHARE = 0.3
 MAX_BANDS = 128
 
@@ -364,7 +368,7 @@ def plan_from_pilots(
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
         spp_err = None
         if error is not None:
-            share2 = error**2 - bias2
+            share2 = (AIM * error) ** 2 - bias2
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
             spp_err = max(1, math.ceil(sigmas[n] ** 2 / share2))
