@@ -36,13 +36,16 @@ Scene: the glossy Cornell box. Prints progress, then one JSON object as the last
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as torch_brdf sets it: before torch loads
+
 import argparse
 import json
 import time
 
 import torch
 
-import torch_brdf  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch loads libgomp)
 from torch_brdf.inverse import solve_qp
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render import PolynomialRenderer, fit_image, object_mask

@@ -45,9 +45,10 @@ import torch.autograd.forward_ad as fwAD
 from .._checks import as_float_tensor, check_finite
 from ..errors import ShapeError, ValueRangeError
 from ..inverse.qp import solve_qp
+from ..inverse.strokes import paint_at, pixel_xy
 from .polynomial import PolynomialRenderer, _term_factors
 
-__all__ = ["ImageFit", "blinn_phong_family", "energy_row", "fit_image", "object_mask"]
+__all__ = ["ImageFit", "blinn_phong_family", "energy_row", "fit_image", "object_mask", "paint_image"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,39 @@ def blinn_phong_family(renderer: PolynomialRenderer, obj, exponent: float) -> to
         cols.append(renderer.c[m][:, 0].detach().double().clone())
     renderer.set_coefficients(m, keep[0], d=keep[1], c_hat=keep[2])
     return torch.stack(cols, 1)
+
+
+def paint_image(image, strokes, mask, display_size=None, keep_weight: float = 1.0):
+    """Painted strokes (Eq. 23 of the inverse-design seed, :func:`torch_brdf.inverse.paint`) as a
+    target image and fit weights for :func:`fit_image`.
+
+    Args:
+        image: (H, W, C) the current render (strokes that scale colours scale these).
+        strokes: list of :class:`~torch_brdf.inverse.Stroke` (points in the display frame).
+        mask: (H, W) bool, the paintable pixels (e.g. :func:`object_mask` of the edited objects).
+        display_size: ``(width, height)`` of the frame the stroke points refer to (default (W, H)).
+        keep_weight: fit weight of unpainted pixels of ``mask`` (they keep their current colour;
+            0: only the painted pixels count).
+    Returns:
+        (target (H, W, C) float64, weights (H, W) float64): painted colours over ``image``, and
+        1 on painted pixels, ``keep_weight`` on the rest of ``mask``, 0 elsewhere.
+    Raises:
+        ShapeError: image or mask of the wrong shape; ValueRangeError: no stroke touches ``mask``.
+    """
+    img = as_float_tensor(image, "image").detach().double()
+    if img.ndim != 3 or img.shape[-1] != 3:
+        raise ShapeError(f"Expected image of shape (H, W, 3); got {tuple(img.shape)}")
+    H, W = img.shape[:2]
+    m = torch.as_tensor(mask).bool()
+    if m.shape != (H, W):
+        raise ShapeError(f"Expected mask of shape ({H}, {W}); got {tuple(m.shape)}")
+    pix = m.reshape(-1).nonzero().squeeze(1)
+    st = paint_at(pixel_xy(pix, W, H, display_size), img.reshape(-1, 3)[pix], strokes, keep_weight)
+    target = img.reshape(-1, 3).clone()
+    target[pix] = st.target
+    weights = torch.zeros(H * W, dtype=torch.float64)
+    weights[pix] = st.weight
+    return target.reshape(H, W, 3), weights.reshape(H, W)
 
 
 def object_mask(tensors, obj) -> torch.Tensor:
