@@ -165,6 +165,22 @@ def poly_bright_sun() -> Outcome:
     return _poly_dtypes({}, 1e-4, T, "sun 1e6 x sky, box on plane; float32 vs float64")
 
 
+def poly_grazing_view() -> Outcome:
+    """The camera 1 unit above the Cornell box's floor (550 units wide), looking along it."""
+    sc = glossy_box(8, fixed_box=False)
+    c = sc.camera
+    sc.camera = Camera((278.0, 1.0, -800.0), (278.0, 1.0, 559.0), c.up, c.fov_deg, c.width, c.height)
+    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=0, progress=False)
+    return _poly_dtypes({}, 1e-4, T, "eye 1 unit above the floor; float32 vs float64")
+
+
+def poly_grazing_light() -> Outcome:
+    sc = ball_on_plane(quads=4).with_resolution(12, 9)
+    sc.lights[:] = [EnvironmentMap.sky(height=32, sun_direction=(1.0, 0.01, 0.0), sun_angular_radius_deg=2.0)]
+    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    return _poly_dtypes({}, 1e-4, T, "sun 0.6 deg above the horizon; float32 vs float64")
+
+
 def pathtrace_scale(s: float) -> Outcome:
     sc = glossy_box(8, fixed_box=False)
     a = reference_path_trace(_scaled(sc, s), spp=4, max_bounces=3, seed=0, progress=False)
@@ -307,6 +323,8 @@ def qp_cond() -> Outcome:
 CASES: list[Case] = [
     Case("polynomial (GI editing)", "near-mirror n=1e4", lambda: poly_near_mirror(1e4)),
     Case("polynomial (GI editing)", "near-mirror n=1e5", lambda: poly_near_mirror(1e5), "ValueRangeError"),
+    Case("polynomial (GI editing)", "grazing view", poly_grazing_view),
+    Case("polynomial (GI editing)", "grazing light", poly_grazing_light),
     Case("polynomial (GI editing)", "albedo 0", lambda: poly_albedo(0.0)),
     Case("polynomial (GI editing)", "albedo 1", lambda: poly_albedo(1.0)),
     Case("polynomial (GI editing)", "float32 vs float64", poly_dtype),

@@ -25,7 +25,7 @@ _STYLE = {
     "point": {"marker": "o", "linestyle": "none", "markersize": 6, "markerfacecolor": "none"},
     "default": {"marker": "s", "linestyle": "none", "markersize": 10, "color": "black", "markerfacecolor": "none"},
     "planner": {"marker": "*", "linestyle": "none", "markersize": 15, "color": "crimson"},
-    "peer": {"marker": "D", "linestyle": "none", "markersize": 8, "color": "forestgreen"},
+    "peer": {"marker": "D", "linestyle": "none", "markersize": 8},
     "seed": {"marker": "P", "linestyle": "none", "markersize": 10, "color": "purple"},
 }
 

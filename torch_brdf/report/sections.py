@@ -71,6 +71,10 @@ class Section:
     numbers: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        """Append ``Figure(*args, **kwargs)``."""
+        self.figures.append(Figure(*args, **kwargs))
+
 
 def get(d: Any, *path: Any) -> Any:
     """``d[path[0]][path[1]]...`` or None where any step is missing."""
@@ -114,11 +118,17 @@ class _Reader:
         return v
 
 
-def _finish(sec: Section, *readers: _Reader) -> Section:
-    for r in readers:
+def _finish(sec: Section, *readers: _Reader | tuple[_Reader, str]) -> Section:
+    """Add each reader's key numbers (``(reader, "key key ...")``: ``<benchmark>.<key>`` -> value)
+    and a "not measured" note for every key a benchmark that ran did not print."""
+    for item in readers:
+        r, keys = item if isinstance(item, tuple) else (item, "")
+        for k in keys.split():
+            sec.numbers[f"{r.name}.{k}"] = r(k)
+    for item in readers:
+        r = item[0] if isinstance(item, tuple) else item
         if r.missing:
-            keys = ", ".join(dict.fromkeys(r.missing))
-            sec.notes.append(f"not measured (no such key in {r.name}'s JSON): {keys}")
+            sec.notes.append(f"not measured (no such key in {r.name}'s JSON): {', '.join(dict.fromkeys(r.missing))}")
     return sec
 
 
@@ -203,9 +213,7 @@ def gi_editing(results: dict) -> Section:
     cap = (
         f"relative RMSE against {ref or 'the reference'} at {int(res) if res else '?'}²; precompute seconds of each run"
     )
-    sec.figures.append(
-        Figure("gi_time", "GI editing: error vs precompute time", "precompute seconds", "relative RMSE", t, cap)
-    )
+    sec.add("gi_time", "GI editing: error vs precompute time", "precompute seconds", "relative RMSE", t, cap)
     px = (res * res) / 1e6 if res else None
     m = [
         Series(
@@ -229,11 +237,7 @@ def gi_editing(results: dict) -> Section:
             vline=1461 / (450 * 450 / 1e6),
         )
     )
-    sec.figures.append(
-        Figure(
-            "gi_memory", "GI editing: error vs tensor memory", "MB per megapixel (float32 values)", "relative RMSE", m
-        )
-    )
+    sec.add("gi_memory", "GI editing: error vs tensor memory", "MB per megapixel (float32 values)", "relative RMSE", m)
 
     # the planner against fixed default series (its own scene and reference)
     for path, b in planner_choices(pl.res):
@@ -273,15 +277,13 @@ def gi_editing(results: dict) -> Section:
         key = "gi_planner" + (
             "" if path in ("gi", "planned") else "_" + "".join(c if c.isalnum() else "_" for c in path)
         )
-        sec.figures.append(
-            Figure(
-                key,
-                f"GI planner vs fixed defaults ({b.get('scene') or pl('scene')})",
-                "precompute seconds",
-                "relative RMSE (achieved)",
-                ser,
-                f"benchmarks/planner.py, scene {b.get('scene') or pl('scene')}",
-            )
+        sec.add(
+            key,
+            f"GI planner vs fixed defaults ({b.get('scene') or pl('scene')})",
+            "precompute seconds",
+            "relative RMSE (achieved)",
+            ser,
+            f"benchmarks/planner.py, scene {b.get('scene') or pl('scene')}",
         )
     # band projection error of the BRDF layer: the bands' share of the error budget
     pre = br("projection_rel_err") or {}
@@ -294,35 +296,26 @@ def gi_editing(results: dict) -> Section:
             if j.isdigit():
                 fams.setdefault(fam + (" (sqrt spacing)" if sqrt else " (lobe spacing)"), []).extend(pt(int(j), v))
     if fams:
-        sec.figures.append(
-            Figure(
-                "gi_bands",
-                "BRDF bands: projection error vs bands J",
-                "bands J (memory per object grows with J)",
-                "cosine-weighted relative L2 error",
-                [Series(k.replace("blinn_n", "Blinn-Phong n="), sorted(v)) for k, v in sorted(fams.items())],
-            )
+        sec.add(
+            "gi_bands",
+            "BRDF bands: projection error vs bands J",
+            "bands J (memory per object grows with J)",
+            "cosine-weighted relative L2 error",
+            [Series(k.replace("blinn_n", "Blinn-Phong n="), sorted(v)) for k, v in sorted(fams.items())],
         )
-    for k in (
-        "precompute_s",
-        "precompute_over_rays",
-        "precompute_over_mitsuba",
-        "freeze_s",
-        "frame_s",
-        "frame_over_stream",
-        "mitsuba_vs_reference_rel_rmse",
-        "reference_seed_rel_rmse",
-    ):
-        sec.numbers[f"polynomial.{k}"] = r(k)
-    for k in (
-        "prediction_ratio",
-        "planner_cost_ratio",
-        "planner_cost_ratio_rays",
-        "planner_cost_ratio_with_planning",
-        "plan_seconds",
-    ):
-        sec.numbers[f"planner.{k}"] = pl(k)
-    return _finish(sec, r, pl, br)
+    return _finish(
+        sec,
+        (
+            r,
+            "precompute_s precompute_over_rays precompute_over_mitsuba freeze_s frame_s frame_over_stream "
+            "mitsuba_vs_reference_rel_rmse reference_seed_rel_rmse",
+        ),
+        (
+            pl,
+            "prediction_ratio planner_cost_ratio planner_cost_ratio_rays planner_cost_ratio_with_planning plan_seconds",
+        ),
+        br,
+    )
 
 
 def denoise(results: dict) -> Section:
@@ -348,32 +341,26 @@ def denoise(results: dict) -> Section:
             "default",
         )
     )
-    sec.figures.append(
-        Figure(
-            "denoise_time",
-            "Denoising: error vs precompute + denoise time",
-            "seconds (precompute + denoising)",
-            "relative RMSE (emitters excluded)",
-            ser,
-            "glossy Cornell box; the edited frame's error",
-        )
+    sec.add(
+        "denoise_time",
+        "Denoising: error vs precompute + denoise time",
+        "seconds (precompute + denoising)",
+        "relative RMSE (emitters excluded)",
+        ser,
+        "glossy Cornell box; the edited frame's error",
     )
     mb = r("frozen_mb") or {}
     ms = [
         Series(m, pt(mb.get(m), get(rel, m, mid)), "peer" if m in peer else "point") for m in mb if isinstance(mb, dict)
     ]
-    sec.figures.append(
-        Figure(
-            "denoise_memory",
-            f"Denoising: error vs frozen memory ({mid} spp)",
-            "MB of the frozen frame data",
-            "relative RMSE",
-            ms,
-        )
+    sec.add(
+        "denoise_memory",
+        f"Denoising: error vs frozen memory ({mid} spp)",
+        "MB of the frozen frame data",
+        "relative RMSE",
+        ms,
     )
-    for k in ("frame_s_before", "frame_s_after", "mean_ratio", "reference"):
-        sec.numbers[f"denoise.{k}"] = r(k)
-    return _finish(sec, r)
+    return _finish(sec, (r, "frame_s_before frame_s_after mean_ratio reference"))
 
 
 def relighting(results: dict) -> Section:
@@ -418,16 +405,14 @@ def relighting(results: dict) -> Section:
         if std
         else []
     )
-    sec.figures.append(
-        Figure(
-            "relight_time",
-            "Relighting: PSNR vs frame time",
-            "frame time / standard-basis frame time",
-            "PSNR (dB) against the standard basis",
-            ser,
-            "frame 1; the seed's points are relative to its own baseline",
-            ylog=False,
-        )
+    sec.add(
+        "relight_time",
+        "Relighting: PSNR vs frame time",
+        "frame time / standard-basis frame time",
+        "PSNR (dB) against the standard basis",
+        ser,
+        "frame 1; the seed's points are relative to its own baseline",
+        ylog=False,
     )
     vb, db = num(r("visibility_bytes_per_vertex")), num(r("dense_bytes_per_vertex"))
     mem = [
@@ -435,23 +420,12 @@ def relighting(results: dict) -> Section:
         Series("dense bits (one per texel)", style="point", vline=db) if db else Series("dense", []),
     ]
     mem.append(Series("seed's storage goal ~1 KB per vertex", style="seed", vline=1024.0))
-    sec.figures.append(
-        Figure(
-            "relight_memory", "Relighting: PSNR vs visibility storage", "bytes per vertex", "PSNR (dB)", mem, ylog=False
-        )
+    sec.add(
+        "relight_memory", "Relighting: PSNR vs visibility storage", "bytes per vertex", "PSNR (dB)", mem, ylog=False
     )
-    for k in (
-        "precompute_s",
-        "rays_s",
-        "frame_s",
-        "speedup_vs_standard",
-        "haar_speedup_vs_standard",
-        "psnr",
-        "haar_psnr",
-        "psnr_display",
-    ):
-        sec.numbers[f"triple_product.{k}"] = r(k)
-    return _finish(sec, r)
+    return _finish(
+        sec, (r, "precompute_s rays_s frame_s speedup_vs_standard haar_speedup_vs_standard psnr haar_psnr psnr_display")
+    )
 
 
 def manifold(results: dict) -> Section:
@@ -466,57 +440,45 @@ def manifold(results: dict) -> Section:
         Series("seed's optimiser (Hooke-Jeeves), q = 2, same run", pt(r("hj_fit_s_q2"), r("hj_loglik_q2")), "seed"),
         Series("peer: GPyTorch ExactGP MAP GPLVM, q = 2", pt(r("gpytorch_s_q2"), r("gpytorch_loglik_q2")), "peer"),
     ]
-    sec.figures.append(
-        Figure(
-            "manifold_fit",
-            "GPLVM fit: log-likelihood vs fit time",
-            "fit seconds",
-            "log-likelihood (Eq. 6, higher is better)",
-            fit,
-            r("data") or "",
-            ylog=False,
-        )
+    sec.add(
+        "manifold_fit",
+        "GPLVM fit: log-likelihood vs fit time",
+        "fit seconds",
+        "log-likelihood (Eq. 6, higher is better)",
+        fit,
+        r("data") or "",
+        ylog=False,
     )
     held = []
-    for label, key, style in (
-        ("GPLVM", "heldout_logrmse_mean", "curve"),
-        ("PCA", "pca_heldout_logrmse_mean", "peer"),
-        ("nearest training material", "nearest_heldout_logrmse_mean", "point"),
+    for label, key in (
+        ("GPLVM", "heldout_logrmse_mean"),
+        ("PCA (linear baseline)", "pca_heldout_logrmse_mean"),
+        ("nearest training material", "nearest_heldout_logrmse_mean"),
     ):
         d = r(key) or {}
-        held.append(
-            Series(
-                label if style != "peer" else "PCA (linear baseline)",
-                sorted(p for q, v in d.items() for p in pt(num(int(q)) if str(q).isdigit() else None, v)),
-                "curve",
-            )
-        )
+        held.append(Series(label, sorted(p for q, v in d.items() if str(q).isdigit() for p in pt(int(q), v))))
     held.append(Series("default q = 2", pt(2, get(r.res, "heldout_logrmse_mean", "2")), "default"))
     held += _planner_series(
         _choice_for(get(results, "planner", "result"), ("manifold", "gplvm")),
         ("q",),
         ("achieved_error", "heldout_logrmse"),
     )
-    sec.figures.append(
-        Figure(
-            "manifold_heldout",
-            "Held-out reconstruction: log-RMSE vs latent dimension",
-            "latent dimension q (model size)",
-            "held-out log-RMSE (mean over splits)",
-            held,
-            "5 random 80/20 splits",
-        )
+    sec.add(
+        "manifold_heldout",
+        "Held-out reconstruction: log-RMSE vs latent dimension",
+        "latent dimension q (model size)",
+        "held-out log-RMSE (mean over splits)",
+        held,
+        "5 random 80/20 splits",
     )
-    for k in (
-        "interp_per_s",
-        "predict_rows_per_s",
-        "blend_fps_512",
-        "gi_blend_rel_l1",
-        "time_ratio_gpytorch_over_ours",
-        "loglik_ours_minus_gpytorch",
-    ):
-        sec.numbers[f"manifold.{k}"] = r(k)
-    return _finish(sec, r)
+    return _finish(
+        sec,
+        (
+            r,
+            "interp_per_s predict_rows_per_s blend_fps_512 gi_blend_rel_l1 "
+            "time_ratio_gpytorch_over_ours loglik_ours_minus_gpytorch",
+        ),
+    )
 
 
 def inverse(results: dict) -> Section:
@@ -543,36 +505,30 @@ def inverse(results: dict) -> Section:
     )
     cap = f"{r('pixels')} pixels, J = {r('J')}, the three per-channel QPs; error: objective gap to the lowest "
     cap += "any solver reached (floor 1e-16)"
-    sec.figures.append(
-        Figure(
-            "inverse_solve",
-            "Inverse design: QP objective gap vs solve time",
-            "solve seconds (3 QPs)",
-            "relative objective gap",
-            ser,
-            cap,
-        )
+    sec.add(
+        "inverse_solve",
+        "Inverse design: QP objective gap vs solve time",
+        "solve seconds (3 QPs)",
+        "relative objective gap",
+        ser,
+        cap,
     )
     cuts = [
         Series("visibility cuts (default CutOptions)", pt(r("transfer_cuts_s"), r("cuts_rel_err")), "default"),
         Series("dense transfer functions (exact)", style="point", vline=num(r("transfer_s"))),
         Series("seed Table 1 (Fig. 1): T_trans = 28 s", style="seed", vline=28.0),
     ]
-    sec.figures.append(
-        Figure(
-            "inverse_transfer",
-            "Transfer functions: cut error vs time",
-            "seconds",
-            "relative Frobenius error of the cut record",
-            cuts,
-        )
+    sec.add(
+        "inverse_transfer",
+        "Transfer functions: cut error vs time",
+        "seconds",
+        "relative Frobenius error of the cut record",
+        cuts,
     )
-    for k in ("solve_over_proxqp", "objective_rel_diff_proxqp", "fit_s", "active_rows", "mean_cut_size"):
-        sec.numbers[f"inverse.{k}"] = r(k)
     for solver, v in (r("qp_set") or {}).items():
         if isinstance(v, dict) and "solved" in v:
             sec.numbers[f"inverse.qp_set.{solver}.solved"] = v["solved"]
-    return _finish(sec, r)
+    return _finish(sec, (r, "solve_over_proxqp objective_rel_diff_proxqp fit_s active_rows mean_cut_size"))
 
 
 def inverse_gi(results: dict) -> Section:
@@ -582,32 +538,26 @@ def inverse_gi(results: dict) -> Section:
         Series("ours: fit_image through the polynomial tensors", pt(r("ours_fit_s"), r("ours_loss")), "default"),
         Series("peer: Mitsuba 3 (prb, Adam)", pt(r("mitsuba_fit_s"), r("mitsuba_loss")), "peer"),
     ]
-    sec.figures.append(
-        Figure(
-            "inverse_gi_fit",
-            "GI inverse design: loss vs fit time",
-            "fit seconds",
-            "loss at the end of the fit",
-            ser,
-            "back wall of the glossy Cornell box; see the README for how the two losses compare",
-        )
+    sec.add(
+        "inverse_gi_fit",
+        "GI inverse design: loss vs fit time",
+        "fit seconds",
+        "loss at the end of the fit",
+        ser,
+        "back wall of the glossy Cornell box; see the README for how the two losses compare",
     )
     gi = [
         Series("fit with all bounces", pt(r("gi_fit_s"), r("gi_fit_err")), "default"),
         Series("fit with direct light only", pt(r("direct_fit_s"), r("direct_fit_err")), "point"),
     ]
-    sec.figures.append(
-        Figure(
-            "inverse_gi_err",
-            "GI vs direct-only fit of a GGX target",
-            "fit seconds",
-            "relative RMSE of the refit render",
-            gi,
-        )
+    sec.add(
+        "inverse_gi_err",
+        "GI vs direct-only fit of a GGX target",
+        "fit seconds",
+        "relative RMSE of the refit render",
+        gi,
     )
-    for k in ("param_rel_err", "gi_fit_err", "direct_fit_err", "precompute_s"):
-        sec.numbers[f"inverse_gi.{k}"] = r(k)
-    return _finish(sec, r)
+    return _finish(sec, (r, "param_rel_err gi_fit_err direct_fit_err precompute_s"))
 
 
 def editor(results: dict) -> Section:
@@ -622,15 +572,13 @@ def editor(results: dict) -> Section:
         Series("kernel frame", [p for s in sizes for p in pt(s * s, r.res.get(f"frame_ms_{s}"))], "point"),
         Series("seed: 15-25 fps (Table II)", style="seed", hline=1000 / 22),
     ]
-    sec.figures.append(
-        Figure(
-            "editor_latency",
-            "Editor: latency vs frame size",
-            "pixels",
-            "milliseconds",
-            ser,
-            "no error axis: the editor shows the frozen frame exactly",
-        )
+    sec.add(
+        "editor_latency",
+        "Editor: latency vs frame size",
+        "pixels",
+        "milliseconds",
+        ser,
+        "no error axis: the editor shows the frozen frame exactly",
     )
     sec.numbers["editor.updates_per_s_512"] = r("updates_per_s_512")
     return _finish(sec, r)
@@ -648,30 +596,28 @@ def scaleout(results: dict) -> Section:
             "point",
         ),
     ]
-    sec.figures.append(
-        Figure(
-            "scaleout_time",
-            "Scale-out: seconds vs workers",
-            "workers",
-            "seconds",
-            ser,
-            "no error axis: results are equal bit for bit (ray_equals_local)",
-        )
+    sec.add(
+        "scaleout_time",
+        "Scale-out: seconds vs workers",
+        "workers",
+        "seconds",
+        ser,
+        "no error axis: results are equal bit for bit (ray_equals_local)",
     )
-    for k in ("ray2_over_local", "ray_equals_local", "task_overhead_s", "predicted_speedup_8", "predicted_speedup_64"):
-        sec.numbers[f"scaleout.{k}"] = r(k)
-    return _finish(sec, r)
+    return _finish(
+        sec, (r, "ray2_over_local ray_equals_local task_overhead_s predicted_speedup_8 predicted_speedup_64")
+    )
 
 
 def others(results: dict) -> Section:
     """Benchmarks without a capability curve: ray tracing and load sensitivity (numbers only)."""
     sec = Section("other", "Ray tracing and load sensitivity", ["raytrace", "load"])
     r, ld = _Reader(results, "raytrace"), _Reader(results, "load")
-    for k in ("ratio", "single_ratio", "parallel_ratio", "occluded_ratio"):
-        sec.numbers[f"raytrace.{k}"] = r(k)
-    for k in ("max_slowdown", "embree_slowdown", "mitsuba_slowdown"):
-        sec.numbers[f"load.{k}"] = ld(k)
-    return _finish(sec, r, ld)
+    return _finish(
+        sec,
+        (r, "ratio single_ratio parallel_ratio occluded_ratio"),
+        (ld, "max_slowdown embree_slowdown mitsuba_slowdown"),
+    )
 
 
 #: the report's sections, in page order
