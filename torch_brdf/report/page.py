@@ -108,7 +108,7 @@ def _run_rows(results: dict[str, dict]) -> list[list[str]]:
 
 
 def extremes_html(rec: dict | None) -> str:
-    """The extremes grid (rows: renderers and solvers; columns: extremes) and its detail table."""
+    """The extremes grid (rows: the extremes; columns: renderers and solvers) and its detail table."""
     cells = (rec or {}).get("result", {}) or {}
     cells = cells.get("cells") if isinstance(cells, dict) else None
     if not cells:
@@ -123,14 +123,19 @@ def extremes_html(rec: dict | None) -> str:
             return '<td class="na">—</td>'
         cls = "good" if c.get("ok") else "badcell"
         if c.get("status") == "finite":
-            txt = f"finite, {fmt(c.get('error'))} ≤ {fmt(c.get('bound'))}" if c.get("bound") is not None else "finite"
+            e, bd = c.get("error"), c.get("bound")
+            txt = (
+                f"finite, {e:.2g} ≤ {bd:.2g}"
+                if isinstance(e, (int, float)) and isinstance(bd, (int, float))
+                else "finite"
+            )
         else:
-            txt = html.escape(str(c.get("status")))
+            txt = ("raises " if c.get("status") == c.get("expect") else "") + html.escape(str(c.get("status")))
         return f'<td class="{cls}" title="{html.escape(str(c.get("note", "")))}">{txt}</td>'
 
-    grid = "<tr><th></th>" + "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "</tr>"
-    for r in rows:
-        grid += f"<tr><th>{html.escape(r)}</th>" + "".join(cell(by.get((r, c))) for c in cols) + "</tr>"
+    grid = "<tr><th></th>" + "".join(f"<th>{html.escape(r)}</th>" for r in rows) + "</tr>"
+    for c in cols:
+        grid += f"<tr><th>{html.escape(c)}</th>" + "".join(cell(by.get((r, c))) for r in rows) + "</tr>"
     detail = _table(
         [
             [

@@ -376,7 +376,9 @@ def relighting(results: dict) -> Section:
         if std and isinstance(v, dict):
             fam.setdefault(name, []).extend(pt(num(v.get("frame_s")) and v["frame_s"] / std, v.get("psnr")))
     ser = [
-        Series(f"{k} (thresholds scaled)" if k != "fixed samples" else "fixed 1/4/16/256 samples", sorted(v))
+        Series(
+            f"{k} (thresholds scaled)" if k != "fixed samples" else "fixed 1/4/16/256 samples", v
+        )  # in threshold order
         for k, v in fam.items()
     ]
     ser.append(
