@@ -67,10 +67,15 @@ def plot(fig: Figure, path: Path) -> int:
             ax.axvline(s.vline, **line)
         if s.hline is not None and (not fig.ylog or s.hline > 0):
             ax.axhline(s.hline, **line)
-    if fig.xlog:
-        ax.set_xscale("log")
-    if fig.ylog:
-        ax.set_yscale("log")
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    short = FuncFormatter(lambda v, _: f"{v:.2g}")
+    for log, axis, scale in ((fig.xlog, ax.xaxis, ax.set_xscale), (fig.ylog, ax.yaxis, ax.set_yscale)):
+        if log:  # labels at 1, 2 and 5 times each power of ten, short numbers (no 10^x collisions)
+            scale("log")
+            axis.set_minor_locator(LogLocator(base=10, subs=(2.0, 5.0)))
+            axis.set_major_formatter(short)
+            axis.set_minor_formatter(short)
     ax.set_xlabel(fig.xlabel)
     ax.set_ylabel(fig.ylabel)
     ax.set_title(fig.title, fontsize=10)
