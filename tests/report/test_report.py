@@ -138,18 +138,31 @@ def test_extremes_table_is_the_test_modules_cells(quick_report):
 
 def test_missing_keys_and_grown_planner_json_degrade_gracefully():
     planner = {
+        "scene": "cornell_box_glossy",
         "planned": {"series": "16,1,1", "spp": 13, "achieved_error": 0.17, "seconds": 0.2},
         "defaults": {"64,1,1,1": [{"spp": 64, "achieved_error": 0.1, "seconds": 1.0}]},
-        "scenes": {"env_sky": {"planned": {"series": "8,1", "achieved_error": 0.05, "seconds": 2.0}}},
+        "scenes": {
+            "teatray": {"scene": "teatray", "planned": {"series": "8,1", "achieved_error": 0.05, "seconds": 2.0}}
+        },
         "relighting": {"planned": {"frame_s": 0.1, "psnr": 40.0}},
+        "inverse": {
+            "error": 0.05,
+            "planned": {"light_samples": 256, "achieved_error": 0.04, "seconds": 1.0},
+            "default": {"achieved_error": 0.01, "seconds": 3.0},
+        },
     }
     found = dict(planner_choices(planner))
-    assert set(found) == {"gi", "scenes.env_sky", "relighting"}
+    assert set(found) == {"gi", "scenes.teatray", "relighting", "inverse"}
     assert found["gi"]["defaults"]["64,1,1,1"][0]["spp"] == 64
     recs = {"planner": {"result": planner}, "polynomial": {"result": {"rel_rmse": {}}}}
     secs = {s.key: s for s in sections(recs)}
     assert any("not measured" in n and "accuracy_resolution" in n for n in secs["gi"].notes)
-    assert {f.key for f in secs["gi"].figures if f.has_data()} >= {"gi_planner", "gi_planner_scenes_env_sky"}
+    assert {f.key for f in secs["gi"].figures if f.has_data()} >= {
+        "gi_planner_cornell_box_glossy",
+        "gi_planner_teatray",
+    }
+    assert "gi_planner_relighting" not in {f.key for f in secs["gi"].figures}  # another capability's planner
+    assert [f.key for f in secs["inverse"].figures if f.has_data()] == ["inverse_planner"]
     assert len(sections({})) == len(CAPABILITIES)  # nothing ran: every section, no figure, no error
 
 
@@ -160,7 +173,9 @@ def test_cli_report_from_saved_results(tmp_path):
     (results / "brdf.out").write_text("progress\n" + (DATA / "brdf.json").read_text().strip() + "\n")
     res = CliRunner().invoke(app, ["report", "--results", str(results), "--out", str(tmp_path / "o")])
     assert res.exit_code == 0, res.output
-    assert (tmp_path / "o" / "report.html").is_file() and (tmp_path / "o" / "gi_planner.png").is_file()
+    assert (tmp_path / "o" / "report.html").is_file() and (
+        tmp_path / "o" / "gi_planner_cornell_box_glossy.png"
+    ).is_file()
     bad = CliRunner().invoke(app, ["report", "--only", "nosuch", "--out", str(tmp_path / "o")])
     assert bad.exit_code == 2 and "nosuch" in bad.output
     with pytest.raises(ValueRangeError):
