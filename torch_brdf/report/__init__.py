@@ -78,7 +78,10 @@ def make_report(
         for name in bar:
             bar.set_postfix_str(name)
             recs[name] = run_benchmark(name, bench, quick, out / "runs", limit)
-    meta = {"mode": "quick" if quick else "full", **machine()}
+    meta = {
+        "mode": "quick" if quick else ("saved runs (see the runs table)" if results is not None else "full"),
+        **machine(),
+    }
     if results is not None:
         meta["results read from"] = str(results)
     title = "torch_brdf speed/accuracy report" + (" (quick)" if quick else "")

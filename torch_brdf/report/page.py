@@ -103,6 +103,7 @@ def _run_rows(results: dict[str, dict]) -> list[list[str]]:
             [
                 html.escape(name),
                 f"<code>{html.escape(str(rec.get('command', '')))}</code>",
+                fmt(rec.get("quick", (rec.get("result") or {}).get("quick"))),
                 status,
                 fmt(rec.get("seconds")),
                 f"{fmt(rec.get('load_before'))} / {fmt(rec.get('load_after'))}",
@@ -240,7 +241,7 @@ def write_page(
     parts.append(
         _table(
             _run_rows(results),
-            ["benchmark", "command", "status", "seconds", "load 1-min before / after", "peak RSS MB"],
+            ["benchmark", "command", "quick", "status", "seconds", "load 1-min before / after", "peak RSS MB"],
         )
     )
     head = f"<meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style>"
