@@ -612,7 +612,9 @@ def scaleout(results: dict) -> Section:
     sec = Section("scaleout", "Scale-out of the GI precompute (Ray)", ["scaleout"])
     r = _Reader(results, "scaleout")
     ser = [
-        Series("local executor", pt(1, r("local_s")), "default"),
+        Series(
+            "local executor (its trace pool on every usable core)", pt(num(r("cpus")) or 1, r("local_s")), "default"
+        ),
         Series("Ray", [p for w in (1, 2) for p in pt(w, r(f"ray{w}_s"))]),
         Series(
             "model: predicted seconds (1024², 1024 spp), nodes x 2 workers",
