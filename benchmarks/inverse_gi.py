@@ -252,6 +252,8 @@ def main() -> None:
     for k in (*keys, "speedup_incl_precompute", "mitsuba_to_ours_s", "speedup_at_ours_loss"):
         out[k] = peer.get(k)
     out["iterations"] = {"ours": peer.get("ours_iterations"), "mitsuba": peer.get("mitsuba_iterations")}
+    out["ours_peer_param_err"] = peer.get("ours_param_err")  # (kd, ks) vs the truth, on Mitsuba's target
+    out["mitsuba_param_rel_err"] = peer.get("mitsuba_param_err")
     if not peer:
         out["ours_fit_s"], out["ours_loss"] = top["back_family"]["fit_s"], top["back_family"]["loss"]
         out["iterations"]["ours"] = top["back_family"]["iterations"]
