@@ -8,12 +8,11 @@ import pytest
 import torch
 
 from tests.conftest import corrupted_copy
-from torch_brdf.brdf import PairQuadrature, create, project
+from torch_brdf.brdf import Projector, create, project
 from torch_brdf.brdf.analytic import EXPONENT_RANGE, WARD_ALPHA_RANGE
 from torch_brdf.brdf.microfacet import CookTorrance
 from torch_brdf.editor import (
     EditorSession,
-    FastProjector,
     ReferenceJob,
     load_source,
     model_choices,
@@ -22,6 +21,7 @@ from torch_brdf.editor import (
     scene_with_materials,
 )
 from torch_brdf.editor.params import hex_to_linear, linear_to_hex
+from torch_brdf.editor.session import FAST_QUADRATURE
 from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.transport import path_trace
 
@@ -66,20 +66,11 @@ def test_colour_round_trip():
 
 
 # -- fast projection -------------------------------------------------------------------------
-def test_fast_projector_with_the_library_rule_is_project(small_tensors_file):
-    b = small_tensors_file[1].bases[small_tensors_file[1].object_id("back")]
-    rule = {"n_theta_h": 96, "n_theta_d": 6, "n_phi_d": 16, "order": 3}
-    fast = FastProjector(b.band_basis(), b.quotient, False, **rule)
-    for brdf in (create("blinn_phong", kd=0.2, ks=0.7, exponent=300.0), create("cook_torrance", roughness=0.3)):
-        ref = project(brdf, b.band_basis(), b.quotient, quadrature=PairQuadrature.build(b.band_basis(), **rule))
-        assert torch.allclose(fast(brdf), ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
-
-
 def test_coarse_rule_error(small_tensors_file):
     """Blinn-Phong depends on theta_h alone: the coarse rule loses nothing; GGX's Fresnel and
     masking vary with theta_d: a few per cent (the price of ~40x fewer BRDF evaluations)."""
     b = small_tensors_file[1].bases[small_tensors_file[1].object_id("back")]
-    fast = FastProjector(b.band_basis(), b.quotient)
+    fast = Projector(b.band_basis(), b.quotient, **FAST_QUADRATURE)
     for brdf, tol in ((create("blinn_phong", exponent=100.0), 1e-4), (create("cook_torrance", roughness=0.2), 0.1)):
         ref = project(brdf, b.band_basis(), b.quotient)
         assert float((fast(brdf) - ref).norm() / ref.norm()) < tol

@@ -61,14 +61,14 @@ def srgb8_fast(img: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
     """(H, W, 3) linear radiance -> uint8 sRGB, as :func:`~torch_brdf.io.to_srgb8` (clip tone
     map) within one level: a 65,536-entry table made once by ``to_srgb8`` itself, indexed by
     the clipped value. ``to_srgb8`` computes the curve in float64 by colour-science, 0.34 s
-    for a 512² frame on a loaded machine; the table takes a tenth of that."""
+    for a 512² frame on a loaded machine; the table ~3 ms."""
     global _lut
     if _lut is None:
         ramp = torch.linspace(0, 1, _LUT_SIZE, dtype=torch.float64).reshape(1, -1, 1).expand(1, _LUT_SIZE, 3)
         _lut = to_srgb8(ramp.contiguous())[0, :, 0].contiguous()
-    x = img.detach().float() * (2.0**exposure)
-    idx = (x.clamp(0, 1) * (_LUT_SIZE - 1) + 0.5).long()
-    return _lut[idx]
+    n = _LUT_SIZE - 1  # index_select of a flat index: 6x faster than lut[idx] (advanced indexing)
+    idx = img.detach().to(torch.float32).mul(n * 2.0**exposure).clamp_(0, n).add_(0.5).long()
+    return _lut.index_select(0, idx.reshape(-1)).reshape(idx.shape)
 
 
 def _rgb8(img: torch.Tensor, exposure: float = 0.0):
@@ -454,7 +454,7 @@ class EditorApp:
             b = s.basis(s.selected)
             c = s.projected.get(s.selected)
             c = s.coefficients(s.selected, brdf) if c is None else c
-            curve = Factored1D(b.band_basis(), c.float(), b.quotient)
+            curve = Factored1D(s.band_basis(s.selected), c.float(), b.quotient)
             self.lobe.value = lobe_svg(brdf, curve, self.theta_i.value)
             self.sphere.show(_rgb8(lit_sphere(brdf)), s.selected)
         except TorchBRDFError as exc:

@@ -8,7 +8,7 @@ projection is linear in the BRDF, the object's coefficients are the same blend o
 materials' own projections, :math:`c_* = \sum_i b_i c_i` (seed Eq. 8 applied to the
 coefficients), clamped at 0 like the renderer's reading of a blended table. Each material's
 :math:`c_i` is its NBRDF network (an approximation of MERL) projected onto the object's bands
-once (:class:`~torch_brdf.editor.session.FastProjector`).
+once (:class:`~torch_brdf.brdf.Projector`).
 
 The blend becomes a ``factored_1d`` material on the object's bands, so the lobe view, the lit
 sphere and the reference path trace all see exactly what the renderer shows. Not yet: other
