@@ -207,3 +207,33 @@ def test_latent_pick_blends_the_materials_projections(session, small_fit):
     with pytest.raises(ValueRangeError):
         lm.latent(32, 0)
     session.set_material("back", {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": 100.0})
+
+
+def test_latent_map_shows_any_pair_of_dimensions(tmp_path):
+    """q = 3: the slice on dims (1, 2) keeps dim 0 at the latents' mean, moves dim 1 along x
+    and dim 2 up the map, and draws the materials at their (1, 2) coordinates."""
+    from torch_brdf.data import data_path
+    from torch_brdf.editor.latent import LatentMap
+    from torch_brdf.io.merl import load_nbrdf_weights
+    from torch_brdf.manifold import fit_gplvm, gram, nbrdf_observations
+
+    weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
+    if weights is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    obs = nbrdf_observations(weights, names=list(load_nbrdf_weights(weights).names)[:6], progress=False)
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(s, d, q=3, names=obs.names, max_iter=20)
+    lm = LatentMap(fit, weights, resolution=24)
+    assert lm.q == 3 and lm.dims == (0, 1)
+    first = lm.image()
+    lm.set_dims((1, 2))
+    assert lm.dims == (1, 2) and not torch.equal(lm.image(), first)
+    mean = lm.model.latents.mean(0)
+    z00, z_right, z_up = lm.latent(0, 23), lm.latent(23, 23), lm.latent(0, 0)
+    for z in (z00, z_right, z_up):
+        assert math.isclose(float(z[0]), float(mean[0]), rel_tol=1e-12, abs_tol=1e-12)
+    assert float(z_right[1]) > float(z00[1]) and float(z_up[2]) > float(z00[2])
+    assert float(z_right[2]) == float(z00[2]) and float(z_up[1]) == float(z00[1])
+    for bad in ((1, 1), (0, 3)):
+        with pytest.raises(ValueRangeError):
+            lm.set_dims(bad)

@@ -139,6 +139,12 @@ class EditorApp:
         self.latent_view = FrameView(role="tb-latent", display_width=192)
         self.latent_view.on_msg(self._on_latent_msg)
         self.latent_info = W.HTML("")
+        self.latent_x = W.Dropdown(options=[0], value=0, description="x dim", layout=W.Layout(width="140px"))
+        self.latent_y = W.Dropdown(options=[1], value=1, description="y dim", layout=W.Layout(width="140px"))
+        for w in (self.latent_x, self.latent_y):
+            w.add_class("tb-latent-dim")
+            w.observe(lambda _c: self._guard(self._on_latent_dims), "value")
+        self.latent_dims = W.HBox([self.latent_x, self.latent_y])
         self.latent_box = W.VBox([])
         self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
         self.open_button = W.Button(description="Open")
@@ -152,6 +158,7 @@ class EditorApp:
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
         self.latent_box.children = [
             W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            self.latent_dims,
             W.HBox([self.latent_view, self.latent_info]),
         ]
         self.latent_box.layout.display = "none"
@@ -261,8 +268,30 @@ class EditorApp:
         from .latent import LatentMap
 
         self.latent = LatentMap(self.config["gplvm"], self.config.get("nbrdf_weights"))
-        self.latent_view.show(self.latent.image(), f"{len(self.latent.names)} materials, latent dims 0-1")
+        self._busy = True
+        dims = list(range(self.latent.q))
+        self.latent_x.options, self.latent_y.options = dims, dims
+        self.latent_x.value, self.latent_y.value = self.latent.dims
+        self._busy = False
+        self.latent_dims.layout.display = None if self.latent.q > 2 else "none"  # q = 2: one slice
+        self._show_latent()
         self.latent_box.layout.display = None
+
+    def _show_latent(self) -> None:
+        a, b = self.latent.dims
+        self.latent_view.show(
+            self.latent.image(), f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q}"
+        )
+
+    def _on_latent_dims(self) -> None:
+        """Another pair of latent dimensions (the other dimensions stay at the latents' mean)."""
+        if self._busy or self.latent is None:
+            return
+        dims = (int(self.latent_x.value), int(self.latent_y.value))
+        if dims[0] == dims[1]:
+            raise TorchBRDFError(f"the latent map needs two different dimensions; got {dims[0]} twice")
+        self.latent.set_dims(dims)
+        self._show_latent()
 
     def _on_latent_msg(self, _widget, content, _buffers) -> None:
         if isinstance(content, dict) and content.get("event") == "click":
