@@ -27,7 +27,16 @@ from ..brdf import Factored1D, create
 from ..errors import TorchBRDFError
 from ..io.png import to_srgb8
 from .lobe import lit_sphere, lobe_svg
-from .params import ModelChoice, hex_to_linear, linear_to_hex, material_values, model_choices, param_specs
+from .params import (
+    ModelChoice,
+    choice_specs,
+    curve_to_text,
+    hex_to_linear,
+    linear_to_hex,
+    material_values,
+    model_choices,
+    text_to_curve,
+)
 from .session import EditorSession, ReferenceJob, checked_create, load_source
 from .widgets import FrameView
 
@@ -149,10 +158,11 @@ class EditorApp:
         self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
         self.open_button = W.Button(description="Open")
         self.open_button.on_click(lambda _b: self.open(self.open_path.value.strip()))
-        note = "; ".join(f"{k}: {v.split(' (')[0]}" for k, v in sorted(self.skipped.items()))
+        note = "; ".join(f"{k}: {v}" for k, v in sorted(self.skipped.items())) or "none"
+        self.menu_note = W.HTML(f"<small class='tb-menu-note'>not in the menu: {html.escape(note)}</small>")
         left = W.VBox([self.frame, W.HBox([self.view, self.bounces]), self.exposure])
         right = W.VBox(
-            [self.selected, self.model, self.form, self.f0_box, W.HTML(f"<small>not in the menu: {note}</small>")],
+            [self.selected, self.model, self.form, self.f0_box, self.menu_note],
             layout=W.Layout(min_width="380px"),
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
@@ -310,18 +320,10 @@ class EditorApp:
             f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
         )
         self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
-        self._show_blend_form()
+        self._show_form(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
         self.message.value = ""
         self._redraw()
         self._draw_lobe()
-
-    def _show_blend_form(self) -> None:
-        self._busy = True
-        self.controls = {}
-        self.form.children = [
-            W.HTML("<i class='tb-blend'>measured blend on the bands (pick a model to edit values)</i>")
-        ]
-        self._busy = False
 
     # -- selection -------------------------------------------------------------------------------
     def _on_frame_msg(self, _widget, content, _buffers) -> None:
@@ -350,16 +352,19 @@ class EditorApp:
             f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
             f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
         )
-        if mat.get("type") == "factored_1d":
-            self._show_blend_form()
-        else:
-            choice = self._choice_for(mat)
-            self._busy = True
-            self.model.value = choice.label
-            self._busy = False
-            self._build_form(choice, material_values(mat, param_specs(choice.model, dict(choice.fixed))))
+        self._show_form(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
         self._draw_lobe()
+
+    def _show_form(self, material: dict[str, Any], note: str | None = None) -> None:
+        """The menu entry of ``material`` and its form with the material's values."""
+        choice = self._choice_for(material)
+        self._busy = True
+        self.model.value = choice.label
+        self._busy = False
+        self._build_form(choice, material_values(material, choice_specs(choice)))
+        if note:
+            self.form.children = [W.HTML(f"<i class='tb-blend'>{html.escape(note)}</i>"), *self.form.children]
 
     def _choice_for(self, material: dict[str, Any]) -> ModelChoice:
         for c in self.choices:
@@ -376,9 +381,22 @@ class EditorApp:
         self._busy = True
         self.controls: dict[str, W.Widget] = {}
         rows = []
-        for spec in param_specs(choice.model, dict(choice.fixed)):
+        for spec in choice_specs(choice):
             v = values.get(spec.name, spec.default)
-            if spec.kind == "rgb":
+            if spec.kind == "choice":
+                ctl = W.Dropdown(options=list(spec.options), value=v if v in spec.options else spec.default)
+                ctl.description = spec.name
+                ctl.add_class(f"tb-param-{spec.name}")
+                rows.append(ctl)
+            elif spec.kind == "curve":
+                s = self.session
+                c = v if v is not None else s.projected.get(s.selected)
+                c = c if c is not None else s.coefficients(s.selected, checked_create(s.materials[s.selected]))
+                ctl = W.Textarea(value=curve_to_text(c), rows=6, continuous_update=False)
+                ctl.description = f"{spec.name} (r g b per band)"
+                ctl.add_class(f"tb-param-{spec.name}")
+                rows.append(ctl)
+            elif spec.kind == "rgb":
                 ctl = W.ColorPicker(value=linear_to_hex(v), description=spec.name, concise=False)
                 rows.append(ctl)
             else:
@@ -404,8 +422,23 @@ class EditorApp:
     def _values(self) -> dict[str, Any]:
         out = {}
         for name, ctl in self.controls.items():
-            out[name] = hex_to_linear(ctl.value) if isinstance(ctl, W.ColorPicker) else float(ctl.value)
+            if isinstance(ctl, W.ColorPicker):
+                out[name] = hex_to_linear(ctl.value)
+            elif isinstance(ctl, W.Dropdown):
+                out[name] = ctl.value
+            elif isinstance(ctl, W.Textarea):
+                out[name] = text_to_curve(ctl.value, self.session.basis(self.session.selected).J)
+            else:
+                out[name] = float(ctl.value)
         return out
+
+    def _material(self, choice: ModelChoice) -> dict[str, Any]:
+        """The material dict of the form's values (a curve on the selected object's bands)."""
+        s = self.session
+        values = self._values()
+        if choice.on_bands:
+            return {**s.band_material(s.selected, values.pop("coefficients", None), choice.model), **values}
+        return choice.material(values)
 
     def _on_typed(self, name: str, text: str) -> None:
         """A typed value: the model checks it; in range it moves the slider, else a message."""
@@ -418,7 +451,8 @@ class EditorApp:
             raise TorchBRDFError(f"{name}: {text!r} is not a number") from None
         if math.isclose(value, float(ctl.value), rel_tol=1e-3):
             return
-        checked_create(self._current_choice().material({**self._values(), name: value}))  # out of range: raises
+        choice = self._current_choice()
+        checked_create({**self._material(choice), name: value})  # out of range: raises
         ctl.value = value
 
     def _on_model(self, _change) -> None:
@@ -426,7 +460,7 @@ class EditorApp:
             return
         choice = self._current_choice()
         old = self.session.materials[self.session.selected]
-        self._build_form(choice, material_values(old, param_specs(choice.model, dict(choice.fixed))))
+        self._build_form(choice, material_values(old, choice_specs(choice)))
         self._apply()
 
     def _apply(self) -> None:
@@ -438,8 +472,7 @@ class EditorApp:
         s = self.session
         obj = s.selected
         f0 = float(self.f0.value) if s.has_fresnel(obj) else None
-        # no controls: a measured blend is shown; only f0 can change it
-        material = self._current_choice().material(self._values()) if self.controls else s.materials[obj]
+        material = self._material(self._current_choice())
         s.set_material(obj, material, f0=f0)
         self.message.value = ""
         self._redraw()

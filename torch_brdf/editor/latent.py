@@ -109,12 +109,4 @@ class LatentMap:
 
     def material(self, session, obj: str, c: torch.Tensor) -> dict:
         """A ``factored_1d`` material dict holding coefficients ``c`` on ``obj``'s bands."""
-        spec = session.basis(obj).spec()
-        return {
-            "type": "factored_1d",
-            "coefficients": c.tolist(),
-            "quotient": spec.get("quotient", "one"),
-            "variable": spec.get("variable", "theta_h"),
-            "J": int(spec["J"]),
-            "spacing": "uniform" if int(spec["J"]) == 1 else spec.get("spacing"),
-        }
+        return session.band_material(obj, c)

@@ -311,6 +311,24 @@ class EditorSession:
             self._band_bases[obj] = self.basis(obj).band_basis()
         return self._band_bases[obj]
 
+    def band_material(self, obj: str, coefficients=None, model: str = "factored_1d") -> dict[str, Any]:
+        """A ``factored_1d`` (or ``factored_1d_fresnel``) material dict on ``obj``'s own bands
+        holding ``coefficients`` (J, 3) (default: the object's current curve), which
+        :meth:`coefficients` then uses as is."""
+        spec = self.basis(obj).spec()
+        c = self.projected.get(obj) if coefficients is None else coefficients
+        J = int(spec["J"])
+        out = {
+            "type": model,
+            "quotient": spec.get("quotient", "one"),
+            "variable": spec.get("variable", "theta_h"),
+            "J": J,
+            "spacing": "uniform" if J == 1 else spec.get("spacing"),
+        }
+        if c is not None:
+            out["coefficients"] = torch.as_tensor(c, dtype=torch.float64).reshape(J, 3).tolist()
+        return out
+
     def has_fresnel(self, obj: str) -> bool:
         return bool(self.basis(obj).fresnel)
 
