@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import html
-import math
 import time
 import traceback
 from typing import Any
@@ -26,17 +25,9 @@ from IPython.display import display
 from ..brdf import Factored1D, create
 from ..errors import TorchBRDFError
 from ..io.png import to_srgb8
+from .form import Bands, MaterialForm
 from .lobe import lit_sphere, lobe_svg
-from .params import (
-    ModelChoice,
-    choice_specs,
-    curve_to_text,
-    hex_to_linear,
-    linear_to_hex,
-    material_values,
-    model_choices,
-    text_to_curve,
-)
+from .params import model_choices
 from .session import EditorSession, ReferenceJob, checked_create, load_source
 from .widgets import FrameView
 
@@ -125,9 +116,12 @@ class EditorApp:
         for w in (self.view, self.bounces, self.exposure):
             w.observe(lambda _c: self._redraw(), "value")
         self.selected = W.HTML("<b>click an object</b> in the frame to edit its material")
-        self.model = W.Dropdown(options=[c.label for c in self.choices], description="model")
-        self.model.observe(self._on_model, "value")
-        self.form = W.VBox([])
+        bands = Bands(
+            self._band_curve,
+            lambda: self.session.basis(self.session.selected).J,
+            lambda c, model: self.session.band_material(self.session.selected, c, model),
+        )
+        self.panel = MaterialForm(self.choices, self._apply_material, self._guard, bands)
         self.f0 = W.FloatSlider(value=1.0, min=0.0, max=1.0, step=0.01, description="Fresnel f0")
         self.f0.observe(lambda _c: self._apply(), "value")
         self.f0_box = W.VBox([])
@@ -162,7 +156,7 @@ class EditorApp:
         self.menu_note = W.HTML(f"<small class='tb-menu-note'>not in the menu: {html.escape(note)}</small>")
         left = W.VBox([self.frame, W.HBox([self.view, self.bounces]), self.exposure])
         right = W.VBox(
-            [self.selected, self.model, self.form, self.f0_box, self.menu_note],
+            [self.selected, self.panel.model, self.panel.box, self.f0_box, self.menu_note],
             layout=W.Layout(min_width="380px"),
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
@@ -320,7 +314,7 @@ class EditorApp:
             f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
         )
         self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
-        self._show_form(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
+        self.panel.show(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
         self.message.value = ""
         self._redraw()
         self._draw_lobe()
@@ -352,127 +346,38 @@ class EditorApp:
             f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
             f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
         )
-        self._show_form(mat)
+        self.panel.show(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
         self._draw_lobe()
 
-    def _show_form(self, material: dict[str, Any], note: str | None = None) -> None:
-        """The menu entry of ``material`` and its form with the material's values."""
-        choice = self._choice_for(material)
-        self._busy = True
-        self.model.value = choice.label
-        self._busy = False
-        self._build_form(choice, material_values(material, choice_specs(choice)))
-        if note:
-            self.form.children = [W.HTML(f"<i class='tb-blend'>{html.escape(note)}</i>"), *self.form.children]
+    # -- the material form (see .form) ------------------------------------------------------------
+    @property
+    def model(self) -> W.Dropdown:
+        return self.panel.model
 
-    def _choice_for(self, material: dict[str, Any]) -> ModelChoice:
-        for c in self.choices:
-            if c.model == material.get("type") and all(material.get(k, v) == v for k, v in c.fixed):
-                return c
-        raise TorchBRDFError(f"the material {material!r} has no editable model in the menu")
-
-    # -- the material form -----------------------------------------------------------------------
-    def _current_choice(self) -> ModelChoice:
-        return next(c for c in self.choices if c.label == self.model.value)
-
-    def _build_form(self, choice: ModelChoice, values: dict[str, Any]) -> None:
-        """One control per parameter of ``choice``'s own list (see :mod:`.params`)."""
-        self._busy = True
-        self.controls: dict[str, W.Widget] = {}
-        rows = []
-        for spec in choice_specs(choice):
-            v = values.get(spec.name, spec.default)
-            if spec.kind == "choice":
-                ctl = W.Dropdown(options=list(spec.options), value=v if v in spec.options else spec.default)
-                ctl.description = spec.name
-                ctl.add_class(f"tb-param-{spec.name}")
-                rows.append(ctl)
-            elif spec.kind == "curve":
-                s = self.session
-                c = v if v is not None else s.projected.get(s.selected)
-                c = c if c is not None else s.coefficients(s.selected, checked_create(s.materials[s.selected]))
-                ctl = W.Textarea(value=curve_to_text(c), rows=6, continuous_update=False)
-                ctl.description = f"{spec.name} (r g b per band)"
-                ctl.add_class(f"tb-param-{spec.name}")
-                rows.append(ctl)
-            elif spec.kind == "rgb":
-                ctl = W.ColorPicker(value=linear_to_hex(v), description=spec.name, concise=False)
-                rows.append(ctl)
-            else:
-                if spec.kind == "log":
-                    ctl = W.FloatLogSlider(
-                        value=v, base=10, min=math.log10(spec.lo), max=math.log10(spec.hi), step=0.02
-                    )
-                else:
-                    ctl = W.FloatSlider(value=v, min=spec.lo, max=spec.hi, step=(spec.hi - spec.lo) / 200)
-                ctl.description, ctl.readout = spec.name, False
-                ctl.continuous_update = True
-                ctl.add_class(f"tb-param-{spec.name}")
-                typed = W.Text(value=f"{v:.4g}", continuous_update=False, layout=W.Layout(width="90px"))
-                typed.add_class(f"tb-typed-{spec.name}")
-                typed.observe(lambda ch, n=spec.name: self._guard(self._on_typed, n, ch["new"]), "value")
-                ctl.observe(lambda ch, t=typed: setattr(t, "value", f"{ch['new']:.4g}"), "value")
-                rows.append(W.HBox([ctl, typed]))
-            ctl.observe(lambda _c: self._apply(), "value")
-            self.controls[spec.name] = ctl
-        self.form.children = rows
-        self._busy = False
-
-    def _values(self) -> dict[str, Any]:
-        out = {}
-        for name, ctl in self.controls.items():
-            if isinstance(ctl, W.ColorPicker):
-                out[name] = hex_to_linear(ctl.value)
-            elif isinstance(ctl, W.Dropdown):
-                out[name] = ctl.value
-            elif isinstance(ctl, W.Textarea):
-                out[name] = text_to_curve(ctl.value, self.session.basis(self.session.selected).J)
-            else:
-                out[name] = float(ctl.value)
-        return out
-
-    def _material(self, choice: ModelChoice) -> dict[str, Any]:
-        """The material dict of the form's values (a curve on the selected object's bands)."""
-        s = self.session
-        values = self._values()
-        if choice.on_bands:
-            return {**s.band_material(s.selected, values.pop("coefficients", None), choice.model), **values}
-        return choice.material(values)
+    @property
+    def controls(self) -> dict[str, W.Widget]:
+        return self.panel.controls
 
     def _on_typed(self, name: str, text: str) -> None:
-        """A typed value: the model checks it; in range it moves the slider, else a message."""
-        if self._busy:
-            return
-        ctl = self.controls[name]
-        try:
-            value = float(text)
-        except ValueError:
-            raise TorchBRDFError(f"{name}: {text!r} is not a number") from None
-        if math.isclose(value, float(ctl.value), rel_tol=1e-3):
-            return
-        choice = self._current_choice()
-        checked_create({**self._material(choice), name: value})  # out of range: raises
-        ctl.value = value
+        self.panel.on_typed(name, text)
 
-    def _on_model(self, _change) -> None:
-        if self._busy or self.session is None or self.session.selected is None:
-            return
-        choice = self._current_choice()
-        old = self.session.materials[self.session.selected]
-        self._build_form(choice, material_values(old, choice_specs(choice)))
-        self._apply()
+    def _band_curve(self):
+        s = self.session
+        c = s.projected.get(s.selected)
+        return c if c is not None else s.coefficients(s.selected, checked_create(s.materials[s.selected]))
 
     def _apply(self) -> None:
         if self._busy or self.session is None or self.session.selected is None:
             return
-        self._guard(self._apply_material)
+        self.panel.changed()
 
-    def _apply_material(self) -> None:
+    def _apply_material(self, material: dict[str, Any]) -> None:
         s = self.session
+        if s is None or s.selected is None:
+            return
         obj = s.selected
         f0 = float(self.f0.value) if s.has_fresnel(obj) else None
-        material = self._material(self._current_choice())
         s.set_material(obj, material, f0=f0)
         self.message.value = ""
         self._redraw()
