@@ -117,3 +117,35 @@ def test_measured_models_pick_a_material(app):
         ctl.value = ctl.options[-1]
         assert app.session.materials["back"] == {**dict(names[model].fixed), "type": model, "material": ctl.options[-1]}
         assert bytes(app.frame.pixels) != first and "tb-error" not in app.message.value
+
+
+def test_relighting_tab_rotates_orbits_and_edits(small_tensors_file, relight_files):
+    app = EditorApp(
+        {
+            "source": str(small_tensors_file[0]),
+            "threads": 0,
+            "relight_scene": str(relight_files[0]),
+            "relight_visibility": str(relight_files[1]),
+        }
+    )
+    assert app.tabs.get_title(1) == "relighting" and "data-object='box'" in app.rl_selected.value
+    assert (app.rl_frame.width, app.rl_frame.height) == (32, 24) and "triple products" in app.rl_frame.info
+    first = bytes(app.rl_frame.pixels)
+    app.rl_rotation.value = 120.0
+    turned = bytes(app.rl_frame.pixels)
+    assert turned != first and "environment 120°" in app.rl_frame.info
+    app.rl_orbit.value = 30.0
+    assert bytes(app.rl_frame.pixels) != turned and "orbit 30°" in app.rl_frame.info
+    assert [c.model for c in app.rl_panel.choices if c.on_bands] == []  # no bands to hold a curve
+    app.rl_panel.model.value = "blinn_phong"
+    assert app.relight.materials["box"]["type"] == "blinn_phong"
+    before = bytes(app.rl_frame.pixels)
+    app.rl_panel.controls["exponent"].value = 3.0
+    assert bytes(app.rl_frame.pixels) != before
+    app._guard(app.rl_panel.on_typed, "exponent", "-4")
+    assert "tb-error" in app.message.value and "exponent" in app.message.value
+    broken = EditorApp(
+        {"source": str(small_tensors_file[0]), "threads": 0, "relight_scene": "cornell_box", "relight_visibility": "x"}
+    )
+    assert broken.relight is None and "could not open the relighting scene" in broken.rl_selected.value
+    assert broken.session is not None  # the multibounce tab works

@@ -50,6 +50,10 @@ DEFAULTS: dict[str, Any] = {
     # a GPLVM fit (GPLVMFit file) of NBRDF materials: shows the measured-material latent map
     "gplvm": None,
     "nbrdf_weights": None,
+    # the relighting tab: a scene and its visibility record (torch-brdf precompute-visibility)
+    "relight_scene": None,
+    "relight_visibility": None,
+    "relight_resolution": None,
 }
 
 
@@ -175,15 +179,106 @@ class EditorApp:
                 W.HBox([self.ref_image, self.diff_image]),
             ]
         )
-        self.root = W.VBox(
+        main = W.VBox(
             [
-                self.title,
-                self.status,
-                self.message,
                 W.HBox([left, W.VBox([right, lobe, self.theta_i, self.latent_box])]),
                 reference,
                 W.HBox([self.open_path, self.open_button]),
             ]
+        )
+        self.tabs = W.Tab([main, self._build_relight()])
+        self.tabs.set_title(0, "multibounce")
+        self.tabs.set_title(1, "relighting")
+        self.root = W.VBox([self.title, self.status, self.message, self.tabs])
+
+    # -- the relighting tab ------------------------------------------------------------------------
+    def _build_relight(self) -> W.VBox:
+        """Rotate the environment, orbit the view, edit materials: triple products (Inger et
+        al.) on a scene with a visibility record (``relight_scene`` + ``relight_visibility``)."""
+        c = self.config
+        self.relight = None
+        self.rl_frame = FrameView(role="tb-relight", display_width=int(c["display_width"]))
+        self.rl_frame.on_msg(lambda _w, m, _b: self._guard(self._on_relight_click, m))
+        self.rl_rotation = W.FloatSlider(value=0.0, min=0.0, max=360.0, step=5.0, description="environment °")
+        self.rl_orbit = W.FloatSlider(value=0.0, min=-90.0, max=90.0, step=5.0, description="view orbit °")
+        self.rl_rotation.add_class("tb-rl-rotation")
+        self.rl_orbit.add_class("tb-rl-orbit")
+        self.rl_rotation.observe(lambda ch: self._guard(self._relight_set, "rotation", ch["new"]), "value")
+        self.rl_orbit.observe(lambda ch: self._guard(self._relight_set, "orbit", ch["new"]), "value")
+        self.rl_selected = W.HTML("")
+        self.rl_panel = MaterialForm(self.choices, self._relight_material, self._guard, None, prefix="tb-rl")
+        if not (c.get("relight_scene") and c.get("relight_visibility")):
+            self.rl_selected.value = (
+                "<i class='tb-rl-none'>no scene with a visibility record: start the editor with "
+                "--relight SCENE --visibility VIS.npz (from torch-brdf precompute-visibility)</i>"
+            )
+        else:
+            try:
+                self._open_relight(c["relight_scene"], c["relight_visibility"], c.get("relight_resolution"))
+            except Exception as exc:  # shown in the tab (the page's message line is the other tab's)
+                self.relight = None
+                text = str(exc) if isinstance(exc, TorchBRDFError) else f"{type(exc).__name__}: {exc}"
+                self.rl_selected.value = f"<div class='tb-error' style='color:#b00020'>{html.escape(text)}</div>"
+        controls = W.VBox(
+            [self.rl_selected, self.rl_panel.model, self.rl_panel.box], layout=W.Layout(min_width="380px")
+        )
+        return W.VBox([W.HBox([W.VBox([self.rl_frame, self.rl_rotation, self.rl_orbit]), controls])])
+
+    def _open_relight(self, scene: str, visibility: str, resolution: int | None = None) -> None:
+        from .relight import RelightSession
+
+        try:
+            self.relight = RelightSession(scene, visibility, resolution)
+        except TorchBRDFError as exc:
+            raise TorchBRDFError(f"could not open the relighting scene {scene!r} with {visibility!r}: {exc}") from None
+        rl = self.relight
+        editable = [o for o in rl.objects if o in rl.materials]
+        self._relight_select(editable[0])
+        self._relight_draw()
+
+    def _relight_select(self, obj: str) -> None:
+        rl = self.relight
+        rl.select(obj)
+        self.rl_selected.value = (
+            f"<span class='tb-rl-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
+            " · click an object in the frame"
+        )
+        self.rl_panel.show(rl.materials[obj])
+
+    def _on_relight_click(self, content) -> None:
+        if self.relight is None or not (isinstance(content, dict) and content.get("event") == "click"):
+            return
+        obj = self.relight.object_at(int(content["x"]), int(content["y"]))
+        if obj is None:
+            self.info("nothing there (the environment)")
+            return
+        self._relight_select(obj)
+
+    def _relight_set(self, what: str, value: float) -> None:
+        if self.relight is None:
+            return
+        (self.relight.set_rotation if what == "rotation" else self.relight.set_orbit)(float(value))
+        self._relight_draw()
+
+    def _relight_material(self, material: dict[str, Any]) -> None:
+        rl = self.relight
+        if rl is None or rl.selected is None:
+            return
+        rl.set_material(rl.selected, material)
+        self.message.value = ""
+        self._relight_draw()
+
+    def _relight_draw(self) -> None:
+        rl = self.relight
+        t0 = time.perf_counter()
+        img = rl.render()
+        rgb = _rgb8(img, self.exposure.value)
+        st = rl.stats
+        extra = f" · {st.vertices} vertices" if st is not None else ""
+        self.rl_frame.show(
+            rgb,
+            f"triple products {rl.last_frame_s * 1e3:.1f} ms · kernel {(time.perf_counter() - t0) * 1e3:.1f} ms{extra}"
+            f" · environment {rl.rotation_deg:.0f}° · orbit {rl.orbit_deg:.0f}°",
         )
 
     def show(self) -> None:
