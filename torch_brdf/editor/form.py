@@ -61,6 +61,7 @@ class MaterialForm:
         self.on_apply, self.guard, self.bands, self.prefix = on_apply, guard, bands, prefix
         self.model = W.Dropdown(options=[c.label for c in self.choices], description="model")
         self.model.observe(self._on_model, "value")
+        self.model.add_class(f"{prefix}-model")
         self.box = W.VBox([])
         self.controls: dict[str, W.Widget] = {}
         self.shown: dict[str, Any] | None = None  # the material last shown or applied
