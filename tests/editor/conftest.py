@@ -65,41 +65,23 @@ def relight_files(tmp_path_factory):
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.6))
     box.apply_translation([0.1, 0.45, 0.0])
     plane = grid_plane(2.0, 6)
+
+    def mesh(m) -> str:
+        return f"vertices = {_rows(m.vertices.tolist())}, faces = {_rows(m.faces.tolist())}"
+
+    sun = "sun_direction = [0.5, 0.6, -0.3], sun_angular_radius_deg = 6.0, sun_radiance = [40.0, 38.0, 34.0]"
     d = tmp_path_factory.mktemp("relight")
     toml = d / "box_sky.toml"
     toml.write_text(
         f"""name = "box_sky"
-[camera]
-origin = [0.0, 1.5, -2.5]
-target = [0.0, 0.2, 0.0]
-fov_deg = 45.0
-width = 32
-height = 24
-[materials.glossy]
-type = "phong"
-kd = 0.2
-ks = 0.6
-exponent = 60.0
-[materials.floor]
-type = "lambert"
-albedo = 0.6
-[[objects]]
-name = "box"
-material = "glossy"
-vertices = {_rows(box.vertices.tolist())}
-faces = {_rows(box.faces.tolist())}
-[[objects]]
-name = "floor"
-material = "floor"
-vertices = {_rows(plane.vertices.tolist())}
-faces = {_rows(plane.faces.tolist())}
-[[lights]]
-type = "envmap"
-procedural = "sky"
-height = 32
-sun_direction = [0.5, 0.6, -0.3]
-sun_angular_radius_deg = 6.0
-sun_radiance = [200.0, 190.0, 170.0]
+camera = {{ origin = [0.0, 1.5, -2.5], target = [0.0, 0.2, 0.0], fov_deg = 45.0, width = 32, height = 24 }}
+materials.glossy = {{ type = "phong", kd = 0.2, ks = 0.6, exponent = 60.0 }}
+materials.floor = {{ type = "lambert", albedo = 0.6 }}
+objects = [
+  {{ name = "box", material = "glossy", {mesh(box)} }},
+  {{ name = "floor", material = "floor", {mesh(plane)} }},
+]
+lights = [{{ type = "envmap", procedural = "sky", height = 32, {sun} }}]
 """
     )
     vis = precompute_visibility(load_scene(str(toml)), resolution=32, chunk=64, progress=False)

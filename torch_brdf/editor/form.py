@@ -102,6 +102,7 @@ class MaterialForm:
                 rows.append(ctl)
             elif spec.kind == "curve":
                 ctl = W.Textarea(value=curve_to_text(v if v is not None else self.bands.curve()), rows=6)
+                ctl.layout.width = "360px"
                 ctl.continuous_update = False
                 ctl.description = f"{spec.name} (r g b per band)"
                 rows.append(ctl)
