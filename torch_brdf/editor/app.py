@@ -199,8 +199,9 @@ class EditorApp:
         self.relight = None
         self.rl_frame = FrameView(role="tb-relight", display_width=int(c["display_width"]))
         self.rl_frame.on_msg(lambda _w, m, _b: self._guard(self._on_relight_click, m))
-        self.rl_rotation = W.FloatSlider(value=0.0, min=0.0, max=360.0, step=5.0, description="environment °")
-        self.rl_orbit = W.FloatSlider(value=0.0, min=-90.0, max=90.0, step=5.0, description="view orbit °")
+        wide = {"description_width": "initial"}
+        self.rl_rotation = W.FloatSlider(0.0, min=0.0, max=360.0, step=5.0, description="environment °", style=wide)
+        self.rl_orbit = W.FloatSlider(0.0, min=-90.0, max=90.0, step=5.0, description="view orbit °", style=wide)
         self.rl_rotation.add_class("tb-rl-rotation")
         self.rl_orbit.add_class("tb-rl-orbit")
         self.rl_rotation.observe(lambda ch: self._guard(self._relight_set, "rotation", ch["new"]), "value")
