@@ -558,6 +558,8 @@ def editor(
     series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
     cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
+    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or TOML; with --visibility)."),
+    visibility: Path = typer.Option(None, help="Its record from precompute-visibility (the relighting tab)."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
@@ -567,6 +569,12 @@ def editor(
     check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
+    if (relight is None) != (visibility is None):
+        raise ValueRangeError("--relight and --visibility go together (a scene and its visibility record)")
+    if relight is not None:
+        rel = Path(relight)
+        config["relight_scene"] = str(rel.resolve()) if rel.is_file() else relight
+        config["relight_visibility"] = str(visibility.resolve())
     serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
 
 

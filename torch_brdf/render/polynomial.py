@@ -365,6 +365,35 @@ class PolynomialRenderer(nn.Module):
             "K": K,
             "slots": slots,
         }
+        self._frozen_nonzeros(self._frozen)
+
+    #: the frame reads F's non-zeros instead of F when at most this fraction is non-zero
+    SPARSE_FRAME_DENSITY = 0.25
+
+    @staticmethod
+    def _frozen_nonzeros(fz: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The non-zeros of the frozen ``F`` (C, J, K'·P_i) as ``(jk, p, values)``: (nnz,)
+        index ``j·K' + k'``, (nnz,) pixel slot, (nnz, C) values (sorted by pixel), or None when
+        more than :attr:`SPARSE_FRAME_DENSITY` of F is non-zero.
+
+        A pixel's entries reach only the few bands its eye and light directions fall in (~2 %
+        of F for a 64-band wall), so the frame's cost is then that of the non-zeros, not of F.
+        Cached in ``fz`` with the F it came from: a dict whose F was replaced (e.g. by
+        :func:`~torch_brdf.denoise.denoise_frozen`) is read densely again."""
+        cached = fz.get("nonzeros")
+        if cached is not None and cached[0] is fz["F"]:
+            return cached[1]
+        F, K, p_i = fz["F"], int(fz["K"]), fz["pix_i"].numel()
+        with torch.no_grad():
+            pattern = (F != 0).any(0)  # (J, K'·P_i)
+        out = None
+        if pattern.numel() and int(pattern.sum()) <= PolynomialRenderer.SPARSE_FRAME_DENSITY * pattern.numel():
+            j, col = pattern.nonzero(as_tuple=True)
+            order = torch.argsort(col % p_i, stable=True)
+            j, col = j[order], col[order]
+            out = (j * K + col // p_i, col % p_i, F[:, j, col].T.contiguous())
+        fz["nonzeros"] = (F, out)
+        return out
 
     @property
     def frozen_object(self) -> str | None:
@@ -385,8 +414,14 @@ class PolynomialRenderer(nn.Module):
         sv = torch.cat(slot, 0)  # (slots + 1, C)
         g = (sv[:, None, :] * pw[None, :, :]).reshape(K, 3).T  # (C, K)
         p_i = fz["pix_i"].numel()
-        u = torch.bmm(self.c[i].T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
-        own = torch.bmm(g.unsqueeze(1), u).squeeze(1)  # (C, P_i)
+        nonzeros = self._frozen_nonzeros(fz)
+        if nonzeros is None:
+            u = torch.bmm(self.c[i].T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
+            own = torch.bmm(g.unsqueeze(1), u).squeeze(1)  # (C, P_i)
+        else:  # the same sum over the non-zeros: own[p] = sum c[j] g[k'] F[j, k', p]
+            jk, pix, vals = nonzeros
+            cg = (self.c[i].unsqueeze(1) * g.T.unsqueeze(0)).reshape(-1, 3)  # (J·K', C)
+            own = torch.zeros(p_i, 3, dtype=vals.dtype).index_add(0, pix, cg.index_select(0, jk) * vals).T
         w = self._pixel_weights(i, fz["pix_i"])
         if w is not None:
             own = own * w
@@ -402,10 +437,12 @@ class PolynomialRenderer(nn.Module):
         return self.evaluate()
 
     def stream(self) -> torch.Tensor:
-        """One pass over the frozen tensor (its sum): the memory-bandwidth floor of a frame."""
+        """One pass over what a frame reads (F or its non-zeros, and V; their sum): the
+        memory-bandwidth floor of a frame."""
         if self._frozen is None:
             raise ValueRangeError("nothing is frozen; call freeze(object) first")
-        return self._frozen["F"].sum() + self._frozen["V"].sum()
+        nonzeros = self._frozen_nonzeros(self._frozen)
+        return (self._frozen["F"] if nonzeros is None else nonzeros[2]).sum() + self._frozen["V"].sum()
 
     @property
     def frozen_nbytes(self) -> int:
