@@ -86,6 +86,11 @@ def _shift(x: torch.Tensor, dy: int, dx: int, fill: float = 0.0) -> torch.Tensor
     return out
 
 
+def glossy_objects(tensors) -> list[int]:
+    """Object ids of ``tensors`` with more than one band (J > 1): the filters' glossy objects."""
+    return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
+
+
 class EdgeAwareFilter:
     """The à-trous cascade for one view, weights precomputed from ``guides``.
 
@@ -159,8 +164,7 @@ class EdgeAwareFilter:
         """
         if getattr(tensors, "guides", None) is None:
             raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
-        glossy = [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
-        return cls(tensors.guides, settings, glossy=glossy)
+        return cls(tensors.guides, settings, glossy=glossy_objects(tensors))
 
     @property
     def description(self) -> str:
