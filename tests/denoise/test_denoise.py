@@ -204,7 +204,6 @@ def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj):
         assert R._frozen[k].numel() <= 1.05 * noisy._frozen[k].numel()
 
 
-
 def test_denoise_uses_the_guides_the_precomputation_attached(setup, gen):
     """``denoise(tensors)`` needs no guides from the user, and ``freeze(obj, denoiser="linear")``
     (the public way to denoise a frozen tensor) renders what freezing the denoised tensors does."""
