@@ -18,9 +18,11 @@ from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
+from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from ..executor import run_tiles
+from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
 from .reduce import _blocks_from_entries, _reduce, _term_tables
@@ -180,7 +182,7 @@ def precompute_polynomial(
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
             cluster address.
         max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
-        guides: attach the view's denoiser guides (:func:`torch_brdf.denoise.guide_buffers`:
+        guides: attach the view's denoiser guides (:func:`torch_brdf.transport.guides.guide_buffers`:
             one pixel-centre ray and its mirror ray per pixel, saved with the record and
             versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
@@ -313,9 +315,6 @@ def precompute_polynomial(
     view_guides = None
     meta["guides"] = None
     if guides:
-        from ...denoise.guides import guide_buffers  # same layer; denoise imports transport
-        from ...scene.guides import GUIDE_VERSION
-
         view_guides, meta["guides"] = guide_buffers(scene), GUIDE_VERSION
     if not keep_checkpoint:
         cache.remove()
