@@ -313,11 +313,45 @@ class PolynomialRenderer(nn.Module):
         return imgs if per_bounce else sum(imgs[1:], imgs[0])
 
     # -- object freezing ------------------------------------------------------------------------
-    @tuned_method("polynomial.freeze", lambda r, *a, **k: sum(b.values.numel() for b in r.blocks))
-    def freeze(self, obj) -> None:
+    def freeze(self, obj, denoiser=None) -> None:
         """Precompute :math:`F_{jk'}` (Eq. 27, §5.2) for the pixels of ``obj`` and the
         polynomials :math:`V_{k'}` of all other pixels, so that :meth:`forward` while only
-        ``obj``'s material changes costs two batched matrix products."""
+        ``obj``'s material changes costs two batched matrix products.
+
+        Args:
+            obj: the object whose material will change (name or index).
+            denoiser: also denoise every basis image of the frozen tensor once
+                (:func:`torch_brdf.denoise.denoise_frozen`): ``"linear"`` or ``"oidn"`` with the
+                guides the tensors carry (:func:`torch_brdf.denoise.make_denoiser`), or any
+                denoiser callable. Every later frame of ``obj``'s edits is exact in the denoised
+                bases and costs what a noisy frame costs; :attr:`frozen_denoiser` names it.
+                The denoising lasts as long as the frozen state (changing another object's
+                material drops both; freeze again).
+        Raises:
+            ValueRangeError: a denoiser name while the tensors carry no guides.
+        """
+        self._freeze(obj)
+        if denoiser is None:
+            return
+        from ..denoise import denoise_frozen, glossy_objects, make_denoiser
+
+        if isinstance(denoiser, str):
+            if self.tensors.guides is None:
+                raise ValueRangeError(
+                    "the tensors carry no guides (precomputed with guides=False); pass a denoiser callable"
+                )
+            denoiser = make_denoiser(self.tensors.guides, denoiser, glossy_objects(self.tensors))
+        fz = denoise_frozen(self._frozen, denoiser, (self.height, self.width))
+        fz["denoiser"] = getattr(denoiser, "description", type(denoiser).__name__)
+        self._frozen = fz
+
+    @property
+    def frozen_denoiser(self) -> str | None:
+        """What denoised the frozen tensor (:meth:`freeze`'s ``denoiser``), or None."""
+        return None if self._frozen is None else self._frozen.get("denoiser")
+
+    @tuned_method("polynomial.freeze", lambda r, *a, **k: sum(b.values.numel() for b in r.blocks))
+    def _freeze(self, obj) -> None:
         i, b = self._basis(obj)
         nb = self.max_bounces
         slots = b.second_size if self.two_level else 0
