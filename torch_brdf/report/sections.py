@@ -248,7 +248,7 @@ def gi_editing(results: dict) -> Section:
             if isinstance(rows, list):
                 ser.append(
                     Series(
-                        f"fixed {key}, spp doubled",
+                        f"fixed {key}, spp in steps of sqrt 2",
                         [p for row in rows for p in pt(row.get("seconds"), row.get("achieved_error"))],
                     )
                 )
