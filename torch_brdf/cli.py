@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import json
 import time
 import traceback
@@ -363,6 +364,120 @@ def edit(
     typer.echo(json.dumps(info))
 
 
+def _image_size(width: int | None, height: int | None, resolution: int | None, default: int) -> tuple[int, int]:
+    """``--width``/``--height`` of an image (``--resolution`` N: the N x N shorthand); unset sides
+    take ``resolution``, else ``default``."""
+    side = default if resolution is None else resolution
+    w, h = width or side, height or side
+    check_image_size(w, h, "--width/--height")
+    return w, h
+
+
+def _latent_list(text: str, option: str) -> list:
+    """``A:B:...`` of latent points (``0.1,-0.2``) or material names -> [tensor | name, ...]."""
+    import torch
+
+    out = []
+    for part in text.split(":"):
+        part = part.strip()
+        if not part:
+            raise ValueRangeError(f"{option}: empty point in {text!r} (points are 'x0,x1' or names, ':' between)")
+        if part[0].isdigit() or part[0] in "+-.":
+            try:
+                values = [float(v) for v in part.split(",")]
+            except ValueError:
+                raise ValueRangeError(f"{option}: {part!r} is neither a latent point 'x0,x1,...' nor a name") from None
+            for v in values:
+                check_real(v, option)
+            out.append(torch.tensor(values, dtype=torch.float64))
+        else:
+            out.append(part)
+    return out
+
+
+@app.command()
+@_cli
+def manifold(
+    fit: Path = typer.Argument(..., help="A GPLVM fit of NBRDF materials (trainers/fit_gplvm.py)."),
+    point: str = typer.Option(None, help="Latent point 'x0,x1' (one value per latent dimension) or a material name."),
+    path: str = typer.Option(
+        None, help="Waypoints 'A:B[:C...]' (latent points or names), rendered as --frames frames."
+    ),
+    frames: int = typer.Option(8, min=2, max=10000, help="Frames along --path, evenly spaced by latent length."),
+    best: bool = typer.Option(False, help="Follow the least-uncertain path (Dijkstra) between waypoints."),
+    grid: str = typer.Option("3,3,6", help="MERL strides th,td,pd of the rendered table (3,3,6: the default grid)."),
+    width: int = typer.Option(None, **_RESOLUTION, help="Image width (default --resolution)."),
+    height: int = typer.Option(None, **_RESOLUTION, help="Image height (default --resolution)."),
+    resolution: int = typer.Option(128, **_RESOLUTION, help="Shorthand for --width N --height N."),
+    spp: int = typer.Option(16, **_SPP),
+    bounces: int = typer.Option(1, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0, min=0),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, one for all frames)."),
+    out: Path = typer.Option(Path("out/manifold"), help="Output path without suffix; a path adds _000, _001, ..."),
+    progress: bool = PROGRESS,
+):
+    """Render the interpolated material at a latent point, or a path of frames, on a sphere (Soler et al.)."""
+    from itertools import pairwise
+
+    import torch
+
+    from .data import cache_path, data_path
+    from .manifold import GPLVM, GPLVMFit, MERLGrid, best_path, latent_points, nbrdf_observations, resample_path
+    from .manifold.materials import sphere_scene
+    from .render.manifold import render_rows
+
+    # every option is checked before the fit is read and the materials are tabulated
+    if (point is None) == (path is None):
+        raise ValueRangeError("give exactly one of --point (one image) and --path (frames)")
+    points = _latent_list(point, "--point") if point is not None else _latent_list(path, "--path")
+    if path is not None and len(points) < 2:
+        raise ValueRangeError(f"--path needs at least two waypoints 'A:B'; got {path!r}")
+    w, h = _image_size(width, height, resolution, 128)
+    try:
+        strides = [int(v) for v in grid.split(",")]
+    except ValueError:
+        strides = []
+    if len(strides) != 3:
+        raise ValueRangeError(f"--grid must be three strides th,td,pd (e.g. 3,3,6); got {grid!r}")
+    rows_grid = MERLGrid.strided(*strides)
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    model = GPLVM(GPLVMFit.load(fit))
+    way = latent_points(model, points)
+    if path is None:
+        xs = way
+    elif best:
+        legs = [best_path(model, a, b).waypoints for a, b in pairwise(way)]
+        xs = resample_path(torch.cat([legs[0], *[leg[1:] for leg in legs[1:]]]), frames)
+    else:
+        xs = resample_path(way, frames)
+    names = model.fit.names
+    key = f"merl_nbrdf_{rows_grid.digest()[:8]}_{hashlib.sha256(chr(10).join(names).encode()).hexdigest()[:8]}.npz"
+    t0 = time.perf_counter()
+    obs = nbrdf_observations(
+        data_path("merl", "nbrdf_merl100_weights.npz"), rows_grid, names, cache=cache_path(key), progress=progress
+    )
+    scene = sphere_scene(64).with_resolution(w, h)
+    images = render_rows(scene, "sample", model.blend(xs, obs.z), rows_grid, spp, bounces, seed, progress=progress)
+    seconds = time.perf_counter() - t0
+    if exposure is None:
+        from .io import auto_exposure
+
+        exposure = auto_exposure(images.reshape(-1, w, 3))  # one exposure for every frame
+    b, var = model.weights(xs), model.variance(xs)
+    results = []
+    for i, image in enumerate(images):
+        target = out if path is None else out.with_name(f"{out.name}_{i:03d}")
+        info = _write_image(target, image, exposure, seconds / len(images))
+        top = torch.argsort(b[i].abs(), descending=True)[:3].tolist()
+        info["latent"] = [round(float(v), 4) for v in xs[i]]
+        info["variance"] = round(float(var[i]), 6)
+        info["heaviest"] = [[names[k], round(float(b[i, k]), 3)] for k in top]
+        results.append(info)
+    summary = {"frames": results, "seconds": round(seconds, 3), "size": [w, h], "spp": spp, "grid": grid}
+    typer.echo(json.dumps(summary))
+
+
 @app.command("fit-strokes")
 @_cli
 def fit_strokes(
@@ -408,6 +523,7 @@ def fit_image_cmd(
     bounces: int = typer.Option(None, min=1, help="Fit with bounces 1..B only (1: direct lighting only)."),
     smoothness: float = typer.Option(0.0, min=0.0, help="Weight of the first-difference curve regulariser."),
     iterations: int = typer.Option(30, min=1, help="Gauss-Newton iterations."),
+    progress: bool = PROGRESS,
 ):
     """Fit band curves of objects to a target image through the GI polynomial tensors."""
     import numpy as np
@@ -427,7 +543,7 @@ def fit_image_cmd(
         sc = load_scene(scene or T.meta.get("scene", ""), T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=False)
+        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
@@ -438,7 +554,7 @@ def fit_image_cmd(
         m = read(mask).double()
         w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
     t0 = time.perf_counter()
-    res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations)
+    res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations, progress=progress)
     fit_s = time.perf_counter() - t0
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
@@ -526,7 +642,7 @@ def relight(
     if rotate:
         r.set_lighting(r.envmap.rotated(rotate))
     t0 = time.perf_counter()
-    image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
+    image, stats = r.render(method=method, progress=progress)
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     if stats is not None:
