@@ -91,6 +91,7 @@ def test_precompute_visibility_then_relight_with_default_names(tmp_path, monkeyp
     Path("tiny.toml").write_text(RELIGHT_TOML)
     res = runner.invoke(app, ["precompute-visibility", "tiny.toml", "--resolution", "16", "--no-progress"])
     assert res.exit_code == 0, res.output
+    assert "--resolution is deprecated; use --cubemap 16" in res.stderr  # the old name still works, and says so
     assert last_json(res.output)["out"] == str(Path("out/vis.npz")) and Path("out/vis.npz").is_file()
     assert not Path("out/vis.chunks").exists()  # the checkpoint folder is removed on success
     res = runner.invoke(app, ["relight", "tiny.toml", "--resolution", "12"])  # reads out/vis.npz by default
@@ -259,6 +260,7 @@ ROW_ARGS = {
     "precompute-visibility": ["tiny.toml", "--cubemap", "16", "--chunk", "4"],
     "relight": ["tiny.toml", "--resolution", "12"],
     "fit-image": ["out/tensors.npz", "--target", "out/edit.exr", "--object", "back", "--iterations", "2"],
+    "fit-gplvm": ["--grid", "15,15,30", "--max-iter", "20"],
     "manifold": ["out/gplvm.npz", "--point", "chrome", "--grid", "15,15,30", "--resolution", "16", "--spp", "2"],
     "editor": ["tiny.toml", "--resolution", "8", "--spp", "2", "--series", "2,1"],
     "fetch-data": ["--dest", "data", "--file", "meshes/teapot.obj"],
@@ -313,12 +315,9 @@ def test_every_row_of_the_readme_table_runs(tmp_path, monkeypatch, request):
     Path("strokes.json").write_text(json.dumps(strokes | {"display_size": [64, 48]}))
     skipped = {}
     for name, args in ROW_ARGS.items():
-        if name == "manifold":  # its FIT comes from the trainer the row names
-            if data_path("merl", "nbrdf_merl100_weights.npz", required=False) is None:
-                skipped[name] = "needs the shared NBRDF data"
-                continue
-            trainer = _load_trainer("fit_gplvm")
-            trainer.main(["--q", "2", "--out", "out/gplvm.npz", "--grid", "15,15,30", "--max-iter", "20"])
+        if name in ("fit-gplvm", "manifold") and data_path("merl", "nbrdf_merl100_weights.npz", required=False) is None:
+            skipped[name] = "needs the shared NBRDF data"
+            continue
         if name == "fetch-data":
             try:
                 url, _ = request.getfixturevalue("mirror")
@@ -346,3 +345,49 @@ def test_every_row_of_the_readme_table_runs(tmp_path, monkeypatch, request):
     assert {p.name for p in tmp_path.iterdir()} <= {"out", "data", "cache", "served", "tiny.toml", "strokes.json"}
     if skipped:
         pytest.skip(f"rows not run: {skipped}")
+
+
+@pytest.mark.parametrize("script", sorted(p.stem for p in (README.parent / "trainers").glob("*.py")))
+def test_trainer_help_is_the_cli_and_does_not_import_torch(script):
+    """``python trainers/X.py --help`` prints the matching CLI command's options without loading
+    torch (checked with ``-X importtime``, not a wall clock)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(README.parent)}
+    cmd = [sys.executable, "-X", "importtime", str(README.parent / "trainers" / f"{script}.py"), "--help"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    loaded = {ln.rsplit("|", 1)[-1].strip() for ln in res.stderr.splitlines() if ln.startswith("import time:")}
+    assert "torch" not in loaded and "numpy" not in loaded, "--help imported torch/numpy"
+    usage = re.search(r"Usage: torch-brdf ([\w-]+)", res.stdout)
+    assert usage, res.stdout
+    cli = commands()[usage[1]]
+    for p in cli.params:  # the trainer's options are the command's
+        for opt in () if getattr(p, "hidden", False) else p.opts:
+            if opt.startswith("--"):
+                assert opt in res.stdout, f"{script}: {opt} missing from --help"
+
+
+def test_width_and_height_everywhere_an_image_is_made(tmp_path, monkeypatch):
+    from torch_brdf.records import PolynomialTensors
+
+    monkeypatch.chdir(tmp_path)
+    Path("tiny.toml").write_text(RELIGHT_TOML)
+    small = ["--spp", "1", "--no-progress"]
+    for name, extra in {"demo": [], "render": ["tiny.toml"]}.items():
+        res = runner.invoke(app, [name, *extra, "--width", "16", "--height", "8", *small, "--out", f"out/{name}"])
+        assert res.exit_code == 0, res.output
+        assert read_exr(Path(f"out/{name}.exr")).shape == (8, 16, 3)
+    res = runner.invoke(app, ["render", "tiny.toml", "--resolution", "12", "--height", "8", *small])
+    assert res.exit_code == 0 and last_json(res.output)["size"] == [12, 8]  # one side from --resolution
+    args = ["precompute", "tiny.toml", "--width", "10", "--height", "8", "--series", "2,1", *small]
+    assert runner.invoke(app, args).exit_code == 0
+    T = PolynomialTensors.load("out/tensors.npz")
+    assert (T.width, T.height) == (10, 8)
+    assert runner.invoke(app, ["precompute-visibility", "tiny.toml", "--cubemap", "16", *small[2:]]).exit_code == 0
+    res = runner.invoke(app, ["relight", "tiny.toml", "--width", "12", "--height", "9"])
+    assert res.exit_code == 0 and read_exr(Path("out/relight.exr")).shape == (9, 12, 3)
+    res = runner.invoke(app, ["render", "tiny.toml", "--width", "99999"])
+    assert res.exit_code == 2 and "--width" in res.output

@@ -31,16 +31,14 @@ import functools
 import math
 import operator
 import os
-import sys
 import threading
 import time
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-_TORCH_FIRST = "torch" in sys.modules
-if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective before that
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from . import _TORCH_FIRST  # the package set OMP_WAIT_POLICY, unless torch came first
+
 _WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY")
 
 import torch  # noqa: E402  (after OMP_WAIT_POLICY)

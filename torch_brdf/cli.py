@@ -1,5 +1,6 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
-``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``, ``editor`` and ``fetch-data``.
+``fit-gplvm``, ``manifold``, ``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``,
+``editor`` and ``fetch-data``.
 
 Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
 never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
@@ -52,6 +53,9 @@ _STATE = {"debug": False}
 
 #: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
 PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
+#: ``--width`` / ``--height`` of every command that makes an image (``--resolution``: both at once)
+WIDTH = typer.Option(None, min=8, max=MAX_IMAGE_SIDE, help="Image width (default: --resolution, else the scene's).")
+HEIGHT = typer.Option(None, min=8, max=MAX_IMAGE_SIDE, help="Image height (default: --resolution, else the scene's).")
 
 
 def _version(value: bool) -> None:
@@ -136,13 +140,19 @@ def _json_object(text: str | None, option: str) -> dict | None:
     return value
 
 
-def load_scene(spec: str, resolution: int | None = None):
-    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; ``resolution`` square)."""
+def load_scene(spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None):
+    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file) at ``--width`` x ``--height``;
+    ``--resolution`` N is the N x N shorthand; an unset side keeps ``resolution``, else the scene's."""
     from .scene import load_scene as load
 
     if resolution is not None:
         check_image_size(resolution, resolution, "--resolution")
-    return load(spec, resolution)
+    if width is not None or height is not None:
+        check_image_size(width or 8, height or 8, "--width/--height")  # before the scene is loaded
+    scene = load(spec, resolution)
+    if width is None and height is None:
+        return scene
+    return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
 
 
 def _render_to(
@@ -205,13 +215,15 @@ _BOUNCES = {"min": 1, "max": MAX_BOUNCES}
 def demo(
     out: Path = typer.Option(Path("out/cornell_box"), help="Output path without suffix (.exr and .png are written)."),
     resolution: int = typer.Option(256, **_RESOLUTION, help="Image width = height."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     spp: int = typer.Option(16, **_SPP, help="Samples per pixel."),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
     progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
-    scene = load_scene("cornell_box", resolution)
+    scene = load_scene("cornell_box", resolution, width, height)
     info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
@@ -222,6 +234,8 @@ def render(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     spp: int = typer.Option(16, **_SPP),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0),
@@ -232,7 +246,7 @@ def render(
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
     if exposure is not None:
         check_real(exposure, "--exposure")
-    sc = load_scene(scene, resolution)
+    sc = load_scene(scene, resolution, width, height)
     info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
@@ -255,6 +269,8 @@ def precompute(
     series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
     spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     seed: int = typer.Option(0, min=0),
     bases: str = typer.Option(None, help='JSON per-object basis overrides, e.g. \'{"left": {"J": 8}}\'.'),
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
@@ -285,7 +301,7 @@ def precompute(
             raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
         if "J" in spec:
             check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
-    sc = load_scene(scene, resolution)
+    sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
     T = precompute_polynomial(
@@ -364,13 +380,44 @@ def edit(
     typer.echo(json.dumps(info))
 
 
-def _image_size(width: int | None, height: int | None, resolution: int | None, default: int) -> tuple[int, int]:
-    """``--width``/``--height`` of an image (``--resolution`` N: the N x N shorthand); unset sides
-    take ``resolution``, else ``default``."""
-    side = default if resolution is None else resolution
-    w, h = width or side, height or side
-    check_image_size(w, h, "--width/--height")
-    return w, h
+@app.command("fit-gplvm")
+@_cli
+def fit_gplvm_cmd(
+    q: int = typer.Option(2, min=1, max=16, help="Latent dimension (2..5 in the paper)."),
+    out: Path = typer.Option(Path("out/gplvm.npz"), help="Fit file to write (.npz, versioned, checksummed)."),
+    grid: str = typer.Option("default", help="MERL grid: 'default', 'full' (streamed Gram) or strides 'th,td,pd'."),
+    binaries: Path = typer.Option(None, help="Folder of real MERL .binary files (default: the NBRDF data)."),
+    split: Path = typer.Option(None, help="Fit on the 'train' names of this split file (datasets/merl_split.txt)."),
+    cache: Path = typer.Option(None, help="Cache folder (default $TORCH_BRDF_CACHE, else ~/.cache/torch_brdf)."),
+    method: str = typer.Option("lbfgs", help="lbfgs, adam or hooke-jeeves."),
+    max_iter: int = typer.Option(1000, min=1, help="Optimiser iterations."),
+    mu: float = typer.Option(1e-6, min=0.0, help="Kernel shift mu (Eq. 5)."),
+    lengthscale: float = typer.Option(1.0, min=0.0, help="Kernel length scale."),
+    cosine: bool = typer.Option(True, help="Weight the fit by the clipped cosine map (--no-cosine: raw values)."),
+    seed: int = typer.Option(0, min=0),
+    progress: bool = PROGRESS,
+):
+    """Fit the GPLVM BRDF manifold (Soler et al. 2017) on measured materials and save the fit."""
+    import torch
+
+    from .manifold import fit_gplvm
+    from .manifold.train import parse_grid, training_gram
+
+    if method not in ("lbfgs", "adam", "hooke-jeeves"):
+        raise ValueRangeError(f"--method must be lbfgs, adam or hooke-jeeves; got {method!r}")
+    parse_grid(grid)  # before any data is read
+    s, d, names, meta = training_gram(grid, binaries, split, cache, cosine, progress)
+    gen = torch.Generator().manual_seed(seed)
+    fit = fit_gplvm(s, d, q, lengthscale=lengthscale, mu=mu, method=method, max_iter=max_iter, names=names,
+                    generator=gen, progress=progress)  # fmt: skip
+    fit = type(fit)(**{**fit.__dict__, "meta": {**fit.meta, **{k: v for k, v in meta.items() if k != "names"}}})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fit.save(out)
+    info = {"out": str(out), "q": fit.q, "n": fit.n, "d": fit.d, "loglik": fit.final_loglik}
+    info |= {"iterations": fit.iterations, "seconds": round(fit.seconds, 3), "jitter": fit.jitter}
+    info |= {k: v for k, v in meta.items() if k != "names"}
+    typer.echo(json.dumps(info))
+    return info
 
 
 def _latent_list(text: str, option: str) -> list:
@@ -406,9 +453,9 @@ def manifold(
     frames: int = typer.Option(8, min=2, max=10000, help="Frames along --path, evenly spaced by latent length."),
     best: bool = typer.Option(False, help="Follow the least-uncertain path (Dijkstra) between waypoints."),
     grid: str = typer.Option("3,3,6", help="MERL strides th,td,pd of the rendered table (3,3,6: the default grid)."),
-    width: int = typer.Option(None, **_RESOLUTION, help="Image width (default --resolution)."),
-    height: int = typer.Option(None, **_RESOLUTION, help="Image height (default --resolution)."),
-    resolution: int = typer.Option(128, **_RESOLUTION, help="Shorthand for --width N --height N."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
+    resolution: int = typer.Option(128, **_RESOLUTION, help="Image width = height (unless --width/--height)."),
     spp: int = typer.Option(16, **_SPP),
     bounces: int = typer.Option(1, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0),
@@ -432,7 +479,8 @@ def manifold(
     points = _latent_list(point, "--point") if point is not None else _latent_list(path, "--path")
     if path is not None and len(points) < 2:
         raise ValueRangeError(f"--path needs at least two waypoints 'A:B'; got {path!r}")
-    w, h = _image_size(width, height, resolution, 128)
+    w, h = width or resolution, height or resolution
+    check_image_size(w, h, "--width/--height")
     try:
         strides = [int(v) for v in grid.split(",")]
     except ValueError:
@@ -494,6 +542,8 @@ def fit_strokes(
     unconstrained: bool = typer.Option(False, help="Allow physically impossible BRDFs."),
     cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
+    keep_weight: float = typer.Option(1.0, min=0.0, help="Fit weight of the object's unpainted pixels."),
+    render_scale: float = typer.Option(1.0, min=0.01, max=16.0, help="Re-render size relative to the display."),
     seed: int = typer.Option(0, min=0),
     progress: bool = PROGRESS,
 ):
@@ -501,11 +551,12 @@ def fit_strokes(
     from .inverse.design import DesignConfig, design, load_strokes
 
     check_image_size(width, height, "--width/--height")
-    for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate")):
+    for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate"), (keep_weight, "--keep-weight")):
         check_real(value, option)
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
-    cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
+    constrained = not unconstrained
+    cfg = DesignConfig(obj, downsample, samples, kd, f0, constrained, cuts, keep_weight, rotate, render_scale, seed)
     typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress)))
 
 
@@ -577,9 +628,8 @@ def fit_image_cmd(
 def precompute_visibility_cmd(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
-    resolution: int = typer.Option(
-        64, "--resolution", "--cubemap", help="Cubemap texels per face side (a multiple of 16: 64 or 128)."
-    ),
+    cubemap: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
+    resolution: int = typer.Option(None, hidden=True, help="Deprecated here: the cubemap size (use --cubemap)."),
     supersample: int = typer.Option(1, min=1, max=16, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
     bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
     chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
@@ -593,7 +643,11 @@ def precompute_visibility_cmd(
     from .sphere.cubemap import CubemapBlocks
     from .transport.visibility import BITS, precompute_visibility
 
-    check_int(resolution, "--resolution", 16, MAX_CUBEMAP_RESOLUTION)
+    if resolution is not None:  # the old name: a cubemap size here, an image size everywhere else
+        typer.echo(f"warning: precompute-visibility --resolution is deprecated; use --cubemap {resolution} "
+                   "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
+        cubemap = resolution
+    resolution = check_int(cubemap, "--cubemap", 16, MAX_CUBEMAP_RESOLUTION)
     CubemapBlocks(resolution, 16)  # a multiple of the block size
     if bits not in BITS:
         raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
@@ -625,6 +679,8 @@ def relight(
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
@@ -636,7 +692,7 @@ def relight(
     check_real(rotate, "--rotate")
     if exposure is not None:
         check_real(exposure, "--exposure")
-    sc = load_scene(scene, resolution)
+    sc = load_scene(scene, resolution, width, height)
     vis = VertexVisibility.load(visibility)
     r = TripleProductRenderer(sc, vis)
     if rotate:
