@@ -29,50 +29,8 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.editor`: the interactive material editor in the browser (ipywidgets, Voilà).
 """
 
-import importlib
-import importlib.util
-import os
-import sys
-
-from . import errors
+from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
 from .errors import TorchBRDFError
-
-#: torch was imported before torch_brdf (then OMP_WAIT_POLICY set here cannot take effect)
-_TORCH_FIRST = "torch" in sys.modules
-if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective before that
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
-class _AfterTorch:
-    """A meta-path finder that runs :mod:`torch_brdf._threads` (thread caps) right after torch
-    loads, so that ``import torch_brdf`` itself stays free of torch: ``torch-brdf --help`` and
-    ``python trainers/X.py --help`` answer without the seconds torch takes to import."""
-
-    def find_spec(self, name, path=None, target=None):
-        if name != "torch":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.util.find_spec("torch")
-        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
-            return spec
-        run = spec.loader.exec_module
-
-        def exec_module(module):
-            run(module)
-            del spec.loader.exec_module  # back to the loader's own method
-            importlib.import_module(f"{__name__}._threads")
-
-        spec.loader.exec_module = exec_module
-        return spec
-
-    def invalidate_caches(self):
-        pass
-
-
-if _TORCH_FIRST:
-    from . import _threads  # noqa: F401
-elif not any(isinstance(f, _AfterTorch) for f in sys.meta_path):
-    sys.meta_path.insert(0, _AfterTorch())
 
 __version__ = "0.1.0"
 __all__ = ["TorchBRDFError", "__version__", "errors"]
