@@ -714,7 +714,9 @@ def editor(
     resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
     spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
     series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
-    cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
+    cache: Path = typer.Option(
+        None, help="Where precomputed tensors are kept for the next start (default $TORCH_BRDF_CACHE/editor)."
+    ),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
@@ -725,7 +727,9 @@ def editor(
     check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
-    serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
+    from .data import cache_dir
+
+    serve({**config, "seed": 0, "cache_dir": str(cache or cache_dir() / "editor")}, port=port, echo=typer.echo)
 
 
 @app.command("fetch-data")
