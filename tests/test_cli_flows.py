@@ -96,6 +96,7 @@ def test_precompute_visibility_then_relight_with_default_names(tmp_path, monkeyp
     assert not Path("out/vis.chunks").exists()  # the checkpoint folder is removed on success
     res = runner.invoke(app, ["relight", "tiny.toml", "--resolution", "12"])  # reads out/vis.npz by default
     assert res.exit_code == 0, res.output
+    assert "box (8 vertices), floor (5 vertices) too coarse" in res.stderr  # per-vertex shading: says so
     assert read_exr(Path("out/relight.exr")).shape == (12, 12, 3)
 
 

@@ -205,6 +205,8 @@ def _write_image(out: Path, image, exposure: float | None, seconds: float) -> di
     return paths | {"seconds": round(seconds, 3), "exposure": stops}
 
 
+#: ``relight`` warns about objects with fewer vertices (per-vertex lighting cannot show detail on them)
+COARSE_VERTICES = 64
 _RESOLUTION = {"min": 8, "max": MAX_IMAGE_SIDE}
 _SPP = {"min": 1, "max": MAX_SAMPLES}
 _BOUNCES = {"min": 1, "max": MAX_BOUNCES}
@@ -693,6 +695,10 @@ def relight(
     if exposure is not None:
         check_real(exposure, "--exposure")
     sc = load_scene(scene, resolution, width, height)
+    coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
+    if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
+        typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
+                   "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
     vis = VertexVisibility.load(visibility)
     r = TripleProductRenderer(sc, vis)
     if rotate:
