@@ -33,6 +33,12 @@ Prints progress lines, then one JSON object as the last line:
   fallback, ``admm_fallback``, ``proxqp`` at eps 1e-10, ``clarabel`` defaults): ``solved``
   (objective within 1e-6 relative of the reference -- ProxQP at eps 1e-12, Clarabel where it
   returns nothing -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
+* ``ridge_effect``: lobes no pixel constrains (see :func:`ridge_effect`): a target inside the
+  SRBF family weighted on central patches of 2 / 5 / 15 % of the object's pixels or on its left
+  half, fitted with ``ridge`` 0 / 1e-8 (default) / 1e-6: coefficient error, max energy
+  (``true_max_energy`` beside it), sum of squares and the re-render's relative RMSE under the
+  sky turned by 2.5 rad;
+* ``load``: 1-minute load average at the end (the machine is shared; timings vary).
 
 The reference solvers need the ``reference`` extra; without it their fields are null.
 """
@@ -59,6 +65,7 @@ from torch_brdf.inverse import (
     CutOptions,
     LightSamples,
     Stroke,
+    StrokeTarget,
     cosine_visibility,
     energy_rows,
     fit,
@@ -72,7 +79,18 @@ from torch_brdf.metrics import relative_rmse
 from torch_brdf.scene import teatray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' QP set
-from tests.inverse.qp_set import objective_gap, qp_set, reference_solution, violation
+from tests.inverse.qp_set import F0 as SET_F0
+from tests.inverse.qp_set import KD as SET_KD
+from tests.inverse.qp_set import (
+    half,
+    objective_gap,
+    qp_set,
+    reference_solution,
+    render_brdf,
+    srbf_brdf,
+    true_coefficients,
+    violation,
+)
 
 F0, KD = 0.9, 0.3
 
@@ -171,6 +189,49 @@ def qp_set_benchmark(px, ls, vis, rec) -> dict:
     return out
 
 
+def ridge_effect(scene, px, ls, vis, seed: int, angle: float = 2.5) -> dict:
+    """Lobes no pixel constrains: the minimum-norm term's effect on partial-mask fits and their re-render.
+
+    Target: the render of :func:`true_coefficients` (inside the SRBF family, the QP set's KD/F0)
+    weighted only on a mask: the 2 %, 5 % or 15 % of the object's pixels nearest its centre (a
+    painted patch) or the left half (the QP set's ``half``). Fits with ``ridge`` 0 (the
+    unregularised optimum), 1e-8 (the default) and 1e-6; per mask and fit: relative coefficient
+    error, max energy (``true_max_energy`` beside it), sum of squares, and the relative RMSE
+    over the object of the re-render under the sky turned by ``angle`` rad (new light samples
+    and visibility) against the truth rendered the same way.
+    """
+    truth = true_coefficients()[:, None].expand(147, 3)
+    f0 = list(SET_F0)
+    rec = transfer_functions(px, ls, vis, f0=f0)
+    exact = render_brdf(px, ls, vis, srbf_brdf(true_coefficients()))
+    r = torch.div(rec.pixels, rec.width, rounding_mode="floor").double()
+    c = (rec.pixels % rec.width).double()
+    dist = ((r - r.mean()) ** 2 + (c - c.mean()) ** 2).sqrt()
+    masks = {f"patch_{round(100 * sh)}pct": (dist <= dist.quantile(sh)).double() for sh in (0.02, 0.05, 0.15)}
+    masks["half"] = half(rec, exact).weight
+    g2 = torch.Generator().manual_seed(seed + 1)
+    ls2 = LightSamples.from_environment(scene.environment.rotated(angle), ls.count, g2)
+    rec2 = transfer_functions(px, ls2, cosine_visibility(scene, px, ls2), f0=f0)
+    kd = torch.tensor(SET_KD, dtype=torch.float64)
+    want = rec2.pixel_values(torch.cat((truth, kd[None])))
+    g = energy_rows().rows(f0)
+    out = {"true_max_energy": float((kd[:, None] + torch.einsum("clj,jc->cl", g, truth)).max())}
+    for name, w in masks.items():
+        target = StrokeTarget(exact, w, w > 0)
+        row = {"pixels": int(w.sum())}
+        for ridge in (0.0, 1e-8, 1e-6):
+            res = fit(rec, target, kd=SET_KD, ridge=ridge)
+            row[f"ridge_{ridge:g}"] = {
+                "coef_rel_err": round(float((res.coefficients - truth).norm() / truth.norm()), 5),
+                "max_energy": round(float(res.max_energy), 5),
+                "objective": res.objective,
+                "rerender_rel_rmse": round(relative_rmse(rec2.pixel_values(res.record_coefficients()), want), 6),
+            }
+        out[name] = row
+        print(f"minimum-norm term, {name}: {row}", flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="80x60 solving frame, 128 light samples")
@@ -247,6 +308,8 @@ def main() -> None:
         "solve_over_proxqp": None if proxqp_s is None else round(solve_s / proxqp_s, 3),
         "objective_rel_diff_proxqp": None if proxqp_obj is None else (objective - proxqp_obj) / proxqp_obj,
         "qp_set": qp_set_benchmark(px, ls, vis, rec),
+        "ridge_effect": ridge_effect(scene, px, ls, vis, args.seed),
+        "load": os.getloadavg()[0],
         "quick": bool(args.quick),
     }
     print(json.dumps(out))

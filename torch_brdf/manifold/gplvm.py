@@ -16,7 +16,7 @@ iterations):
 
 * ``"lbfgs"`` (default): L-BFGS (two-loop recursion, memory 20) on the exact gradient — closed
   form :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
-  ``autograd=True`` (equal, tested) — with torch's strong-Wolfe line search (c1 = 1e-4,
+  ``autograd=True`` (equal, tested) — with our strong-Wolfe line search (:mod:`.linesearch`, c1 = 1e-4,
   c2 = 0.9) and, where it ends on a point that does not raise ``L``, a backtracking Armijo
   search; when no step length passes, the curvature memory is dropped, then the fit stops.
 * ``"adam"``: autograd + Adam, a step that lowers ``L`` is undone and the learning rate halved.
@@ -42,7 +42,6 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
-from torch.optim.lbfgs import _strong_wolfe  # torch's strong-Wolfe line search (a plain function)
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
@@ -50,9 +49,12 @@ from ..data import progress_default
 from ..errors import NumericalError, ShapeError, ValueRangeError
 from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
+from .linesearch import strong_wolfe
 
 FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
+#: the default warm-up mu of :func:`fit_gplvm` (the seed's mu): fits at a smaller mu start there
+WARMUP_MU = 1e-6
 
 
 # -- Gram matrix ----------------------------------------------------------------------------------
@@ -206,6 +208,8 @@ def fit_gplvm(
     generator: torch.Generator | None = None,
     progress: bool | None = None,
     callback: Callable[[int, float], None] | None = None,
+    warmup_mu: float | None = WARMUP_MU,
+    warmup_fraction: float = 0.2,
 ) -> GPLVMFit:
     r"""Maximise the GPLVM log-likelihood (seed Eq. 6) over the latents, from a PCA start.
 
@@ -231,6 +235,14 @@ def fit_gplvm(
             seeded perturbation (1e-6 of the latent spread); None = ``torch.default_generator``.
         progress: tqdm bar over iterations.
         callback: called as ``callback(iteration, loglik)`` after every accepted iteration.
+        warmup_mu, warmup_fraction: continuation in :math:`\mu` (L-BFGS only): when ``mu`` is
+            below ``warmup_mu``, the first ``warmup_fraction`` of ``max_iter`` iterations maximise
+            L at ``warmup_mu`` (a better conditioned K), the rest at ``mu`` from there. The
+            recorded ``loglik`` is that of the final ``mu`` only (non-decreasing);
+            ``meta["warmup"]`` gives the warm-up's ``mu``, iterations and seconds (counted in
+            ``seconds``). None (or ``mu >= warmup_mu``) = no warm-up. At ``mu = 1e-10`` the PCA
+            start has a hugely negative L (near-coincident latents make K nearly singular) and
+            the warm-up reaches a higher final L with the same budget (README, "BRDF manifold").
     Returns:
         :class:`GPLVMFit`.
     Raises:
@@ -256,8 +268,19 @@ def fit_gplvm(
         x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
         if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
             raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
-    jitter = _initial_jitter(x0, lengthscale, mu, jitter_floor, jitter_cap)
+    if not 0 <= warmup_fraction < 1:
+        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
     t0 = time.perf_counter()
+    meta = {}
+    n_warm = round(warmup_fraction * max_iter)
+    if method == "lbfgs" and warmup_mu is not None and warmup_mu > mu and n_warm > 0:
+        jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
+        with small_matrix_mode(n):
+            x0, hist_w, _, _ = _fit_lbfgs(x0, s, d, lengthscale, warmup_mu, jw, n_warm, tol, lr, progress, None,
+                                          jitter_floor, jitter_cap, autograd)  # fmt: skip
+        meta["warmup"] = {"mu": float(warmup_mu), "iterations": len(hist_w) - 1, "seconds": time.perf_counter() - t0}
+        max_iter -= n_warm
+    jitter = _initial_jitter(x0, lengthscale, mu, jitter_floor, jitter_cap)
     with small_matrix_mode(n):
         run = {"lbfgs": _fit_lbfgs, "adam": _fit_adam, "hooke-jeeves": _fit_hooke_jeeves}[method]
         x, hist, rejected, jitter = run(
@@ -283,6 +306,7 @@ def fit_gplvm(
         rejected=rejected,
         seconds=seconds,
         names=tuple(names),
+        meta=meta,
     )
 
 
@@ -350,22 +374,20 @@ def _value_and_grad(x: torch.Tensor, s, d, ell, mu, autograd: bool = False) -> t
 
 
 def _wolfe_step(x, p, f, g, slope, s, d, ell, mu, autograd) -> tuple[float, torch.Tensor | None, float]:
-    """One strong-Wolfe line search (c1 = 1e-4, c2 = 0.9; ``torch.optim.lbfgs._strong_wolfe``) along
+    """One strong-Wolfe line search (c1 = 1e-4, c2 = 0.9; :func:`.linesearch.strong_wolfe`) along
     the ascent direction ``p`` from ``x``: returns (L, grad, step) at the accepted point."""
     scale = float(x.shape[0] * d)
-    shape = x.shape
 
-    def obj(xf, t, dirn):
-        fv, gv = _value_and_grad((xf + t * dirn).reshape(shape), s, d, ell, mu, autograd)
-        if gv is None:  # K not positive definite: an infinitely bad value (the search bisects)
-            return math.inf, torch.zeros_like(dirn)
-        return -fv / scale, -gv.reshape(-1) / scale
+    def phi(t):
+        fv, gv = _value_and_grad(x + t * p, s, d, ell, mu, autograd)
+        if gv is None:  # K not positive definite: an infinitely bad value (the search shrinks the step)
+            return math.inf, math.nan, None
+        return -fv / scale, -float((gv * p).sum()) / scale, gv
 
-    f_new, g_new, t, _ = _strong_wolfe(obj, x.reshape(-1), 1.0, p.reshape(-1), -f / scale, -g.reshape(-1) / scale,
-                                       -slope / scale)  # fmt: skip
-    if not math.isfinite(float(f_new)):
+    res = strong_wolfe(phi, -f / scale, -slope / scale, 1.0)
+    if res.payload is None or not res.step > 0:
         return -math.inf, None, 0.0
-    return -float(f_new) * scale, -g_new.reshape(shape) * scale, float(t)
+    return -res.value * scale, res.payload, res.step
 
 
 def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
@@ -408,7 +430,7 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
             slope = float((g * p).sum())
         t = 1.0
         accepted = False
-        # strong-Wolfe line search (torch's, on -L / (N d)); the Armijo backtracking below is the
+        # strong-Wolfe line search (ours, on -L / (N d)); the Armijo backtracking below is the
         # fallback when it ends on a non-finite or non-increasing point
         fn, gn, t_sw = _wolfe_step(x, p, f, g, slope, s, d, ell, mu + jitter, autograd)
         if gn is not None and math.isfinite(fn) and fn >= f + 1e-4 * t_sw * slope and t_sw > 0:
