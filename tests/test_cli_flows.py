@@ -392,3 +392,29 @@ def test_width_and_height_everywhere_an_image_is_made(tmp_path, monkeypatch):
     assert res.exit_code == 0 and read_exr(Path("out/relight.exr")).shape == (9, 12, 3)
     res = runner.invoke(app, ["render", "tiny.toml", "--width", "99999"])
     assert res.exit_code == 2 and "--width" in res.output
+
+
+def test_render_quick_mesh_and_envmap(tmp_path, monkeypatch):
+    import torch
+    import trimesh
+
+    from torch_brdf.io import write_exr
+    from torch_brdf.scene import mesh_scene
+
+    monkeypatch.chdir(tmp_path)
+    trimesh.creation.capsule(height=2.0, radius=0.4).export("thing.ply")  # tall: scaled to 1.6 high
+    write_exr(Path("red.exr"), torch.tensor([1.0, 0.05, 0.05]).expand(16, 32, 3).contiguous())
+    sc = mesh_scene("thing.ply", 32)
+    xy = sc.camera.project(torch.as_tensor(sc.objects[0].mesh.vertices, dtype=torch.float64))
+    assert bool((xy > 0).all() and (xy < 32).all())  # framed: the whole mesh is in view
+    args = ["render", "--mesh", "thing.ply", "--width", "24", "--height", "16", "--spp", "2", "--no-progress"]
+    assert runner.invoke(app, [*args, "--out", "out/sky"]).exit_code == 0
+    res = runner.invoke(app, [*args, "--envmap", "red.exr", "--out", "out/red"])
+    assert res.exit_code == 0, res.output
+    sky, red = read_exr(Path("out/sky.exr")), read_exr(Path("out/red.exr"))
+    assert sky.shape == red.shape == (16, 24, 3)
+    assert float(red[..., 0].mean()) > 5 * float(red[..., 2].mean())  # lit by the red map, not the sky
+    res = runner.invoke(app, ["render", "tiny.toml", "--mesh", "thing.ply"])
+    assert res.exit_code == 2 and "not both" in res.output
+    res = runner.invoke(app, ["render", "--mesh", "nothing.ply"])
+    assert res.exit_code == 2 and "--mesh" in res.output

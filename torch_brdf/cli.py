@@ -140,19 +140,42 @@ def _json_object(text: str | None, option: str) -> dict | None:
     return value
 
 
-def load_scene(spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None):
-    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file) at ``--width`` x ``--height``;
-    ``--resolution`` N is the N x N shorthand; an unset side keeps ``resolution``, else the scene's."""
+def load_scene(
+    spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None, make=None
+):
+    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; or ``make(resolution)``) at
+    ``--width`` x ``--height``; ``--resolution`` N is the N x N shorthand; an unset side keeps
+    ``resolution``, else the scene's."""
     from .scene import load_scene as load
 
     if resolution is not None:
         check_image_size(resolution, resolution, "--resolution")
     if width is not None or height is not None:
         check_image_size(width or 8, height or 8, "--width/--height")  # before the scene is loaded
-    scene = load(spec, resolution)
+    scene = make(resolution or 256) if make is not None else load(spec, resolution)
     if width is None and height is None:
         return scene
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
+
+
+def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resolution, width, height):
+    """SCENE, or ``--mesh FILE`` (:func:`torch_brdf.scene.mesh_scene`); ``--envmap FILE`` replaces
+    the scene's lights by that lat-long map."""
+    import dataclasses
+
+    from .scene import EnvironmentMap, mesh_scene
+
+    if (spec is None) == (mesh is None):
+        raise ValueRangeError("give a SCENE (built-in name or TOML file) or --mesh FILE, not both")
+    for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
+        if path is not None and not path.is_file():
+            raise SceneError(f"{option}: no such file: {path}")
+    env = EnvironmentMap.from_exr(envmap) if envmap is not None else None
+    if mesh is not None:
+        sc = load_scene(f"mesh:{mesh}", resolution, width, height, lambda r: mesh_scene(mesh, r, env))
+        return sc
+    sc = load_scene(spec, resolution, width, height)
+    return sc if env is None else dataclasses.replace(sc, lights=[env])
 
 
 def _render_to(
@@ -233,7 +256,9 @@ def demo(
 @app.command()
 @_cli
 def render(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(None, help="Built-in scene name or a TOML scene file (or --mesh)."),
+    mesh: Path = typer.Option(None, help="Quick scene: this mesh file (OBJ, PLY, ...) on a plane, framed."),
+    envmap: Path = typer.Option(None, help="Light the scene with this lat-long EXR instead of its own lights."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
     width: int = WIDTH,
@@ -248,7 +273,7 @@ def render(
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
     if exposure is not None:
         check_real(exposure, "--exposure")
-    sc = load_scene(scene, resolution, width, height)
+    sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
     info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
