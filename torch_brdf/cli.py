@@ -588,6 +588,7 @@ def fit_strokes(
 
 
 @app.command("fit-image")
+@_cli
 def fit_image_cmd(
     source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
     target: Path = typer.Option(..., help="Target image (.exr or .png) at the tensors' size."),
