@@ -1,6 +1,6 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
 ``fit-gplvm``, ``manifold``, ``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``,
-``editor`` and ``fetch-data``.
+``editor``, ``fetch-data`` and ``report``.
 
 Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
 never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
@@ -777,6 +777,24 @@ def fetch_data_cmd(
 
     paths = fetch_data(dest, url, file or None, progress)
     typer.echo(json.dumps({"files": [str(p) for p in paths]}))
+
+
+@app.command()
+@_cli
+def report(
+    out: Path = typer.Option(Path("out/report"), help="Folder for report.html, its PNGs and the run records."),
+    quick: bool = typer.Option(False, "--quick", help="Run every benchmark with --quick (the small version)."),
+    results: Path = typer.Option(None, help="Read saved benchmark JSON from this folder instead of running."),
+    only: list[str] = typer.Option(None, help="Run only this benchmark (repeatable; e.g. --only extremes)."),
+    benchmarks: Path = typer.Option(None, help="The benchmarks/ folder (default ./benchmarks or the checkout's)."),
+    timeout: float = typer.Option(None, min=1.0, help="Seconds per benchmark (default 1800 quick, 14400 full)."),
+    progress: bool = PROGRESS,
+):
+    """Run every benchmark (or read their JSON) and write the speed/accuracy report page."""
+    from .report import make_report
+
+    page = make_report(out, quick, results, only or None, benchmarks, timeout, progress)
+    typer.echo(json.dumps({"report": str(page), "pngs": sorted(str(p) for p in page.parent.glob("*.png"))}))
 
 
 if __name__ == "__main__":  # pragma: no cover
