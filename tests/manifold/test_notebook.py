@@ -3,10 +3,14 @@ the blended renders each leave an image in the executed notebook (nbmake only ch
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import pytest
+
+from torch_brdf.data import progress_default
 
 NOTEBOOK = Path(__file__).resolve().parents[2] / "notebooks" / "brdf_manifold.ipynb"
 
@@ -14,7 +18,8 @@ NOTEBOOK = Path(__file__).resolve().parents[2] / "notebooks" / "brdf_manifold.ip
 def test_manifold_notebook_shows_slice_path_and_blends(tmp_path, monkeypatch):
     nbclient = pytest.importorskip("nbclient")
     nbformat = pytest.importorskip("nbformat")
-    pytest.importorskip("ipykernel")
+    if importlib.util.find_spec("ipykernel") is None:
+        pytest.skip("ipykernel is not installed")
     monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path / "cache"))
     nb = nbformat.reads(NOTEBOOK.read_text(encoding="utf-8"), as_version=4)
     nbclient.NotebookClient(
@@ -29,3 +34,6 @@ def test_manifold_notebook_shows_slice_path_and_blends(tmp_path, monkeypatch):
                     shown[marker] = images
     assert shown == {"latent_slice(": 1, "best_path(model": 1, "blend(rec": 1}, json.dumps(shown)
     assert {p.name for p in tmp_path.iterdir()} <= {"cache"}  # nothing in the working folder
+    # launching a kernel imported ipykernel here: that alone must not turn progress bars on
+    monkeypatch.delenv("TORCH_BRDF_PROGRESS", raising=False)
+    assert "ipykernel" in sys.modules and not progress_default()
