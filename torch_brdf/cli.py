@@ -591,7 +591,9 @@ def fit_strokes(
 @_cli
 def fit_image_cmd(
     source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
-    target: Path = typer.Option(..., help="Target image (.exr or .png) at the tensors' size."),
+    target: Path = typer.Option(None, help="Target image (.exr or .png) at the tensors' size."),
+    strokes: Path = typer.Option(None, help="Strokes JSON (as fit-strokes) painted on the current render: the target."),
+    keep_weight: float = typer.Option(1.0, min=0.0, help="With --strokes: weight of unpainted object pixels."),
     mask: Path = typer.Option(None, help="Painted pixels (.png/.exr; > 0 is painted); default the objects' pixels."),
     objects: list[str] = typer.Option(..., "--object", help="Edited object (repeat for several)."),
     out: Path = typer.Option(Path("out/fit_image"), help="Output folder: fit.npz, render.exr/png, report.json."),
@@ -608,14 +610,18 @@ def fit_image_cmd(
     import numpy as np
     import torch
 
+    from .errors import ValueRangeError
+    from .inverse.design import load_strokes
     from .io import read_exr, read_png, save_arrays, write_exr, write_png
     from .records.polynomial import PolynomialTensors
-    from .render import PolynomialRenderer, fit_image, object_mask
+    from .render import PolynomialRenderer, fit_image, object_mask, paint_image
     from .transport.polynomial import precompute_polynomial
 
     def read(path: Path):
         return read_exr(path, allow_gray=True) if path.suffix.lower() == ".exr" else read_png(path)
 
+    if (target is None) == (strokes is None):
+        raise ValueRangeError("give exactly one of --target (an image) and --strokes (a strokes JSON)")
     t0 = time.perf_counter()
     if source.endswith(".npz") and Path(source).is_file():
         T = PolynomialTensors.load(source)
@@ -626,12 +632,18 @@ def fit_image_cmd(
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
-    img = read(target).double()[..., :3]
     if mask is None:
         w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
     else:
         m = read(mask).double()
         w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
+    if strokes is not None:
+        st, size = load_strokes(strokes)
+        img, w = paint_image(R().detach(), st, w > 0, size, keep_weight)
+        out.mkdir(parents=True, exist_ok=True)
+        write_exr(out / "target.exr", img.float())
+    else:
+        img = read(target).double()[..., :3]
     t0 = time.perf_counter()
     res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations, progress=progress)
     fit_s = time.perf_counter() - t0
@@ -750,6 +762,8 @@ def editor(
         None, help="Where precomputed tensors are kept for the next start (default $TORCH_BRDF_CACHE/editor)."
     ),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
+    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or TOML; with --visibility)."),
+    visibility: Path = typer.Option(None, help="Its record from precompute-visibility (the relighting tab)."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
@@ -759,6 +773,12 @@ def editor(
     check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
+    if (relight is None) != (visibility is None):
+        raise ValueRangeError("--relight and --visibility go together (a scene and its visibility record)")
+    if relight is not None:
+        rel = Path(relight)
+        config["relight_scene"] = str(rel.resolve()) if rel.is_file() else relight
+        config["relight_visibility"] = str(visibility.resolve())
     from .data import cache_dir
 
     serve({**config, "seed": 0, "cache_dir": str(cache or cache_dir() / "editor")}, port=port, echo=typer.echo)
