@@ -41,8 +41,10 @@ from dataclasses import dataclass, field
 
 import torch
 import torch.autograd.forward_ad as fwAD
+from tqdm.auto import tqdm
 
 from .._checks import as_float_tensor, check_finite
+from ..data import progress_default
 from ..errors import ShapeError, ValueRangeError
 from ..inverse.qp import solve_qp
 from ..inverse.strokes import paint_at, pixel_xy
@@ -290,6 +292,7 @@ def fit_image(
     tol: float = 1e-12,
     albedo_max: float = 1.0,
     families: dict | None = None,
+    progress: bool | None = None,
 ) -> ImageFit:
     r"""Fit the band curves of ``objects`` so that the render matches ``target`` on the painted pixels.
 
@@ -309,6 +312,7 @@ def fit_image(
             :math:`\theta \ge 0` of the curve :math:`c = B\theta` instead of the free curve
             (a library BRDF linear in its parameters, e.g. :func:`blinn_phong_family`: kd and
             ks at a fixed exponent); ``ImageFit.parameters`` holds :math:`\theta` (K, C).
+        progress: tqdm bar over the iterations (None: on in a terminal or notebook).
     Returns:
         :class:`ImageFit`.
     Raises:
@@ -455,6 +459,7 @@ def fit_image(
     scale = torch.ones(3, dtype=torch.float64)
     kkt = torch.zeros(3, dtype=torch.float64)
     converged, iters = False, 0
+    bar = tqdm(total=max_iter, desc="fit image", unit="iter", disable=not progress_default(progress))
     for iters in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
         A = jacobian(y)  # (C, P, nt)
         r = img - bp  # (P, C)
@@ -491,9 +496,12 @@ def fit_image(
         x = B @ y
         lc = tl
         curve.append(float(lc.sum()))
+        bar.update(1)
+        bar.set_postfix(loss=f"{curve[-1]:.4g}")
         if abs(old - curve[-1]) <= tol * max(old, 1e-300) or moved == 0.0 or float(kkt.max()) <= tol:
             converged = True
             break
+    bar.close()
     coeffs = {lab: x[splits[k] : splits[k + 1]].clone() for k, lab in enumerate(labels)}
     params = {
         lab: y[pspl[k] : pspl[k + 1]].clone()

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from ..data import progress_default
 from ..errors import TorchBRDFError, ValueRangeError
 from .page import machine, write_page
 from .run import BENCHMARKS, find_benchmarks, load_results, run_benchmark
@@ -74,7 +75,7 @@ def make_report(
     if todo:
         bench = find_benchmarks(benchmarks)
         limit = timeout if timeout is not None else (1800.0 if quick else 14400.0)
-        bar = tqdm(todo, desc="benchmarks", unit="script", disable=None if progress is None else not progress)
+        bar = tqdm(todo, desc="benchmarks", unit="script", disable=not progress_default(progress))
         for name in bar:
             bar.set_postfix_str(name)
             recs[name] = run_benchmark(name, bench, quick, out / "runs", limit)
