@@ -1,48 +1,63 @@
 """Denoising precomputed basis images against a path tracer with a per-frame denoiser.
 
-    python benchmarks/denoise.py [--quick] [--figure noisy_denoised_reference.png]
+    python benchmarks/denoise.py [--quick] [--res 256] [--series 64,1,1,1] [--spp 16,64,256]
+        [--hi-spp 1024] [--ref-spp 4096] [--figure docs/denoise_cornell.png] [--cache DIR]
 
 For the glossy Cornell box (back wall Blinn-Phong n = 100; frozen object: the back wall) and
-the teatray (glossy tray under sun and sky; frozen object: the tray), tensors of series
-(64,1,1,1) (``--quick``: (16,1,1), 48x48) are precomputed at 16, 64 and 256 spp
-(``--quick``: 4, 16), frozen on the edited object, and rendered by four methods:
+the teatray (glossy tray under sun and sky; frozen object: the tray), tensors of ``--series``
+are precomputed at each ``--spp`` (with the view's guides, which the precomputation attaches),
+frozen on the edited object and rendered by four methods:
 
-* ``none``: the precomputed frame as is (also at 1024 spp, ``--quick`` 64, as the mean of
-  independent runs' frames, which is the higher-spp estimate: frames are linear in the tensors);
-* ``linear``: the guide-only à-trous filter (torch_brdf.denoise.EdgeAwareFilter) applied once
-  to every basis image of the frozen tensor;
-* ``oidn_basis``: Open Image Denoise applied once per grouped basis image;
+* ``none``: the precomputed frame as is (also at ``--hi-spp`` as the mean of independent runs'
+  frames at the largest spp, which is the higher-spp estimate: frames are linear in the tensors);
+* ``linear``: the guide-only à-trous filter applied once to every basis image of the frozen
+  tensor (``PolynomialRenderer.freeze(obj, denoiser="linear")``);
+* ``oidn_basis``: Open Image Denoise once per grouped basis image (``denoiser="oidn"``);
 * ``oidn_frame``: the path-tracer user's baseline: OIDN on every final frame.
 
-Prints progress, then one JSON object as the last line: for the Cornell box at top level
-and per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` /
-``flip_edited`` as ``{method: {spp: value}}`` (``"1024"`` only for ``none``), against a
-high-spp reference (Mitsuba 3 llvm at 4096 spp when it runs here, else
-``reference_path_trace`` with MIS), pixels that see an emitter excluded (their value is
-emission, the same in every method); ``precompute_s`` ``{spp: s}``, ``denoise_s``
-``{method: {spp: s}}``, ``frame_s_before`` (noisy frozen frame), ``frame_s_after``
-``{method: s}`` (per edited frame: the denoised frozen frame; for ``oidn_frame`` frame + OIDN),
-``mean_ratio`` ``{method: mean over the reference mean}`` at 64 spp (``--quick``: 16),
-``frozen_mb`` ``{method: MB}``. Edited material: exponent -> 1000 and another colour, a
-material the denoisers never saw (they see only guides and basis images).
+Prints progress, then one JSON object as the last line: for the Cornell box at top level and
+per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
+``{method: {spp: value}}`` (the hi spp only for ``none``) against a high-spp reference
+(Mitsuba 3 llvm at ``--ref-spp`` when it runs here, else ``reference_path_trace`` with MIS),
+pixels that see an emitter excluded; ``regions`` ``{region: {method: rel RMSE}}`` at the middle
+spp where filters blur (``glossy``: pixels of banded objects; ``contact``: pixels within 3
+pixels of another object at nearly the same depth, i.e. contact shadows; ``rest``);
+``precompute_s`` ``{spp: s}``, ``denoise_s`` ``{method: {spp: s}}`` (freeze + denoise minus
+freeze), ``frame_s_before`` (noisy frozen frame) and ``frame_s_after`` ``{method: s}`` (the
+denoised frozen frame; for ``oidn_frame`` frame + OIDN) timed interleaved in one process,
+``frame_ratio`` (after / before), ``mean_ratio`` ``{method: mean / reference mean}`` at the
+middle spp, ``record_mb`` (sparse tensors) and ``frozen_mb`` ``{method: MB}``, ``goals``
+(the issue's acceptance goals, each with its figures), ``load`` (1-min load average at the
+start and end of each part). Edited material: exponent 1000 and another colour, a material
+the denoisers never saw (they see only guides and basis images).
+
+Resumable: each part (a reference, a precompute at one spp and seed with its denoised frames)
+is saved atomically under ``--cache`` (default ``$TORCH_BRDF_CACHE/benchmarks/denoise``), keyed
+by its settings and the scene's content, so a rerun redoes only what is missing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
-from torch_brdf.denoise import EdgeAwareFilter, OIDNBasis, denoise_frozen, guide_buffers, oidn_frame
+from torch_brdf.data import cache_path
+from torch_brdf.denoise import glossy_objects, oidn_frame
 from torch_brdf.metrics import hdr_flip, relative_rmse
+from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 METHODS = ("none", "linear", "oidn_basis", "oidn_frame")
+DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -55,10 +70,31 @@ SCENES = {
         {"type": "blinn_phong", "kd": (0.2, 0.1, 0.08), "ks": (0.7, 0.6, 0.45), "exponent": 1000.0},
     ),
 }
+KIND = "benchmark-denoise"
+
+
+def _load() -> float:
+    return round(os.getloadavg()[0], 2)
 
 
 def _materials(scene):
     return {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+
+
+def _cached(folder: Path, what: str, settings: dict, scene, compute):
+    """(arrays {name: tensor}, meta) of one part: loaded when cached, else computed and saved."""
+    key = settings_key({"what": what, **settings}, scene)
+    ck = Checkpoint(folder / f"{scene.name}_{what}_{key}.npz", KIND, key, on_corrupt="recompute")
+    hit = ck.load()
+    if hit is not None:
+        print(f"[{scene.name}] {what}: cached", flush=True)
+        arrays, meta = hit
+        return {k: torch.from_numpy(np.array(v)) for k, v in arrays.items()}, meta
+    l0 = _load()
+    arrays, meta = compute()
+    meta = {**meta, "load": [l0, _load()]}
+    ck.save({k: v.numpy() for k, v in arrays.items()}, meta)
+    return arrays, meta
 
 
 def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int):
@@ -75,130 +111,232 @@ def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int):
     return img, f"reference_path_trace (MIS) {spp_ours} spp"
 
 
-def _timed(fn, repeat: int = 1):
-    best, out = float("inf"), None
+def _secs(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def _frames(R, obj, mats, edited):
+    """(default-material frame, edited frame) of a renderer frozen on ``obj``."""
+    R.set_material(obj, mats[obj])
+    a = R()
+    R.set_material(obj, edited)
+    b = R()
+    R.set_material(obj, mats[obj])
+    return a, b
+
+
+def _interleaved_frame_times(renderers: dict, obj: str, repeat: int = 7) -> dict:
+    """Best-of-``repeat`` frozen-frame seconds per renderer, timed in turns (same load for all)."""
+    best = dict.fromkeys(renderers, float("inf"))
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
+        for k, R in renderers.items():
+            assert R.frozen_object == obj, (R.frozen_object, obj)  # the interactive path
+            best[k] = min(best[k], _secs(R)[1])
+    return best
 
 
-def _frame_time(R, obj: str) -> float:
-    """Best of 5 frozen frames (the interactive path; asserted, not a silent full evaluation)."""
-    assert R.frozen_object == obj, (R.frozen_object, obj)
-    return _timed(R, repeat=5)[1]
+def _unit(scene, obj, mats, edited, series, spp, seed, full: bool):
+    """One precompute at (spp, seed): its frames per method (only ``none`` unless ``full``)."""
+    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    R = PolynomialRenderer(T, mats)
+    _, freeze_s = _secs(lambda: R.freeze(obj))
+    arrays = dict(zip(("none", "none_e"), _frames(R, obj, mats, edited), strict=True))
+    meta = {"precompute_s": pre_s, "freeze_s": freeze_s, "spp": spp, "seed": seed}
+    if not full:
+        return arrays, meta
+    meta["record_mb"] = sum(b.nbytes for b in T.blocks) / 2**20
+    meta["glossy"] = glossy_objects(T)
+    arrays["emitter_free"] = emitter_mask(T)
+    g = T.guides
+    arrays["object_id"], arrays["depth"] = g.object_id, torch.where(torch.isfinite(g.depth), g.depth, -1.0)
+    renderers = {"none": R}
+    meta["denoise_s"], meta["frozen_mb"] = {"none": 0.0}, {"none": R.frozen_nbytes / 2**20}
+    for method, name in DENOISERS.items():
+        print(f"[{scene.name}] {method} at {spp} spp ...", flush=True)
+        D = PolynomialRenderer(T, mats)
+        _, secs = _secs(lambda D=D, name=name: D.freeze(obj, denoiser=name))
+        meta["denoise_s"][method] = max(secs - freeze_s, 0.0)
+        meta["frozen_mb"][method] = D.frozen_nbytes / 2**20
+        arrays[method], arrays[method + "_e"] = _frames(D, obj, mats, edited)
+        renderers[method] = D
+    (arrays["oidn_frame"], secs) = _secs(lambda: oidn_frame(arrays["none"], g))
+    arrays["oidn_frame_e"] = oidn_frame(arrays["none_e"], g)
+    meta["denoise_s"]["oidn_frame"] = secs  # per frame
+    meta["frame_s"] = _interleaved_frame_times(renderers, obj)
+    meta["frame_s"]["oidn_frame"] = meta["frame_s"]["none"] + secs
+    return arrays, meta
 
 
-def run_scene(name: str, q: bool, figure: str | None) -> dict:
+def _regions(object_id: torch.Tensor, depth: torch.Tensor, glossy: list[int], mask: torch.Tensor, radius: int = 3):
+    """(H, W) bool masks where a filter can blur: glossy objects' pixels, contact regions
+    (within ``radius`` pixels of another object at a depth within 3%) and the rest."""
+    h, w = object_id.shape
+    contact = torch.zeros(h, w, dtype=torch.bool)
+    oid = torch.nn.functional.pad(object_id[None, None].double(), (radius,) * 4, value=-5.0)[0, 0]
+    dep = torch.nn.functional.pad(depth[None, None].double(), (radius,) * 4, value=-1.0)[0, 0]
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            o = oid[radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+            d = dep[radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+            near = (d > 0) & (depth > 0) & ((d - depth).abs() < 0.03 * depth)
+            contact |= (o >= 0) & (o != object_id) & near
+    contact &= (object_id >= 0) & mask
+    gl = torch.isin(object_id, torch.tensor(glossy, dtype=torch.long)) & mask & ~contact
+    return {"glossy": gl, "contact": contact, "rest": mask & ~gl & ~contact & (object_id >= 0)}
+
+
+def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     build, obj, edited = SCENES[name]
-    res = 48 if q else 256
-    series = "16,1,1" if q else "64,1,1,1"
-    spps = (4, 16) if q else (16, 64, 256)
-    hi_spp = 64 if q else 1024
-    mid = str(spps[1] if q else 64)
+    res, series, spps, hi_spp = cfg["res"], cfg["series"], cfg["spp"], cfg["hi_spp"]
+    mid = str(cfg["mid"])
     bounces = len(series.split(","))
     scene = build(res)
     mats = _materials(scene)
     scene_edit = build(res)
     scene_edit.materials[scene_edit.objects[scene_edit.object_id(obj)].material] = dict(edited)
-    print(f"[{name}] references ...", flush=True)
-    ref, label = _reference(scene, 512 if q else 4096, 64 if q else 512, bounces)
-    ref_e, _ = _reference(scene_edit, 512 if q else 4096, 64 if q else 512, bounces)
-    guides = guide_buffers(scene)
-    linear = None  # built from the first tensors: which objects are banded (glossy) is in the record
+
+    def reference():
+        print(f"[{name}] references ...", flush=True)
+        (a, label), secs = _secs(lambda: _reference(scene, cfg["ref_spp"], cfg["ref_spp_ours"], bounces))
+        b, _ = _reference(scene_edit, cfg["ref_spp"], cfg["ref_spp_ours"], bounces)
+        return {"ref": a, "ref_e": b}, {"label": label, "seconds": secs}
+
+    refs, rmeta = _cached(
+        folder, "reference", {"ref_spp": cfg["ref_spp"], "edited": edited, "b": bounces}, scene, reference
+    )
+    ref, ref_e = refs["ref"], refs["ref_e"]
     out: dict = {
         "resolution": res,
         "series": series,
-        "reference": label,
+        "reference": rmeta["label"],
+        "reference_s": rmeta["seconds"],
         "edited_material": edited,
         "frozen_object": obj,
+        "load": {"reference": rmeta["load"]},
     }
-    keys = ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s")
-    for k in keys:
+    for k in ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s"):
         out[k] = {m: {} for m in METHODS}
-    out["precompute_s"], out["frame_s_after"], out["mean_ratio"], out["frozen_mb"] = {}, {}, {}, {}
+    for k in ("precompute_s", "frame_s_after", "frame_ratio", "mean_ratio", "frozen_mb"):
+        out[k] = {}
+    runs = [(spp, k) for k, spp in enumerate(spps)]
+    runs += [(spps[-1], len(spps) + k) for k in range(hi_spp // spps[-1] - 1)]  # seeds for the hi-spp mean
+    hi = {"none": [], "none_e": []}
     mask = None
-    hi_frames: dict[str, list] = {"default": [], "edited": []}
-
-    def score(method, spp, img, img_e):
-        out["rel_rmse"][method][spp] = relative_rmse(img, ref, mask)
-        out["rel_rmse_edited"][method][spp] = relative_rmse(img_e, ref_e, mask)
-        out["flip"][method][spp] = hdr_flip(img, ref, mask)
-        out["flip_edited"][method][spp] = hdr_flip(img_e, ref_e, mask)
-        if spp == mid:
-            out["mean_ratio"][method] = float(img[mask].double().mean() / ref[mask].double().mean())
-
-    runs = list(spps) + [spps[-1]] * (hi_spp // spps[-1] - 1)  # extra seeds for the 1024-spp mean
-    for k, spp in enumerate(runs):
-        key = str(spp)
-        extra = k >= len(spps)
-        print(f"[{name}] precompute {spp} spp{' (extra seed)' if extra else ''} ...", flush=True)
-        T, secs = _timed(lambda spp=spp, k=k: precompute_polynomial(scene, series, spp=spp, seed=k, progress=False))
-        if mask is None:
-            mask = emitter_mask(T)
-            linear = EdgeAwareFilter(guides, glossy=[m for m, b in enumerate(T.bases) if b is not None and b.J > 1])
-        R = PolynomialRenderer(T, mats)
-        R.freeze(obj)
-        frames = {}
-        frozen = R._frozen
-        R.set_material(obj, mats[obj])
-        noisy = R()
-        R.set_material(obj, edited)
-        noisy_e = R()
+    for spp, seed in runs:
+        full = seed < len(spps)
+        print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
+        settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": full}
+        a, meta = _cached(
+            folder,
+            "unit",
+            settings,
+            scene,
+            lambda spp=spp, seed=seed, full=full: _unit(scene, obj, mats, edited, series, spp, seed, full),
+        )
+        out["load"][f"{spp}_{seed}"] = meta["load"]
         if spp == spps[-1]:
-            hi_frames["default"].append(noisy)
-            hi_frames["edited"].append(noisy_e)
-        if extra:
+            hi["none"].append(a["none"])
+            hi["none_e"].append(a["none_e"])
+        if not full:
             continue
-        out["precompute_s"][key] = secs
-        out["frame_s_before"] = _frame_time(R, obj)
-        out["frozen_mb"]["none"] = R.frozen_nbytes / 2**20
-        frames["none"] = (noisy, noisy_e)
-        out["denoise_s"]["none"][key] = 0.0
-        for method, den in (("linear", linear), ("oidn_basis", OIDNBasis(guides, linear))):
-            print(f"[{name}] {method} at {spp} spp ...", flush=True)
-            R._frozen, secs = _timed(lambda den=den, frozen=frozen: denoise_frozen(frozen, den, (res, res)))
-            out["denoise_s"][method][key] = secs
-            R.set_material(obj, mats[obj])
-            img = R()
-            R.set_material(obj, edited)
-            img_e = R()
-            out["frame_s_after"][method] = _frame_time(R, obj)
-            out["frozen_mb"][method] = R.frozen_nbytes / 2**20
-            frames[method] = (img, img_e)
-        (img, secs) = _timed(lambda noisy=noisy: oidn_frame(noisy, guides))
-        img_e = oidn_frame(noisy_e, guides)
-        out["denoise_s"]["oidn_frame"][key] = secs
-        out["frame_s_after"]["oidn_frame"] = out["frame_s_before"] + secs
-        frames["oidn_frame"] = (img, img_e)
-        for method, (a, b) in frames.items():
-            score(method, key, a, b)
-        if figure and key == mid:
-            from torch_brdf.io.png import write_png
-
-            strip = torch.cat([frames["none"][0], frames["linear"][0], frames["oidn_basis"][0], ref], 1)
-            write_png(figure, strip, tonemap="clip")
+        key = str(spp)
+        mask = a["emitter_free"].bool()
+        out["precompute_s"][key] = meta["precompute_s"]
+        for m in METHODS:
+            img, img_e = a[m], a[m + "_e"]
+            out["rel_rmse"][m][key] = relative_rmse(img, ref, mask)
+            out["rel_rmse_edited"][m][key] = relative_rmse(img_e, ref_e, mask)
+            out["flip"][m][key] = hdr_flip(img, ref, mask)
+            out["flip_edited"][m][key] = hdr_flip(img_e, ref_e, mask)
+            out["denoise_s"][m][key] = meta["denoise_s"][m]
+        if key == mid:
+            out["record_mb"] = meta["record_mb"]
+            out["frozen_mb"] = meta["frozen_mb"]
+            out["frame_s_before"] = meta["frame_s"]["none"]
+            for m in METHODS:
+                out["frame_s_after"][m] = meta["frame_s"][m]
+                out["frame_ratio"][m] = meta["frame_s"][m] / meta["frame_s"]["none"]
+                out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
+            regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
+            out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
+            out["regions"] = {
+                r: {m: relative_rmse(a[m], ref, v) for m in METHODS} for r, v in regions.items() if int(v.sum())
+            }
+            out["regions_edited"] = {
+                r: {m: relative_rmse(a[m + "_e"], ref_e, v) for m in METHODS}
+                for r, v in regions.items()
+                if int(v.sum())
+            }
+            if figure:
+                _figure(figure, a["none"], a["linear"], a["oidn_basis"], ref)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
-    hi = str(hi_spp)
-    a = torch.stack(hi_frames["default"]).mean(0)
-    b = torch.stack(hi_frames["edited"]).mean(0)
-    out["rel_rmse"]["none"][hi] = relative_rmse(a, ref, mask)
-    out["rel_rmse_edited"]["none"][hi] = relative_rmse(b, ref_e, mask)
-    out["flip"]["none"][hi] = hdr_flip(a, ref, mask)
-    out["flip_edited"]["none"][hi] = hdr_flip(b, ref_e, mask)
+    top = str(hi_spp)
+    a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
+    out["rel_rmse"]["none"][top] = relative_rmse(a, ref, mask)
+    out["rel_rmse_edited"]["none"][top] = relative_rmse(b, ref_e, mask)
+    out["flip"]["none"][top] = hdr_flip(a, ref, mask)
+    out["flip_edited"]["none"][top] = hdr_flip(b, ref_e, mask)
+    out["goals"] = _goals(out, mid, top)
     return out
+
+
+def _goals(out: dict, mid: str, top: str) -> dict:
+    """The issue's goals per denoising method at the middle spp, each with its figures."""
+    goals = {}
+    for m in ("linear", "oidn_basis"):
+        e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]
+        n, n_e = out["rel_rmse"]["none"][top], out["rel_rmse_edited"]["none"][top]
+        goals[m] = {
+            f"error_at_{mid}_le_none_at_{top}": bool(e <= n and e_e <= n_e),
+            "errors": [e, n, e_e, n_e],
+            "frame_ratio_le_1.1": bool(out["frame_ratio"][m] <= 1.1),
+            "mean_within_1pct": bool(abs(out["mean_ratio"][m] - 1) <= 0.01),
+        }
+    return goals
+
+
+def _figure(path: str, noisy, linear, oidn, ref) -> None:
+    """noisy | linear | oidn_basis | reference side by side (exposure from the reference)."""
+    from torch_brdf.io.png import write_png
+
+    strip = torch.cat([noisy, linear, oidn, ref], 1)
+    exposure = -float(np.log2(max(float(ref.quantile(0.99)), 1e-6)))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    write_png(path, strip, exposure=exposure, tonemap="clip")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
-    ap.add_argument("--figure", default=None, help="PNG: noisy | linear | oidn_basis | reference (Cornell, 64 spp)")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 48x48, series 16,1,1, spp 4,16, hi 64")
+    ap.add_argument("--res", type=int, default=256, help="image width and height")
+    ap.add_argument("--series", default="64,1,1,1", help="BRDF series (its length: bounces)")
+    ap.add_argument("--spp", default="16,64,256", help="precomputation spp (the middle one: goals, figure)")
+    ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of the last spp)")
+    ap.add_argument("--ref-spp", type=int, default=4096, help="Mitsuba reference spp")
+    ap.add_argument("--figure", default=None, help="PNG: noisy | linear | oidn_basis | reference (Cornell, middle spp)")
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
+    ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
     args = ap.parse_args()
-    result: dict = {"quick": args.quick, "scenes": {}}
+    if args.quick:
+        args.res, args.series, args.spp, args.hi_spp, args.ref_spp = 48, "16,1,1", "4,16", 64, 512
+    spps = [int(s) for s in args.spp.split(",")]
+    cfg = {
+        "res": args.res,
+        "series": args.series,
+        "spp": spps,
+        "mid": spps[len(spps) // 2] if len(spps) > 2 else spps[-1],
+        "hi_spp": args.hi_spp,
+        "ref_spp": args.ref_spp,
+        "ref_spp_ours": max(64, args.ref_spp // 8),
+    }
+    folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
+    result: dict = {"quick": args.quick, "settings": cfg, "load_start": _load(), "scenes": {}}
+    t0 = time.perf_counter()
     for name in args.scenes.split(","):
-        result["scenes"][name] = run_scene(name, args.quick, args.figure if name == "cornell_box_glossy" else None)
+        result["scenes"][name] = run_scene(name, cfg, folder, args.figure if name == "cornell_box_glossy" else None)
+    result["load_end"], result["seconds"] = _load(), time.perf_counter() - t0
     first = result["scenes"].get("cornell_box_glossy") or next(iter(result["scenes"].values()))
     result.update({k: v for k, v in first.items() if k not in ("edited_material",)})
     print(json.dumps(result))

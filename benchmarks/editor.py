@@ -15,7 +15,11 @@ measured latency of the following step, as it is for a user.
 
 Prints progress, then one JSON object as the last line: ``latency_ms_<size>`` (median),
 ``p95_ms_<size>``, ``frame_ms_<size>`` (median kernel frame time shown on the page),
-``kernel_ms_<size>`` (projection + frame + sRGB), and ``updates_per_s_512`` = 1000 /
+``kernel_ms_<size>`` (projection + frame + sRGB), ``draw_ms_<size>`` (the page unpacking and
+drawing the bytes), ``message_kb_<size>`` (the frame's binary buffer), the kernel's parts
+measured in-process right after with their baseline in the same run
+(``inproc_{project,frame,frame_dense,srgb}_ms_<size>``, ``frame_speedup_vs_dense_<size>``:
+the frame over F's non-zeros against the dense F), and ``updates_per_s_512`` = 1000 /
 median latency at 512² (sequential steps). ``--quick``: 128² and 256², 20 steps, 1 spp;
 the 512² keys are then null.
 """
@@ -81,6 +85,7 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads) -> dict:
                 if m:
                     frame_ms.append(float(m.group(1)))
                     kernel_ms.append(float(m.group(3)))
+            draws = page.evaluate("() => window.__torch_brdf.draws || []")
             exponent = page.input_value(".tb-typed-exponent input")
             status = page.inner_text("body")
             m = re.search(r"(\d) torch threads? \(timed\)", status)
@@ -94,8 +99,50 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads) -> dict:
         f"kernel_ms_{size}": round(statistics.median(kernel_ms), 1) if kernel_ms else None,
         f"playwright_ms_{size}": round(statistics.median(wall), 1),
         f"threads_{size}": chosen if chosen is not None else threads,
+        f"draw_ms_{size}": round(statistics.median(draws), 2) if draws else None,
+        f"message_kb_{size}": round(size * size * 3 / 1024, 1),
     }
+    out.update(breakdown(path, size, 1 if threads == "auto" else threads))
     print(f"{size}²: {out} (exponent now {exponent})", file=sys.stderr)
+    return out
+
+
+def breakdown(path: Path, size: int, threads: int, steps: int = 15) -> dict:
+    """The kernel's share in-process, same tensors and load as the browser run: projection,
+    frozen frame (non-zeros of F, as the editor runs it) against the dense frame (the
+    baseline: the frame reading F itself), and the sRGB table; medians in ms."""
+    import torch
+
+    from torch_brdf.editor.app import srgb8_fast
+    from torch_brdf.editor.session import EditorSession
+    from torch_brdf.records import PolynomialTensors
+
+    torch.set_num_threads(threads)
+    s = EditorSession(PolynomialTensors.load(path))
+    s.select("back")
+    mat = {"type": "blinn_phong", "kd": 0.3, "ks": 0.5, "exponent": 100.0}
+    t = {"project": [], "frame": [], "frame_dense": [], "srgb": []}
+    for k in range(steps):
+        mat["exponent"] = 100.0 * 1.05**k
+        t["project"].append(s.set_material("back", mat))
+        t0 = time.perf_counter()
+        img = s.renderer()
+        t["frame"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        srgb8_fast(img)
+        t["srgb"].append(time.perf_counter() - t0)
+        fz = s.renderer._frozen
+        kept = fz["nonzeros"]
+        fz["nonzeros"] = (fz["F"], None)  # the dense baseline: the frame reads F itself
+        t0 = time.perf_counter()
+        dense = s.renderer()
+        t["frame_dense"].append(time.perf_counter() - t0)
+        fz["nonzeros"] = kept
+        assert torch.allclose(dense, img, rtol=1e-4, atol=1e-5 * float(img.abs().max()))
+    med = {k: statistics.median(v) * 1e3 for k, v in t.items()}
+    out = {f"inproc_{k}_ms_{size}": round(v, 2) for k, v in med.items()}
+    out[f"frame_speedup_vs_dense_{size}"] = round(med["frame_dense"] / med["frame"], 2)
+    print(f"{size}² in-process: {out}", file=sys.stderr)
     return out
 
 

@@ -16,12 +16,33 @@ Scene: the glossy Cornell box. Prints progress, then one JSON object as the last
   Blinn family) at ``gi_res``², fitted on the back-wall pixels with the GI tensors and with the
   same tensors truncated to 1 bounce; both fitted curves are rendered with all bounces and
   compared to the target (relative RMSE, emitter pixels excluded).
-* top-level ``ours_fit_s``, ``ours_loss``, ``param_rel_err``, ``precompute_s``: 256², back wall
-  (``--quick``: 32²). ``mitsuba_fit_s`` / ``mitsuba_loss``: see the README (null when the
-  Mitsuba comparison did not run).
+  ``picture``: the PNG (target | direct-only fit | GI fit, ``--picture``).
+* ``peer`` per resolution, the same task for both sides on the SAME target: Mitsuba's
+  1024-spp (256²: 512) render of the back wall at Blinn-Phong kd 0.3, ks 0.5, n 100, fitted on
+  the back-wall pixels from kd 0.5, ks 0 in (kd, ks) (RGB). Ours: ``fit_image`` with
+  ``families={"back": blinn_phong_family(...)}``; Mitsuba: ``MitsubaBlinnPhongFit`` (prb,
+  ``mi.ad.Adam`` lr 0.02, 16 spp per step, 100 steps). Both sides' parameters are scored by
+  ONE evaluator: the weighted MSE on the back wall of a Mitsuba render at 256 spp with one
+  fixed seed (common random numbers) against the target. ``ours_fit_s``: our whole fit (an
+  upper bound of our time to that loss); ``mitsuba_fit_s``: Mitsuba's loop time at the first
+  step (of every 10th) whose score is within 1% of the better final score
+  (``mitsuba_reached`` false: never, its whole loop is given). ``speedup`` =
+  mitsuba_fit_s / ours_fit_s; ``speedup_incl_precompute`` adds our precompute.
+  ``ours_reached`` false: our final score is more than 1% above Mitsuba's (our model's own
+  bias: band projection, diffuse equivalents after the eye vertex, the tensors' noise); then
+  ``mitsuba_to_ours_s`` (Mitsuba's time to within 1% of OUR final score) and
+  ``speedup_at_ours_loss`` compare at our loss level.
+* top-level: the 256² (``--quick``: 32²) figures: ``precompute_s``, the peer's
+  ``ours_fit_s``, ``mitsuba_fit_s``, ``ours_loss``, ``mitsuba_loss``, ``iterations``,
+  ``speedup``...; ``param_rel_err``: the back wall's (kd, ks) recovered by the family fit from
+  a target rendered from the tensors (in-family; ``curve_rel_err``: the free 64-band curve).
 """
 
 from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as torch_brdf sets it: before torch loads
 
 import argparse
 import json
@@ -29,8 +50,10 @@ import time
 
 import torch
 
+from torch_brdf.inverse import solve_qp
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render import PolynomialRenderer, fit_image, object_mask
+from torch_brdf.render.fit import blinn_phong_family
 from torch_brdf.render.polynomial import emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport.pathtrace import reference_path_trace
@@ -47,8 +70,9 @@ def _materials(scene):
     return {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
 
 
-def _recovery(T, mats, objects):
+def _recovery(T, mats, objects, family=False):
     R = PolynomialRenderer(T, mats, dtype=torch.float64)
+    fam = {"back": blinn_phong_family(R, "back", TRUTH["back"]["exponent"])} if family else None
     for o in objects:
         R.set_material(o, TRUTH[o])
     truth = {o: R.c[T.object_id(o)].clone() for o in objects}
@@ -57,9 +81,13 @@ def _recovery(T, mats, objects):
         R.set_material(o, START)
     w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
     t0 = time.perf_counter()
-    res = fit_image(R, objects, target, weights=w)
+    res = fit_image(R, objects, target, weights=w, families=fam)
     fit_s = time.perf_counter() - t0
-    err = max(float((res.coefficients[o] - truth[o]).abs().max() / truth[o].abs().max()) for o in objects)
+    if family:
+        theta = torch.tensor([TRUTH["back"]["kd"], TRUTH["back"]["ks"]], dtype=torch.float64)[:, None]
+        err = float((res.parameters["back"] - theta).abs().max() / theta.abs().max())
+    else:
+        err = max(float((res.coefficients[o] - truth[o]).abs().max() / truth[o].abs().max()) for o in objects)
     return {
         "fit_s": round(fit_s, 3),
         "iterations": res.iterations,
@@ -71,7 +99,7 @@ def _recovery(T, mats, objects):
     }
 
 
-def _gi_vs_direct(res: int, spp: int, ref_spp: int) -> dict:
+def _gi_vs_direct(res: int, spp: int, ref_spp: int, picture: str | None) -> dict:
     sc = cornell_box_glossy(res)
     T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=False)
     ggx = cornell_box_glossy(res)
@@ -81,8 +109,8 @@ def _gi_vs_direct(res: int, spp: int, ref_spp: int) -> dict:
     mats = _materials(sc)
     mask = object_mask(T, "back")
     keep = emitter_mask(T)
-    out = {}
-    for key, bounces in (("gi", None), ("direct", 1)):
+    out, imgs = {}, [target]
+    for key, bounces in (("direct", 1), ("gi", None)):
         R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
         t0 = time.perf_counter()
         fit = fit_image(R, "back", target, weights=mask)
@@ -90,9 +118,90 @@ def _gi_vs_direct(res: int, spp: int, ref_spp: int) -> dict:
         full = PolynomialRenderer(T, mats, dtype=torch.float64)
         full.set_coefficients("back", fit.coefficients["back"])
         img = full().detach()
+        imgs.append(img)
         out[f"{key}_fit_err"] = relative_rmse(img, target, keep)
         out[f"{key}_wall_err"] = relative_rmse(img, target, mask & keep)
+    if picture:
+        from torch_brdf.io import write_png
+
+        strip = torch.cat([im.clamp(0, None) for im in imgs], 1)  # target | direct-only fit | GI fit
+        write_png(picture, strip.repeat_interleave(2, 0).repeat_interleave(2, 1).float())
+        out["picture"] = picture
     return out
+
+
+def _peer(res: int, T, mats, quick: bool) -> dict:
+    """Ours and Mitsuba on the same Mitsuba-rendered target, scored by one Mitsuba evaluator."""
+    from torch_brdf.transport.mitsuba_fit import MitsubaBlinnPhongFit
+
+    sc = cornell_box_glossy(res)
+    sc.materials["glossy_back"] = dict(TRUTH["back"])
+    M = MitsubaBlinnPhongFit(sc, "glossy_back", max_bounces=4)
+    target_spp = 128 if quick else (1024 if res <= 128 else 512)
+    eval_spp, steps, spp = (64, 40, 4) if quick else (256, 100, 16)
+    truth = (TRUTH["back"]["kd"], TRUTH["back"]["ks"])
+    target = M.render(*truth, spp=target_spp, seed=1000).double()
+    mask = object_mask(T, "back")
+    w = mask.double()[..., None]
+
+    def score(kd, ks) -> float:  # one evaluator for both sides: fixed seed, weighted MSE
+        img = M.render(kd, ks, spp=eval_spp, seed=4242).double()
+        return float((w * (img - target) ** 2).sum() / (3 * w.sum()))
+
+    R = PolynomialRenderer(T, mats, dtype=torch.float64)
+    fam = {"back": blinn_phong_family(R, "back", TRUTH["back"]["exponent"])}
+    R.set_material("back", START)
+    t0 = time.perf_counter()
+    fit = fit_image(R, "back", target, weights=mask, families=fam)
+    ours_s = time.perf_counter() - t0
+    kd_o, ks_o = fit.parameters["back"].numpy()
+    traj = M.fit(target, mask.float(), kd0=0.5, ks0=0.0, steps=steps, spp=spp, lr=0.02)
+    ours = score(kd_o, ks_o)
+    mits = score(traj.kd[-1], traj.ks[-1])
+    thr = 1.01 * min(ours, mits)
+    scores = {steps: mits}
+
+    def first_within(level):  # Mitsuba's first evaluated step (every 10th) within 1% of level
+        for i in range(10, steps + 1, 10):
+            if i not in scores:
+                scores[i] = score(traj.kd[i], traj.ks[i])
+            if scores[i] <= 1.01 * level:
+                return True, i
+        return False, steps
+
+    reached, at = first_within(min(ours, mits))
+    reached_ours, at_ours = first_within(ours)
+    perr = lambda kd, ks: float(max(abs(kd - truth[0]).max(), abs(ks - truth[1]).max()) / max(truth))  # noqa: E731
+    return {
+        "ours_fit_s": round(ours_s, 3),
+        "ours_iterations": fit.iterations,
+        "ours_loss": ours,
+        "ours_model_loss": fit.loss,
+        "ours_reached": ours <= thr,
+        "ours_params": {"kd": kd_o.round(4).tolist(), "ks": ks_o.round(4).tolist()},
+        "ours_param_err": perr(kd_o, ks_o),
+        "mitsuba_fit_s": round(float(traj.seconds[at]), 3),
+        "mitsuba_iterations": at,
+        "mitsuba_reached": reached,
+        "mitsuba_loop_s": round(float(traj.seconds[-1]), 3),
+        "mitsuba_loss": mits,
+        "mitsuba_scores": dict(sorted(scores.items())),
+        "mitsuba_to_ours_s": round(float(traj.seconds[at_ours]), 3) if reached_ours else None,
+        "mitsuba_to_ours_iterations": at_ours,
+        "speedup_at_ours_loss": round(float(traj.seconds[at_ours]) / ours_s, 1) if reached_ours else None,
+        "mitsuba_params": {"kd": traj.kd[-1].round(4).tolist(), "ks": traj.ks[-1].round(4).tolist()},
+        "mitsuba_param_err": perr(traj.kd[-1], traj.ks[-1]),
+        "start_loss": score(0.5, 0.0),
+        "eval_spp": eval_spp,
+        "target_spp": target_spp,
+        "mitsuba_spp": spp,
+        "speedup": round(float(traj.seconds[at]) / ours_s, 1),
+    }
+
+
+def _load() -> str:
+    with open("/proc/loadavg") as f:
+        return " ".join(f.read().split()[:3])
 
 
 def main() -> None:
@@ -100,14 +209,17 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--no-mitsuba", action="store_true")
     ap.add_argument("--sizes", default=None, help="comma-separated resolutions (default 128,256; --quick 32)")
+    ap.add_argument("--no-gi", action="store_true", help="skip the GGX target (GI vs direct-only fit)")
+    ap.add_argument("--picture", default=None, help="write target | direct-only fit | GI fit to this PNG")
     args = ap.parse_args()
     sizes = [32] if args.quick else [128, 256]
     if args.sizes:
         sizes = [int(v) for v in args.sizes.split(",")]
     spp = 4 if args.quick else 16
-    out = {"series": "64,1,1,1", "spp": spp, "runs": {}}
+    out = {"series": "64,1,1,1", "spp": spp, "load_start": _load(), "runs": {}}
     warm = cornell_box_glossy(16)  # one-off imports (forward-mode AD) and thread tuning, not timed
     _recovery(precompute_polynomial(warm, "8,1", spp=1, seed=0, progress=False), _materials(warm), ["back"])
+    solve_qp(torch.eye(2, dtype=torch.float64), -torch.ones(2, dtype=torch.float64), torch.ones(1, 2), torch.ones(1))
     for res in sizes:
         sc = cornell_box_glossy(res)
         t0 = time.perf_counter()
@@ -115,26 +227,40 @@ def main() -> None:
         run = {"precompute_s": round(time.perf_counter() - t0, 3)}
         mats = _materials(sc)
         run["back"] = _recovery(T, mats, ["back"])
+        run["back_family"] = _recovery(T, mats, ["back"], family=True)
         run["back_floor"] = _recovery(T, mats, ["back", "floor"])
+        if not args.no_mitsuba:
+            try:
+                run["peer"] = _peer(res, T, mats, args.quick)
+                p = run["peer"]
+                p["speedup_incl_precompute"] = round(p["mitsuba_fit_s"] / (p["ours_fit_s"] + run["precompute_s"]), 2)
+                if p["mitsuba_to_ours_s"] is not None:
+                    p["speedup_at_ours_loss_incl_precompute"] = round(
+                        p["mitsuba_to_ours_s"] / (p["ours_fit_s"] + run["precompute_s"]), 2
+                    )
+            except Exception as exc:  # the benchmark reports why the peer did not run
+                run["mitsuba_error"] = f"{type(exc).__name__}: {exc}"
+        run["load"] = _load()
         out["runs"][str(res)] = run
         print(f"{res}: {json.dumps(run)}", flush=True)
     top = out["runs"][str(sizes[-1])]
     out["precompute_s"] = top["precompute_s"]
-    out["ours_fit_s"] = top["back"]["fit_s"]
-    out["ours_loss"] = top["back"]["loss"]
-    out["param_rel_err"] = top["back"]["param_rel_err"]
+    out["param_rel_err"] = top["back_family"]["param_rel_err"]
+    out["curve_rel_err"] = top["back"]["param_rel_err"]
+    peer = top.get("peer", {})
+    keys = ("ours_fit_s", "mitsuba_fit_s", "ours_loss", "mitsuba_loss", "ours_reached", "mitsuba_reached", "speedup")
+    for k in (*keys, "speedup_incl_precompute", "mitsuba_to_ours_s", "speedup_at_ours_loss"):
+        out[k] = peer.get(k)
+    out["iterations"] = {"ours": peer.get("ours_iterations"), "mitsuba": peer.get("mitsuba_iterations")}
+    out["ours_peer_param_err"] = peer.get("ours_param_err")  # (kd, ks) vs the truth, on Mitsuba's target
+    out["mitsuba_param_rel_err"] = peer.get("mitsuba_param_err")
+    if not peer:
+        out["ours_fit_s"], out["ours_loss"] = top["back_family"]["fit_s"], top["back_family"]["loss"]
+        out["iterations"]["ours"] = top["back_family"]["iterations"]
     gi_res = 32 if args.quick else 64
-    gi = _gi_vs_direct(gi_res, spp, 16 if args.quick else 64)
-    out |= {"gi_res": gi_res, **gi}
-    out["mitsuba_fit_s"] = None
-    out["mitsuba_loss"] = None
-    if not args.no_mitsuba:
-        try:
-            from _mitsuba_fit import mitsuba_fit  # sibling module (benchmarks/)
-
-            out |= mitsuba_fit(sizes[-1], quick=args.quick)
-        except Exception as exc:  # the benchmark reports why the peer did not run
-            out["mitsuba_error"] = f"{type(exc).__name__}: {exc}"
+    if not args.no_gi:
+        out |= {"gi_res": gi_res, **_gi_vs_direct(gi_res, spp, 16 if args.quick else 64, args.picture)}
+    out["load_end"] = _load()
     print(json.dumps(out))
 
 

@@ -74,7 +74,7 @@ from pathlib import Path
 
 import torch
 
-from torch_brdf.data import data_path
+from torch_brdf.data import cache_path, data_path
 from torch_brdf.manifold.data import (
     MERLGrid,
     Observations,
@@ -99,13 +99,6 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _cache_dir() -> Path:
-    env = os.environ.get("TORCH_BRDF_CACHE")
-    p = Path(env) if env else Path.home() / ".cache" / "torch_brdf"
-    p.mkdir(parents=True, exist_ok=True)
-    return p
-
-
 def load_data(quick: bool, cache: Path | None) -> tuple[Observations, str]:
     grid = MERLGrid.strided(9, 9, 18) if quick else default_grid()
     weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
@@ -115,7 +108,7 @@ def load_data(quick: bool, cache: Path | None) -> tuple[Observations, str]:
         z = analytic_rows(params, grid).float()
         names = tuple(f"analytic-{i:03d}" for i in range(100))
         return Observations(z, names, grid, "analytic"), "analytic family (no shared NBRDF data)"
-    cache = cache or _cache_dir() / f"merl_nbrdf_{'quick' if quick else 'default'}_{grid.digest()[:8]}.npz"
+    cache = cache or cache_path(f"merl_nbrdf_{'quick' if quick else 'default'}_{grid.digest()[:8]}.npz")
     obs = nbrdf_observations(weights, grid, cache=cache, progress=True)
     return obs, f"NBRDF approximation of MERL, grid {grid.describe()}, {obs.z.shape[1]} columns"
 

@@ -1,71 +1,119 @@
-"""The GI-editing planner against fixed default series (issue #17).
+"""The error-budget planners against fixed defaults (issue #17): GI editing and inverse design.
 
-    python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32]
+    python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse]
 
-Scene: the glossy Cornell box (Blinn-Phong n = 100 back wall). The reference is the converged
-polynomial model of the same scene: 6 bounces, 64 bands on glossy objects (1 on Lambertian
-ones), ``reference_spp`` paths per pixel; errors are relative RMSE over the pixels that do not
-see the light (``emitter_mask``). Prints progress, then one JSON object as the last line:
+GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
+and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
+reference is the converged polynomial model of the same scene: 6 bounces, twice the planned
+bands (at least 64) on glossy objects, 1 on Lambertian ones, ``reference_spp`` paths per pixel
+in two independent halves; the reference's own noise (``reference_noise``, from the halves'
+difference) is taken out of every achieved error in quadrature. Errors are relative RMSE over
+the pixels that do not see an emitter (``emitter_mask``). Per scene (``scenes``):
 
 * ``plan``: the planner's printed plan; ``planned``: its series, spp, predicted error,
-  achieved error, precompute seconds and rays; ``plan_seconds``: what planning cost (band
-  projections and the two pilots).
+  achieved error, ``reached`` (achieved <= requested), precompute seconds and rays;
+  ``plan_seconds``: what planning cost (band projections and the two pilots).
 * ``prediction_ratio``: max(achieved / predicted, predicted / achieved) (goal <= 1.5).
-* ``defaults``: per fixed default series ("64,1,1,1" the CLI's, "64,16"), spp doubled from 8
-  until the achieved error is <= the requested one: achieved error, seconds, rays per spp.
-* ``planner_cost_ratio``: precompute seconds of the planned settings over those of the
-  cheapest default that reaches the error (goal <= 0.7); ``planner_cost_ratio_rays``: the
-  same in rays cast (load-independent); ``planner_cost_ratio_with_planning``: planning included.
+* ``defaults``: every fixed default series -- the CLI's "64,1,1,1" and the seed's teatray
+  series "128,1,1,1", "16,8,1,1", "128,8,1", "64,16" -- at spp 8, 11, 16, 23, 32, ... (steps of
+  sqrt 2) until a power of two reaches the error: achieved error, seconds, rays.
+* ``planner_cost_ratio``: precompute seconds of the planned settings over those of the default
+  (series, spp a power of two from 8) of fewest rays that reaches the error (goal <= 0.7);
+  ``planner_cost_ratio_rays``: the same in rays cast (load-independent);
+  ``planner_cost_ratio_fine_spp`` / ``_rays_fine_spp``: against the defaults on the sqrt-2 spp
+  grid (a stronger baseline than a user's powers of two); ``planner_cost_ratio_with_planning``.
+
+Inverse design (``inverse``): the teapot of ``teatray`` (64x48 solving frame; ``--quick``
+40x30), one brightening stroke, error 0.05 (quick 0.06) on the design image; achieved = RMS
+over three light-sample seeds against a dense 4096-sample (quick 2048), 147-lobe design;
+``default`` = the design defaults (1024 samples, 147 lobes, dense) measured the same way.
+
+Top level (one JSON object, the last line): ``prediction_ratio`` (worst over scenes and
+capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` (worst over the GI scenes),
+``load`` / ``load_end`` (1-min load average at start and end).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
+import os
 import time
 
 import torch
 
+from torch_brdf.inverse import (
+    Brush,
+    CutOptions,
+    LightSamples,
+    Stroke,
+    cosine_visibility,
+    object_pixels,
+    paint,
+    transfer_functions,
+)
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.planner.gi import with_fixed
+from torch_brdf.planner.inverse import _basis, design_image, plan_inverse
 from torch_brdf.records.polynomial import Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
-from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import plan_bases, plan_polynomial, precompute_polynomial
+from torch_brdf.scene.builtin import cornell_box_glossy, teatray
+from torch_brdf.transport.polynomial import plan_polynomial, precompute_polynomial
 
 
 def _rays(T) -> int:
     return int(sum(T.meta["rays"].values()))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="24 px, error 0.2, reference 128 spp")
-    ap.add_argument("--error", type=float, default=None, help="requested relative RMSE (default 0.1; quick 0.2)")
-    ap.add_argument("--resolution", type=int, default=None, help="image size (default 32; quick 24)")
-    ap.add_argument("--max-spp", type=int, default=1024, help="largest spp tried for a default series")
-    args = ap.parse_args()
-    q = args.quick
-    error = args.error or (0.2 if q else 0.1)
-    res = args.resolution or (24 if q else 32)
-    ref_spp = 128 if q else 512
-    sc = cornell_box_glossy(res)
+#: the fixed default series: the CLI's and the seed's teatray series (Ben-Artzi et al. 2008)
+DEFAULT_SERIES = ("64,1,1,1", "128,1,1,1", "16,8,1,1", "128,8,1", "64,16")
+
+
+def _spp_grid(max_spp: int, fine: bool) -> list[int]:
+    """8, 16, 32, ... (``fine``: 8, 11, 16, 23, 32, 45, ..., steps of sqrt 2) up to ``max_spp``."""
+    out, k = [], 0
+    while round(8 * 2 ** (k / (2 if fine else 1))) <= max_spp:
+        out.append(round(8 * 2 ** (k / (2 if fine else 1))))
+        k += 1
+    return out
+
+
+def run_scene(sc, error: float, ref_spp: int, max_spp: int, defaults: tuple[str, ...] = DEFAULT_SERIES) -> dict:
+    """Plan ``sc`` for ``error``, carry the plan out, and find the cheapest default reaching it."""
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
-    out: dict = {"quick": q, "scene": "cornell_box_glossy", "resolution": res, "error": error, "reference_spp": ref_spp}
-
-    ref_series = Series((64,) + (1,) * 5)
-    ref_bases = plan_bases(sc, ref_series)
-    print(f"reference: {ref_series.key} at {ref_spp} spp", flush=True)
-    R = precompute_polynomial(sc, ref_series, spp=ref_spp, seed=99, bases=ref_bases, progress=False)
-    ref = PolynomialRenderer(R, mats, dtype=torch.float64)()
-    mask = emitter_mask(R)
-
-    def achieved(T) -> float:
-        return relative_rmse(PolynomialRenderer(T, mats, dtype=torch.float64)(), ref, mask)
-
+    out: dict = {"scene": sc.name, "resolution": sc.camera.width, "error": error, "reference_spp": ref_spp}
     t0 = time.perf_counter()
     plan = plan_polynomial(sc, error=error, seed=0)
     out["plan_seconds"] = time.perf_counter() - t0
     print(plan, flush=True)
+    # the reference: the converged polynomial model, 6 bounces, twice the planned bands (at
+    # least 64) on every glossy object, 1 on Lambertian ones
+    ref_bases = [
+        None if b is None else dataclasses.replace(b, J=max(64, 2 * b.J), second=1) if b.J > 1 else b
+        for b in plan.bases
+    ]
+    ref_series = Series((max([1] + [b.J for b in ref_bases if b is not None]),) + (1,) * 5)
+    print(f"reference: {ref_series.key} at 2 x {ref_spp // 2} spp", flush=True)
+    refs = [
+        precompute_polynomial(
+            with_fixed(sc, plan.fixed), ref_series, spp=ref_spp // 2, seed=99 + k, bases=ref_bases, progress=False
+        )
+        for k in range(2)
+    ]
+    halves = [PolynomialRenderer(R, mats, dtype=torch.float64)() for R in refs]
+    ref = (halves[0] + halves[1]) / 2
+    mask = emitter_mask(refs[0]) & emitter_mask(refs[1])
+    # the reference's own noise (relative), from its two independent halves: Var(R1 - R2) =
+    # 4 Var(mean); it is taken out of every achieved error in quadrature (planned and defaults)
+    ref_noise = relative_rmse(halves[0], halves[1], mask) / 2
+    out["reference_noise"] = ref_noise
+
+    def achieved(T) -> float:
+        e = relative_rmse(PolynomialRenderer(T, mats, dtype=torch.float64)(), ref, mask)
+        return math.sqrt(max(0.0, e * e - ref_noise * ref_noise))
+
     t0 = time.perf_counter()
     T = precompute_polynomial(sc, plan=plan, seed=1, progress=False)
     secs = time.perf_counter() - t0
@@ -76,35 +124,145 @@ def main() -> None:
         "spp": plan.spp,
         "predicted_error": plan.predicted_error,
         "achieved_error": a,
+        "reached": a <= error,
         "seconds": secs,
         "predicted_seconds": plan.predicted_seconds,
         "rays": _rays(T),
     }
     out["prediction_ratio"] = max(a / plan.predicted_error, plan.predicted_error / a)
-
-    defaults = {}
-    best = None
-    for key in ("64,1,1,1", "64,16"):
-        spp, rows = 8, []
-        while spp <= args.max_spp:
+    print(f"planned: achieved {a:.4f}, predicted {plan.predicted_error:.4f}, {secs:.2f} s, {_rays(T)} rays", flush=True)
+    # every default series on the fine spp grid (steps of sqrt 2 from 8) until it reaches the
+    # error; the doubling grid (8, 16, 32, ...) is its every other point
+    rows_by_key = {}
+    for key in defaults:
+        rows = []
+        for spp in _spp_grid(max_spp, fine=True):
             t0 = time.perf_counter()
             D = precompute_polynomial(sc, key, spp=spp, seed=1, progress=False)
             s = time.perf_counter() - t0
             e = achieved(D)
             rows.append({"spp": spp, "achieved_error": e, "seconds": s, "rays": _rays(D)})
             print(f"default {key} spp {spp}: error {e:.4f}, {s:.2f} s", flush=True)
-            if e <= error:
-                if best is None or s < best["seconds"]:
-                    best = {"series": key, **rows[-1]}
+            if e <= error and spp in _spp_grid(max_spp, fine=False):
                 break
-            spp *= 2
-        defaults[key] = rows
-    out["defaults"] = defaults
-    out["best_default"] = best
-    if best is not None:
-        out["planner_cost_ratio"] = secs / best["seconds"]
-        out["planner_cost_ratio_rays"] = _rays(T) / best["rays"]
-        out["planner_cost_ratio_with_planning"] = (secs + out["plan_seconds"]) / best["seconds"]
+        rows_by_key[key] = rows
+    out["defaults"] = rows_by_key
+    for name, fine in (("", False), ("_fine_spp", True)):
+        grid = set(_spp_grid(max_spp, fine))
+        hits = [
+            {"series": k, **next(r for r in rows if r["spp"] in grid and r["achieved_error"] <= error)}
+            for k, rows in rows_by_key.items()
+            if any(r["spp"] in grid and r["achieved_error"] <= error for r in rows)
+        ]
+        if not hits:
+            continue
+        best = min(hits, key=lambda r: r["rays"])  # rays: the load-independent cost
+        out[f"best_default{name}"] = best
+        out[f"planner_cost_ratio{name}"] = secs / best["seconds"]
+        out[f"planner_cost_ratio_rays{name}"] = _rays(T) / best["rays"]
+    if "best_default" in out:
+        out["planner_cost_ratio_with_planning"] = (secs + out["plan_seconds"]) / out["best_default"]["seconds"]
+    return out
+
+
+def _stroke_target(scene, px):
+    """One brightening stroke across the teapot, painted on its diffuse-only image."""
+    ls = LightSamples.from_environment(scene.environment, 64, torch.Generator().manual_seed(1))
+    rec = transfer_functions(px, ls, cosine_visibility(scene, px, ls), f0=0.9)
+    before = rec.pixel_values(torch.cat((torch.zeros(rec.values.shape[1] - 1, 3), torch.full((1, 3), 0.3))))
+    w, h = px.width, px.height
+    stroke = Stroke(
+        torch.tensor([[0.3 * w, 0.55 * h], [0.7 * w, 0.55 * h]]), Brush(scale=1.8, diameter=h / 3, kappa=0.1)
+    )
+    return paint(rec, before, [stroke])
+
+
+def run_inverse(error: float, size: tuple[int, int], ref_samples: int, seeds: int = 3) -> dict:
+    """Plan the teapot design of ``teatray`` for ``error``; its achieved error (RMS over
+    ``seeds`` light-sample seeds) and cost against the default settings (1024 samples, 147
+    lobes, dense), both measured here (visibility + transfer + fit)."""
+    scene = teatray(size)
+    px = object_pixels(scene, "teapot")
+    target = _stroke_target(scene, px)
+    t0 = time.perf_counter()
+    plan = plan_inverse(scene, px, scene.environment, target, error=error, generator=torch.Generator().manual_seed(0))
+    plan_s = time.perf_counter() - t0
+    print(plan, flush=True)
+
+    def run(S: int, n: int, tol: float, seed: int) -> tuple[torch.Tensor, float]:
+        t0 = time.perf_counter()
+        ls = LightSamples.from_environment(scene.environment, S, torch.Generator().manual_seed(seed))
+        vis = cosine_visibility(scene, px, ls)
+        rec = transfer_functions(px, ls, vis, basis=_basis(n), f0=0.9, cuts=CutOptions(tol) if tol else None)
+        return design_image(rec, target, n, 0.3), time.perf_counter() - t0
+
+    ref, _ = run(ref_samples, 7, 0.0, 99)
+
+    def measured(S: int, n: int, tol: float) -> tuple[float, float]:
+        runs = [run(S, n, tol, 11 + k) for k in range(seeds)]
+        errs = [float((d - ref).norm() / ref.norm()) for d, _ in runs]
+        return math.sqrt(sum(e * e for e in errs) / seeds), min(t for _, t in runs)
+
+    s = plan.settings
+    a, secs = measured(s["light_samples"], s["hemicube"], s["cut_tolerance"])
+    da, dsecs = measured(1024, 7, 0.0)
+    out = {
+        "scene": "teatray teapot",
+        "pixels": px.count,
+        "error": error,
+        "reference_samples": ref_samples,
+        "plan": str(plan),
+        "plan_seconds": plan_s,
+        "planned": {**s, "predicted_error": plan.predicted_error, "achieved_error": a, "seconds": secs},
+        "prediction_ratio": max(a / plan.predicted_error, plan.predicted_error / a),
+        "default": {"light_samples": 1024, "J": 147, "cut_tolerance": 0.0, "achieved_error": da, "seconds": dsecs},
+    }
+    if da <= error:
+        out["planner_cost_ratio"] = secs / dsecs
+    print(f"inverse: planned {a:.4f} ({secs:.2f} s), default {da:.4f} ({dsecs:.2f} s)", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="24 px, error 0.2, reference 256 spp")
+    ap.add_argument("--error", type=float, default=None, help="requested relative RMSE (default 0.1; quick 0.2)")
+    ap.add_argument("--resolution", type=int, default=None, help="image size (default 32; quick 24)")
+    ap.add_argument("--capabilities", default="gi,inverse", help="comma-separated: gi, inverse")
+    ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
+    args = ap.parse_args()
+    q = args.quick
+    error = args.error or (0.2 if q else 0.1)
+    res = args.resolution or (24 if q else 32)
+    ref_spp = 256 if q else 2048
+    out: dict = {"quick": q, "error": error, "resolution": res, "load": os.getloadavg()[0], "scenes": {}}
+    caps = args.capabilities.split(",")
+    if "gi" in caps:
+        for sc in (cornell_box_glossy(res), teatray(res)):
+            out["scenes"][sc.name] = run_scene(sc, error, ref_spp, args.max_spp)
+    if "inverse" in caps:
+        out["inverse"] = run_inverse(0.06 if q else 0.05, (40, 30) if q else (64, 48), 2048 if q else 4096)
+    out["load_end"] = os.getloadavg()[0]
+    if not out["scenes"]:
+        print(json.dumps(out))
+        return
+    gi = out["scenes"].values()
+    out["gi"] = {
+        k: max(s[k] for s in gi)
+        for k in (
+            "prediction_ratio",
+            "planner_cost_ratio",
+            "planner_cost_ratio_rays",
+            "planner_cost_ratio_fine_spp",
+            "planner_cost_ratio_rays_fine_spp",
+        )
+        if all(k in s for s in gi)
+    }
+    out["planner_cost_ratio"] = out["gi"].get("planner_cost_ratio")
+    out["planner_cost_ratio_rays"] = out["gi"].get("planner_cost_ratio_rays")
+    out["prediction_ratio"] = max(
+        [out["gi"]["prediction_ratio"]] + ([out["inverse"]["prediction_ratio"]] if "inverse" in out else [])
+    )
     print(json.dumps(out))
 
 

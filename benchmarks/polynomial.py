@@ -31,6 +31,8 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   (64,1,1,1) series at "spp16", "spp64", "spp256", each with ``seconds`` and ``mb`` beside.
 * ``approximation_rel_rmse``: (64,1,1,1) vs full-BRDF direct + diffuse indirect (1,1,1,1)
   (Fig. 7a) vs direct only (Fig. 7b), same reference.
+* ``mitsuba_point``: Mitsuba 3 at the accuracy resolution and 256 spp (``--quick``: 64):
+  ``seconds`` and ``rel_rmse`` against the same reference (the peer on the report's curve).
 * ``mitsuba_vs_reference_rel_rmse`` and ``reference_seed_rel_rmse`` (two seeds of our
   reference at the Mitsuba spp): agreement within noise means the first is about the second.
 """
@@ -248,6 +250,8 @@ def main() -> None:
         out["mitsuba_vs_reference_rel_rmse"] = relative_rmse(mi["image"], ours_a, mask)
         out["reference_seed_rel_rmse"] = relative_rmse(ours_b, ours_a, mask)
         out["mitsuba_mean_ratio"] = float(mi["image"][mask].mean() / ours_a[mask].mean())
+        # the peer's point on the error-vs-time curve of ``rel_rmse`` (same reference, issue #17)
+        out["mitsuba_point"] = {"spp": n, "seconds": mi["seconds"], "rel_rmse": relative_rmse(mi["image"], ref, mask)}
     out = {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
     print(json.dumps(out))
 

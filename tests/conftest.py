@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+import shutil
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
 import pytest
 import torch
 
-from torch_brdf.data import data_path
+from torch_brdf.data import REGISTRY, data_path, data_root
 
 #: per-dtype tolerances (relative) for comparisons against float64 oracles
 RTOL = {torch.float32: 1e-4, torch.float64: 1e-10}
@@ -32,3 +37,28 @@ def corrupted_copy(path, dest):
     raw[len(raw) // 2] ^= 0xFF
     dest.write_bytes(bytes(raw))
     return dest
+
+
+@pytest.fixture
+def mirror(tmp_path):
+    """(base URL, served folder): a copy of the shared data folder behind http.server."""
+    root = data_root()
+    if root is None:
+        pytest.skip("needs the shared data folder (TORCH_BRDF_DATA) to serve")
+    served = tmp_path / "served"
+    for name in REGISTRY:
+        (served / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(root / name, served / name)
+
+    class Quiet(SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(served)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}", served
+    finally:
+        server.shutdown()
+        server.server_close()

@@ -1,14 +1,11 @@
 """``torch-brdf fetch-data`` against a local HTTP server on 127.0.0.1 serving a copy of the data
-folder (no internet): it fetches, verifies the pinned SHA-256s and refuses a corrupted file."""
+folder (no internet; the ``mirror`` fixture of conftest.py): it fetches, verifies the pinned SHA-256s and
+refuses a corrupted file."""
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
-import shutil
-import threading
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from typer.testing import CliRunner
@@ -18,31 +15,6 @@ from torch_brdf.data import REGISTRY, data_root, fetch_data
 from torch_brdf.errors import DataNotFoundError, FileFormatError
 
 pytest.importorskip("pooch")
-
-
-@pytest.fixture
-def mirror(tmp_path):
-    """(base URL, served folder): a copy of the shared data folder behind http.server."""
-    root = data_root()
-    if root is None:
-        pytest.skip("needs the shared data folder (TORCH_BRDF_DATA) to serve")
-    served = tmp_path / "served"
-    for name in REGISTRY:
-        (served / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(root / name, served / name)
-
-    class Quiet(SimpleHTTPRequestHandler):
-        def log_message(self, *args):
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(served)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}", served
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def test_registry_pins_the_shared_files():

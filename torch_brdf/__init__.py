@@ -27,6 +27,7 @@ one; ``tests/test_layers.py`` keeps it so):
   (basis images, multibounce polynomials, all-frequency relighting, manifold blends).
 * :mod:`torch_brdf.cli`: the ``torch-brdf`` command line.
 * :mod:`torch_brdf.editor`: the interactive material editor in the browser (ipywidgets, Voilà).
+* :mod:`torch_brdf.report`: the speed/accuracy report (every benchmark's trade on one page).
 """
 
 from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)

@@ -18,10 +18,19 @@ from __future__ import annotations
 
 import math
 import numbers
-
-import torch
+import sys
+from typing import TYPE_CHECKING
 
 from .errors import ShapeError, ValueRangeError
+
+if TYPE_CHECKING:  # torch is imported where it is used: the CLI reads the caps below without it
+    import torch
+
+
+def _is_tensor(value) -> bool:
+    """``isinstance(value, torch.Tensor)`` without importing torch (no torch: no tensor)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(value, torch.Tensor)
 
 
 def as_float_tensor(x, name: str, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -30,6 +39,8 @@ def as_float_tensor(x, name: str, dtype: torch.dtype | None = None) -> torch.Ten
     Integer inputs become the default float dtype; floating tensors keep their dtype
     unless ``dtype`` is given.
     """
+    import torch
+
     if not isinstance(x, torch.Tensor):
         try:
             # convert straight to the requested dtype: Python floats are doubles, and a detour
@@ -56,6 +67,8 @@ def check_vectors(x, name: str, dtype: torch.dtype | None = None, ndim: int | No
 
 def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
     """Raise :class:`ValueRangeError` if ``x`` holds NaN or Inf."""
+    import torch
+
     if x.is_floating_point() and not bool(torch.isfinite(x).all()):
         n_nan = int(torch.isnan(x).sum())
         n_inf = int(torch.isinf(x).sum())
@@ -76,6 +89,8 @@ def check_nonnegative(x: torch.Tensor, name: str) -> torch.Tensor:
 
 def check_rgb(value, name: str) -> tuple[float, float, float]:
     """Accept a scalar or 3 numbers >= 0 and return an RGB triple of floats."""
+    import torch
+
     t = as_float_tensor(value, name, torch.float64).reshape(-1)
     if t.numel() == 1:
         t = t.expand(3)
@@ -105,7 +120,7 @@ def check_int(value, name: str, minimum: int | None = None, maximum: int | None 
     Python, numpy and 0-d torch integers are accepted; bools, floats (even ``16.0``), strings
     and anything else raise :class:`ValueRangeError` naming ``name``.
     """
-    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_floating_point():
+    if _is_tensor(value) and value.numel() == 1 and not value.is_floating_point():
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueRangeError(f"{name} must be an integer; got {value!r} ({type(value).__name__})")
@@ -132,7 +147,7 @@ def check_real(
 ) -> float:
     """Return ``value`` as a float after checking it is a real number (not a bool or a
     string), finite unless ``finite=False`` (NaN is always refused), in ``[minimum, maximum]``."""
-    if isinstance(value, torch.Tensor) and value.numel() == 1:
+    if _is_tensor(value) and value.numel() == 1:
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueRangeError(f"{name} must be a number; got {value!r} ({type(value).__name__})")

@@ -5,7 +5,7 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
 - :func:`worker_count`: processes that trace rays (the caller plus forked children); argument,
   else ``TORCH_BRDF_WORKERS``, else the usable cores (at most :data:`MAX_DEFAULT_WORKERS`).
 - :func:`intra_op_threads`: torch threads of the calling process; argument, else
-  ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set on import).
+  ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set when torch loads).
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
@@ -28,6 +28,7 @@ importing torch; ``import torch_brdf`` before ``import torch`` to get it, or exp
 from __future__ import annotations
 
 import functools
+import importlib.util
 import math
 import operator
 import os
@@ -43,9 +44,7 @@ if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective bef
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY")
 
-import torch  # noqa: E402  (after OMP_WAIT_POLICY)
-
-from .errors import ValueRangeError  # noqa: E402
+from .errors import ValueRangeError  # noqa: E402  (torch is imported where it is used: see _AfterTorch)
 
 #: environment variable: torch intra-op threads of the calling process (a positive integer).
 ENV_THREADS = "TORCH_BRDF_THREADS"
@@ -179,6 +178,8 @@ def intra_op_threads(threads: int | None = None) -> int:
     """torch intra-op threads for the calling process: the argument, else ``TORCH_BRDF_THREADS``,
     else torch's own count capped at the usable cores (torch counts the affinity mask but not a
     cgroup quota). Raises :class:`ValueRangeError` on a count that is not a positive integer."""
+    import torch
+
     if threads is not None:
         return _positive(threads, "threads")
     env = _from_env(ENV_THREADS)
@@ -212,6 +213,8 @@ def _blas_controller():
 def limit_threads(n: int, blas: bool = True):
     """``n`` torch intra-op threads (and ``n`` BLAS threads when ``blas``) inside the block;
     both restored on exit."""
+    import torch
+
     n = _positive(n, "threads")
     old = torch.get_num_threads()
     if n != old:
@@ -253,6 +256,8 @@ def configure_worker(threads: int = 1) -> None:
     worker per core; a worker's own threads would compete with its siblings). BLAS threads
     are set when the parent called :func:`prepare_fork` (else the environment variables
     below reach only libraries loaded later)."""
+    import torch
+
     os.environ["OMP_NUM_THREADS"] = os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
     os.environ["MKL_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
@@ -263,6 +268,8 @@ def configure_worker(threads: int = 1) -> None:
 def cap_to_usable() -> None:
     """Set torch's thread count to :func:`intra_op_threads` (never more than the usable cores;
     ``TORCH_BRDF_THREADS`` sets it outright). Called on import."""
+    import torch
+
     n = intra_op_threads()
     if n != torch.get_num_threads():
         torch.set_num_threads(n)
@@ -359,6 +366,8 @@ def tuned(op: str, size: int, threads: int | None = None):
         size: its work size (e.g. elements streamed); sizes within a factor 2 share a measurement.
         threads: fixed count (wins over everything).
     """
+    import torch
+
     fixed = threads if threads is not None else _override
     if fixed is None:
         fixed = _from_env(ENV_THREADS)
@@ -400,7 +409,39 @@ def tuned_method(op: str, size):
     return decorate
 
 
-try:
-    cap_to_usable()
-except ValueRangeError as exc:  # reported again where the count is used
-    warnings.warn(f"torch_brdf: {exc}; keeping torch's {torch.get_num_threads()} threads", stacklevel=2)
+def _cap_quietly() -> None:
+    import torch
+
+    try:
+        cap_to_usable()
+    except ValueRangeError as exc:  # reported again where the count is used
+        warnings.warn(f"torch_brdf: {exc}; keeping torch's {torch.get_num_threads()} threads", stacklevel=3)
+
+
+class _AfterTorch:
+    """A meta-path finder that caps torch's threads (:func:`cap_to_usable`) right after torch
+    loads, so that ``import torch_brdf`` itself does not load torch: ``torch-brdf --help`` and
+    ``python trainers/X.py --help`` answer without the seconds torch takes to import."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "torch":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec("torch")
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            del spec.loader.exec_module  # the loader's own method again
+            _cap_quietly()
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+if "torch" in sys.modules:
+    _cap_quietly()
+elif not any(isinstance(f, _AfterTorch) for f in sys.meta_path):
+    sys.meta_path.insert(0, _AfterTorch())

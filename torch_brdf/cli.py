@@ -1,5 +1,6 @@
 """The ``torch-brdf`` command line: ``demo``, ``render``, ``info``, ``precompute``, ``edit``,
-``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``, ``editor`` and ``fetch-data``.
+``fit-gplvm``, ``manifold``, ``fit-strokes``, ``fit-image``, ``precompute-visibility``, ``relight``,
+``editor``, ``fetch-data`` and ``report``.
 
 Failures end a command with ONE line on stderr (``error: ...``) and a non-zero exit status,
 never a traceback (``torch-brdf --debug COMMAND ...`` prints it as well):
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import json
 import time
 import traceback
@@ -51,6 +53,9 @@ _STATE = {"debug": False}
 
 #: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
 PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
+#: ``--width`` / ``--height`` of every command that makes an image (``--resolution``: both at once)
+WIDTH = typer.Option(None, min=8, max=MAX_IMAGE_SIDE, help="Image width (default: --resolution, else the scene's).")
+HEIGHT = typer.Option(None, min=8, max=MAX_IMAGE_SIDE, help="Image height (default: --resolution, else the scene's).")
 
 
 def _version(value: bool) -> None:
@@ -135,13 +140,42 @@ def _json_object(text: str | None, option: str) -> dict | None:
     return value
 
 
-def load_scene(spec: str, resolution: int | None = None):
-    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; ``resolution`` square)."""
+def load_scene(
+    spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None, make=None
+):
+    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; or ``make(resolution)``) at
+    ``--width`` x ``--height``; ``--resolution`` N is the N x N shorthand; an unset side keeps
+    ``resolution``, else the scene's."""
     from .scene import load_scene as load
 
     if resolution is not None:
         check_image_size(resolution, resolution, "--resolution")
-    return load(spec, resolution)
+    if width is not None or height is not None:
+        check_image_size(width or 8, height or 8, "--width/--height")  # before the scene is loaded
+    scene = make(resolution or 256) if make is not None else load(spec, resolution)
+    if width is None and height is None:
+        return scene
+    return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
+
+
+def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resolution, width, height):
+    """SCENE, or ``--mesh FILE`` (:func:`torch_brdf.scene.mesh_scene`); ``--envmap FILE`` replaces
+    the scene's lights by that lat-long map."""
+    import dataclasses
+
+    from .scene import EnvironmentMap, mesh_scene
+
+    if (spec is None) == (mesh is None):
+        raise ValueRangeError("give a SCENE (built-in name or TOML file) or --mesh FILE, not both")
+    for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
+        if path is not None and not path.is_file():
+            raise SceneError(f"{option}: no such file: {path}")
+    env = EnvironmentMap.from_exr(envmap) if envmap is not None else None
+    if mesh is not None:
+        sc = load_scene(f"mesh:{mesh}", resolution, width, height, lambda r: mesh_scene(mesh, r, env))
+        return sc
+    sc = load_scene(spec, resolution, width, height)
+    return sc if env is None else dataclasses.replace(sc, lights=[env])
 
 
 def _render_to(
@@ -194,6 +228,8 @@ def _write_image(out: Path, image, exposure: float | None, seconds: float) -> di
     return paths | {"seconds": round(seconds, 3), "exposure": stops}
 
 
+#: ``relight`` warns about objects with fewer vertices (per-vertex lighting cannot show detail on them)
+COARSE_VERTICES = 64
 _RESOLUTION = {"min": 8, "max": MAX_IMAGE_SIDE}
 _SPP = {"min": 1, "max": MAX_SAMPLES}
 _BOUNCES = {"min": 1, "max": MAX_BOUNCES}
@@ -204,13 +240,15 @@ _BOUNCES = {"min": 1, "max": MAX_BOUNCES}
 def demo(
     out: Path = typer.Option(Path("out/cornell_box"), help="Output path without suffix (.exr and .png are written)."),
     resolution: int = typer.Option(256, **_RESOLUTION, help="Image width = height."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     spp: int = typer.Option(16, **_SPP, help="Samples per pixel."),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
     progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
-    scene = load_scene("cornell_box", resolution)
+    scene = load_scene("cornell_box", resolution, width, height)
     info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
@@ -218,9 +256,13 @@ def demo(
 @app.command()
 @_cli
 def render(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(None, help="Built-in scene name or a TOML scene file (or --mesh)."),
+    mesh: Path = typer.Option(None, help="Quick scene: this mesh file (OBJ, PLY, ...) on a plane, framed."),
+    envmap: Path = typer.Option(None, help="Light the scene with this lat-long EXR instead of its own lights."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     spp: int = typer.Option(16, **_SPP),
     bounces: int = typer.Option(4, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
     seed: int = typer.Option(0, min=0),
@@ -231,7 +273,7 @@ def render(
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
     if exposure is not None:
         check_real(exposure, "--exposure")
-    sc = load_scene(scene, resolution)
+    sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
     info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
@@ -258,6 +300,8 @@ def precompute(
     series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
     spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     seed: int = typer.Option(0, min=0),
     bases: str = typer.Option(None, help='JSON per-object basis overrides, e.g. \'{"left": {"J": 8}}\'.'),
     env_point_lights: int = typer.Option(None, min=1, help="Sample the environment as K median-cut point lights."),
@@ -286,7 +330,7 @@ def precompute(
             raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
         if "J" in spec:
             check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
-    sc = load_scene(scene, resolution)
+    sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
     T = precompute_polynomial(
@@ -365,6 +409,152 @@ def edit(
     typer.echo(json.dumps(info))
 
 
+@app.command("fit-gplvm")
+@_cli
+def fit_gplvm_cmd(
+    q: int = typer.Option(2, min=1, max=16, help="Latent dimension (2..5 in the paper)."),
+    out: Path = typer.Option(Path("out/gplvm.npz"), help="Fit file to write (.npz, versioned, checksummed)."),
+    grid: str = typer.Option("default", help="MERL grid: 'default', 'full' (streamed Gram) or strides 'th,td,pd'."),
+    binaries: Path = typer.Option(None, help="Folder of real MERL .binary files (default: the NBRDF data)."),
+    split: Path = typer.Option(None, help="Fit on the 'train' names of this split file (datasets/merl_split.txt)."),
+    cache: Path = typer.Option(None, help="Cache folder (default $TORCH_BRDF_CACHE, else ~/.cache/torch_brdf)."),
+    method: str = typer.Option("lbfgs", help="lbfgs, adam or hooke-jeeves."),
+    max_iter: int = typer.Option(1000, min=1, help="Optimiser iterations."),
+    mu: float = typer.Option(1e-6, min=0.0, help="Kernel shift mu (Eq. 5)."),
+    lengthscale: float = typer.Option(1.0, min=0.0, help="Kernel length scale."),
+    cosine: bool = typer.Option(True, help="Weight the fit by the clipped cosine map (--no-cosine: raw values)."),
+    seed: int = typer.Option(0, min=0),
+    progress: bool = PROGRESS,
+):
+    """Fit the GPLVM BRDF manifold (Soler et al. 2017) on measured materials and save the fit."""
+    import torch
+
+    from .manifold import fit_gplvm
+    from .manifold.train import parse_grid, training_gram
+
+    if method not in ("lbfgs", "adam", "hooke-jeeves"):
+        raise ValueRangeError(f"--method must be lbfgs, adam or hooke-jeeves; got {method!r}")
+    parse_grid(grid)  # before any data is read
+    s, d, names, meta = training_gram(grid, binaries, split, cache, cosine, progress)
+    gen = torch.Generator().manual_seed(seed)
+    fit = fit_gplvm(s, d, q, lengthscale=lengthscale, mu=mu, method=method, max_iter=max_iter, names=names,
+                    generator=gen, progress=progress)  # fmt: skip
+    fit = type(fit)(**{**fit.__dict__, "meta": {**fit.meta, **{k: v for k, v in meta.items() if k != "names"}}})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fit.save(out)
+    info = {"out": str(out), "q": fit.q, "n": fit.n, "d": fit.d, "loglik": fit.final_loglik}
+    info |= {"iterations": fit.iterations, "seconds": round(fit.seconds, 3), "jitter": fit.jitter}
+    info |= {k: v for k, v in meta.items() if k != "names"}
+    typer.echo(json.dumps(info))
+    return info
+
+
+def _latent_list(text: str, option: str) -> list:
+    """``A:B:...`` of latent points (``0.1,-0.2``) or material names -> [tensor | name, ...]."""
+    import torch
+
+    out = []
+    for part in text.split(":"):
+        part = part.strip()
+        if not part:
+            raise ValueRangeError(f"{option}: empty point in {text!r} (points are 'x0,x1' or names, ':' between)")
+        if part[0].isdigit() or part[0] in "+-.":
+            try:
+                values = [float(v) for v in part.split(",")]
+            except ValueError:
+                raise ValueRangeError(f"{option}: {part!r} is neither a latent point 'x0,x1,...' nor a name") from None
+            for v in values:
+                check_real(v, option)
+            out.append(torch.tensor(values, dtype=torch.float64))
+        else:
+            out.append(part)
+    return out
+
+
+@app.command()
+@_cli
+def manifold(
+    fit: Path = typer.Argument(..., help="A GPLVM fit of NBRDF materials (trainers/fit_gplvm.py)."),
+    point: str = typer.Option(None, help="Latent point 'x0,x1' (one value per latent dimension) or a material name."),
+    path: str = typer.Option(
+        None, help="Waypoints 'A:B[:C...]' (latent points or names), rendered as --frames frames."
+    ),
+    frames: int = typer.Option(8, min=2, max=10000, help="Frames along --path, evenly spaced by latent length."),
+    best: bool = typer.Option(False, help="Follow the least-uncertain path (Dijkstra) between waypoints."),
+    grid: str = typer.Option("3,3,6", help="MERL strides th,td,pd of the rendered table (3,3,6: the default grid)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
+    resolution: int = typer.Option(128, **_RESOLUTION, help="Image width = height (unless --width/--height)."),
+    spp: int = typer.Option(16, **_SPP),
+    bounces: int = typer.Option(1, **_BOUNCES, help="Surface vertices per path (1 = direct lighting)."),
+    seed: int = typer.Option(0, min=0),
+    exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, one for all frames)."),
+    out: Path = typer.Option(Path("out/manifold"), help="Output path without suffix; a path adds _000, _001, ..."),
+    progress: bool = PROGRESS,
+):
+    """Render the interpolated material at a latent point, or a path of frames, on a sphere (Soler et al.)."""
+    from itertools import pairwise
+
+    import torch
+
+    from .data import cache_path, data_path
+    from .manifold import GPLVM, GPLVMFit, MERLGrid, best_path, latent_points, nbrdf_observations, resample_path
+    from .manifold.materials import sphere_scene
+    from .render.manifold import render_rows
+
+    # every option is checked before the fit is read and the materials are tabulated
+    if (point is None) == (path is None):
+        raise ValueRangeError("give exactly one of --point (one image) and --path (frames)")
+    points = _latent_list(point, "--point") if point is not None else _latent_list(path, "--path")
+    if path is not None and len(points) < 2:
+        raise ValueRangeError(f"--path needs at least two waypoints 'A:B'; got {path!r}")
+    w, h = width or resolution, height or resolution
+    check_image_size(w, h, "--width/--height")
+    try:
+        strides = [int(v) for v in grid.split(",")]
+    except ValueError:
+        strides = []
+    if len(strides) != 3:
+        raise ValueRangeError(f"--grid must be three strides th,td,pd (e.g. 3,3,6); got {grid!r}")
+    rows_grid = MERLGrid.strided(*strides)
+    if exposure is not None:
+        check_real(exposure, "--exposure")
+    model = GPLVM(GPLVMFit.load(fit))
+    way = latent_points(model, points)
+    if path is None:
+        xs = way
+    elif best:
+        legs = [best_path(model, a, b).waypoints for a, b in pairwise(way)]
+        xs = resample_path(torch.cat([legs[0], *[leg[1:] for leg in legs[1:]]]), frames)
+    else:
+        xs = resample_path(way, frames)
+    names = model.fit.names
+    key = f"merl_nbrdf_{rows_grid.digest()[:8]}_{hashlib.sha256(chr(10).join(names).encode()).hexdigest()[:8]}.npz"
+    t0 = time.perf_counter()
+    obs = nbrdf_observations(
+        data_path("merl", "nbrdf_merl100_weights.npz"), rows_grid, names, cache=cache_path(key), progress=progress
+    )
+    scene = sphere_scene(64).with_resolution(w, h)
+    images = render_rows(scene, "sample", model.blend(xs, obs.z), rows_grid, spp, bounces, seed, progress=progress)
+    seconds = time.perf_counter() - t0
+    if exposure is None:
+        from .io import auto_exposure
+
+        exposure = auto_exposure(images.reshape(-1, w, 3))  # one exposure for every frame
+    b, var = model.weights(xs), model.variance(xs)
+    results = []
+    for i, image in enumerate(images):
+        target = out if path is None else out.with_name(f"{out.name}_{i:03d}")
+        info = _write_image(target, image, exposure, seconds / len(images))
+        top = torch.argsort(b[i].abs(), descending=True)[:3].tolist()
+        info["latent"] = [round(float(v), 4) for v in xs[i]]
+        info["variance"] = round(float(var[i]), 6)
+        info["heaviest"] = [[names[k], round(float(b[i, k]), 3)] for k in top]
+        results.append(info)
+    summary = {"frames": results, "seconds": round(seconds, 3), "size": [w, h], "spp": spp, "grid": grid}
+    typer.echo(json.dumps(summary))
+
+
 @app.command("fit-strokes")
 @_cli
 def fit_strokes(
@@ -381,6 +571,8 @@ def fit_strokes(
     unconstrained: bool = typer.Option(False, help="Allow physically impossible BRDFs."),
     cuts: bool = typer.Option(False, help="Visibility-cut clustering for the transfer functions."),
     rotate: float = typer.Option(0.0, help="Environment rotation (radians) for the re-render."),
+    keep_weight: float = typer.Option(1.0, min=0.0, help="Fit weight of the object's unpainted pixels."),
+    render_scale: float = typer.Option(1.0, min=0.01, max=16.0, help="Re-render size relative to the display."),
     seed: int = typer.Option(0, min=0),
     progress: bool = PROGRESS,
     ray: str = RAY,
@@ -389,19 +581,23 @@ def fit_strokes(
     from .inverse.design import DesignConfig, design, load_strokes
 
     check_image_size(width, height, "--width/--height")
-    for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate")):
+    for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate"), (keep_weight, "--keep-weight")):
         check_real(value, option)
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
-    cfg = DesignConfig(obj, downsample, samples, kd, f0, not unconstrained, cuts, 1.0, rotate, 1.0, seed)
+    constrained = not unconstrained
+    cfg = DesignConfig(obj, downsample, samples, kd, f0, constrained, cuts, keep_weight, rotate, render_scale, seed)
     run = {"executor": "local" if ray is None else "ray", "address": ray}
     typer.echo(json.dumps(design(sc, st, cfg, out, display_size=size, progress=progress, **run)))
 
 
 @app.command("fit-image")
+@_cli
 def fit_image_cmd(
     source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
-    target: Path = typer.Option(..., help="Target image (.exr or .png) at the tensors' size."),
+    target: Path = typer.Option(None, help="Target image (.exr or .png) at the tensors' size."),
+    strokes: Path = typer.Option(None, help="Strokes JSON (as fit-strokes) painted on the current render: the target."),
+    keep_weight: float = typer.Option(1.0, min=0.0, help="With --strokes: weight of unpainted object pixels."),
     mask: Path = typer.Option(None, help="Painted pixels (.png/.exr; > 0 is painted); default the objects' pixels."),
     objects: list[str] = typer.Option(..., "--object", help="Edited object (repeat for several)."),
     out: Path = typer.Option(Path("out/fit_image"), help="Output folder: fit.npz, render.exr/png, report.json."),
@@ -412,37 +608,48 @@ def fit_image_cmd(
     bounces: int = typer.Option(None, min=1, help="Fit with bounces 1..B only (1: direct lighting only)."),
     smoothness: float = typer.Option(0.0, min=0.0, help="Weight of the first-difference curve regulariser."),
     iterations: int = typer.Option(30, min=1, help="Gauss-Newton iterations."),
+    progress: bool = PROGRESS,
 ):
     """Fit band curves of objects to a target image through the GI polynomial tensors."""
     import numpy as np
     import torch
 
+    from .errors import ValueRangeError
+    from .inverse.design import load_strokes
     from .io import read_exr, read_png, save_arrays, write_exr, write_png
     from .records.polynomial import PolynomialTensors
-    from .render import PolynomialRenderer, fit_image, object_mask
+    from .render import PolynomialRenderer, fit_image, object_mask, paint_image
     from .transport.polynomial import precompute_polynomial
 
     def read(path: Path):
         return read_exr(path, allow_gray=True) if path.suffix.lower() == ".exr" else read_png(path)
 
+    if (target is None) == (strokes is None):
+        raise ValueRangeError("give exactly one of --target (an image) and --strokes (a strokes JSON)")
     t0 = time.perf_counter()
     if source.endswith(".npz") and Path(source).is_file():
         T = PolynomialTensors.load(source)
         sc = load_scene(scene or T.meta.get("scene", ""), T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=False)
+        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
-    img = read(target).double()[..., :3]
     if mask is None:
         w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
     else:
         m = read(mask).double()
         w = (m.reshape(m.shape[0], m.shape[1], -1).amax(-1) > 0).double()
+    if strokes is not None:
+        st, size = load_strokes(strokes)
+        img, w = paint_image(R().detach(), st, w > 0, size, keep_weight)
+        out.mkdir(parents=True, exist_ok=True)
+        write_exr(out / "target.exr", img.float())
+    else:
+        img = read(target).double()[..., :3]
     t0 = time.perf_counter()
-    res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations)
+    res = fit_image(R, objects, img, weights=w, smoothness=smoothness, max_iter=iterations, progress=progress)
     fit_s = time.perf_counter() - t0
     out.mkdir(parents=True, exist_ok=True)
     arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
@@ -465,9 +672,8 @@ def fit_image_cmd(
 def precompute_visibility_cmd(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
-    resolution: int = typer.Option(
-        64, "--resolution", "--cubemap", help="Cubemap texels per face side (a multiple of 16: 64 or 128)."
-    ),
+    cubemap: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
+    resolution: int = typer.Option(None, hidden=True, help="Deprecated here: the cubemap size (use --cubemap)."),
     supersample: int = typer.Option(1, min=1, max=16, help="k x k rays per texel (k > 1: anti-aliased, needs --bits)."),
     bits: int = typer.Option(0, help="0 = binary maps; 2, 6 or 8 = quantised graded maps."),
     chunk: int = typer.Option(512, min=1, help="Vertices per checkpointed work unit."),
@@ -482,7 +688,11 @@ def precompute_visibility_cmd(
     from .sphere.cubemap import CubemapBlocks
     from .transport.visibility import BITS, precompute_visibility
 
-    check_int(resolution, "--resolution", 16, MAX_CUBEMAP_RESOLUTION)
+    if resolution is not None:  # the old name: a cubemap size here, an image size everywhere else
+        typer.echo(f"warning: precompute-visibility --resolution is deprecated; use --cubemap {resolution} "
+                   "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
+        cubemap = resolution
+    resolution = check_int(cubemap, "--cubemap", 16, MAX_CUBEMAP_RESOLUTION)
     CubemapBlocks(resolution, 16)  # a multiple of the block size
     if bits not in BITS:
         raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
@@ -515,6 +725,8 @@ def relight(
     method: str = typer.Option("adaptive", help="adaptive (ours), standard, or haar (1% of coefficients)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
+    width: int = WIDTH,
+    height: int = HEIGHT,
     progress: bool = PROGRESS,
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
@@ -526,13 +738,17 @@ def relight(
     check_real(rotate, "--rotate")
     if exposure is not None:
         check_real(exposure, "--exposure")
-    sc = load_scene(scene, resolution)
+    sc = load_scene(scene, resolution, width, height)
+    coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
+    if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
+        typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
+                   "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
     vis = VertexVisibility.load(visibility)
     r = TripleProductRenderer(sc, vis)
     if rotate:
         r.set_lighting(r.envmap.rotated(rotate))
     t0 = time.perf_counter()
-    image, stats = r.render(method=method, **({} if method == "adaptive" else {"progress": progress}))
+    image, stats = r.render(method=method, progress=progress)
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     if stats is not None:
@@ -548,8 +764,12 @@ def editor(
     resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
     spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
     series: str = typer.Option("64,1,1,1", help="BRDF series when precomputing a scene."),
-    cache: Path = typer.Option(Path("out/editor"), help="Where precomputed tensors are kept for the next start."),
+    cache: Path = typer.Option(
+        None, help="Where precomputed tensors are kept for the next start (default $TORCH_BRDF_CACHE/editor)."
+    ),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
+    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or TOML; with --visibility)."),
+    visibility: Path = typer.Option(None, help="Its record from precompute-visibility (the relighting tab)."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
@@ -559,7 +779,15 @@ def editor(
     check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
-    serve({**config, "seed": 0, "cache_dir": str(cache)}, port=port, echo=typer.echo)
+    if (relight is None) != (visibility is None):
+        raise ValueRangeError("--relight and --visibility go together (a scene and its visibility record)")
+    if relight is not None:
+        rel = Path(relight)
+        config["relight_scene"] = str(rel.resolve()) if rel.is_file() else relight
+        config["relight_visibility"] = str(visibility.resolve())
+    from .data import cache_dir
+
+    serve({**config, "seed": 0, "cache_dir": str(cache or cache_dir() / "editor")}, port=port, echo=typer.echo)
 
 
 @app.command("fetch-data")
@@ -575,6 +803,24 @@ def fetch_data_cmd(
 
     paths = fetch_data(dest, url, file or None, progress)
     typer.echo(json.dumps({"files": [str(p) for p in paths]}))
+
+
+@app.command()
+@_cli
+def report(
+    out: Path = typer.Option(Path("out/report"), help="Folder for report.html, its PNGs and the run records."),
+    quick: bool = typer.Option(False, "--quick", help="Run every benchmark with --quick (the small version)."),
+    results: Path = typer.Option(None, help="Read saved benchmark JSON from this folder instead of running."),
+    only: list[str] = typer.Option(None, help="Run only this benchmark (repeatable; e.g. --only extremes)."),
+    benchmarks: Path = typer.Option(None, help="The benchmarks/ folder (default ./benchmarks or the checkout's)."),
+    timeout: float = typer.Option(None, min=1.0, help="Seconds per benchmark (default 1800 quick, 14400 full)."),
+    progress: bool = PROGRESS,
+):
+    """Run every benchmark (or read their JSON) and write the speed/accuracy report page."""
+    from .report import make_report
+
+    page = make_report(out, quick, results, only or None, benchmarks, timeout, progress)
+    typer.echo(json.dumps({"report": str(page), "pngs": sorted(str(p) for p in page.parent.glob("*.png"))}))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -39,6 +39,14 @@ def cache_path(*parts: str) -> Path:
     return p
 
 
+def _in_kernel() -> bool:
+    """Whether this code runs inside a Jupyter kernel (not merely a process that imported
+    ipykernel, e.g. nbclient launching one)."""
+    ipython = sys.modules.get("IPython")
+    shell = ipython.get_ipython() if ipython is not None and hasattr(ipython, "get_ipython") else None
+    return type(shell).__name__ == "ZMQInteractiveShell"
+
+
 def progress_default(progress: bool | None = None) -> bool:
     """Whether to show progress bars: ``progress`` when given; else ``$TORCH_BRDF_PROGRESS``
     (``1``/``0``) when set; else True when stderr is a terminal or the code runs in a
@@ -48,7 +56,7 @@ def progress_default(progress: bool | None = None) -> bool:
     env = os.environ.get(PROGRESS_ENV_VAR, "").strip().lower()
     if env:
         return env not in ("0", "false", "no", "off")
-    if "ipykernel" in sys.modules:
+    if "ipykernel" in sys.modules and _in_kernel():
         return True
     try:
         return sys.stderr.isatty()

@@ -11,4 +11,4 @@ checksum. Open it with ``PolynomialTensors.load`` and render with ``PolynomialRe
 from torch_brdf.cli import app
 
 if __name__ == "__main__":
-    app(["precompute", *__import__("sys").argv[1:]])
+    app(["precompute", *__import__("sys").argv[1:]], prog_name="torch-brdf")

@@ -1,6 +1,6 @@
 """Precompute the per-vertex visibility cubemaps of a scene (Inger et al., all-frequency relighting).
 
-    python trainers/precompute_visibility.py bunny_relight --resolution 64 --out out/bunny_vis.npz
+    python trainers/precompute_visibility.py bunny_relight --cubemap 64 --out out/bunny_vis.npz
 
 The same as ``torch-brdf precompute-visibility`` (see ``--help``): finished chunks of vertices
 are checkpointed next to the output (``out/bunny_vis.chunks/``), so an interrupted run (Ctrl-C)
@@ -13,4 +13,4 @@ Open it with ``VertexVisibility.load`` and render with ``TripleProductRenderer``
 from torch_brdf.cli import app
 
 if __name__ == "__main__":
-    app(["precompute-visibility", *__import__("sys").argv[1:]])
+    app(["precompute-visibility", *__import__("sys").argv[1:]], prog_name="torch-brdf")

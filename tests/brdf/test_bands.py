@@ -20,6 +20,7 @@ from torch_brdf.brdf.bands import (
     Factored1D,
     FresnelFactored1D,
     PairQuadrature,
+    Projector,
     SchlickFresnel,
     SmithQuotient,
     band_albedos,
@@ -196,6 +197,33 @@ def test_projected_brdfs_are_reciprocal():
             wi, wo = pairs(500, 6, dt)
             a, b = f.eval(wi, wo), f.eval(wo, wi)
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_projector_is_project_for_every_brdf_it_is_given():
+    """The kept nodes and the factorised matrix give project's coefficients (same rule), for
+    one-hot and coupled bases, plain and parameterised quotients, isotropic and anisotropic."""
+    ct = create("cook_torrance", distribution="ggx", roughness=0.3, f0=0.1, kd=0.1)
+    cases = [
+        (BandBasis("theta_h", 32), "one", False, [blinn(100.0, 0.3, 0.6), ct]),
+        (BandBasis("theta_d", 16), "cook_torrance", False, [ct, blinn(10.0)]),
+        (BandBasis("theta_i", 16), "distribution", False, [ct]),
+        (BandBasis("theta_h", 12), "one", True, [AnisoLobe(40.0, 5.0)]),
+    ]
+    for basis, q, aniso, brdfs in cases:
+        rule = PairQuadrature.build(basis, aniso, **QUAD_ANISO)
+        proj = Projector(basis, q, quadrature=rule)
+        assert proj.pairs <= rule.size and proj.reached.shape == (basis.J, 3)
+        for brdf in brdfs:
+            for nonneg in (True, False):
+                ref = project(brdf, basis, q, quadrature=rule, nonnegative=nonneg)
+                got = proj(brdf, nonnegative=nonneg)
+                assert float(ref.abs().max()) > 0
+                torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
+    # without a rule it builds the one project would (quad_kwargs), anisotropic on request
+    basis = BandBasis("theta_h", 16)
+    ref = project(blinn(50.0), basis, **QUAD_H)
+    torch.testing.assert_close(Projector(basis, **QUAD_H)(blinn(50.0)), ref, rtol=1e-9, atol=1e-14)
+    assert Projector(basis, anisotropic=True, **QUAD_ANISO).pairs > Projector(basis, **QUAD_ANISO).pairs
 
 
 def test_fresnel_quotient_helps_cook_torrance():

@@ -14,7 +14,7 @@ from torch_brdf.denoise import (
     EdgeAwareFilter,
     GuideBuffers,
     OIDNBasis,
-    denoise_frozen,
+    denoise,
     denoise_tensors,
     guide_buffers,
     oidn_available,
@@ -25,7 +25,7 @@ from torch_brdf.io.arrays import load_arrays, save_arrays
 from torch_brdf.records import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
-from torch_brdf.scene.guides import GUIDE_NAMES
+from torch_brdf.scene.guides import GUIDE_NAMES, GUIDE_VERSION
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
@@ -98,19 +98,22 @@ def test_guides_file_round_trip_and_version(setup, tmp_path):
 
 def test_guides_are_saved_with_the_tensors(setup, tmp_path):
     _, tensors, _, g = setup
-    assert tensors.guides is None
-    path = dataclasses.replace(tensors, guides=g).save(tmp_path / "t.npz")
-    back = PolynomialTensors.load(path)
+    # precompute_polynomial attaches the view's guides by default, versioned in the record
+    assert tensors.meta["guides"] == GUIDE_VERSION
+    for k in GUIDE_NAMES:
+        assert torch.equal(getattr(tensors.guides, k), getattr(g, k))
+    back = PolynomialTensors.load(tensors.save(tmp_path / "t.npz"))
     for k in GUIDE_NAMES:
         assert torch.equal(getattr(back.guides, k), getattr(g, k))
-    assert PolynomialTensors.load(tensors.save(tmp_path / "plain.npz")).guides is None
+    plain = dataclasses.replace(tensors, guides=None)
+    assert PolynomialTensors.load(plain.save(tmp_path / "plain.npz")).guides is None
     # the filter of a record is built from its own guides and bases
     A = EdgeAwareFilter.for_tensors(back)
     assert A.glossy == tuple(_glossy(tensors))
     x = torch.rand(3, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(A(x), EdgeAwareFilter(g, glossy=_glossy(tensors))(x))
     with pytest.raises(ValueRangeError):
-        EdgeAwareFilter.for_tensors(tensors)
+        EdgeAwareFilter.for_tensors(plain)
 
 
 def test_filter_is_linear_and_respects_object_ids(setup, gen):
@@ -173,9 +176,7 @@ def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, gen):
 
 def _frozen_frames(tensors, mats, obj, gen, n=3, den=None):
     R = PolynomialRenderer(tensors, mats, dtype=torch.float64)
-    R.freeze(obj)
-    if den is not None:
-        R._frozen = denoise_frozen(R._frozen, den, (tensors.height, tensors.width))
+    R.freeze(obj, denoiser=den)
     b = tensors.bases[tensors.object_id(obj)]
     frames = []
     for _ in range(n):
@@ -203,6 +204,44 @@ def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj):
         assert R._frozen[k].numel() <= 1.05 * noisy._frozen[k].numel()
 
 
+def test_denoise_uses_the_guides_the_precomputation_attached(setup, gen):
+    """``denoise(tensors)`` needs no guides from the user, and ``freeze(obj, denoiser="linear")``
+    (the public way to denoise a frozen tensor) renders what freezing the denoised tensors does."""
+    _, tensors, mats, g = setup
+    den = denoise(tensors)
+    ref = denoise_tensors(tensors, EdgeAwareFilter(g, glossy=_glossy(tensors)))
+    R = PolynomialRenderer(den, mats, dtype=torch.float64)
+    Q = PolynomialRenderer(ref, mats, dtype=torch.float64)
+    state = gen.get_state()
+    _random_edit(R, tensors, gen)
+    gen.set_state(state)
+    _random_edit(Q, tensors, gen)
+    torch.testing.assert_close(R.evaluate(), Q.evaluate(), rtol=0, atol=0)
+    # freeze after denoise == denoise after freeze, through the public API only
+    after, _ = _frozen_frames(den, mats, "back", torch.Generator().manual_seed(9))
+    before, F = _frozen_frames(tensors, mats, "back", torch.Generator().manual_seed(9), den="linear")
+    assert F.frozen_object == "back" and F.frozen_denoiser.startswith("linear")
+    for a, b in zip(after, before, strict=True):
+        assert _rel(a, b) < 1e-5
+    # and it is not the noisy frame (the filter did something)
+    noisy, _ = _frozen_frames(tensors, mats, "back", torch.Generator().manual_seed(9))
+    assert _rel(before[0], noisy[0]) > 1e-3
+    # without guides: a clear error, not a silent noisy frame
+    plain = dataclasses.replace(tensors, guides=None)
+    with pytest.raises(ValueRangeError):
+        denoise(plain)
+    with pytest.raises(ValueRangeError):
+        PolynomialRenderer(plain, mats).freeze("back", denoiser="linear")
+    with pytest.raises(ValueRangeError):
+        denoise(tensors, "bilateral")
+
+
+def test_precompute_without_guides(setup):
+    sc = setup[0]
+    t = precompute_polynomial(sc, "2,1", spp=1, seed=0, progress=False, guides=False)
+    assert t.guides is None and t.meta["guides"] is None
+
+
 @needs_oidn
 def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen):
     """(b) OIDN is not linear, but it runs once on fixed basis images: afterwards the frozen
@@ -221,6 +260,7 @@ def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen):
         R.set_coefficients("back", c, d=d)
         frames.append(R())
     assert R._frozen is fz and ob.calls == calls  # edits never call the denoiser
+    assert R.frozen_denoiser == ob.description
     f1, f2, f12, f0 = frames
     torch.testing.assert_close(f12, f1 + f2 - f0, rtol=0, atol=1e-6 * float(f12.abs().max()))
     assert bool(torch.isfinite(f12).all()) and float(f12.min()) >= 0

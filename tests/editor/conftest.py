@@ -40,3 +40,51 @@ def small_fit(tmp_path_factory):
     path = tmp_path_factory.mktemp("gplvm") / "fit8.npz"
     fit_gplvm(s, d, q=2, names=obs.names, max_iter=50).save(path)
     return path
+
+
+def _rows(a) -> str:
+    return (
+        "["
+        + ", ".join(
+            "[" + ", ".join(repr(float(x)) if isinstance(x, float) else str(int(x)) for x in r) + "]" for r in a
+        )
+        + "]"
+    )
+
+
+@pytest.fixture(scope="session")
+def relight_files(tmp_path_factory):
+    """(scene .toml, visibility .npz): a glossy box over a 6x6-quad plane under a sky with a
+    sun, camera 32x24, visibility cubemaps 32x32x6 (the relighting tab's test scene)."""
+    import trimesh
+
+    from torch_brdf.scene import load_scene
+    from torch_brdf.scene.builtin import grid_plane
+    from torch_brdf.transport.visibility import precompute_visibility
+
+    box = trimesh.creation.box(extents=(0.6, 0.3, 0.6))
+    box.apply_translation([0.1, 0.45, 0.0])
+    plane = grid_plane(2.0, 6)
+
+    def mesh(m) -> str:
+        return f"vertices = {_rows(m.vertices.tolist())}, faces = {_rows(m.faces.tolist())}"
+
+    sun = "sun_direction = [0.5, 0.6, -0.3], sun_angular_radius_deg = 6.0, sun_radiance = [40.0, 38.0, 34.0]"
+    d = tmp_path_factory.mktemp("relight")
+    toml = d / "box_sky.toml"
+    toml.write_text(
+        f"""name = "box_sky"
+camera = {{ origin = [0.0, 1.5, -2.5], target = [0.0, 0.2, 0.0], fov_deg = 45.0, width = 32, height = 24 }}
+materials.glossy = {{ type = "phong", kd = 0.2, ks = 0.6, exponent = 60.0 }}
+materials.floor = {{ type = "lambert", albedo = 0.6 }}
+objects = [
+  {{ name = "box", material = "glossy", {mesh(box)} }},
+  {{ name = "floor", material = "floor", {mesh(plane)} }},
+]
+lights = [{{ type = "envmap", procedural = "sky", height = 32, {sun} }}]
+"""
+    )
+    vis = precompute_visibility(load_scene(str(toml)), resolution=32, chunk=64, progress=False)
+    path = d / "vis.npz"
+    vis.save(path)
+    return toml, path

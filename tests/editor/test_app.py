@@ -68,3 +68,84 @@ def test_fast_srgb_is_to_srgb8_within_one_level(gen):
     for exposure in (0.0, -1.5, 2.0):
         diff = srgb8_fast(img, exposure).int() - to_srgb8(img, exposure=exposure).int()
         assert int(diff.abs().max()) <= 1
+
+
+def test_every_library_model_is_in_the_menu_or_says_why(app):
+    from torch_brdf.brdf import available
+    from torch_brdf.data import data_path
+
+    listed = {c.model for c in app.choices}
+    assert listed | set(app.skipped) == set(available())
+    assert {"factored_1d", "factored_1d_fresnel"} <= listed  # curves on the object's bands
+    if data_path("merl", "nbrdf_merl100_weights.npz", required=False) is None:
+        assert "not found" in app.skipped["nbrdf"] and "nbrdf: needs" in app.menu_note.value
+    else:
+        assert {"nbrdf", "merl"} <= listed and not app.skipped
+
+
+def test_curve_form_edits_the_bands_as_they_are(app):
+    import torch
+
+    app.model.value = "blinn_phong"
+    before = app.session.projected["back"].clone()
+    app.model.value = "factored_1d"
+    assert list(app.controls) == ["coefficients"]
+    m = app.session.tensors.object_id("back")
+    c = app.session.renderer.c[m].double()
+    assert torch.allclose(c, before, rtol=1e-5, atol=1e-9)  # the current curve (6 digits), used as is
+    lines = app.controls["coefficients"].value.splitlines()
+    assert len(lines) == app.session.basis("back").J
+    lines[0] = "0.5"  # a grey line
+    app.controls["coefficients"].value = "\n".join(lines)
+    assert torch.allclose(app.session.renderer.c[m][0].double(), torch.full((3,), 0.5, dtype=torch.float64))
+    for bad, words in (("\n".join(lines[:-1]), "bands"), ("\n".join(["-1"] + lines[1:]), "must be")):
+        app.controls["coefficients"].value = bad
+        assert "tb-error" in app.message.value and words in app.message.value
+    app.model.value = "factored_1d_fresnel"
+    assert list(app.controls) == ["coefficients", "f0"]
+    assert app.session.materials["back"]["type"] == "factored_1d_fresnel"
+
+
+def test_measured_models_pick_a_material(app):
+    names = {c.model: c for c in app.choices}
+    if "nbrdf" not in names:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    for model in ("nbrdf", "merl"):
+        app.model.value = names[model].label
+        ctl = app.controls["material"]
+        first = bytes(app.frame.pixels)
+        ctl.value = ctl.options[-1]
+        assert app.session.materials["back"] == {**dict(names[model].fixed), "type": model, "material": ctl.options[-1]}
+        assert bytes(app.frame.pixels) != first and "tb-error" not in app.message.value
+
+
+def test_relighting_tab_rotates_orbits_and_edits(small_tensors_file, relight_files):
+    app = EditorApp(
+        {
+            "source": str(small_tensors_file[0]),
+            "threads": 0,
+            "relight_scene": str(relight_files[0]),
+            "relight_visibility": str(relight_files[1]),
+        }
+    )
+    assert app.tabs.get_title(1) == "relighting" and "data-object='box'" in app.rl_selected.value
+    assert (app.rl_frame.width, app.rl_frame.height) == (32, 24) and "triple products" in app.rl_frame.info
+    first = bytes(app.rl_frame.pixels)
+    app.rl_rotation.value = 120.0
+    turned = bytes(app.rl_frame.pixels)
+    assert turned != first and "environment 120°" in app.rl_frame.info
+    app.rl_orbit.value = 30.0
+    assert bytes(app.rl_frame.pixels) != turned and "orbit 30°" in app.rl_frame.info
+    assert [c.model for c in app.rl_panel.choices if c.on_bands] == []  # no bands to hold a curve
+    app.rl_panel.model.value = "blinn_phong"
+    assert app.relight.materials["box"]["type"] == "blinn_phong"
+    before = bytes(app.rl_frame.pixels)
+    app.rl_panel.controls["exponent"].value = 3.0
+    assert bytes(app.rl_frame.pixels) != before
+    app._guard(app.rl_panel.on_typed, "exponent", "-4")
+    assert "tb-error" in app.message.value and "exponent" in app.message.value
+    broken = EditorApp(
+        {"source": str(small_tensors_file[0]), "threads": 0, "relight_scene": "cornell_box", "relight_visibility": "x"}
+    )
+    assert broken.relight is None and "could not open the relighting scene" in broken.rl_selected.value
+    assert broken.session is not None  # the multibounce tab works

@@ -42,7 +42,7 @@ def shots(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def page(small_tensors_file, small_fit):
+def page(small_tensors_file, small_fit, relight_files):
     reason = _missing()
     if reason:
         if os.environ.get("CI"):
@@ -53,6 +53,7 @@ def page(small_tensors_file, small_fit):
     from torch_brdf.editor.server import EditorServer
 
     config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2}
+    config.update(relight_scene=str(relight_files[0]), relight_visibility=str(relight_files[1]))
     if small_fit is not None:  # the measured-material map needs the shared NBRDF data
         config["gplvm"] = str(small_fit)
     with EditorServer(config) as server, sync_playwright() as p:
@@ -167,7 +168,7 @@ def test_dragging_the_exponent_changes_the_wall(page, ids, shots):
 def test_switching_to_ggx_shows_its_sliders(page, shots):
     assert page.query_selector(".tb-param-roughness") is None
     n = frames(page)
-    page.select_option("select:near(:text('model'))", label="GGX (cook_torrance)")
+    page.select_option(".tb-model select", label="GGX (cook_torrance)")
     page.wait_for_selector(".tb-param-roughness .noUi-handle")
     assert page.query_selector(".tb-param-exponent") is None
     settle(page, n)
@@ -205,11 +206,68 @@ def test_a_latent_map_click_changes_the_material(page, ids, small_fit, shots):
     page.screenshot(path=str(shots / "editor_latent.png"), full_page=True)
 
 
+RELIGHT = ".tb-frame-wrap:has(canvas.tb-relight)"
+
+
+def relight_pixels(pg) -> torch.Tensor:
+    w, h, data = pg.eval_on_selector(
+        "canvas.tb-relight",
+        "c => [c.width, c.height, Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data)]",
+    )
+    return torch.tensor(data, dtype=torch.uint8).reshape(h, w, 4)[..., :3].float()
+
+
+def relight_step(pg, action) -> torch.Tensor:
+    """Do ``action`` and return the relit frame drawn after it."""
+    n = int(pg.eval_on_selector(RELIGHT, "e => Number(e.dataset.frames) || 0"))
+    action()
+    pg.wait_for_function(f"() => Number(document.querySelector('{RELIGHT}').dataset.frames) > {n}")
+    time.sleep(1.0)  # later frames of the same input (none expected)
+    return relight_pixels(pg)
+
+
+def test_relighting_tab_rotates_the_light_orbits_and_edits(page, relight_files, shots):
+    from torch_brdf.editor.relight import RelightSession
+
+    page.click(".lm-TabBar-tab:has-text('relighting')")
+    page.wait_for_selector("canvas.tb-relight", state="visible")
+    page.wait_for_selector(".tb-rl-selected[data-object='box']")
+    base = relight_pixels(page)
+    assert base.shape == (24, 32, 3) and float(base.mean()) > 10
+    page.focus(".tb-rl-rotation .noUi-handle")
+    turned = relight_step(page, lambda: [page.keyboard.press("ArrowRight") for _ in range(1)])
+    assert float((turned - base).abs().max()) > 2  # the sun moved 5 degrees
+    assert "environment 5°" in page.inner_text(f"{RELIGHT} .tb-caption")
+    # a click on the floor selects it; its material form follows
+    rl = RelightSession(str(relight_files[0]), relight_files[1])
+    gb = rl.view().gbuffer
+    k = int((gb.object_id == rl.objects.index("floor")).nonzero()[-1, 0])
+    y, x = divmod(int(gb.pixels[k]), gb.width)
+    box = page.query_selector("canvas.tb-relight").bounding_box()
+    page.mouse.click(box["x"] + (x + 0.5) * box["width"] / 32, box["y"] + (y + 0.5) * box["height"] / 24)
+    page.wait_for_selector(".tb-rl-selected[data-object='floor']")
+    page.select_option(".tb-rl-model select", label="phong")
+    page.wait_for_selector(".tb-rl-typed-exponent input")
+    before = relight_pixels(page)
+    page.fill(".tb-rl-typed-exponent input", "400")
+    after = relight_step(page, lambda: page.press(".tb-rl-typed-exponent input", "Enter"))
+    floor = torch.zeros(24 * 32, dtype=torch.bool)
+    floor[gb.pixels[gb.object_id == rl.objects.index("floor")]] = True
+    change = (after - before).abs().amax(-1).reshape(-1)
+    assert float(change[floor].max()) > 2
+    page.focus(".tb-rl-orbit .noUi-handle")
+    moved = relight_step(page, lambda: page.keyboard.press("ArrowRight"))
+    assert float((moved - after).abs().max()) > 2 and "orbit 5°" in page.inner_text(f"{RELIGHT} .tb-caption")
+    page.screenshot(path=str(shots / "editor_relight.png"), full_page=True)
+    page.click(".lm-TabBar-tab:has-text('multibounce')")
+    page.wait_for_selector("canvas.tb-main", state="visible")
+
+
 def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small_tensors_file):
     # a value typed out of range (GGX roughness <= 1)
     if page.query_selector(".tb-typed-roughness") is None:  # after a measured blend: back to GGX
-        page.select_option("select:near(:text('model'))", label="Beckmann (cook_torrance)")
-        page.select_option("select:near(:text('model'))", label="GGX (cook_torrance)")
+        page.select_option(".tb-model select", label="Beckmann (cook_torrance)")
+        page.select_option(".tb-model select", label="GGX (cook_torrance)")
         page.wait_for_selector(".tb-typed-roughness input")
     page.fill(".tb-typed-roughness input", "7")
     page.press(".tb-typed-roughness input", "Enter")

@@ -8,12 +8,11 @@ import pytest
 import torch
 
 from tests.conftest import corrupted_copy
-from torch_brdf.brdf import PairQuadrature, create, project
+from torch_brdf.brdf import Projector, available, create, project
 from torch_brdf.brdf.analytic import EXPONENT_RANGE, WARD_ALPHA_RANGE
 from torch_brdf.brdf.microfacet import CookTorrance
 from torch_brdf.editor import (
     EditorSession,
-    FastProjector,
     ReferenceJob,
     load_source,
     model_choices,
@@ -22,6 +21,7 @@ from torch_brdf.editor import (
     scene_with_materials,
 )
 from torch_brdf.editor.params import hex_to_linear, linear_to_hex
+from torch_brdf.editor.session import FAST_QUADRATURE
 from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.transport import path_trace
 
@@ -47,9 +47,19 @@ def test_every_menu_entry_builds_at_its_bounds_and_refuses_beyond():
     choices, skipped = model_choices()
     labels = [c.label for c in choices]
     assert "GGX (cook_torrance)" in labels and "blinn_phong" in labels
-    assert set(skipped) == {"merl", "nbrdf", "factored_1d", "factored_1d_fresnel"}
+    assert set(skipped) <= {"merl", "nbrdf"}  # only the data models, and only without their files
+    assert {c.model for c in choices} | set(skipped) == set(available())
     for c in choices:
+        if c.data is not None:  # a choice of materials: each builds
+            for name in c.data.options[:2]:
+                create(c.material({"material": name}))
+            continue
         for s in param_specs(c.model, dict(c.fixed)):
+            if s.kind == "curve":  # J x 3 non-negative values: zeros build, a negative one does not
+                create(c.material({s.name: [[0.0] * 3] * 64}))
+                with pytest.raises(ValueRangeError):
+                    create(c.material({s.name: [[-1.0] * 3] * 64}))
+                continue
             for v in (s.lo, s.hi):
                 create(c.material({s.name: (v, v, v) if s.kind == "rgb" else v}))
             beyond = s.hi * 10 if s.kind == "log" else s.hi + 0.5
@@ -66,20 +76,11 @@ def test_colour_round_trip():
 
 
 # -- fast projection -------------------------------------------------------------------------
-def test_fast_projector_with_the_library_rule_is_project(small_tensors_file):
-    b = small_tensors_file[1].bases[small_tensors_file[1].object_id("back")]
-    rule = {"n_theta_h": 96, "n_theta_d": 6, "n_phi_d": 16, "order": 3}
-    fast = FastProjector(b.band_basis(), b.quotient, False, **rule)
-    for brdf in (create("blinn_phong", kd=0.2, ks=0.7, exponent=300.0), create("cook_torrance", roughness=0.3)):
-        ref = project(brdf, b.band_basis(), b.quotient, quadrature=PairQuadrature.build(b.band_basis(), **rule))
-        assert torch.allclose(fast(brdf), ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
-
-
 def test_coarse_rule_error(small_tensors_file):
     """Blinn-Phong depends on theta_h alone: the coarse rule loses nothing; GGX's Fresnel and
     masking vary with theta_d: a few per cent (the price of ~40x fewer BRDF evaluations)."""
     b = small_tensors_file[1].bases[small_tensors_file[1].object_id("back")]
-    fast = FastProjector(b.band_basis(), b.quotient)
+    fast = Projector(b.band_basis(), b.quotient, **FAST_QUADRATURE)
     for brdf, tol in ((create("blinn_phong", exponent=100.0), 1e-4), (create("cook_torrance", roughness=0.2), 0.1)):
         ref = project(brdf, b.band_basis(), b.quotient)
         assert float((fast(brdf) - ref).norm() / ref.norm()) < tol
@@ -216,3 +217,33 @@ def test_latent_pick_blends_the_materials_projections(session, small_fit):
     with pytest.raises(ValueRangeError):
         lm.latent(32, 0)
     session.set_material("back", {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": 100.0})
+
+
+def test_latent_map_shows_any_pair_of_dimensions(tmp_path):
+    """q = 3: the slice on dims (1, 2) keeps dim 0 at the latents' mean, moves dim 1 along x
+    and dim 2 up the map, and draws the materials at their (1, 2) coordinates."""
+    from torch_brdf.data import data_path
+    from torch_brdf.editor.latent import LatentMap
+    from torch_brdf.io.merl import load_nbrdf_weights
+    from torch_brdf.manifold import fit_gplvm, gram, nbrdf_observations
+
+    weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
+    if weights is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    obs = nbrdf_observations(weights, names=list(load_nbrdf_weights(weights).names)[:6], progress=False)
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(s, d, q=3, names=obs.names, max_iter=20)
+    lm = LatentMap(fit, weights, resolution=24)
+    assert lm.q == 3 and lm.dims == (0, 1)
+    first = lm.image()
+    lm.set_dims((1, 2))
+    assert lm.dims == (1, 2) and not torch.equal(lm.image(), first)
+    mean = lm.model.latents.mean(0)
+    z00, z_right, z_up = lm.latent(0, 23), lm.latent(23, 23), lm.latent(0, 0)
+    for z in (z00, z_right, z_up):
+        assert math.isclose(float(z[0]), float(mean[0]), rel_tol=1e-12, abs_tol=1e-12)
+    assert float(z_right[1]) > float(z00[1]) and float(z_up[2]) > float(z00[2])
+    assert float(z_right[2]) == float(z00[2]) and float(z_up[1]) == float(z00[1])
+    for bad in ((1, 1), (0, 3)):
+        with pytest.raises(ValueRangeError):
+            lm.set_dims(bad)

@@ -9,7 +9,13 @@ import torch
 from tests.manifold.common import SMALL_GRID, small_model
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.manifold.data import analytic_rows
-from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from torch_brdf.manifold.paths import (
+    best_path,
+    directional_albedo,
+    interpolant_diagnostics,
+    latent_slice,
+    resample_path,
+)
 
 
 def test_slice_points_and_variance():
@@ -94,3 +100,15 @@ def test_directional_albedo_of_lambert_and_linearity():
     # the extrapolating blend goes negative where half the specular lobe exceeds 1.5 x the constant
     want = float(((w[1:] @ two) < 0).double().mean())
     assert want > 0 and abs(float(d.negative_fraction[1]) - want) < 1e-15
+
+
+def test_resample_path_is_even_by_arc_length_and_keeps_the_ends():
+    way = torch.tensor([[0.1, 0.3], [3.1, 0.3], [3.1, 1.3]], dtype=torch.float64)  # lengths 3 and 1
+    pts = resample_path(way, 5)
+    assert torch.equal(pts[0], way[0]) and torch.equal(pts[-1], way[-1])
+    steps = (pts[1:] - pts[:-1]).norm(dim=1)
+    torch.testing.assert_close(steps, torch.full((4,), 1.0, dtype=torch.float64))
+    torch.testing.assert_close(pts[3], torch.tensor([3.1, 0.3], dtype=torch.float64))  # the corner
+    assert torch.equal(resample_path(way[:1], 3), way[:1].expand(3, 2))  # one point: a still path
+    with pytest.raises(ValueRangeError):
+        resample_path(way, 0)

@@ -9,20 +9,23 @@
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
 
-from .atrous import AtrousSettings, EdgeAwareFilter
+from .atrous import AtrousSettings, EdgeAwareFilter, glossy_objects
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
-from .tensors import denoise_frozen, denoise_planes, denoise_tensors
+from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser
 
 __all__ = [
     "AtrousSettings",
     "EdgeAwareFilter",
     "GuideBuffers",
     "OIDNBasis",
+    "denoise",
     "denoise_frozen",
     "denoise_planes",
     "denoise_tensors",
+    "glossy_objects",
     "guide_buffers",
+    "make_denoiser",
     "oidn_available",
     "oidn_frame",
     "oidn_image",

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
 from .guides import GuideBuffers
 
@@ -86,6 +87,11 @@ def _shift(x: torch.Tensor, dy: int, dx: int, fill: float = 0.0) -> torch.Tensor
     return out
 
 
+def glossy_objects(tensors) -> list[int]:
+    """Object ids of ``tensors`` with more than one band (J > 1): the filters' glossy objects."""
+    return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
+
+
 class EdgeAwareFilter:
     """The à-trous cascade for one view, weights precomputed from ``guides``.
 
@@ -103,9 +109,15 @@ class EdgeAwareFilter:
     def __init__(self, guides: GuideBuffers, settings: AtrousSettings | None = None, glossy=()):
         self.guides = guides
         self.settings = settings or AtrousSettings()
+        self.glossy = tuple(sorted(int(o) for o in glossy))
+        self.shape = (guides.height, guides.width)
+        # many small elementwise ops: under load two OpenMP threads can be 15x slower than one
+        with tuned("denoise.atrous_weights", guides.height * guides.width * self.settings.levels):
+            self._build()
+
+    def _build(self) -> None:
         s = self.settings
-        g = guides
-        h, w = g.height, g.width
+        g = self.guides
         oid = g.object_id.double()
         n = g.normal.double().permute(2, 0, 1)  # (3, H, W)
         x = g.position.double().permute(2, 0, 1)
@@ -113,7 +125,6 @@ class EdgeAwareFilter:
         mid = g.mirror_id.double()
         ml = torch.log1p(g.mirror_radiance.double().clamp_min(0)).permute(2, 0, 1)
         ch = g.light_cos_h.double()
-        self.glossy = tuple(sorted(int(o) for o in glossy))
         gl = torch.isin(g.object_id, torch.tensor(self.glossy, dtype=torch.long))
         foot = torch.where(torch.isfinite(g.depth), g.depth.double(), 0.0) * g.pixel_angle
         foot = foot.clamp_min(1e-12)
@@ -147,7 +158,6 @@ class EdgeAwareFilter:
             wl[centre] = torch.where(interior, wl[centre], 1.0)
             self.weights.append((wl / wl.sum(0).clamp_min(1e-300)).float())
             self.offsets.append(offs)
-        self.shape = (h, w)
 
     @classmethod
     def for_tensors(cls, tensors, settings: AtrousSettings | None = None) -> EdgeAwareFilter:
@@ -159,8 +169,7 @@ class EdgeAwareFilter:
         """
         if getattr(tensors, "guides", None) is None:
             raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
-        glossy = [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
-        return cls(tensors.guides, settings, glossy=glossy)
+        return cls(tensors.guides, settings, glossy=glossy_objects(tensors))
 
     @property
     def description(self) -> str:
@@ -176,12 +185,13 @@ class EdgeAwareFilter:
         lead = images.shape[:-2]
         x = images.reshape(-1, *self.shape)
         h, w = self.shape
-        for offs, wl in zip(self.offsets, self.weights, strict=True):
-            pad = abs(offs[0][0])  # the first tap is (-2 step, -2 step)
-            xp = F.pad(x, (pad, pad, pad, pad))
-            out = torch.zeros_like(x)
-            wl = wl.to(x.dtype)
-            for k, (dy, dx) in enumerate(offs):
-                out += wl[k] * xp[:, pad + dy : pad + dy + h, pad + dx : pad + dx + w]
-            x = out
+        with tuned("denoise.atrous", x.numel() * len(self.offsets)):
+            for offs, wl in zip(self.offsets, self.weights, strict=True):
+                pad = abs(offs[0][0])  # the first tap is (-2 step, -2 step)
+                xp = F.pad(x, (pad, pad, pad, pad))
+                out = torch.zeros_like(x)
+                wl = wl.to(x.dtype)
+                for k, (dy, dx) in enumerate(offs):
+                    out += wl[k] * xp[:, pad + dy : pad + dy + h, pad + dx : pad + dx + w]
+                x = out
         return x.reshape(*lead, h, w)

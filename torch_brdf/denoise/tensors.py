@@ -31,6 +31,7 @@ import torch
 
 from ..errors import ShapeError, ValueRangeError
 from ..records.polynomial import PolynomialTensors, TensorBlock
+from .atrous import glossy_objects
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -97,8 +98,8 @@ def denoise_frozen(frozen: dict[str, Any], den: Denoiser, hw: tuple[int, int], c
 
     Every basis image ``F[:, j, k']`` and ``V[:, k']`` is denoised once; the images of one k'
     form a group (consecutive bands a non-linear denoiser may merge). Returns a new dict of
-    the same form, so the renderer's frame is unchanged code: assign it to the renderer's
-    frozen state (``renderer._frozen = denoise_frozen(renderer._frozen, den, hw)``).
+    the same form, so the renderer's frame is unchanged code; the public way to use it is
+    :meth:`PolynomialRenderer.freeze(obj, denoiser=...) <torch_brdf.render.polynomial.PolynomialRenderer.freeze>`.
 
     Args:
         frozen: the frozen tensor.
@@ -185,3 +186,51 @@ def dense_fraction(tensors: PolynomialTensors) -> float:
     """Stored entries over the dense (C, J, Z, P) size of the blocks (1 = dense)."""
     d = tensors.num_dense_entries
     return tensors.num_entries / d if d else math.nan
+
+
+def make_denoiser(guides, method: str = "linear", glossy=(), settings=None, quality: str = "high") -> Denoiser:
+    """The denoiser ``method`` of a view: ``"linear"`` (:class:`~.atrous.EdgeAwareFilter`,
+    ``settings`` an :class:`~.atrous.AtrousSettings`) or ``"oidn"`` (:class:`~.oidn.OIDNBasis`
+    over that filter; needs the ``denoise`` extra).
+
+    Args:
+        guides: the view's :class:`~torch_brdf.scene.guides.GuideBuffers`.
+        method: ``"linear"`` or ``"oidn"``.
+        glossy: object ids with more than one band (the half-vector guide applies there).
+        settings: the linear filter's settings (default :class:`~.atrous.AtrousSettings`).
+        quality: OIDN quality.
+    Raises:
+        ValueRangeError: an unknown method.
+    """
+    from .atrous import EdgeAwareFilter
+    from .oidn import OIDNBasis
+
+    if method not in ("linear", "oidn"):
+        raise ValueRangeError(f"method must be 'linear' or 'oidn'; got {method!r}")
+    linear = EdgeAwareFilter(guides, settings, glossy=glossy)
+    return linear if method == "linear" else OIDNBasis(guides, linear, quality=quality)
+
+
+def denoise(
+    tensors: PolynomialTensors, method: str | Denoiser = "linear", settings=None, **options
+) -> PolynomialTensors:
+    """Denoise the precomputed tensors with the guides they carry (attached by
+    :func:`~torch_brdf.transport.polynomial.precompute_polynomial` by default).
+
+    Args:
+        tensors: the precomputed tensors (with ``tensors.guides``).
+        method: ``"linear"``, ``"oidn"`` (see :func:`make_denoiser`) or a denoiser.
+        settings: the linear filter's :class:`~.atrous.AtrousSettings`.
+        **options: passed to :func:`denoise_tensors` (``chunk``, ``max_entries``).
+    Returns:
+        the denoised :class:`PolynomialTensors` (render them as before).
+    Raises:
+        ValueRangeError: the tensors carry no guides (precomputed with ``guides=False``).
+    """
+    if isinstance(method, str):
+        if tensors.guides is None:
+            raise ValueRangeError(
+                "the tensors carry no guides: precompute with guides=True or attach guide_buffers(scene)"
+            )
+        method = make_denoiser(tensors.guides, method, glossy_objects(tensors), settings)
+    return denoise_tensors(tensors, method, **options)

@@ -8,11 +8,10 @@ same editor without a user interface.
 """
 
 from .params import ModelChoice, ParamSpec, model_choices, param_specs
-from .session import EditorSession, FastProjector, ReferenceJob, load_source, object_id_buffer, scene_with_materials
+from .session import EditorSession, ReferenceJob, load_source, object_id_buffer, scene_with_materials
 
 __all__ = [
     "EditorSession",
-    "FastProjector",
     "ModelChoice",
     "ParamSpec",
     "ReferenceJob",

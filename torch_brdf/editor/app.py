@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import html
-import math
 import time
 import traceback
 from typing import Any
@@ -26,8 +25,9 @@ from IPython.display import display
 from ..brdf import Factored1D, create
 from ..errors import TorchBRDFError
 from ..io.png import to_srgb8
+from .form import Bands, MaterialForm
 from .lobe import lit_sphere, lobe_svg
-from .params import ModelChoice, hex_to_linear, linear_to_hex, material_values, model_choices, param_specs
+from .params import model_choices
 from .session import EditorSession, ReferenceJob, checked_create, load_source
 from .widgets import FrameView
 
@@ -50,6 +50,10 @@ DEFAULTS: dict[str, Any] = {
     # a GPLVM fit (GPLVMFit file) of NBRDF materials: shows the measured-material latent map
     "gplvm": None,
     "nbrdf_weights": None,
+    # the relighting tab: a scene and its visibility record (torch-brdf precompute-visibility)
+    "relight_scene": None,
+    "relight_visibility": None,
+    "relight_resolution": None,
 }
 
 
@@ -61,14 +65,14 @@ def srgb8_fast(img: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
     """(H, W, 3) linear radiance -> uint8 sRGB, as :func:`~torch_brdf.io.to_srgb8` (clip tone
     map) within one level: a 65,536-entry table made once by ``to_srgb8`` itself, indexed by
     the clipped value. ``to_srgb8`` computes the curve in float64 by colour-science, 0.34 s
-    for a 512² frame on a loaded machine; the table takes a tenth of that."""
+    for a 512² frame on a loaded machine; the table ~3 ms."""
     global _lut
     if _lut is None:
         ramp = torch.linspace(0, 1, _LUT_SIZE, dtype=torch.float64).reshape(1, -1, 1).expand(1, _LUT_SIZE, 3)
         _lut = to_srgb8(ramp.contiguous())[0, :, 0].contiguous()
-    x = img.detach().float() * (2.0**exposure)
-    idx = (x.clamp(0, 1) * (_LUT_SIZE - 1) + 0.5).long()
-    return _lut[idx]
+    n = _LUT_SIZE - 1  # index_select of a flat index: 6x faster than lut[idx] (advanced indexing)
+    idx = img.detach().to(torch.float32).mul(n * 2.0**exposure).clamp_(0, n).add_(0.5).long()
+    return _lut.index_select(0, idx.reshape(-1)).reshape(idx.shape)
 
 
 def _rgb8(img: torch.Tensor, exposure: float = 0.0):
@@ -116,9 +120,12 @@ class EditorApp:
         for w in (self.view, self.bounces, self.exposure):
             w.observe(lambda _c: self._redraw(), "value")
         self.selected = W.HTML("<b>click an object</b> in the frame to edit its material")
-        self.model = W.Dropdown(options=[c.label for c in self.choices], description="model")
-        self.model.observe(self._on_model, "value")
-        self.form = W.VBox([])
+        bands = Bands(
+            self._band_curve,
+            lambda: self.session.basis(self.session.selected).J,
+            lambda c, model: self.session.band_material(self.session.selected, c, model),
+        )
+        self.panel = MaterialForm(self.choices, self._apply_material, self._guard, bands)
         self.f0 = W.FloatSlider(value=1.0, min=0.0, max=1.0, step=0.01, description="Fresnel f0")
         self.f0.observe(lambda _c: self._apply(), "value")
         self.f0_box = W.VBox([])
@@ -139,19 +146,27 @@ class EditorApp:
         self.latent_view = FrameView(role="tb-latent", display_width=192)
         self.latent_view.on_msg(self._on_latent_msg)
         self.latent_info = W.HTML("")
+        self.latent_x = W.Dropdown(options=[0], value=0, description="x dim", layout=W.Layout(width="140px"))
+        self.latent_y = W.Dropdown(options=[1], value=1, description="y dim", layout=W.Layout(width="140px"))
+        for w in (self.latent_x, self.latent_y):
+            w.add_class("tb-latent-dim")
+            w.observe(lambda _c: self._guard(self._on_latent_dims), "value")
+        self.latent_dims = W.HBox([self.latent_x, self.latent_y])
         self.latent_box = W.VBox([])
         self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
         self.open_button = W.Button(description="Open")
         self.open_button.on_click(lambda _b: self.open(self.open_path.value.strip()))
-        note = "; ".join(f"{k}: {v.split(' (')[0]}" for k, v in sorted(self.skipped.items()))
+        note = "; ".join(f"{k}: {v}" for k, v in sorted(self.skipped.items())) or "none"
+        self.menu_note = W.HTML(f"<small class='tb-menu-note'>not in the menu: {html.escape(note)}</small>")
         left = W.VBox([self.frame, W.HBox([self.view, self.bounces]), self.exposure])
         right = W.VBox(
-            [self.selected, self.model, self.form, self.f0_box, W.HTML(f"<small>not in the menu: {note}</small>")],
+            [self.selected, self.panel.model, self.panel.box, self.f0_box, self.menu_note],
             layout=W.Layout(min_width="380px"),
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
         self.latent_box.children = [
             W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            self.latent_dims,
             W.HBox([self.latent_view, self.latent_info]),
         ]
         self.latent_box.layout.display = "none"
@@ -164,15 +179,107 @@ class EditorApp:
                 W.HBox([self.ref_image, self.diff_image]),
             ]
         )
-        self.root = W.VBox(
+        main = W.VBox(
             [
-                self.title,
-                self.status,
-                self.message,
                 W.HBox([left, W.VBox([right, lobe, self.theta_i, self.latent_box])]),
                 reference,
                 W.HBox([self.open_path, self.open_button]),
             ]
+        )
+        self.tabs = W.Tab([main, self._build_relight()])
+        self.tabs.set_title(0, "multibounce")
+        self.tabs.set_title(1, "relighting")
+        self.root = W.VBox([self.title, self.status, self.message, self.tabs])
+
+    # -- the relighting tab ------------------------------------------------------------------------
+    def _build_relight(self) -> W.VBox:
+        """Rotate the environment, orbit the view, edit materials: triple products (Inger et
+        al.) on a scene with a visibility record (``relight_scene`` + ``relight_visibility``)."""
+        c = self.config
+        self.relight = None
+        self.rl_frame = FrameView(role="tb-relight", display_width=int(c["display_width"]))
+        self.rl_frame.on_msg(lambda _w, m, _b: self._guard(self._on_relight_click, m))
+        wide = {"description_width": "initial"}
+        self.rl_rotation = W.FloatSlider(0.0, min=0.0, max=360.0, step=5.0, description="environment °", style=wide)
+        self.rl_orbit = W.FloatSlider(0.0, min=-90.0, max=90.0, step=5.0, description="view orbit °", style=wide)
+        self.rl_rotation.add_class("tb-rl-rotation")
+        self.rl_orbit.add_class("tb-rl-orbit")
+        self.rl_rotation.observe(lambda ch: self._guard(self._relight_set, "rotation", ch["new"]), "value")
+        self.rl_orbit.observe(lambda ch: self._guard(self._relight_set, "orbit", ch["new"]), "value")
+        self.rl_selected = W.HTML("")
+        self.rl_panel = MaterialForm(self.choices, self._relight_material, self._guard, None, prefix="tb-rl")
+        if not (c.get("relight_scene") and c.get("relight_visibility")):
+            self.rl_selected.value = (
+                "<i class='tb-rl-none'>no scene with a visibility record: start the editor with "
+                "--relight SCENE --visibility VIS.npz (from torch-brdf precompute-visibility)</i>"
+            )
+        else:
+            try:
+                self._open_relight(c["relight_scene"], c["relight_visibility"], c.get("relight_resolution"))
+            except Exception as exc:  # shown in the tab (the page's message line is the other tab's)
+                self.relight = None
+                text = str(exc) if isinstance(exc, TorchBRDFError) else f"{type(exc).__name__}: {exc}"
+                self.rl_selected.value = f"<div class='tb-error' style='color:#b00020'>{html.escape(text)}</div>"
+        controls = W.VBox(
+            [self.rl_selected, self.rl_panel.model, self.rl_panel.box], layout=W.Layout(min_width="380px")
+        )
+        return W.VBox([W.HBox([W.VBox([self.rl_frame, self.rl_rotation, self.rl_orbit]), controls])])
+
+    def _open_relight(self, scene: str, visibility: str, resolution: int | None = None) -> None:
+        from .relight import RelightSession
+
+        try:
+            self.relight = RelightSession(scene, visibility, resolution)
+        except TorchBRDFError as exc:
+            raise TorchBRDFError(f"could not open the relighting scene {scene!r} with {visibility!r}: {exc}") from None
+        rl = self.relight
+        editable = [o for o in rl.objects if o in rl.materials]
+        self._relight_select(editable[0])
+        self._relight_draw()
+
+    def _relight_select(self, obj: str) -> None:
+        rl = self.relight
+        rl.select(obj)
+        self.rl_selected.value = (
+            f"<span class='tb-rl-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
+            " · click an object in the frame"
+        )
+        self.rl_panel.show(rl.materials[obj])
+
+    def _on_relight_click(self, content) -> None:
+        if self.relight is None or not (isinstance(content, dict) and content.get("event") == "click"):
+            return
+        obj = self.relight.object_at(int(content["x"]), int(content["y"]))
+        if obj is None:
+            self.info("nothing there (the environment)")
+            return
+        self._relight_select(obj)
+
+    def _relight_set(self, what: str, value: float) -> None:
+        if self.relight is None:
+            return
+        (self.relight.set_rotation if what == "rotation" else self.relight.set_orbit)(float(value))
+        self._relight_draw()
+
+    def _relight_material(self, material: dict[str, Any]) -> None:
+        rl = self.relight
+        if rl is None or rl.selected is None:
+            return
+        rl.set_material(rl.selected, material)
+        self.message.value = ""
+        self._relight_draw()
+
+    def _relight_draw(self) -> None:
+        rl = self.relight
+        t0 = time.perf_counter()
+        img = rl.render()
+        rgb = _rgb8(img, self.exposure.value)
+        st = rl.stats
+        extra = f" · {st.vertices} vertices" if st is not None else ""
+        self.rl_frame.show(
+            rgb,
+            f"triple products {rl.last_frame_s * 1e3:.1f} ms · kernel {(time.perf_counter() - t0) * 1e3:.1f} ms{extra}"
+            f" · environment {rl.rotation_deg:.0f}° · orbit {rl.orbit_deg:.0f}°",
         )
 
     def show(self) -> None:
@@ -261,8 +368,30 @@ class EditorApp:
         from .latent import LatentMap
 
         self.latent = LatentMap(self.config["gplvm"], self.config.get("nbrdf_weights"))
-        self.latent_view.show(self.latent.image(), f"{len(self.latent.names)} materials, latent dims 0-1")
+        self._busy = True
+        dims = list(range(self.latent.q))
+        self.latent_x.options, self.latent_y.options = dims, dims
+        self.latent_x.value, self.latent_y.value = self.latent.dims
+        self._busy = False
+        self.latent_dims.layout.display = None if self.latent.q > 2 else "none"  # q = 2: one slice
+        self._show_latent()
         self.latent_box.layout.display = None
+
+    def _show_latent(self) -> None:
+        a, b = self.latent.dims
+        self.latent_view.show(
+            self.latent.image(), f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q}"
+        )
+
+    def _on_latent_dims(self) -> None:
+        """Another pair of latent dimensions (the other dimensions stay at the latents' mean)."""
+        if self._busy or self.latent is None:
+            return
+        dims = (int(self.latent_x.value), int(self.latent_y.value))
+        if dims[0] == dims[1]:
+            raise TorchBRDFError(f"the latent map needs two different dimensions; got {dims[0]} twice")
+        self.latent.set_dims(dims)
+        self._show_latent()
 
     def _on_latent_msg(self, _widget, content, _buffers) -> None:
         if isinstance(content, dict) and content.get("event") == "click":
@@ -281,18 +410,10 @@ class EditorApp:
             f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
         )
         self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
-        self._show_blend_form()
+        self.panel.show(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
         self.message.value = ""
         self._redraw()
         self._draw_lobe()
-
-    def _show_blend_form(self) -> None:
-        self._busy = True
-        self.controls = {}
-        self.form.children = [
-            W.HTML("<i class='tb-blend'>measured blend on the bands (pick a model to edit values)</i>")
-        ]
-        self._busy = False
 
     # -- selection -------------------------------------------------------------------------------
     def _on_frame_msg(self, _widget, content, _buffers) -> None:
@@ -321,96 +442,38 @@ class EditorApp:
             f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
             f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
         )
-        if mat.get("type") == "factored_1d":
-            self._show_blend_form()
-        else:
-            choice = self._choice_for(mat)
-            self._busy = True
-            self.model.value = choice.label
-            self._busy = False
-            self._build_form(choice, material_values(mat, param_specs(choice.model, dict(choice.fixed))))
+        self.panel.show(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
         self._draw_lobe()
 
-    def _choice_for(self, material: dict[str, Any]) -> ModelChoice:
-        for c in self.choices:
-            if c.model == material.get("type") and all(material.get(k, v) == v for k, v in c.fixed):
-                return c
-        raise TorchBRDFError(f"the material {material!r} has no editable model in the menu")
+    # -- the material form (see .form) ------------------------------------------------------------
+    @property
+    def model(self) -> W.Dropdown:
+        return self.panel.model
 
-    # -- the material form -----------------------------------------------------------------------
-    def _current_choice(self) -> ModelChoice:
-        return next(c for c in self.choices if c.label == self.model.value)
-
-    def _build_form(self, choice: ModelChoice, values: dict[str, Any]) -> None:
-        """One control per parameter of ``choice``'s own list (see :mod:`.params`)."""
-        self._busy = True
-        self.controls: dict[str, W.Widget] = {}
-        rows = []
-        for spec in param_specs(choice.model, dict(choice.fixed)):
-            v = values.get(spec.name, spec.default)
-            if spec.kind == "rgb":
-                ctl = W.ColorPicker(value=linear_to_hex(v), description=spec.name, concise=False)
-                rows.append(ctl)
-            else:
-                if spec.kind == "log":
-                    ctl = W.FloatLogSlider(
-                        value=v, base=10, min=math.log10(spec.lo), max=math.log10(spec.hi), step=0.02
-                    )
-                else:
-                    ctl = W.FloatSlider(value=v, min=spec.lo, max=spec.hi, step=(spec.hi - spec.lo) / 200)
-                ctl.description, ctl.readout = spec.name, False
-                ctl.continuous_update = True
-                ctl.add_class(f"tb-param-{spec.name}")
-                typed = W.Text(value=f"{v:.4g}", continuous_update=False, layout=W.Layout(width="90px"))
-                typed.add_class(f"tb-typed-{spec.name}")
-                typed.observe(lambda ch, n=spec.name: self._guard(self._on_typed, n, ch["new"]), "value")
-                ctl.observe(lambda ch, t=typed: setattr(t, "value", f"{ch['new']:.4g}"), "value")
-                rows.append(W.HBox([ctl, typed]))
-            ctl.observe(lambda _c: self._apply(), "value")
-            self.controls[spec.name] = ctl
-        self.form.children = rows
-        self._busy = False
-
-    def _values(self) -> dict[str, Any]:
-        out = {}
-        for name, ctl in self.controls.items():
-            out[name] = hex_to_linear(ctl.value) if isinstance(ctl, W.ColorPicker) else float(ctl.value)
-        return out
+    @property
+    def controls(self) -> dict[str, W.Widget]:
+        return self.panel.controls
 
     def _on_typed(self, name: str, text: str) -> None:
-        """A typed value: the model checks it; in range it moves the slider, else a message."""
-        if self._busy:
-            return
-        ctl = self.controls[name]
-        try:
-            value = float(text)
-        except ValueError:
-            raise TorchBRDFError(f"{name}: {text!r} is not a number") from None
-        if math.isclose(value, float(ctl.value), rel_tol=1e-3):
-            return
-        checked_create(self._current_choice().material({**self._values(), name: value}))  # out of range: raises
-        ctl.value = value
+        self.panel.on_typed(name, text)
 
-    def _on_model(self, _change) -> None:
-        if self._busy or self.session is None or self.session.selected is None:
-            return
-        choice = self._current_choice()
-        old = self.session.materials[self.session.selected]
-        self._build_form(choice, material_values(old, param_specs(choice.model, dict(choice.fixed))))
-        self._apply()
+    def _band_curve(self):
+        s = self.session
+        c = s.projected.get(s.selected)
+        return c if c is not None else s.coefficients(s.selected, checked_create(s.materials[s.selected]))
 
     def _apply(self) -> None:
         if self._busy or self.session is None or self.session.selected is None:
             return
-        self._guard(self._apply_material)
+        self.panel.changed()
 
-    def _apply_material(self) -> None:
+    def _apply_material(self, material: dict[str, Any]) -> None:
         s = self.session
+        if s is None or s.selected is None:
+            return
         obj = s.selected
         f0 = float(self.f0.value) if s.has_fresnel(obj) else None
-        # no controls: a measured blend is shown; only f0 can change it
-        material = self._current_choice().material(self._values()) if self.controls else s.materials[obj]
         s.set_material(obj, material, f0=f0)
         self.message.value = ""
         self._redraw()
@@ -454,7 +517,7 @@ class EditorApp:
             b = s.basis(s.selected)
             c = s.projected.get(s.selected)
             c = s.coefficients(s.selected, brdf) if c is None else c
-            curve = Factored1D(b.band_basis(), c.float(), b.quotient)
+            curve = Factored1D(s.band_basis(s.selected), c.float(), b.quotient)
             self.lobe.value = lobe_svg(brdf, curve, self.theta_i.value)
             self.sphere.show(_rgb8(lit_sphere(brdf)), s.selected)
         except TorchBRDFError as exc:

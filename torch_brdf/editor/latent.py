@@ -1,18 +1,19 @@
 r"""The measured-material picker: a 2-D slice of a GPLVM latent space (Soler et al. 2017).
 
-A first version. The map is :func:`~torch_brdf.manifold.latent_slice` of a fit (dims 0 and 1,
-other dims at the latents' mean), shaded by the predictive variance (white: near the
+The map is :func:`~torch_brdf.manifold.latent_slice` of a fit through the latents' mean, on
+any pair of latent dimensions (:meth:`LatentMap.set_dims`; (0, 1) first), shaded by the
+predictive variance (white: near the
 measured materials, dark: the model is unsure), with the training materials as dots. A click
 at latent :math:`x_*` gives the weights :math:`b(x_*) = K^{-1}k(x_*)`; since the band
 projection is linear in the BRDF, the object's coefficients are the same blend of the
 materials' own projections, :math:`c_* = \sum_i b_i c_i` (seed Eq. 8 applied to the
 coefficients), clamped at 0 like the renderer's reading of a blended table. Each material's
 :math:`c_i` is its NBRDF network (an approximation of MERL) projected onto the object's bands
-once (:class:`~torch_brdf.editor.session.FastProjector`).
+once (:class:`~torch_brdf.brdf.Projector`).
 
 The blend becomes a ``factored_1d`` material on the object's bands, so the lobe view, the lit
-sphere and the reference path trace all see exactly what the renderer shows. Not yet: other
-slices than (0, 1), and the full blended table (what the bands cannot hold, e.g. the
+sphere and the reference path trace all see exactly what the renderer shows. Not done: the
+full blended table (what the bands cannot hold, e.g. the
 :math:`\theta_d` dependence of the measured materials, is lost before blending).
 """
 
@@ -36,9 +37,10 @@ class LatentMap:
         weights: the NBRDF weights file (default: the shared data's
             ``merl/nbrdf_merl100_weights.npz``).
         resolution: pixels per side of the map.
+        dims: the two latent dimensions shown (horizontal, vertical).
     """
 
-    def __init__(self, fit, weights=None, resolution: int = 96):
+    def __init__(self, fit, weights=None, resolution: int = 96, dims: tuple[int, int] = (0, 1)):
         fit = fit if isinstance(fit, GPLVMFit) else GPLVMFit.load(fit)
         if fit.latents.shape[1] < 2:
             raise ValueRangeError(f"the latent map needs q >= 2; the fit has q = {fit.latents.shape[1]}")
@@ -48,9 +50,20 @@ class LatentMap:
         missing = [n for n in self.names if n not in self.nbrdf.names]
         if missing:
             raise ValueRangeError(f"the fit names materials the NBRDF file lacks: {missing[:5]}")
-        self.slice = latent_slice(self.model, (0, 1), resolution=resolution)
         self.resolution = resolution
+        self.set_dims(dims)
         self._coefficients: dict[str, torch.Tensor] = {}
+
+    @property
+    def q(self) -> int:
+        """Latent dimensions of the fit."""
+        return int(self.model.latents.shape[1])
+
+    def set_dims(self, dims: tuple[int, int]) -> None:
+        """Show the slice on latent dimensions ``dims`` (two distinct axes in 0..q-1; the
+        others stay at the latents' mean). Raises ValueRangeError otherwise."""
+        self.slice = latent_slice(self.model, tuple(int(d) for d in dims), resolution=self.resolution)
+        self.dims = self.slice.dims
 
     def image(self) -> torch.Tensor:
         """(R, R, 3) uint8: variance shading (row 0 = the top = largest second latent) and dots."""
@@ -59,9 +72,10 @@ class LatentMap:
         img = shade[..., None].expand(-1, -1, 3).clone()
         u0, u1, v0, v1 = self.slice.extent
         r = self.resolution
+        a, b = self.dims
         for x in self.model.latents:
-            px = round((float(x[0]) - u0) / (u1 - u0) * (r - 1))
-            py = round((v1 - float(x[1])) / (v1 - v0) * (r - 1))
+            px = round((float(x[a]) - u0) / (u1 - u0) * (r - 1))
+            py = round((v1 - float(x[b])) / (v1 - v0) * (r - 1))
             img[max(py - 1, 0) : py + 2, max(px - 1, 0) : px + 2] = torch.tensor([0.85, 0.25, 0.05], dtype=img.dtype)
         return (img * 255).round().to(torch.uint8)
 
@@ -95,12 +109,4 @@ class LatentMap:
 
     def material(self, session, obj: str, c: torch.Tensor) -> dict:
         """A ``factored_1d`` material dict holding coefficients ``c`` on ``obj``'s bands."""
-        spec = session.basis(obj).spec()
-        return {
-            "type": "factored_1d",
-            "coefficients": c.tolist(),
-            "quotient": spec.get("quotient", "one"),
-            "variable": spec.get("variable", "theta_h"),
-            "J": int(spec["J"]),
-            "spacing": "uniform" if int(spec["J"]) == 1 else spec.get("spacing"),
-        }
+        return session.band_material(obj, c)

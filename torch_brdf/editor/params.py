@@ -12,6 +12,11 @@ walking the module tree of a default instance (so a distribution's ``exponent`` 
   [1e-3, 1e4], Ward's alpha [1e-4, 1]), shown on a log slider.
 * A constrained parameter whose name is not a constructor argument (Lambert's
   ``reflectance``, given as ``albedo``) maps to the one numeric constructor argument left.
+* A non-negative parameter of J x 3 values (``factored_1d``'s ``coefficients``) is a curve:
+  ``"curve"``, edited as text, one band per line, on the selected object's own bands.
+* Models built from data (``nbrdf``: a network per material; ``merl``: a measured table)
+  get one ``"choice"`` parameter, the material, from the shared data files
+  (:func:`data_models`); without the file the model is left out and the page says why.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ class ParamSpec:
             ``"log"`` (log slider over a positive range).
         lo, hi: the accepted range.
         default: the default value (RGB as a 3-tuple).
+        options: the values of a ``"choice"``.
     """
 
     name: str
@@ -51,6 +57,7 @@ class ParamSpec:
     lo: float
     hi: float
     default: Any
+    options: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -60,6 +67,12 @@ class ModelChoice:
     label: str
     model: str
     fixed: tuple[tuple[str, str], ...] = ()
+    data: ParamSpec | None = None
+
+    @property
+    def on_bands(self) -> bool:
+        """True for the models whose values are a curve on the object's own bands."""
+        return self.model.startswith("factored_1d")
 
     def material(self, values: dict[str, Any]) -> dict[str, Any]:
         """The material dict ``{"type": model, **fixed, **values}``."""
@@ -75,7 +88,15 @@ def model_choices() -> tuple[list[ModelChoice], dict[str, str]]:
         (``merl``: a table; ``nbrdf``: a network; ``factored_1d*``: a curve of J coefficients).
     """
     choices, skipped = [], {}
+    data = data_models()
     for name in available():
+        if name in data:
+            entry = data[name]
+            if isinstance(entry, str):
+                skipped[name] = entry
+            else:
+                choices.append(entry)
+            continue
         try:
             specs = param_specs(name)
         except TorchBRDFError as exc:
@@ -92,6 +113,40 @@ def model_choices() -> tuple[list[ModelChoice], dict[str, str]]:
         else:
             choices.append(ModelChoice(name, name))
     return choices, skipped
+
+
+def data_models() -> dict[str, ModelChoice | str]:
+    """The models built from data files: model name -> its menu entry (a ``"choice"`` of the
+    file's materials), or the reason it is left out (the file is not in the shared data)."""
+    from ..brdf import NBRDF
+    from ..data import data_path
+    from ..io.merl import load_merl_table
+
+    out: dict[str, ModelChoice | str] = {}
+    weights = data_path("merl", "nbrdf_merl100_weights.npz", required=False)
+    if weights is None:
+        out["nbrdf"] = "needs the NBRDF weights merl/nbrdf_merl100_weights.npz (torch-brdf fetch-data): not found"
+    else:
+        names = tuple(NBRDF.names(weights))
+        spec = ParamSpec("material", "choice", 0.0, 0.0, names[0], names)
+        out["nbrdf"] = ModelChoice("nbrdf (measured, network)", "nbrdf", (("weights", str(weights)),), spec)
+    full = data_path("merl", "merl100_f16.npz", required=False)
+    table = full or data_path("merl", "merl_nbrdf_sample_f16.npz", required=False)
+    if table is None:
+        out["merl"] = "needs a MERL table merl/merl100_f16.npz (see data/merl/README.md): not found"
+    else:
+        names = tuple(load_merl_table(table).names)
+        spec = ParamSpec("material", "choice", 0.0, 0.0, names[0], names)
+        label = "merl (measured table)" if full else "merl (sample tables from NBRDF; the measured files are missing)"
+        out["merl"] = ModelChoice(label, "merl", (("table", str(table)),), spec)
+    return out
+
+
+def choice_specs(choice: ModelChoice) -> list[ParamSpec]:
+    """The controls of a menu entry: its data choice, or the model's own parameters."""
+    if choice.data is not None:
+        return [choice.data]
+    return param_specs(choice.model, dict(choice.fixed))
 
 
 def _constructor_names(model: str) -> list[str]:
@@ -132,7 +187,11 @@ def param_specs(model: str, fixed: dict[str, Any] | None = None) -> list[ParamSp
                 left = [n for n in ctor if n not in mod._constraints and n not in fixed and _numeric_default(model, n)]
                 name = left[0] if len(left) == 1 else cname
             if value.numel() not in (1, 3):
-                specs.append(None)
+                curve = value.ndim == 2 and value.shape[1] == 3 and isinstance(transform, Clamped)
+                if curve and name in ctor and transform.lo == 0 and not math.isfinite(transform.hi):
+                    specs.append(ParamSpec(name, "curve", 0.0, math.inf, None))
+                else:
+                    specs.append(None)
                 continue
             if isinstance(transform, Clamped):
                 if not math.isfinite(transform.hi):
@@ -164,6 +223,10 @@ def material_values(material: dict[str, Any], specs: list[ParamSpec]) -> dict[st
     out = {}
     for s in specs:
         v = material.get(s.name, s.default)
+        if s.kind in ("choice", "curve"):
+            if v is not None:
+                out[s.name] = v
+            continue
         if s.kind == "rgb":
             t = torch.as_tensor(v, dtype=torch.float64).reshape(-1).expand(3)
             out[s.name] = tuple(float(x) for x in t)
@@ -194,3 +257,32 @@ def hex_to_linear(color: str) -> tuple[float, float, float]:
         raise ValueRangeError(f"not a colour: {color!r} (expected #rrggbb)")
     lin = torch.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055).pow(2.4))
     return tuple(float(x) for x in lin)
+
+
+def curve_to_text(c) -> str:
+    """(J, 3) coefficients -> one line ``r g b`` per band (what the curve box shows)."""
+    t = torch.as_tensor(c, dtype=torch.float64).reshape(-1, 3)
+    return "\n".join(" ".join(f"{float(x):.6g}" for x in row) for row in t)
+
+
+def text_to_curve(text: str, J: int) -> list[list[float]]:
+    """The curve box's text -> (J, 3) nested lists; a line of one number is grey. Raises
+    ValueRangeError naming the line at fault (count, not a number, negative)."""
+    from ..errors import ValueRangeError
+
+    rows = []
+    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+    if len(lines) != J:
+        raise ValueRangeError(f"coefficients: the object has {J} bands; got {len(lines)} lines")
+    for k, line in enumerate(lines, 1):
+        parts = line.replace(",", " ").split()
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise ValueRangeError(f"coefficients line {k}: {line!r} is not 1 or 3 numbers") from None
+        if len(vals) not in (1, 3) or not all(math.isfinite(v) for v in vals):
+            raise ValueRangeError(f"coefficients line {k}: {line!r} is not 1 or 3 finite numbers")
+        if min(vals) < 0:
+            raise ValueRangeError(f"coefficients line {k}: {line!r}: coefficients must be >= 0")
+        rows.append(vals * 3 if len(vals) == 1 else vals)
+    return rows

@@ -7,13 +7,12 @@ application (:mod:`torch_brdf.editor.app`) and the tests drive the same session.
 
 Projection at interactive rates. :func:`torch_brdf.brdf.project` is the float64
 cosine-weighted least squares on a ~410k-pair quadrature (about a second per call on two
-shared cores). The session keeps a :class:`FastProjector` per object: the same normal
-equations on a coarser rule (``n_theta_d=2, n_phi_d=4, order=2``: ~10k pairs; the
-:math:`\theta_h` cells keep the band edges, so band boxes are still integrated cell-exactly),
-with the quadrature nodes, band memberships and the matrix assembled once. An edit then
-evaluates the BRDF on the stored pairs and solves a J x J system per channel. With the
-library's rule it reproduces :func:`~torch_brdf.brdf.project` (tested); the coarse rule's
-difference is tested too (Blinn-Phong, a function of :math:`\theta_h` alone, agrees to
+shared cores). The session keeps a :class:`~torch_brdf.brdf.Projector` per object (the
+quadrature, memberships and factorised normal matrix made once) on a coarser rule
+(:data:`FAST_QUADRATURE`, ~10k pairs; the :math:`\theta_h` cells keep the band edges, so band
+boxes are still integrated cell-exactly), so an edit evaluates the BRDF on the stored pairs and
+solves a factorised J x J system per channel. The coarse rule's difference from
+:func:`~torch_brdf.brdf.project` is tested (Blinn-Phong, a function of :math:`\theta_h` alone, agrees to
 ~1e-6; GGX to a few per cent, its Fresnel and masking depend on :math:`\theta_d`).
 """
 
@@ -31,7 +30,7 @@ from typing import Any
 
 import torch
 
-from ..brdf import BRDF, Factored1D, Lambert, PairQuadrature, create, make_quotient
+from ..brdf import BRDF, Factored1D, Lambert, Projector, create
 from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
 from ..metrics import relative_rmse
 from ..records import PolynomialTensors
@@ -42,59 +41,6 @@ from ..transport import path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
-
-
-class FastProjector:
-    """:func:`torch_brdf.brdf.project` with the quadrature, memberships and normal matrix
-    assembled once for one basis and quotient.
-
-    Args:
-        basis: the object's :class:`~torch_brdf.brdf.BandBasis`.
-        quotient: its quotient name or object.
-        anisotropic: integrate over :math:`\\phi_h` too (anisotropic BRDFs).
-        quad_kwargs: :meth:`PairQuadrature.build` resolutions (default :data:`FAST_QUADRATURE`).
-    """
-
-    def __init__(self, basis, quotient="one", anisotropic: bool = False, **quad_kwargs):
-        q = make_quotient(quotient)
-        rule = PairQuadrature.build(basis, anisotropic or q.anisotropic, **(quad_kwargs or FAST_QUADRATURE))
-        J = self.J = basis.J
-        wis, wos, aa, bb, ws = [], [], [], [], []
-        M = torch.zeros(J * J, 3, dtype=torch.float64)
-        with torch.no_grad():
-            for wi, wo, w in rule.chunks():
-                keep = w > 0
-                wi, wo, w = wi[keep], wo[keep], w[keep]
-                qv = q(wi, wo).to(torch.float64)
-                qv = qv.unsqueeze(-1).expand(-1, 3) if qv.ndim == 1 else qv
-                a, b = basis.membership(wi, wo)
-                wq2 = (0.25 * w).unsqueeze(-1) * qv * qv
-                for x, y in ((a, a), (a, b), (b, a), (b, b)):
-                    M.index_add_(0, x * J + y, wq2)
-                wis.append(wi), wos.append(wo), aa.append(a), bb.append(b), ws.append((0.5 * w).unsqueeze(-1) * qv)
-        self.wi, self.wo = torch.cat(wis).double(), torch.cat(wos).double()
-        self.a, self.b, self.w = torch.cat(aa), torch.cat(bb), torch.cat(ws)
-        M = M.reshape(J, J, 3).permute(2, 0, 1)
-        diag = torch.diagonal(M, dim1=-2, dim2=-1)
-        scale = diag.amax(-1, keepdim=True).clamp_min(1e-300)
-        self.matrix = M + torch.diag_embed((1e-13 * scale).expand_as(diag))
-        self.reached = (diag > 1e-14 * scale).T  # (J, 3): bands the rule reaches
-
-    @property
-    def pairs(self) -> int:
-        """Quadrature pairs evaluated per projection."""
-        return self.wi.shape[0]
-
-    def __call__(self, brdf: BRDF) -> torch.Tensor:
-        """Coefficients (J, 3) float64 of ``brdf`` (clamped at 0, as ``project``)."""
-        with torch.no_grad():
-            rho = brdf.eval_local(self.wi, self.wo).to(torch.float64)
-            if rho.ndim == 1:
-                rho = rho.unsqueeze(-1).expand(-1, 3)
-            wr = self.w * rho
-            r = torch.zeros(self.J, 3, dtype=torch.float64).index_add_(0, self.a, wr).index_add_(0, self.b, wr)
-            c = torch.linalg.solve(self.matrix, r.T.unsqueeze(-1)).squeeze(-1).T
-        return torch.where(self.reached, c, torch.zeros_like(c)).clamp_min(0)
 
 
 def object_id_buffer(tensors: PolynomialTensors, scene=None) -> tuple[torch.Tensor, str]:
@@ -321,8 +267,9 @@ class EditorSession:
         self.ids, self.ids_source = object_id_buffer(tensors, scene)
         self.mask = emitter_mask(tensors)
         self.selected: str | None = None
-        self._projectors: dict[tuple[str, bool], FastProjector] = {}
+        self._projectors: dict[tuple[str, bool], Projector] = {}
         self.projected: dict[str, torch.Tensor] = {}  # obj -> (J, 3) last projected curve
+        self._band_bases: dict[str, Any] = {}
         self.last_frame_s = 0.0
         self.last_set_s = 0.0
 
@@ -357,6 +304,31 @@ class EditorSession:
     def basis(self, obj: str):
         return self.tensors.bases[self.tensors.object_id(obj)]
 
+    def band_basis(self, obj: str):
+        """The object's :class:`~torch_brdf.brdf.BandBasis` (made once: its lobe-spaced edges
+        take ~7 ms to compute, a tenth of an edit's budget)."""
+        if obj not in self._band_bases:
+            self._band_bases[obj] = self.basis(obj).band_basis()
+        return self._band_bases[obj]
+
+    def band_material(self, obj: str, coefficients=None, model: str = "factored_1d") -> dict[str, Any]:
+        """A ``factored_1d`` (or ``factored_1d_fresnel``) material dict on ``obj``'s own bands
+        holding ``coefficients`` (J, 3) (default: the object's current curve), which
+        :meth:`coefficients` then uses as is."""
+        spec = self.basis(obj).spec()
+        c = self.projected.get(obj) if coefficients is None else coefficients
+        J = int(spec["J"])
+        out = {
+            "type": model,
+            "quotient": spec.get("quotient", "one"),
+            "variable": spec.get("variable", "theta_h"),
+            "J": J,
+            "spacing": "uniform" if J == 1 else spec.get("spacing"),
+        }
+        if c is not None:
+            out["coefficients"] = torch.as_tensor(c, dtype=torch.float64).reshape(J, 3).tolist()
+        return out
+
     def has_fresnel(self, obj: str) -> bool:
         return bool(self.basis(obj).fresnel)
 
@@ -367,12 +339,12 @@ class EditorSession:
         b = self.basis(obj)
         if type(brdf) is Lambert and b.quotient == "one":
             return (brdf.reflectance.detach().double() / math.pi).reshape(1, 3).expand(b.J, 3)
-        basis = b.band_basis()
+        basis = self.band_basis(obj)
         if type(brdf) is Factored1D and torch.equal(brdf.basis.edges, basis.edges) and brdf.quotient.key == b.quotient:
             return brdf.coefficients.detach().double()  # a curve on these bands is used as is
         key = (obj, bool(brdf.anisotropic))
         if key not in self._projectors:
-            self._projectors[key] = FastProjector(basis, b.quotient, brdf.anisotropic)
+            self._projectors[key] = Projector(basis, b.quotient, brdf.anisotropic, **FAST_QUADRATURE)
         return self._projectors[key](brdf)
 
     def set_material(self, obj: str, material: dict[str, Any], f0=None) -> float:

@@ -9,7 +9,13 @@ The widget also measures the end-to-end latency in the browser: the first user i
 (pointer down, drag move, key, input/change event) not yet answered by a frame starts the
 clock; the paint after the next frame arrives stops it. The value is shown under the frame,
 synced to ``latency_ms`` and appended to ``window.__torch_brdf.latencies`` (what
-``benchmarks/editor.py`` reads).
+``benchmarks/editor.py`` reads), the time to unpack and draw the bytes to
+``window.__torch_brdf.draws``.
+
+Slider drags need no coalescing of our own: ipywidgets' front end keeps at most one state
+message per widget in flight and merges the changes made meanwhile into one buffered
+message (latest value wins) sent when the kernel reports idle, so a drag never queues stale
+values and its final value always arrives.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ function render({ model, el }) {
     const w = model.get("width"), h = model.get("height");
     const buf = model.get("pixels");
     if (!w || !h || !buf || buf.byteLength !== w * h * 3) { show(); return; }
+    const t0 = performance.now();
     const src = new Uint8Array(buf.buffer, buf.byteOffset, buf.byteLength);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
     const dw = model.get("display_width") || w;
@@ -63,6 +70,7 @@ function render({ model, el }) {
       d[k] = src[j]; d[k + 1] = src[j + 1]; d[k + 2] = src[j + 2]; d[k + 3] = 255;
     }
     canvas.getContext("2d").putImageData(img, 0, 0);
+    if (measure) (g.draws = g.draws || []).push(performance.now() - t0);
     requestAnimationFrame(() => {
       const now = performance.now();
       if (measure) {

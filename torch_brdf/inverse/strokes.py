@@ -35,7 +35,7 @@ from ..errors import ShapeError, ValueRangeError
 from ..records.basis_image import BasisImage
 from ._util import f64
 
-__all__ = ["Brush", "Stroke", "StrokeTarget", "paint", "stroke_distance", "target_from_image"]
+__all__ = ["Brush", "Stroke", "StrokeTarget", "paint", "paint_at", "pixel_xy", "stroke_distance", "target_from_image"]
 
 
 @dataclass(frozen=True)
@@ -117,13 +117,19 @@ def stroke_distance(points: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
     return (xy[:, None, :] - closest).norm(dim=-1).amin(-1)
 
 
-def _display_xy(record: BasisImage, display_size: tuple[int, int] | None) -> torch.Tensor:
-    w_d, h_d = display_size if display_size is not None else (record.width, record.height)
+def pixel_xy(pixels: torch.Tensor, width: int, height: int, display_size: tuple[int, int] | None = None):
+    """Display-frame centres ``(x, y)`` (P, 2) float64 of flat pixel indices (P,) of a
+    ``width`` x ``height`` frame shown at ``display_size`` (default the frame itself)."""
+    w_d, h_d = display_size if display_size is not None else (width, height)
     if int(w_d) < 1 or int(h_d) < 1:
         raise ValueRangeError(f"display size must be positive; got {display_size}")
-    r = torch.div(record.pixels, record.width, rounding_mode="floor").double()
-    c = (record.pixels % record.width).double()
-    return torch.stack(((c + 0.5) * (w_d / record.width), (r + 0.5) * (h_d / record.height)), -1)
+    r = torch.div(pixels, width, rounding_mode="floor").double()
+    c = (pixels % width).double()
+    return torch.stack(((c + 0.5) * (w_d / width), (r + 0.5) * (h_d / height)), -1)
+
+
+def _display_xy(record: BasisImage, display_size: tuple[int, int] | None) -> torch.Tensor:
+    return pixel_xy(record.pixels, record.width, record.height, display_size)
 
 
 def _check_before(before, P: int) -> torch.Tensor:
@@ -155,13 +161,19 @@ def paint(
     Raises:
         ValueRangeError: no strokes, or no stroke touches a pixel of the object.
     """
+    B = _check_before(before, record.num_pixels)
+    return paint_at(_display_xy(record, display_size), B, strokes, keep_weight)
+
+
+def paint_at(xy: torch.Tensor, before: torch.Tensor, strokes: list[Stroke], keep_weight: float = 1.0) -> StrokeTarget:
+    """:func:`paint` on pixels given by their display-frame centres ``xy`` (P, 2) and current
+    radiance ``before`` (P, 3) (e.g. :func:`pixel_xy` of an image's pixels)."""
     if not strokes:
         raise ValueRangeError("no strokes given: paint at least one stroke (a list of points)")
     if not (keep_weight >= 0 and torch.isfinite(torch.tensor(float(keep_weight)))):
         raise ValueRangeError(f"keep_weight must be finite and >= 0; got {keep_weight}")
-    B = _check_before(before, record.num_pixels).clone()
-    xy = _display_xy(record, display_size)
-    painted = torch.zeros(record.num_pixels, dtype=torch.bool)
+    B = _check_before(before, xy.shape[0]).clone()
+    painted = torch.zeros(xy.shape[0], dtype=torch.bool)
     for k, st in enumerate(strokes):
         if not isinstance(st, Stroke):
             raise ShapeError(f"strokes[{k}] must be a Stroke; got {type(st).__name__}")

@@ -29,7 +29,16 @@ from .evaluate import HeldOut, heldout_reconstruction
 from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms
 from .kernel import JitterWarning, cholesky_jitter, kernel_matrix
 from .materials import material_record, merl_material, random_record, sphere_scene, with_material
-from .paths import LatentPath, LatentSlice, best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from .paths import (
+    LatentPath,
+    LatentSlice,
+    best_path,
+    directional_albedo,
+    interpolant_diagnostics,
+    latent_points,
+    latent_slice,
+    resample_path,
+)
 from .zh import ZHCoefficients, env_sh, rows_brdf, zh_coefficients, zh_shade
 
 __all__ = [
@@ -55,6 +64,7 @@ __all__ = [
     "heldout_reconstruction",
     "interpolant_diagnostics",
     "kernel_matrix",
+    "latent_points",
     "latent_slice",
     "log_likelihood",
     "log_relative_rmse",
@@ -64,6 +74,7 @@ __all__ = [
     "projection_terms",
     "random_record",
     "read_split",
+    "resample_path",
     "rows_brdf",
     "sphere_scene",
     "split_names",

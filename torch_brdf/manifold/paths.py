@@ -181,6 +181,40 @@ def best_path(
     )
 
 
+def latent_points(model: GPLVM, points) -> torch.Tensor:
+    """(K, Q) float64 latents of ``points``: material names, material indices or (Q,) latents."""
+    if len(points) == 0:
+        raise ValueRangeError("expected at least one latent point or material name")
+    return torch.stack([_as_point(model, p) for p in points])
+
+
+def resample_path(waypoints: torch.Tensor, frames: int) -> torch.Tensor:
+    """``frames`` points evenly spaced by arc length along the polyline through ``waypoints``.
+
+    Args:
+        waypoints: (K, Q) latents, K >= 1 (the first and last are the path's ends).
+        frames: number of points, >= 1 (1: the start only).
+    Returns:
+        (frames, Q) float64; the first is ``waypoints[0]`` and, for ``frames >= 2``, the last
+        is ``waypoints[-1]``, bit for bit (a material's latent stays that material).
+    """
+    way = torch.as_tensor(waypoints, dtype=torch.float64)
+    if way.ndim != 2 or way.shape[0] < 1:
+        raise ValueRangeError(f"Expected waypoints of shape (K, Q), K >= 1; got {tuple(way.shape)}")
+    if frames < 1:
+        raise ValueRangeError(f"frames must be >= 1; got {frames}")
+    seg = (way[1:] - way[:-1]).norm(dim=1)
+    arc = torch.cat([seg.new_zeros(1), seg.cumsum(0)])
+    if way.shape[0] == 1 or float(arc[-1]) == 0.0:
+        return way[:1].expand(frames, -1).clone()
+    s = torch.linspace(0.0, float(arc[-1]), frames, dtype=torch.float64)
+    k = (torch.searchsorted(arc, s, right=True) - 1).clamp(0, len(seg) - 1)
+    t = ((s - arc[k]) / seg[k].clamp_min(1e-300)).clamp(0, 1)[:, None]
+    out = way[k] + t * (way[k + 1] - way[k])
+    out[0], out[-1] = way[0], way[-1]
+    return out
+
+
 # -- the limitation, measured -------------------------------------------------------------------------
 def directional_albedo(
     z: torch.Tensor, grid: MERLGrid, theta_i: torch.Tensor | None = None, samples: int = 48

@@ -7,8 +7,12 @@ requires, from cheap measurements:
 * **bands** per edited object: the fewest box bands (powers of two) whose cosine-weighted
   projection error (:func:`~torch_brdf.brdf.bands.projection_error`) is below the bands' share
   :math:`0.3e` (a Lambertian material: 1 band, exactly; a glossy lobe: as many as it needs);
-* **bounces**: the fewest whose pilot tail :math:`\|\sum_{k>N} B^k\| / \|B\|` is below the
-  bounces' share :math:`0.3e`;
+* **bounces and spp together**: for each number of bounces :math:`N` the pilots give the tail
+  :math:`\|\sum_{k>N} B^k\| / \|B\|` (less what the pilots' own noise adds to it), the
+  band error and the noise of the first :math:`N` bounces; the spp that reach the budget with
+  :math:`N` bounces follow, and the plan takes the :math:`N` of least predicted cost (a
+  shorter series is cheaper per path, linear in :math:`N`, but leaves the noise less of the
+  budget), among those whose tail is at most :math:`0.6e`;
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
   weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
@@ -16,7 +20,8 @@ requires, from cheap measurements:
   Monte Carlo error at one spp is
   :math:`\sigma = \sqrt{\sum (I_a - I_b)^2 / (1/s_a + 1/s_b) / \sum \bar I^2}` and
   :math:`\sigma/\sqrt{s}` at :math:`s`; the noise gets what the biases leave,
-  :math:`e_n^2 = e^2 - e_b^2 - e_t^2`;
+  :math:`e_n^2 = (0.95e)^2 - e_b^2 - e_t^2` (the plan aims 5% under the budget: one run's
+  error scatters by a few percent around the prediction);
 * objects not in ``edit`` are fixed (their full BRDF is baked into the path weights).
 
 The predicted error is :math:`\sqrt{e_b^2 + e_t^2 + e_n^2}` with the band error
@@ -45,9 +50,13 @@ from ..scene.scene import Scene
 
 __all__ = ["GIPlan", "choose_bands", "pilot_images", "plan_from_pilots", "planned_bases", "unlit_mask", "with_fixed"]
 
-#: the shares of the budget given to each deterministic error (the noise gets the rest)
+#: the shares of the budget given to each deterministic error (the noise gets the rest); the
+#: bounce tail may take up to BOUNCE_SHARE, the bounces are then chosen for the least cost
 BAND_SHARE = 0.3
-BOUNCE_SHARE = 0.3
+BOUNCE_SHARE = 0.6
+#: the plan aims its predicted error at this fraction of the budget: one run's achieved error
+#: scatters by a few percent around the prediction (pilot noise in sigma, the run's own noise)
+AIM = 0.95
 SECOND_SHARE = 0.3
 MAX_BANDS = 128
 
@@ -313,45 +322,78 @@ def plan_from_pilots(
     if norm == 0:
         raise ValueRangeError("the pilot image is black: nothing to plan for")
     n_max = pilots[0].series.bounces
-    tails = [float((mean[n + 1 :].sum(0) ** 2).sum()) ** 0.5 / norm for n in range(n_max + 1)]
+    # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
+    # sigma^2 / (s_a + s_b), and sigma^2 from the difference of the two pilots)
+    k = 1 / ((1 / s_a + 1 / s_b) * (s_a + s_b))
+    tails = [
+        max(0.0, float((mean[n + 1 :].sum(0) ** 2).sum()) - k * float(((a[n + 1 :] - b[n + 1 :]).sum(0) ** 2).sum()))
+        ** 0.5
+        / norm
+        for n in range(n_max + 1)
+    ]
     budget = error if error is not None else 1.0
-    bounces = next((n for n in range(1, n_max + 1) if tails[n] <= BOUNCE_SHARE * budget), n_max)
-    # band error: the projection error weighted by the light whose eye vertex is on the object
     names = list(pilots[0].object_names)
-    band2 = 0.0
-    for name, eps in projection_errors.items():
-        part = pilot_images(pilots[0], mats, eye={names.index(name)})[1 : bounces + 1, keep].sum(0)
-        band2 += eps**2 * float((part**2).sum())
-    band_error = band2**0.5 / norm
+    # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
+    # (cumulated over bounces 1..n: index n - 1)
+    eye_parts = {
+        name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
+    }
+
+    def band_error_at(n: int) -> float:
+        # the projection error weighted by the light whose eye vertex is on the object
+        return (
+            sum(eps**2 * float((eye_parts[name][n - 1] ** 2).sum()) for name, eps in projection_errors.items()) ** 0.5
+            / norm
+        )
+
     # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
     glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
     g2g = 0.0
     if glossy and n_max >= 2:
         part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
         g2g = float((part**2).sum()) ** 0.5 / norm
+    # noise at 1 spp of the first n bounces: per-pixel differences of two independent pilots,
+    # Var(I_a - I_b) = sigma^2 (1/s_a + 1/s_b)
+    cum_a, cum_b = a.cumsum(0), b.cumsum(0)
+    sigmas = [(float(((cum_a[n] - cum_b[n]) ** 2).sum()) / (1 / s_a + 1 / s_b)) ** 0.5 / norm for n in range(n_max + 1)]
+    # cost: t = fixed + rate * spp, fitted through the two pilots; the rate scales with bounces
+    # (each bounce casts a closest-hit and a shadow ray per live path: linear in the bounces)
+    t_a, t_b = (float(p.meta["seconds"]) for p in pilots)
+    rate_max = max(0.0, (t_b - t_a) / (s_b - s_a)) if s_b != s_a else t_b / s_b
+    fixed_s = max(0.0, t_b - rate_max * s_b)
+
+    def spp_for(n: int) -> tuple[int, float, float]:
+        # the fewest spp with n bounces (for the error, within the time budget), its cost and error
+        rate = rate_max * n / n_max
+        bias2 = band_error_at(n) ** 2 + tails[n] ** 2
+        spp_err = None
+        if error is not None:
+            share2 = (AIM * error) ** 2 - bias2
+            if share2 <= 0:
+                share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
+            spp_err = max(1, math.ceil(sigmas[n] ** 2 / share2))
+        spp_time = None if seconds is None else max(1, int((seconds - fixed_s) / max(rate, 1e-12)))
+        spp = min(x for x in (spp_err, spp_time) if x is not None)
+        return spp, fixed_s + rate * spp, math.sqrt(bias2 + sigmas[n] ** 2 / spp)
+
+    # bounces and spp together (a shorter series is cheaper per path but needs more paths for
+    # what its tail takes from the budget): for an error, the cheapest number of bounces whose
+    # tail is at most BOUNCE_SHARE of the budget; for a time alone, the most accurate
+    options = {n: spp_for(n) for n in range(1, n_max + 1)}
+    allowed = [n for n in options if tails[n] <= BOUNCE_SHARE * budget] or [n_max]
+    if error is not None:
+        bounces = min(allowed, key=lambda n: (options[n][1], n))
+    else:
+        bounces = min(options, key=lambda n: (options[n][2], n))
+    spp, predicted_seconds, _ = options[bounces]
+    band_error = band_error_at(bounces)
     series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
     if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
         series_bands[1] = min(16, series_bands[0])
     series = Series(tuple(series_bands))
     if series.two_level:
         bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
-    # noise: per-pixel differences of two independent pilots, Var(I_a - I_b) = sigma^2 (1/s_a + 1/s_b)
-    diff = a[: bounces + 1].sum(0) - b[: bounces + 1].sum(0)
-    sigma = (float((diff**2).sum()) / (1 / s_a + 1 / s_b)) ** 0.5 / norm  # relative error at 1 spp
-    # cost: t = fixed + rate * spp, fitted through the two pilots; the rate scales with bounces
-    t_a, t_b = (float(p.meta["seconds"]) for p in pilots)
-    rate = max(0.0, (t_b - t_a) / (s_b - s_a)) if s_b != s_a else t_b / s_b
-    fixed_s = max(0.0, t_b - rate * s_b)
-    rate *= bounces / n_max
-    bias2 = band_error**2 + tails[bounces] ** 2
-    spp_err = None
-    if error is not None:
-        share2 = error**2 - bias2
-        if share2 <= 0:
-            share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
-        spp_err = max(1, math.ceil(sigma**2 / share2))
-    spp_time = None if seconds is None else max(1, int((seconds - fixed_s) / max(rate, 1e-12)))
-    spp = min(x for x in (spp_err, spp_time) if x is not None)
+    sigma = sigmas[bounces]
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -365,6 +407,6 @@ def plan_from_pilots(
         noise_error=sigma / math.sqrt(spp),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
-        predicted_seconds=fixed_s + rate * spp,
+        predicted_seconds=predicted_seconds,
         pilot_seconds=sum(float(p.meta["seconds"]) for p in pilots),
     )

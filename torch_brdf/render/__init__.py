@@ -8,7 +8,7 @@
 """
 
 from ..records.basis_image import BasisImage, float16_error
-from .fit import ImageFit, blinn_phong_family, fit_image, object_mask
+from .fit import ImageFit, blinn_phong_family, fit_image, object_mask, paint_image
 from .manifold import blend, gi_blend_error, render_rows
 from .polynomial import PolynomialRenderer
 from .record import BasisImageRenderer
@@ -26,5 +26,6 @@ __all__ = [
     "float16_error",
     "gi_blend_error",
     "object_mask",
+    "paint_image",
     "render_rows",
 ]

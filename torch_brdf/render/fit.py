@@ -34,18 +34,23 @@ curve and the KKT residual of the last iterate, computed from the last QP's mult
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 import torch.autograd.forward_ad as fwAD
+from tqdm.auto import tqdm
 
 from .._checks import as_float_tensor, check_finite
+from ..data import progress_default
 from ..errors import ShapeError, ValueRangeError
 from ..inverse.qp import solve_qp
-from .polynomial import PolynomialRenderer
+from ..inverse.strokes import paint_at, pixel_xy
+from .polynomial import PolynomialRenderer, _term_factors
 
-__all__ = ["ImageFit", "blinn_phong_family", "energy_row", "fit_image", "object_mask"]
+__all__ = ["ImageFit", "blinn_phong_family", "energy_row", "fit_image", "object_mask", "paint_image"]
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,8 @@ class ImageFit:
         violation: largest constraint violation (:math:`-c_j`, :math:`d - 1`), >= 0.
         iterations: Gauss-Newton iterations.
         converged: the relative loss change, the step or the KKT residual fell below ``tol``.
-        image: (H, W, C) the render of the fitted coefficients.
+        image: (H, W, C) the render of the fitted coefficients (all pixels; one full frame of the
+            renderer, evaluated on first access, not during the fit).
         parameters: object name -> (K, C) fitted :math:`\theta` of the objects fitted in a family.
     """
 
@@ -76,8 +82,12 @@ class ImageFit:
     violation: float
     iterations: int
     converged: bool
-    image: torch.Tensor = field(repr=False)
+    render: Callable[[], torch.Tensor] = field(repr=False, compare=False)
     parameters: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    @functools.cached_property
+    def image(self) -> torch.Tensor:
+        return self.render()
 
 
 def energy_row(renderer: PolynomialRenderer, obj) -> torch.Tensor:
@@ -98,6 +108,39 @@ def blinn_phong_family(renderer: PolynomialRenderer, obj, exponent: float) -> to
         cols.append(renderer.c[m][:, 0].detach().double().clone())
     renderer.set_coefficients(m, keep[0], d=keep[1], c_hat=keep[2])
     return torch.stack(cols, 1)
+
+
+def paint_image(image, strokes, mask, display_size=None, keep_weight: float = 1.0):
+    """Painted strokes (Eq. 23 of the inverse-design seed, :func:`torch_brdf.inverse.paint`) as a
+    target image and fit weights for :func:`fit_image`.
+
+    Args:
+        image: (H, W, C) the current render (strokes that scale colours scale these).
+        strokes: list of :class:`~torch_brdf.inverse.Stroke` (points in the display frame).
+        mask: (H, W) bool, the paintable pixels (e.g. :func:`object_mask` of the edited objects).
+        display_size: ``(width, height)`` of the frame the stroke points refer to (default (W, H)).
+        keep_weight: fit weight of unpainted pixels of ``mask`` (they keep their current colour;
+            0: only the painted pixels count).
+    Returns:
+        (target (H, W, C) float64, weights (H, W) float64): painted colours over ``image``, and
+        1 on painted pixels, ``keep_weight`` on the rest of ``mask``, 0 elsewhere.
+    Raises:
+        ShapeError: image or mask of the wrong shape; ValueRangeError: no stroke touches ``mask``.
+    """
+    img = as_float_tensor(image, "image").detach().double()
+    if img.ndim != 3 or img.shape[-1] != 3:
+        raise ShapeError(f"Expected image of shape (H, W, 3); got {tuple(img.shape)}")
+    H, W = img.shape[:2]
+    m = torch.as_tensor(mask).bool()
+    if m.shape != (H, W):
+        raise ShapeError(f"Expected mask of shape ({H}, {W}); got {tuple(m.shape)}")
+    pix = m.reshape(-1).nonzero().squeeze(1)
+    st = paint_at(pixel_xy(pix, W, H, display_size), img.reshape(-1, 3)[pix], strokes, keep_weight)
+    target = img.reshape(-1, 3).clone()
+    target[pix] = st.target
+    weights = torch.zeros(H * W, dtype=torch.float64)
+    weights[pix] = st.weight
+    return target.reshape(H, W, 3), weights.reshape(H, W)
 
 
 def object_mask(tensors, obj) -> torch.Tensor:
@@ -121,6 +164,123 @@ def _diff(n: int, J: int) -> torch.Tensor:
     return torch.stack(rows) if rows else torch.zeros(0, n, dtype=torch.float64)
 
 
+class _Reduced:
+    r"""The image on the painted pixels as a polynomial in the edited objects' curves, frozen once.
+
+    With every other object's coefficients held (Eq. 27-28 generalised to several edited
+    objects :math:`m \in E`), each painted pixel :math:`s` is
+
+    .. math:: B_s = E_s + \sum_k g_k(d)\,\Big(\sum_{m\in E}\sum_j c_{m,j} F^m_{kjs} + V_{ks}\Big),
+              \qquad g_k(d) = \prod_{m\in E} d_m^{\,n_{km}},
+
+    :math:`k` running over the monomials of the edited diffuse equivalents that the stored terms
+    hold (the other objects' factors are folded into :math:`F` and :math:`V`). ``F[m]`` is
+    dense over the painted pixels that see object ``m`` directly: (C, K, J_m, S_m); ``V``
+    (C, K, S), ``E`` (C, S). One pass over the stored entries builds it; afterwards an image,
+    its loss and the exact Jacobian cost O(J K S) and no longer touch the full frame. Series
+    without a second level and without weight maps only (:func:`fit_image` falls back to
+    frame-by-frame evaluation otherwise). ``bases[m]`` (J_m, K_m): the curve is
+    :math:`c_m = B_m y_m` and ``F`` is stored for :math:`y_m` (a family fit then never touches
+    the J_m band axis again).
+    """
+
+    def __init__(
+        self, renderer: PolynomialRenderer, ids: list[int], sel: torch.Tensor, bases: list[torch.Tensor] | None = None
+    ):
+        dt = renderer.dtype
+        S = int(sel.sum())
+        pos = torch.full((sel.numel(),), -1, dtype=torch.long)
+        pos[sel] = torch.arange(S)
+        d_all = renderer._d_all()
+        masked, mono, expo = {}, {}, []
+        keys: dict[tuple, int] = {}
+        for n, table in renderer.tensors.terms.items():
+            other = table.counts.clone()
+            other[:, ids] = 0
+            masked[n] = _term_factors(other, d_all).T  # (C, T): the held objects' d factors
+            idx = []
+            for row in table.counts[:, ids].tolist():
+                idx.append(keys.setdefault(tuple(row), len(keys)))
+            mono[n] = torch.tensor(idx, dtype=torch.long)
+        expo = torch.tensor(sorted(keys, key=keys.get), dtype=torch.long).reshape(len(keys), len(ids))
+        Km = max(len(keys), 1)
+        own = {m: torch.zeros(S, dtype=torch.bool) for m in ids}
+        for q, b in enumerate(renderer.blocks):
+            if b.object_id in own:
+                s = pos[renderer._coords[q][2]]
+                own[b.object_id][s[s >= 0]] = True
+        self.idx = [own[m].nonzero().squeeze(1) for m in ids]  # (S_m,) positions in S
+        sizes = [renderer.tensors.bases[m].size for m in ids]
+        F = [torch.zeros(3, Km * sz * ix.numel(), dtype=dt) for sz, ix in zip(sizes, self.idx, strict=True)]
+        V = torch.zeros(3, Km * S, dtype=dt)
+        for q, b in enumerate(renderer.blocks):
+            j, t, pix = renderer._coords[q]
+            s = pos[pix]
+            keep = s >= 0
+            if not bool(keep.any()):
+                continue
+            j, t, s = j[keep], t[keep], s[keep]
+            vals = getattr(renderer, f"block{q}")[:, keep] * masked[b.bounce][:, t]
+            k = mono[b.bounce][t]
+            if b.object_id in own:
+                e = ids.index(b.object_id)
+                loc = torch.full((S,), -1, dtype=torch.long)
+                loc[self.idx[e]] = torch.arange(self.idx[e].numel())
+                F[e].index_add_(1, (k * sizes[e] + j) * self.idx[e].numel() + loc[s], vals)
+            else:
+                V.index_add_(1, k * S + s, vals * renderer._eye(b.object_id)[j].T)
+        self.F = [f.reshape(3, Km, sz, -1) for f, sz in zip(F, sizes, strict=True)]
+        if bases is not None:
+            self.F = [F if b is None else b.T.to(dt) @ F for F, b in zip(self.F, bases, strict=True)]
+        self.V = V.reshape(3, Km, S)
+        self.E = renderer.emission[:, sel]
+        self.expo = expo  # (K, M)
+        self.S, self.dtype = S, dt
+
+    def monomials(self, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """g (C, K) and dg/dd_m (M, C, K) at the diffuse equivalents d (M, C), by repeated products."""
+        M, K = self.expo.shape[1], self.expo.shape[0]
+        pw = [torch.ones(M, 3, dtype=d.dtype)]
+        top = int(self.expo.max()) if self.expo.numel() else 0
+        for _ in range(top):
+            pw.append(pw[-1] * d)
+        P = torch.stack(pw)  # (top + 1, M, C)
+        fac = P[self.expo, torch.arange(M)[None, :]]  # (K, M, C): d_m^{n_km}
+        g = fac.prod(1).T
+        dg = torch.zeros(M, 3, K, dtype=d.dtype)
+        for m in range(M):
+            e = self.expo[:, m]
+            lower = P[(e - 1).clamp_min(0), m] * e[:, None].to(d.dtype)  # n d^(n-1)
+            rest = torch.cat([fac[:, :m], fac[:, m + 1 :]], 1).prod(1)
+            dg[m] = (lower * rest).T
+        return g, dg
+
+    def _u(self, cs: list[torch.Tensor]) -> torch.Tensor:
+        r"""(C, K, S): V plus each object's eye-linear part :math:`\sum_j c_j F_{kjs}`."""
+        U = self.V.clone()
+        for c, F, ix in zip(cs, self.F, self.idx, strict=True):
+            part = (c.T.to(self.dtype)[:, None, None, :] @ F).squeeze(2)  # (C, K, S_m)
+            U[:, :, ix] += part
+        return U
+
+    def image(self, cs: list[torch.Tensor], d: torch.Tensor) -> torch.Tensor:
+        """(S, C) the painted pixels for curves cs[m] (J_m, C) and diffuse equivalents d (M, C)."""
+        g, _ = self.monomials(d.to(self.dtype))
+        return (self.E + (g[:, :, None] * self._u(cs)).sum(1)).T.double()
+
+    def jacobian(self, cs: list[torch.Tensor], d: torch.Tensor, rows: list[torch.Tensor]) -> torch.Tensor:
+        """(C, S, n) exact d image / d c (all curves stacked), with d = row . c."""
+        g, dg = self.monomials(d.to(self.dtype))
+        U = self._u(cs)
+        cols = []
+        for m, (F, ix) in enumerate(zip(self.F, self.idx, strict=True)):
+            A = torch.zeros(3, self.S, F.shape[2], dtype=self.dtype)
+            A[:, ix] = (g[:, None, :] @ F.flatten(2)).reshape(3, F.shape[2], -1).transpose(1, 2)
+            dI = (dg[m][:, :, None] * U).sum(1)  # (C, S) d image / d d_m
+            cols.append(A.double() + dI.double()[:, :, None] * rows[m].T[:, None, :])
+        return torch.cat(cols, 2)
+
+
 def fit_image(
     renderer: PolynomialRenderer,
     objects,
@@ -132,6 +292,7 @@ def fit_image(
     tol: float = 1e-12,
     albedo_max: float = 1.0,
     families: dict | None = None,
+    progress: bool | None = None,
 ) -> ImageFit:
     r"""Fit the band curves of ``objects`` so that the render matches ``target`` on the painted pixels.
 
@@ -151,6 +312,7 @@ def fit_image(
             :math:`\theta \ge 0` of the curve :math:`c = B\theta` instead of the free curve
             (a library BRDF linear in its parameters, e.g. :func:`blinn_phong_family`: kd and
             ks at a fixed exponent); ``ImageFit.parameters`` holds :math:`\theta` (K, C).
+        progress: tqdm bar over the iterations (None: on in a terminal or notebook).
     Returns:
         :class:`ImageFit`.
     Raises:
@@ -218,7 +380,10 @@ def fit_image(
     y = _project_start(y, G, h)
     x = B @ y
     nt = y.shape[0]
-    if len(ids) == 1 and renderer.frozen_object != labels[0]:
+    fast = not renderer.two_level and not renderer.weight_maps
+    red = _Reduced(renderer, ids, sel, [blocks[k] if families else None for k in range(len(ids))]) if fast else None
+    rows_y = [b.T @ r for b, r in zip(blocks, rows, strict=True)]  # d = rows_y . y
+    if not fast and len(ids) == 1 and renderer.frozen_object != labels[0]:
         renderer.freeze(ids[0])
     dt = renderer.dtype
 
@@ -227,13 +392,25 @@ def fit_image(
             renderer.set_coefficients(m, xc[splits[k] : splits[k + 1]].to(dt))
         return renderer()
 
+    def parts(yc):  # the fitted variables per object and the diffuse equivalents (M, C)
+        ys = [yc[pspl[k] : pspl[k + 1]] for k in range(len(ids))]
+        return ys, torch.stack([(r * v).sum(0) for r, v in zip(rows_y, ys, strict=True)])
+
+    def frame(yc):  # (P, C): the painted pixels
+        if red is not None:
+            return red.image(*parts(yc))
+        return render(B @ yc).detach().reshape(-1, 3)[sel].double()
+
     def losses(img):  # per channel (C,)
-        r = img.reshape(-1, 3)[sel].double() - bp
+        r = img - bp
         return 0.5 * (wp * r * r).sum(0)
 
-    def jacobian(xc):  # (C, P, n): d image / d c, exact
+    def jacobian(xc):  # (C, P, nt): d image / d y, exact (y are the curves c or family parameters)
+        if red is not None:
+            return red.jacobian(*parts(xc), rows_y)
+        xc = B @ xc
         if renderer.two_level:
-            return _jacobian_dual(xc)
+            return _jacobian_dual(xc) @ B
         # the image is linear in the eye coefficients c for fixed diffuse equivalents d
         # (Eq. 26/28), and d = row . c: columns = (image(e_i; d) - image(0; d)) + dI/dd * row_i
         render(xc)
@@ -263,7 +440,7 @@ def fit_image(
             if tangent is not None:
                 dd = tangent.reshape(-1, 3)[sel].double()  # (P, C)
                 A[:, :, splits[k] : splits[k + 1]] += dd[:, :, None] * rows[k].T[None]
-        return A.permute(1, 0, 2)
+        return A.permute(1, 0, 2) @ B
 
     def _jacobian_dual(xc):  # forward-mode, one pass per coefficient (all channels at once)
         cols = []
@@ -276,15 +453,16 @@ def fit_image(
         return torch.stack(cols, -1).permute(1, 0, 2)
 
     reg = lambda yc: 0.5 * torch.einsum("jc,jk,kc->c", yc, R2, yc)  # noqa: E731
-    img = render(x).detach()
+    img = frame(y)
     lc = losses(img)
     curve = [float(lc.sum())]
     scale = torch.ones(3, dtype=torch.float64)
     kkt = torch.zeros(3, dtype=torch.float64)
     converged, iters = False, 0
+    bar = tqdm(total=max_iter, desc="fit image", unit="iter", disable=not progress_default(progress))
     for iters in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
-        A = jacobian(x) @ B  # (C, P, nt)
-        r = img.reshape(-1, 3)[sel].double() - bp  # (P, C)
+        A = jacobian(y)  # (C, P, nt)
+        r = img - bp  # (P, C)
         y_new = y.clone()
         for ch in range(3):
             Aw = A[ch].T * wp[:, ch]
@@ -293,13 +471,11 @@ def fit_image(
             mu = 1e-12 * max(float(Hc.diagonal().max()), 1e-300)
             g = Aw @ r[:, ch] + R2 @ y[:, ch]  # gradient of the loss at y
             f = Hc @ y[:, ch] - g + mu * y[:, ch]
-            q = solve_qp(Hc + mu * torch.eye(nt, dtype=torch.float64), f, G[ch], h)
-            y_new[:, ch] = q.x
+            yq, u, z = _qp_step(Hc + mu * torch.eye(nt, dtype=torch.float64), f, G[ch], h)
+            y_new[:, ch] = yq
             # KKT at the iterate: g + G^T u - z = 0, z y = 0, u (G y - h) = 0
-            stat = (g + G[ch].T @ q.row_dual - q.bound_dual).abs().max()
-            comp = max(
-                float((q.bound_dual * y[:, ch]).abs().max()), float((q.row_dual * (G[ch] @ y[:, ch] - h)).abs().max())
-            )
+            stat = (g + G[ch].T @ u - z).abs().max()
+            comp = max(float((z * y[:, ch]).abs().max()), float((u * (G[ch] @ y[:, ch] - h)).abs().max()))
             kkt[ch] = max(float(stat), comp) / scale[ch]
         # backtracking per channel (the loss is separable in the channels)
         step = y_new - y
@@ -307,7 +483,7 @@ def fit_image(
         base = lc + reg(y)
         for _ in range(40):
             trial = y + step * alpha
-            timg = render(B @ trial).detach()
+            timg = frame(trial)
             tl = losses(timg)
             bad = (tl + reg(trial)) > base * (1 + 1e-15) + 1e-300
             if not bool(bad.any()):
@@ -320,9 +496,12 @@ def fit_image(
         x = B @ y
         lc = tl
         curve.append(float(lc.sum()))
+        bar.update(1)
+        bar.set_postfix(loss=f"{curve[-1]:.4g}")
         if abs(old - curve[-1]) <= tol * max(old, 1e-300) or moved == 0.0 or float(kkt.max()) <= tol:
             converged = True
             break
+    bar.close()
     coeffs = {lab: x[splits[k] : splits[k + 1]].clone() for k, lab in enumerate(labels)}
     params = {
         lab: y[pspl[k] : pspl[k + 1]].clone()
@@ -331,8 +510,27 @@ def fit_image(
     }
     alb = {lab: (rows[k] * coeffs[lab]).sum(0) for k, lab in enumerate(labels)}
     viol = max(float((-x).clamp_min(0).max()), max(float((a - albedo_max).clamp_min(0).max()) for a in alb.values()))
-    render(x)
-    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, img, params)
+    for k, m in enumerate(ids):
+        renderer.set_coefficients(m, x[splits[k] : splits[k + 1]].to(dt))
+
+    def final() -> torch.Tensor:
+        return render(x).detach()
+
+    return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, final, params)
+
+
+def _qp_step(H: torch.Tensor, f: torch.Tensor, G: torch.Tensor, h: torch.Tensor):
+    """The QP step (x, row multipliers, bound multipliers): the unconstrained minimiser
+    :math:`H^{-1} f` when it is feasible (then it is the QP's solution, all multipliers 0),
+    else :func:`~torch_brdf.inverse.solve_qp` (interior point + polishing)."""
+    try:
+        x = torch.linalg.solve(H, f)
+        if bool(torch.isfinite(x).all()) and bool((x >= 0).all()) and bool((G @ x <= h).all()):
+            return x, torch.zeros(G.shape[0], dtype=x.dtype), torch.zeros_like(x)
+    except RuntimeError:  # singular to working precision: the QP's interior point copes
+        pass
+    q = solve_qp(H, f, G, h)
+    return q.x, q.row_dual, q.bound_dual
 
 
 def _project_start(x: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> torch.Tensor:

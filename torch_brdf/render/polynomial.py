@@ -313,11 +313,45 @@ class PolynomialRenderer(nn.Module):
         return imgs if per_bounce else sum(imgs[1:], imgs[0])
 
     # -- object freezing ------------------------------------------------------------------------
-    @tuned_method("polynomial.freeze", lambda r, *a, **k: sum(b.values.numel() for b in r.blocks))
-    def freeze(self, obj) -> None:
+    def freeze(self, obj, denoiser=None) -> None:
         """Precompute :math:`F_{jk'}` (Eq. 27, §5.2) for the pixels of ``obj`` and the
         polynomials :math:`V_{k'}` of all other pixels, so that :meth:`forward` while only
-        ``obj``'s material changes costs two batched matrix products."""
+        ``obj``'s material changes costs two batched matrix products.
+
+        Args:
+            obj: the object whose material will change (name or index).
+            denoiser: also denoise every basis image of the frozen tensor once
+                (:func:`torch_brdf.denoise.denoise_frozen`): ``"linear"`` or ``"oidn"`` with the
+                guides the tensors carry (:func:`torch_brdf.denoise.make_denoiser`), or any
+                denoiser callable. Every later frame of ``obj``'s edits is exact in the denoised
+                bases and costs what a noisy frame costs; :attr:`frozen_denoiser` names it.
+                The denoising lasts as long as the frozen state (changing another object's
+                material drops both; freeze again).
+        Raises:
+            ValueRangeError: a denoiser name while the tensors carry no guides.
+        """
+        self._freeze(obj)
+        if denoiser is None:
+            return
+        from ..denoise import denoise_frozen, glossy_objects, make_denoiser
+
+        if isinstance(denoiser, str):
+            if self.tensors.guides is None:
+                raise ValueRangeError(
+                    "the tensors carry no guides (precomputed with guides=False); pass a denoiser callable"
+                )
+            denoiser = make_denoiser(self.tensors.guides, denoiser, glossy_objects(self.tensors))
+        fz = denoise_frozen(self._frozen, denoiser, (self.height, self.width))
+        fz["denoiser"] = getattr(denoiser, "description", type(denoiser).__name__)
+        self._frozen = fz
+
+    @property
+    def frozen_denoiser(self) -> str | None:
+        """What denoised the frozen tensor (:meth:`freeze`'s ``denoiser``), or None."""
+        return None if self._frozen is None else self._frozen.get("denoiser")
+
+    @tuned_method("polynomial.freeze", lambda r, *a, **k: sum(b.values.numel() for b in r.blocks))
+    def _freeze(self, obj) -> None:
         i, b = self._basis(obj)
         nb = self.max_bounces
         slots = b.second_size if self.two_level else 0
@@ -365,6 +399,35 @@ class PolynomialRenderer(nn.Module):
             "K": K,
             "slots": slots,
         }
+        self._frozen_nonzeros(self._frozen)
+
+    #: the frame reads F's non-zeros instead of F when at most this fraction is non-zero
+    SPARSE_FRAME_DENSITY = 0.25
+
+    @staticmethod
+    def _frozen_nonzeros(fz: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The non-zeros of the frozen ``F`` (C, J, K'·P_i) as ``(jk, p, values)``: (nnz,)
+        index ``j·K' + k'``, (nnz,) pixel slot, (nnz, C) values (sorted by pixel), or None when
+        more than :attr:`SPARSE_FRAME_DENSITY` of F is non-zero.
+
+        A pixel's entries reach only the few bands its eye and light directions fall in (~2 %
+        of F for a 64-band wall), so the frame's cost is then that of the non-zeros, not of F.
+        Cached in ``fz`` with the F it came from: a dict whose F was replaced (e.g. by
+        :func:`~torch_brdf.denoise.denoise_frozen`) is read densely again."""
+        cached = fz.get("nonzeros")
+        if cached is not None and cached[0] is fz["F"]:
+            return cached[1]
+        F, K, p_i = fz["F"], int(fz["K"]), fz["pix_i"].numel()
+        with torch.no_grad():
+            pattern = (F != 0).any(0)  # (J, K'·P_i)
+        out = None
+        if pattern.numel() and int(pattern.sum()) <= PolynomialRenderer.SPARSE_FRAME_DENSITY * pattern.numel():
+            j, col = pattern.nonzero(as_tuple=True)
+            order = torch.argsort(col % p_i, stable=True)
+            j, col = j[order], col[order]
+            out = (j * K + col // p_i, col % p_i, F[:, j, col].T.contiguous())
+        fz["nonzeros"] = (F, out)
+        return out
 
     @property
     def frozen_object(self) -> str | None:
@@ -385,8 +448,14 @@ class PolynomialRenderer(nn.Module):
         sv = torch.cat(slot, 0)  # (slots + 1, C)
         g = (sv[:, None, :] * pw[None, :, :]).reshape(K, 3).T  # (C, K)
         p_i = fz["pix_i"].numel()
-        u = torch.bmm(self.c[i].T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
-        own = torch.bmm(g.unsqueeze(1), u).squeeze(1)  # (C, P_i)
+        nonzeros = self._frozen_nonzeros(fz)
+        if nonzeros is None:
+            u = torch.bmm(self.c[i].T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
+            own = torch.bmm(g.unsqueeze(1), u).squeeze(1)  # (C, P_i)
+        else:  # the same sum over the non-zeros: own[p] = sum c[j] g[k'] F[j, k', p]
+            jk, pix, vals = nonzeros
+            cg = (self.c[i].unsqueeze(1) * g.T.unsqueeze(0)).reshape(-1, 3)  # (J·K', C)
+            own = torch.zeros(p_i, 3, dtype=vals.dtype).index_add(0, pix, cg.index_select(0, jk) * vals).T
         w = self._pixel_weights(i, fz["pix_i"])
         if w is not None:
             own = own * w
@@ -402,10 +471,12 @@ class PolynomialRenderer(nn.Module):
         return self.evaluate()
 
     def stream(self) -> torch.Tensor:
-        """One pass over the frozen tensor (its sum): the memory-bandwidth floor of a frame."""
+        """One pass over what a frame reads (F or its non-zeros, and V; their sum): the
+        memory-bandwidth floor of a frame."""
         if self._frozen is None:
             raise ValueRangeError("nothing is frozen; call freeze(object) first")
-        return self._frozen["F"].sum() + self._frozen["V"].sum()
+        nonzeros = self._frozen_nonzeros(self._frozen)
+        return (self._frozen["F"] if nonzeros is None else nonzeros[2]).sum() + self._frozen["V"].sum()
 
     @property
     def frozen_nbytes(self) -> int:

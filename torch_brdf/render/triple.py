@@ -549,9 +549,14 @@ class TripleProductRenderer(nn.Module):
 
     @tuned_method("triple.frame", lambda r, view, *a, **k: len(view.vertex_ids))
     @torch.no_grad()
-    def shade(self, view: View, rule: SamplingRule | None = None) -> tuple[torch.Tensor, FrameStats]:
+    def shade(
+        self, view: View, rule: SamplingRule | None = None, progress: bool | None = None
+    ) -> tuple[torch.Tensor, FrameStats]:
         """Outgoing radiance of the view's vertices by Algorithm 1.
 
+        Args:
+            progress: tqdm bar over the (vertex, block) pairs, a tick per object and sampling
+                level (None: on in a terminal or notebook).
         Returns:
             radiance (P, C) in the renderer's dtype, and :class:`FrameStats`.
         """
@@ -571,6 +576,7 @@ class TripleProductRenderer(nn.Module):
         lit = self.lighting
         values = blocks.values(self.dtype)
         integral = lit.integral.reshape(-1, 3 * C)  # (NB S^2, 3 C) rows for line 9
+        bar = tqdm(total=len(pv), desc="shade adaptive", unit="pair", disable=not progress_default(progress))
         for o in torch.unique(oid[pv]).tolist():
             rows = (oid[pv] == o).nonzero().squeeze(-1)
             v, b, st = pv[rows], pb[rows], pstate[rows]
@@ -612,6 +618,8 @@ class TripleProductRenderer(nn.Module):
                         f = coef[pi] if l == 16 else torch.einsum("mkc,kt->mtc", coef[pi], self._bases[l])
                         contrib[pi] = _block_contract(V[:, :, None] * f, n_pair[pi], bb[pi], lit.moments)
                 out.index_add_(0, vv, contrib)
+                bar.update(len(idx))
+        bar.close()
         stats.brdf_evals = sampler.evals
         return out, stats
 

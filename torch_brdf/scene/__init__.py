@@ -8,6 +8,7 @@ from .builtin import (
     cornell_box_glossy,
     grid_plane,
     load_scene,
+    mesh_scene,
     ring,
     teatray,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "load_mesh",
     "load_scene",
     "mesh_from_arrays",
+    "mesh_scene",
     "ring",
     "teatray",
     "trace_gbuffer",

@@ -258,6 +258,39 @@ def bunny_plane(resolution: Resolution = 256, envmap: EnvironmentMap | None = No
     return Scene(objects, materials, [env], cam, name="bunny_plane")
 
 
+def mesh_scene(path, resolution: Resolution = 256, envmap: EnvironmentMap | None = None) -> Scene:
+    """Any mesh file (OBJ, PLY, ...) on a grey plane under an environment map (default: the
+    procedural sky), framed by the camera: ``torch-brdf render --mesh FILE [--envmap FILE]``.
+
+    The mesh is scaled to 1.6 units of height (its aspect kept), stood on the plane (y = 0) and
+    centred; the camera looks at it from the front (-z), a little from the side and above, its
+    bounding sphere filling ~90% of the vertical field of view.
+    """
+    w, h = _size(resolution)
+    mesh = load_mesh(path, Path(path).stem)
+    lo, hi = mesh.bounds
+    mesh.apply_scale(1.6 / max(float(hi[1] - lo[1]), 1e-12))
+    lo, hi = mesh.bounds
+    mesh.apply_translation([-(lo[0] + hi[0]) / 2, -lo[1], -(lo[2] + hi[2]) / 2])
+    lo, hi = mesh.bounds
+    centre = (lo + hi) / 2
+    radius = float(np.linalg.norm(hi - lo)) / 2
+    fov = 35.0
+    dist = 1.1 * radius / math.tan(math.radians(fov / 2))
+    eye = centre + dist * np.array([0.3, 0.25, -1.0]) / np.linalg.norm([0.3, 0.25, -1.0])
+    objects = [
+        SceneObject("mesh", mesh, "mesh", smooth=True),
+        SceneObject("plane", _ground(30.0 * max(radius, 1.0), 0.0), "plane"),
+    ]
+    materials = {
+        "mesh": {"type": "lambert", "albedo": (0.7, 0.7, 0.7)},
+        "plane": {"type": "lambert", "albedo": (0.5, 0.5, 0.5)},
+    }
+    env = envmap if envmap is not None else _default_sky()
+    cam = Camera(tuple(float(v) for v in eye), tuple(float(v) for v in centre), (0.0, 1.0, 0.0), fov, w, h)
+    return Scene(objects, materials, [env], cam, name=f"mesh:{Path(path).name}")
+
+
 def bunny_relight(
     resolution: Resolution = 256,
     plane_quads: int = 96,

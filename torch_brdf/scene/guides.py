@@ -1,6 +1,6 @@
 """The guide-buffer record: per-pixel first-hit data of one view that denoisers use as guides
-(computed by :func:`torch_brdf.denoise.guide_buffers`, saved with the multibounce tensors).
-See :mod:`torch_brdf.denoise.guides` for what each guide means and why none depends on a
+(computed by :func:`torch_brdf.transport.guides.guide_buffers`, saved with the multibounce tensors).
+See :mod:`torch_brdf.transport.guides` for what each guide means and why none depends on a
 material."""
 
 from __future__ import annotations

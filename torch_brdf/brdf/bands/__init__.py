@@ -76,7 +76,7 @@ The package, one module per job (imports run down this list only):
 * :mod:`.basis`: :func:`band_edges`, :class:`BandBasis`;
 * :mod:`.albedo`: the equivalent albedo :math:`e_j` of Appendix B and its disk cache
   (:func:`band_albedos`, :func:`equivalent_albedo`);
-* :mod:`.projection`: :class:`PairQuadrature`, :func:`project`, :func:`projection_error`;
+* :mod:`.projection`: :class:`PairQuadrature`, :func:`project`, :class:`Projector`, :func:`projection_error`;
 * :mod:`.factored`: :class:`Factored1D`, :class:`FresnelFactored1D`, coarsening.
 """
 
@@ -84,7 +84,7 @@ from ._geometry import HALF_PI, anisotropy_ratio, half_and_diff
 from .albedo import EquivalentAlbedoCacheWarning, band_albedos, cache_dir, equivalent_albedo
 from .basis import VARIABLES, BandBasis, band_edges
 from .factored import Factored1D, FresnelFactored1D, coarsen_coefficients
-from .projection import PairQuadrature, project, projection_error
+from .projection import PairQuadrature, Projector, project, projection_error
 from .quotients import AnisotropicLobe, Quotient, SchlickFresnel, SmithQuotient, make_quotient
 
 __all__ = [
@@ -96,6 +96,7 @@ __all__ = [
     "Factored1D",
     "FresnelFactored1D",
     "PairQuadrature",
+    "Projector",
     "Quotient",
     "SchlickFresnel",
     "SmithQuotient",

@@ -17,7 +17,7 @@ from ._geometry import HALF_PI
 from .basis import BandBasis
 from .quotients import Quotient, make_quotient
 
-__all__ = ["PairQuadrature", "project", "projection_error"]
+__all__ = ["PairQuadrature", "Projector", "project", "projection_error"]
 
 
 def _gauss_legendre(order: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -169,6 +169,50 @@ def _eval_rgb(brdf, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     return f
 
 
+def _assemble(quadrature: PairQuadrature, basis: BandBasis, q: Quotient, brdf=None, keep: bool = False):
+    r"""One pass over ``quadrature``: the normal matrix :math:`M` (3, J, J), the right-hand side
+    :math:`r` (J, 3) of ``brdf`` (None without one), and with ``keep`` the nodes
+    ``(wi, wo, a, b, wq)`` with positive weight (``wq`` (N, 3): :math:`\frac12 w \rho_q`, the
+    weight of :math:`\rho` in :math:`r`; a pair adds it to both its bands ``a`` and ``b``)."""
+    J = basis.J
+    M = torch.zeros(J * J, 3, dtype=torch.float64)
+    r = None if brdf is None else torch.zeros(J, 3, dtype=torch.float64)
+    kept = []
+    with torch.no_grad():
+        for wi, wo, w in quadrature.chunks():
+            pos = w > 0
+            wi, wo, w = wi[pos], wo[pos], w[pos]
+            qv = q(wi, wo).to(torch.float64)
+            qv = qv.unsqueeze(-1).expand(-1, 3) if qv.ndim == 1 else qv
+            a, b = basis.membership(wi, wo)
+            wq2 = (0.25 * w).unsqueeze(-1) * qv * qv
+            for x, y in ((a, a), (a, b), (b, a), (b, b)):
+                M.index_add_(0, x * J + y, wq2)
+            wq = (0.5 * w).unsqueeze(-1) * qv
+            if r is not None:
+                wqr = wq * _eval_rgb(brdf, wi, wo)
+                r.index_add_(0, a, wqr)
+                r.index_add_(0, b, wqr)
+            if keep:
+                kept.append((wi, wo, a, b, wq))
+    return M.reshape(J, J, 3).permute(2, 0, 1), r, kept
+
+
+class _NormalSolver:
+    """The LU factorisation of the ridged normal matrix (3, J, J) and the bands it reaches."""
+
+    def __init__(self, M: torch.Tensor):
+        diag = torch.diagonal(M, dim1=-2, dim2=-1)
+        scale = diag.amax(-1, keepdim=True).clamp_min(1e-300)
+        self.lu, self.pivots = torch.linalg.lu_factor(M + torch.diag_embed((1e-13 * scale).expand_as(diag)))
+        self.reached = (diag > 1e-14 * scale).T  # (J, 3)
+
+    def __call__(self, r: torch.Tensor, nonnegative: bool) -> torch.Tensor:
+        c = torch.linalg.lu_solve(self.lu, self.pivots, r.T.unsqueeze(-1)).squeeze(-1).T
+        c = torch.where(self.reached, c, torch.zeros_like(c))
+        return c.clamp_min(0) if nonnegative else c
+
+
 def project(
     brdf,
     basis: BandBasis,
@@ -186,7 +230,8 @@ def project(
     :math:`M_{jk} = \iint \rho_q^2 b_j b_k\cos\cos`, :math:`r_j = \iint\rho_q b_j\rho\cos\cos`
     accumulated over :class:`PairQuadrature`. For one-hot bases :math:`M` is diagonal and
     :math:`c_j` is the :math:`\rho_q`-weighted band average of :math:`\rho/\rho_q`. Bands the
-    quadrature never reaches with :math:`\rho_q \ne 0` get :math:`c_j = 0`.
+    quadrature never reaches with :math:`\rho_q \ne 0` get :math:`c_j = 0`. One pass, nothing
+    kept; to project many BRDFs on the same bands use :class:`Projector`.
 
     Args:
         brdf: anything with ``eval_local(wi, wo) -> (*B, 3)`` (a :class:`BRDF`, analytic or
@@ -204,30 +249,64 @@ def project(
     if quadrature is None:
         aniso = bool(getattr(brdf, "anisotropic", False) or q.anisotropic or basis.anisotropic)
         quadrature = PairQuadrature.build(basis, aniso, **quad_kwargs)
-    J = basis.J
-    M = torch.zeros(J * J, 3, dtype=torch.float64)
-    r = torch.zeros(J, 3, dtype=torch.float64)
-    with torch.no_grad():
-        for wi, wo, w in quadrature.chunks():
-            keep = w > 0
-            wi, wo, w = wi[keep], wo[keep], w[keep]
-            rho = _eval_rgb(brdf, wi, wo)
-            qv = q(wi, wo).to(torch.float64)
-            qv = qv.unsqueeze(-1).expand(-1, 3) if qv.ndim == 1 else qv
-            a, b = basis.membership(wi, wo)
-            wq2 = (0.25 * w).unsqueeze(-1) * qv * qv
-            for x, y in ((a, a), (a, b), (b, a), (b, b)):
-                M.index_add_(0, x * J + y, wq2)
-            wqr = (0.5 * w).unsqueeze(-1) * qv * rho
-            r.index_add_(0, a, wqr)
-            r.index_add_(0, b, wqr)
-    M = M.reshape(J, J, 3).permute(2, 0, 1)  # (3, J, J)
-    diag = torch.diagonal(M, dim1=-2, dim2=-1)
-    scale = diag.amax(-1, keepdim=True).clamp_min(1e-300)
-    ridge = 1e-13 * scale
-    c = torch.linalg.solve(M + torch.diag_embed(ridge.expand_as(diag)), r.T.unsqueeze(-1)).squeeze(-1).T
-    c = torch.where(diag.T > 1e-14 * scale.T, c, torch.zeros_like(c))
-    return c.clamp_min(0) if nonnegative else c
+    M, r, _ = _assemble(quadrature, basis, q, brdf)
+    return _NormalSolver(M)(r, nonnegative)
+
+
+class Projector:
+    r""":func:`project` for many BRDFs on the same bands: the quadrature's nodes, their band
+        memberships and the LU factorisation of the normal matrix are made once, so a projection
+        costs one evaluation of the BRDF on the kept nodes, two scatter-adds and a J x J
+        triangular solve per channel. Same result as :func:`project` on the same rule (tested).
+
+        The nodes are kept in memory (about 90 bytes a pair: the default isotropic rule's ~410k
+        pairs take ~37 MB); interactive use passes a coarser rule through ``quad_kwargs`` (the
+        editor's ``n_theta_d=2, n_phi_d=4, order=2``: ~10k pairs; the :math:`	heta_h` cells
+        still keep the band edges).
+
+        Args:
+            basis: the bands.
+            quotient: :math:`
+    ho_q`.
+            anisotropic: integrate over :math:`\phi_h` too (for anisotropic BRDFs; implied by an
+                anisotropic basis or quotient).
+            quadrature: a prebuilt rule; default :meth:`PairQuadrature.build` with ``quad_kwargs``.
+    """
+
+    def __init__(
+        self,
+        basis: BandBasis,
+        quotient: str | Quotient = "one",
+        anisotropic: bool = False,
+        quadrature: PairQuadrature | None = None,
+        **quad_kwargs,
+    ):
+        q = make_quotient(quotient)
+        if quadrature is None:
+            aniso = bool(anisotropic or q.anisotropic or basis.anisotropic)
+            quadrature = PairQuadrature.build(basis, aniso, **quad_kwargs)
+        self.J = basis.J
+        M, _, kept = _assemble(quadrature, basis, q, keep=True)
+        wi, wo, a, b, wq = (torch.cat(t) for t in zip(*kept, strict=True))
+        self.wi, self.wo, self.a, self.b, self.wq = wi, wo, a, b, wq
+        self.solver = _NormalSolver(M)
+
+    @property
+    def pairs(self) -> int:
+        """Quadrature pairs evaluated per projection."""
+        return self.wi.shape[0]
+
+    @property
+    def reached(self) -> torch.Tensor:
+        """(J, 3) bool: the bands the rule reaches (the others get 0)."""
+        return self.solver.reached
+
+    def __call__(self, brdf, nonnegative: bool = True) -> torch.Tensor:
+        """Coefficients (J, 3) float64 of ``brdf`` (``eval_local`` or a callable), as :func:`project`."""
+        with torch.no_grad():
+            wr = self.wq * _eval_rgb(brdf, self.wi, self.wo)
+            r = torch.zeros(self.J, 3, dtype=torch.float64).index_add_(0, self.a, wr).index_add_(0, self.b, wr)
+        return self.solver(r, nonnegative)
 
 
 def projection_error(

@@ -17,9 +17,11 @@ from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
 from ...scene.envmap import EnvironmentMap
+from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from ..executor import run_tiles, single_process
+from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
 from .reduce import _blocks_from_local, _local_blocks, _reduce, _term_tables
@@ -155,6 +157,7 @@ def precompute_polynomial(
     executor: str = "local",
     address: str | None = None,
     max_retries: int = 3,
+    guides: bool = True,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -186,6 +189,11 @@ def precompute_polynomial(
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
             cluster address.
         max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
+        guides: attach the view's denoiser guides (:func:`torch_brdf.transport.guides.guide_buffers`:
+            one pixel-centre ray and its mirror ray per pixel, saved with the record and
+            versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
+            ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
+            False: no guides (``meta["guides"]`` None).
     Returns:
         :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
         ``meta["split"]`` holds the profile split in seconds
@@ -217,6 +225,7 @@ def precompute_polynomial(
             executor=executor,
             address=address,
             max_retries=max_retries,
+            guides=guides,
         )
         out.meta["plan"] = str(plan)
         return out
@@ -314,9 +323,14 @@ def precompute_polynomial(
         "executor": executor,
         "ray_nodes": len(results.nodes),
     }
+    view_guides = None
+    meta["guides"] = None
+    if guides:
+        view_guides, meta["guides"] = guide_buffers(scene), GUIDE_VERSION
     if not keep_checkpoint:
         cache.remove()
-    return PolynomialTensors(h, w, series, [o.name for o in scene.objects], plan, emission, terms, blocks, meta)
+    names = [o.name for o in scene.objects]
+    return PolynomialTensors(h, w, series, names, plan, emission, terms, blocks, meta, guides=view_guides)
 
 
 def plan_polynomial(

@@ -1,0 +1,185 @@
+"""The speed/accuracy report (issue #17): a quick report is rendered and checked for form.
+
+The input is real: ``tests/report/data/`` holds the JSON that ``python benchmarks/<name>.py
+--quick`` printed on this kind of machine (``data/README.md`` says when and how), and the
+extremes benchmark is run here through the report's runner on a few cells. A benchmark that
+fails must show in the page, not stop it.
+"""
+
+from __future__ import annotations
+
+import base64
+import re
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from torch_brdf.cli import app
+from torch_brdf.errors import FileFormatError, ValueRangeError
+from torch_brdf.report import make_report
+from torch_brdf.report.run import find_benchmarks, load_results, run_benchmark
+from torch_brdf.report.sections import CAPABILITIES, planner_choices, sections
+
+pytest.importorskip("matplotlib")
+
+DATA = Path(__file__).parent / "data"
+REPO = Path(__file__).resolve().parents[2]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+class _Page(HTMLParser):
+    """Collects tags (checking that the non-void ones nest), images, links and cell texts."""
+
+    VOID = frozenset({"meta", "img", "br", "hr", "link", "input"})
+
+    def __init__(self):
+        super().__init__()
+        self.stack, self.errors, self.imgs, self.hrefs, self.cells = [], [], [], [], []
+        self._cell = None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.imgs.append(a)
+        if tag == "a" and "href" in a:
+            self.hrefs.append(a["href"])
+        if tag in ("td", "th"):
+            self._cell = []
+        if tag not in self.VOID:
+            self.stack.append(tag)
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self.cells.append("".join(self._cell))
+            self._cell = None
+        if not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"</{tag}> closes {self.stack[-1:] or 'nothing'}")
+        else:
+            self.stack.pop()
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+@pytest.fixture(scope="module")
+def quick_report(tmp_path_factory):
+    """A quick report from the saved quick-run JSON, the extremes run live on three cells and a
+    scaleout benchmark that crashes."""
+    tmp = tmp_path_factory.mktemp("report")
+    results = tmp / "results"
+    shutil.copytree(DATA, results, ignore=shutil.ignore_patterns("*.md"))
+    only = ["--only", "cond(H)", "--only", "infeasible", "--only", "GPLVM (manifold)/float32"]
+    rec = run_benchmark("extremes", find_benchmarks(REPO / "benchmarks"), True, results, timeout=600, args=only)
+    broken = tmp / "broken"
+    broken.mkdir()
+    (broken / "scaleout.py").write_text("print('starting')\nraise RuntimeError('boom: the cluster is gone')\n")
+    run_benchmark("scaleout", broken, True, results, timeout=60)
+    page = make_report(tmp / "out", quick=True, results=results)
+    return page, load_results(results), rec
+
+
+def test_the_live_extremes_run_is_recorded(quick_report):
+    _, _, rec = quick_report
+    assert rec["error"] is None and rec["returncode"] == 0, rec
+    cells = rec["result"]["cells"]
+    assert len(cells) == 3 and all(c["ok"] for c in cells)
+    assert {c["status"] for c in cells} == {"finite", "InfeasibleError"}
+    assert rec["peak_rss_mb"] > 10 and rec["seconds"] > 0
+
+
+def test_page_is_well_formed(quick_report):
+    page, recs, _ = quick_report
+    p = _Page()
+    p.feed(page.read_text())
+    p.close()
+    assert not p.errors and not p.stack, (p.errors, p.stack)
+    # every figure with data is a PNG beside the page, embedded and linked; nothing else is there
+    figs = [f for s in sections(recs) for f in s.figures if f.has_data()]
+    files = {f.name for f in page.parent.glob("*.png")}
+    assert files == {f"{f.key}.png" for f in figs}
+    embedded = {a["data-file"]: a["src"] for a in p.imgs}
+    assert set(embedded) == files
+    for name in files:
+        raw = (page.parent / name).read_bytes()
+        assert raw.startswith(PNG) and name in p.hrefs
+        assert base64.b64decode(embedded[name].split(",", 1)[1]) == raw
+    # every capability whose benchmark left a result has a figure (the broken scaleout has none)
+    drawn = {s.key for s in sections(recs) if any(f.has_data() for f in s.figures)}
+    ran = {s.key for s in sections(recs) if s.figures and (recs.get(s.benchmarks[0]) or {}).get("result")}
+    assert ran <= drawn and len(drawn) >= 3 and "scaleout" not in drawn
+    # no NaN in any table; the failure of a benchmark is in the page
+    assert not [c for c in p.cells if re.search(r"\bnan\b", c, re.I)]
+    text = page.read_text()
+    assert "benchmarks/scaleout.py failed" in text and "boom: the cluster is gone" in text
+
+
+def test_images_decode(quick_report):
+    import matplotlib.image as mpimg
+
+    page, _, _ = quick_report
+    for png in page.parent.glob("*.png"):
+        img = mpimg.imread(png)
+        assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
+        assert float(img[..., :3].std()) > 0.01  # not a blank canvas
+
+
+def test_extremes_table_is_the_test_modules_cells(quick_report):
+    page, recs, _ = quick_report
+    text = page.read_text()
+    cells = recs["extremes"]["result"]["cells"]
+    grid = text.split('<table class="grid">', 1)[1].split("</table>", 1)[0]
+    assert grid.count("<td") == len({c["row"] for c in cells}) * len({c["column"] for c in cells})
+    assert grid.count('class="good"') == sum(c["ok"] for c in cells)
+
+
+def test_missing_keys_and_grown_planner_json_degrade_gracefully():
+    planner = {
+        "scene": "cornell_box_glossy",
+        "planned": {"series": "16,1,1", "spp": 13, "achieved_error": 0.17, "seconds": 0.2},
+        "defaults": {"64,1,1,1": [{"spp": 64, "achieved_error": 0.1, "seconds": 1.0}]},
+        "scenes": {
+            "teatray": {"scene": "teatray", "planned": {"series": "8,1", "achieved_error": 0.05, "seconds": 2.0}}
+        },
+        "relighting": {"planned": {"frame_s": 0.1, "psnr": 40.0}},
+        "inverse": {
+            "error": 0.05,
+            "planned": {"light_samples": 256, "achieved_error": 0.04, "seconds": 1.0},
+            "default": {"achieved_error": 0.01, "seconds": 3.0},
+        },
+    }
+    found = dict(planner_choices(planner))
+    assert set(found) == {"gi", "scenes.teatray", "relighting", "inverse"}
+    assert found["gi"]["defaults"]["64,1,1,1"][0]["spp"] == 64
+    recs = {"planner": {"result": planner}, "polynomial": {"result": {"rel_rmse": {}}}}
+    secs = {s.key: s for s in sections(recs)}
+    assert any("not measured" in n and "accuracy_resolution" in n for n in secs["gi"].notes)
+    assert {f.key for f in secs["gi"].figures if f.has_data()} >= {
+        "gi_planner_cornell_box_glossy",
+        "gi_planner_teatray",
+    }
+    assert "gi_planner_relighting" not in {f.key for f in secs["gi"].figures}  # another capability's planner
+    assert [f.key for f in secs["inverse"].figures if f.has_data()] == ["inverse_planner"]
+    assert len(sections({})) == len(CAPABILITIES)  # nothing ran: every section, no figure, no error
+
+
+def test_cli_report_from_saved_results(tmp_path):
+    results = tmp_path / "r"
+    results.mkdir()
+    shutil.copy(DATA / "planner.json", results / "planner.json")
+    (results / "brdf.out").write_text("progress\n" + (DATA / "brdf.json").read_text().strip() + "\n")
+    res = CliRunner().invoke(app, ["report", "--results", str(results), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "o" / "report.html").is_file() and (
+        tmp_path / "o" / "gi_planner_cornell_box_glossy.png"
+    ).is_file()
+    bad = CliRunner().invoke(app, ["report", "--only", "nosuch", "--out", str(tmp_path / "o")])
+    assert bad.exit_code == 2 and "nosuch" in bad.output
+    with pytest.raises(ValueRangeError):
+        make_report(tmp_path / "o", only=["nosuch"])
+    (results / "bad.json").write_text("{not json")
+    with pytest.raises(FileFormatError):
+        load_results(results)

@@ -1,0 +1,183 @@
+"""Running the benchmark scripts and keeping what they print (the report's input).
+
+Each script in ``benchmarks/`` prints progress and then one JSON object as its LAST line. A
+run record (:func:`run_benchmark`) keeps that object under ``result`` with what the report
+needs beside it: the command, the seconds, the load average before and after, the peak
+resident memory of the process (and of the children it waited for), the return code, and,
+when the run failed, the error and the tail of its output. Records are plain JSON files,
+``<folder>/<name>.json``; :func:`load_results` reads a folder of them back, and also accepts a
+benchmark's bare JSON object or its captured stdout (``<name>.out``, last line JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from ..errors import DataNotFoundError, FileFormatError
+from ..io.atomic import replacing
+
+#: the record format written by :func:`run_benchmark`
+FORMAT = "torch_brdf.report.run/1"
+
+#: the benchmark scripts the report runs, in this order (fast, then the long ones)
+BENCHMARKS = (
+    "extremes",
+    "brdf",
+    "raytrace",
+    "planner",
+    "inverse",
+    "triple_product",
+    "polynomial",
+    "scaleout",
+    "inverse_gi",
+    "denoise",
+    "manifold",
+    "editor",
+    "load",
+)
+
+#: extra environment per benchmark (as its docstring asks)
+ENV = {"manifold": {"OPENBLAS_NUM_THREADS": "1"}}
+
+# Runs a script as __main__ and reports the peak RSS of itself and its waited-for children on
+# stderr at exit (the sibling-module imports of the scripts work as with ``python script``).
+_WRAPPER = """
+import atexit, os, resource, runpy, sys
+path = sys.argv[1]
+sys.argv = sys.argv[1:]
+def _peak():
+    kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % kb)
+atexit.register(_peak)
+sys.path.insert(0, os.path.dirname(os.path.abspath(path)))
+runpy.run_path(path, run_name="__main__")
+"""
+
+
+def find_benchmarks(folder: str | os.PathLike | None = None) -> Path:
+    """The ``benchmarks/`` folder: ``folder`` if given, else ``./benchmarks``, else the one
+    beside the installed package (a source checkout).
+
+    Raises:
+        DataNotFoundError: no such folder (the benchmarks live in the repository, not the wheel).
+    """
+    here = Path(__file__).resolve().parents[2] / "benchmarks"
+    for cand in [Path(folder)] if folder is not None else [Path("benchmarks"), here]:
+        if (cand / "polynomial.py").is_file():
+            return cand.resolve()
+    raise DataNotFoundError(
+        f"no benchmarks folder at {folder or 'benchmarks/ or ' + str(here)}; run from the repository root "
+        "or pass --benchmarks (the scripts are part of the source checkout, not of the installed package)"
+    )
+
+
+def last_json(text: str) -> dict[str, Any] | None:
+    """The last line of ``text`` that parses as a JSON object, or None."""
+    for line in reversed(text.strip().splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError:
+                return None
+            return obj if isinstance(obj, dict) else None
+    return None
+
+
+def _tail(text: str, lines: int = 25) -> str:
+    return "\n".join(text.strip().splitlines()[-lines:])
+
+
+def run_benchmark(
+    name: str,
+    bench_dir: Path,
+    quick: bool,
+    out_dir: Path | None = None,
+    timeout: float | None = None,
+    args: Iterable[str] = (),
+) -> dict[str, Any]:
+    """Run ``bench_dir/<name>.py`` (``--quick`` if asked) and return its run record.
+
+    A failure (non-zero exit, timeout, no JSON on the last line) is recorded in ``error``, never
+    raised: the report shows it. With ``out_dir`` the record is written to ``<name>.json`` and
+    the full output to ``<name>.log``.
+    """
+    script = Path(bench_dir) / f"{name}.py"
+    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick"] if quick else []), *args]
+    shown = " ".join(["python", f"benchmarks/{name}.py", *cmd[4:]])
+    env = dict(os.environ)
+    root = str(Path(bench_dir).resolve().parent)
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    env.update(ENV.get(name, {}))
+    rec: dict[str, Any] = {"format": FORMAT, "name": name, "command": shown, "quick": bool(quick)}
+    rec["started"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    rec["load_before"] = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=root)
+        out, err, rc = p.stdout, p.stderr, p.returncode
+    except subprocess.TimeoutExpired as exc:
+        out = exc.stdout.decode() if isinstance(exc.stdout, bytes) else exc.stdout or ""
+        err = exc.stderr.decode() if isinstance(exc.stderr, bytes) else exc.stderr or ""
+        rc, err = None, err + f"\ntimed out after {timeout:g} s"
+    rec["seconds"] = time.perf_counter() - t0
+    rec["load_after"] = os.getloadavg()[0]
+    rec["returncode"] = rc
+    peak = [ln for ln in err.splitlines() if ln.startswith("__peak_rss_kb__")]
+    rec["peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
+    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith("__peak_rss_kb__"))
+    rec["result"] = last_json(out) if rc == 0 else None
+    rec["error"] = None
+    if rc != 0:
+        rec["error"] = f"exit status {rc}" if rc is not None else f"timed out after {timeout:g} s"
+    elif rec["result"] is None:
+        rec["error"] = "the last line printed is not a JSON object"
+    if rec["error"]:
+        rec["log_tail"] = _tail(out + "\n" + err)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / f"{name}.log").write_text(out + "\n--- stderr ---\n" + err)
+        write_record(rec, out_dir / f"{name}.json")
+    return rec
+
+
+def write_record(rec: dict[str, Any], path: Path) -> None:
+    """Write a run record as JSON (atomically)."""
+    with replacing(path) as tmp:
+        Path(tmp).write_text(json.dumps(rec, indent=1, allow_nan=True))
+
+
+def load_results(folder: str | os.PathLike) -> dict[str, dict[str, Any]]:
+    """Run records by benchmark name from ``folder``: ``<name>.json`` (a run record or a bare
+    benchmark JSON object) or ``<name>.out`` (a benchmark's stdout; its last line is the object).
+
+    Raises:
+        FileFormatError: the folder does not exist, or a ``.json`` file is not JSON.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileFormatError(f"results folder {folder} does not exist")
+    recs: dict[str, dict[str, Any]] = {}
+    for path in sorted(folder.glob("*.out")):
+        obj = last_json(path.read_text())
+        err = None if obj is not None else f"{path.name}: the last line is not a JSON object"
+        recs[path.stem] = {"name": path.stem, "result": obj, "error": err, "command": f"(read from {path.name})"}
+    for path in sorted(folder.glob("*.json")):
+        try:
+            obj = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise FileFormatError(f"{path}: not JSON ({exc})") from exc
+        if not isinstance(obj, dict):
+            raise FileFormatError(f"{path}: expected a JSON object; got {type(obj).__name__}")
+        if obj.get("format") != FORMAT:
+            obj = {"name": path.stem, "result": obj, "error": None, "command": f"(read from {path.name})"}
+        recs[path.stem] = obj
+    return recs
