@@ -316,3 +316,13 @@ def test_heldout_in_the_log_metric_is_never_worse_than_the_nearest_material():
     assert h.gplvm_negative is not None and torch.equal(h.gplvm_negative, (pred < 0).double().mean(1))
     with pytest.raises(ValueRangeError, match="metric"):
         heldout_reconstruction(obs, names[:16], names[16:], 2, metric="l1")
+
+
+def test_lbfgs_stops_at_a_stationary_point():
+    """Latents so far apart that K is the identity: the gradient is exactly zero and the fit
+    returns them unchanged (it used to hand the line search a zero slope, which raises)."""
+    z = analytic_rows(torch.rand(6, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64), SMALL_GRID)
+    s, d = gram(z)
+    init = 1e4 * torch.arange(6, dtype=torch.float64)[:, None]
+    fit = fit_gplvm(s, d, 1, init=init, normalise=False, max_iter=20)
+    assert torch.equal(fit.latents, init)

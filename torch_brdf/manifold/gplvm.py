@@ -428,6 +428,8 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
             pairs.clear()
             p = g / max(float(g.abs().max()), 1e-300) * 0.1
             slope = float((g * p).sum())
+            if not slope > 0:  # the gradient vanishes: a stationary point, nothing to search along
+                break
         t = 1.0
         accepted = False
         # strong-Wolfe line search (ours, on -L / (N d)); the Armijo backtracking below is the
