@@ -36,7 +36,9 @@ def main() -> None:
     for case in CASES:
         if args.only and not any(o in case.id for o in args.only):
             continue
+        c0 = time.perf_counter()
         cell = evaluate(case)
+        cell["seconds"] = time.perf_counter() - c0
         cells.append(cell)
         print(f"{'ok ' if cell['ok'] else 'BAD'} {case.id}: {cell['status']} error {cell['error']}", flush=True)
     out = {"cells": cells, "failed": sum(not c["ok"] for c in cells), "seconds": time.perf_counter() - t0}
