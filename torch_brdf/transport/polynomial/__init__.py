@@ -54,7 +54,7 @@ run bit for bit (at most one tile of work is lost).
 
 from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
-from .driver import plan_polynomial, precompute_polynomial
+from .driver import plan_polynomial, precompute_polynomial, spp_map_of
 from .plan import ObjectBasis, Series, plan_bases
 from .sampler import Mixture
 
@@ -69,4 +69,5 @@ __all__ = [
     "plan_bases",
     "plan_polynomial",
     "precompute_polynomial",
+    "spp_map_of",
 ]

@@ -28,7 +28,7 @@ from .reduce import _blocks_from_local, _local_blocks, _reduce, _term_tables
 from .sampler import Mixture
 from .tracer import _Tracer
 
-__all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial"]
+__all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
 
 TILE_KIND = "multibounce-tile"
 
@@ -82,9 +82,9 @@ class _TileWork:
     Pickles without its tracer (rebuilt lazily where it runs) and without ``paths``.
     """
 
-    def __init__(self, scene, plan, series, mixture, lights, tile_rows, spp, group, seed, paths=None):
+    def __init__(self, scene, plan, series, mixture, lights, tiles, spp, group, seed, paths=None):
         self.scene, self.plan, self.series, self.mixture, self.lights = scene, plan, series, mixture, lights
-        self.tile_rows, self.spp, self.group, self.seed, self.paths = tile_rows, spp, group, seed, paths
+        self.tiles, self.spp, self.group, self.seed, self.paths = tiles, spp, group, seed, paths
         self._tracer = None
 
     def __getstate__(self):
@@ -97,10 +97,44 @@ class _TileWork:
         return self._tracer
 
     def pixels(self, k: int) -> torch.Tensor:
-        """(P,) flat pixel indices of tile ``k``."""
-        w, h = self.scene.camera.width, self.scene.camera.height
-        r0 = k * self.tile_rows
-        return torch.arange(r0 * w, min(h, r0 + self.tile_rows) * w)
+        """(P,) flat pixel indices of tile ``k`` (ascending)."""
+        return self.tiles[k]
+
+
+def _tiles(spp_map: torch.Tensor, tile_pixels: int) -> tuple[list[torch.Tensor], list[int]]:
+    """The work units of a per-pixel spp map: the pixels of each spp level in raster order,
+    cut into pieces of at most ``tile_pixels``, ordered by their first pixel.
+
+    A uniform map gives the row bands of ``tile_pixels / width`` rows (the tiles of a run with
+    one spp), so the tile ``k`` of an adaptive run and of a uniform run at that tile's spp
+    cover the same pixels and draw the same random numbers whenever the levels follow the bands.
+
+    Args:
+        spp_map: (H*W,) int64, >= 1.
+    Returns:
+        (pixels per tile, spp per tile).
+    """
+    pieces = []
+    for level in torch.unique(spp_map).tolist():
+        pix = torch.nonzero(spp_map == level).squeeze(1)
+        pieces += [(int(c[0]), c, int(level)) for c in torch.split(pix, tile_pixels)]
+    pieces.sort(key=lambda t: t[0])
+    return [c for _, c, _ in pieces], [lv for _, _, lv in pieces]
+
+
+def _run_lengths(x: torch.Tensor) -> list[list[int]]:
+    """[[value, run length], ...] of ``x`` (1-D int) in order: a compact, exact copy of an spp map."""
+    vals, counts = torch.unique_consecutive(x, return_counts=True)
+    return [[int(v), int(c)] for v, c in zip(vals.tolist(), counts.tolist(), strict=True)]
+
+
+def spp_map_of(tensors: PolynomialTensors) -> torch.Tensor:
+    """(H, W) int64: the paths per pixel of a record (adaptive or uniform)."""
+    runs = tensors.meta.get("spp_map")
+    if runs is None:
+        return torch.full((tensors.height, tensors.width), int(tensors.meta["spp"]), dtype=torch.long)
+    vals = torch.tensor([r[0] for r in runs], dtype=torch.long)
+    return vals.repeat_interleave(torch.tensor([r[1] for r in runs])).reshape(tensors.height, tensors.width)
 
 
 #: names of a tile's block arrays: ``b{g}_{name}`` for the g-th block of :func:`_local_blocks`
@@ -113,14 +147,26 @@ def _polynomial_tile(work: _TileWork, k: int):
     tracer = work.tracer
     rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
     pix = work.pixels(k)
-    emis, red = _tile_entries(tracer, work.scene, pix, k, work.spp, work.group, work.seed, work.paths)
+    spp, group = work.spp[k], work.group[k]
+    emis, red = _tile_entries(tracer, work.scene, pix, k, spp, group, work.seed, work.paths)
     with tracer.clock("blocks"):
-        local = _local_blocks(red, work.plan, work.spp)
+        local = _local_blocks(red, work.plan, spp)
     arrays = {"emission": emis.numpy()}
     arrays |= {f"b{g}_{n}": b[n].numpy() for g, b in enumerate(local) for n in _BLOCK_ARRAYS}
     rays = {n: tracer.rays[n] - rays0[n] for n in rays0}
     split = {n: v - split0.get(n, 0.0) for n, v in tracer.clock.seconds.items()}
     return arrays, {"rays": rays, "split": split}
+
+
+def _check_spp(spp, height: int, width: int) -> torch.Tensor:
+    """(H, W) int64 paths per pixel from an int or an (H, W) integer map (every value >= 1)."""
+    if not isinstance(spp, torch.Tensor) or spp.ndim == 0:
+        return torch.full((height, width), check_count(spp, "spp"), dtype=torch.long)
+    if spp.shape != (height, width) or spp.dtype.is_floating_point or spp.dtype.is_complex or spp.dtype == torch.bool:
+        raise ShapeError(f"Expected an spp map of integers with shape ({height}, {width}); got {spp.dtype} {tuple(spp.shape)}")
+    if int(spp.min()) < 1:
+        raise ValueRangeError(f"every pixel needs spp >= 1; the map's least is {int(spp.min())}")
+    return spp.long()
 
 
 def _lights(scene: Scene, env_point_lights: int | None) -> list[Light]:
@@ -140,7 +186,7 @@ def _lights(scene: Scene, env_point_lights: int | None) -> list[Light]:
 def precompute_polynomial(
     scene: Scene,
     series: str | Sequence[int] | Series = "64,1,1,1",
-    spp: int = 64,
+    spp: int | torch.Tensor = 64,
     seed: int = 0,
     bases: list[ObjectBasis | None] | dict[str, dict[str, Any]] | None = None,
     mixture: Mixture | None = None,
@@ -164,7 +210,9 @@ def precompute_polynomial(
     Args:
         scene: the scene; objects with ``editable=False`` are fixed.
         series: the BRDF series, e.g. ``"64,1,1,1"``; its length is the number of bounces.
-        spp: paths per pixel.
+        spp: paths per pixel, or an (H, W) integer map of them (adaptive sampling: each pixel
+            is the average over its own paths, so every pixel stays unbiased; the pixels of
+            each spp level are traced together in tiles of their own, see :func:`_tiles`).
         seed: the result is a deterministic function of (scene, settings, seed).
         bases: per-object :class:`ObjectBasis` list, or overrides for :func:`plan_bases`.
         mixture: direction sampling (default 70% cosine, 30% Blinn 200).
@@ -231,7 +279,8 @@ def precompute_polynomial(
         return out
     series = Series.parse(series)
     check_count(series.eye, "series bands per bounce", MAX_BANDS)
-    spp, seed = check_count(spp, "spp"), check_seed(seed)
+    seed = check_seed(seed)
+    spp_map = _check_spp(spp, scene.camera.height, scene.camera.width)
     tile_rows, group, env_point_lights = (
         None if v is None else check_count(v, k)
         for v, k in ((tile_rows, "tile_rows"), (group, "group"), (env_point_lights, "env_point_lights"))
@@ -249,28 +298,32 @@ def precompute_polynomial(
     cam = scene.camera
     h, w = cam.height, cam.width
     tile_rows = tile_rows or max(1, min(h, 16384 // w))
-    num_tiles = -(-h // tile_rows)
-    group = group or max(1, min(spp, math.ceil(65536 / max(1, tile_rows * w))))
-    work = _TileWork(scene, plan, series, mixture, lights, tile_rows, spp, group, seed, paths)
+    tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
+    group_of = [group or max(1, min(s, math.ceil(65536 / max(1, tile_rows * w)))) for s in tile_spp]
+    num_tiles = len(tiles)
+    work = _TileWork(scene, plan, series, mixture, lights, tiles, tile_spp, group_of, seed, paths)
+    uniform = bool((spp_map == spp_map.flatten()[0]).all())
     settings = {
         "scene": scene.name,
         "width": w,
         "height": h,
         "series": list(series.bands),
-        "spp": spp,
+        "spp": int(spp_map.flatten()[0]) if uniform else float(spp_map.double().mean()),
         "seed": seed,
         "bases": [None if b is None else b.spec() for b in plan],
         "mixture": [mixture.diffuse, mixture.exponent],
         "env_point_lights": env_point_lights,
         "tile_rows": tile_rows,
-        "group": group,
+        "group": group_of[0] if uniform else group,
     }
+    if not uniform:  # a uniform run keeps the key it always had; a map enters it as run lengths
+        settings["spp_map"] = _run_lengths(spp_map.reshape(-1))
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
     ray_work = None
     if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
-        ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
+        ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed)
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
@@ -293,7 +346,7 @@ def precompute_polynomial(
         else:
             for k, v in meta.get("split", {}).items():
                 split[k] = split.get(k, 0.0) + float(v)
-        emission[:, pix] = (emis / spp).float().T
+        emission[:, pix] = (emis / tile_spp[ti]).float().T
         blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
