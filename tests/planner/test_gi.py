@@ -11,11 +11,11 @@ from torch_brdf.cli import app
 from torch_brdf.errors import SceneError, ValueRangeError
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.planner import GIPlan, choose_bands, pilot_images, plan_from_pilots, planned_bases
-from torch_brdf.planner.gi import _error_at
+from torch_brdf.planner.gi import MIN_SPP, _error_at, allocate_spp, spp_levels
 from torch_brdf.records.polynomial import ObjectBasis, PolynomialTensors, Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import plan_polynomial, precompute_polynomial
+from torch_brdf.transport.polynomial import plan_polynomial, precompute_polynomial, spp_map_of
 
 GLOSSY = {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": 100.0}
 
@@ -68,6 +68,8 @@ def test_plan_needs_a_budget_and_two_pilots():
     with pytest.raises(ValueRangeError):
         plan_from_pilots(sc, [], {}, (), [], error=0.1)
     with pytest.raises(ValueRangeError):
+        plan_polynomial(sc, error=0.1, pilot_runs=1)
+    with pytest.raises(ValueRangeError):
         precompute_polynomial(sc, plan="manual", error=0.1, progress=False)
 
 
@@ -106,9 +108,19 @@ def test_plan_models_only_what_the_scene_requires(planned):
     assert plan.glossy_to_glossy == 0.0
     assert 1 < plan.series.bounces < 8 and plan.spp >= 1
     assert plan.predicted_error <= 0.2 * 1.001
-    assert T.series == plan.series and T.meta["spp"] == plan.spp and "predicted error" in T.meta["plan"]
+    assert T.series == plan.series and "predicted error" in T.meta["plan"]
+    # adaptive sampling: the record carries the plan's map; pixels that the budget does not
+    # count (they see the light) get the least spp, the glossy wall more than the average
+    assert torch.equal(spp_map_of(T), plan.spp_map) and T.meta["spp"] == pytest.approx(plan.spp)
+    lit = ~emitter_mask(T)
+    assert int(plan.spp_map[lit].max()) == MIN_SPP < int(plan.spp_map.max())
+    back = torch.zeros(24 * 24, dtype=torch.bool)
+    for b in T.blocks:
+        if b.bounce == 1 and T.object_names[b.object_id] == "back":
+            back[b.pixels] = True
+    assert float(plan.spp_map.reshape(-1)[back].double().mean()) > plan.spp
     text = str(plan)
-    assert "back: " in text and "predicted cost" in text and f"spp {plan.spp}" in text
+    assert "back: " in text and "predicted cost" in text and f"adaptive spp {plan.spp:.1f}" in text
 
 
 def test_time_budget_lowers_spp_and_raises_the_predicted_error(planned):
@@ -126,3 +138,26 @@ def test_cli_precompute_error(tmp_path):
     assert res.exit_code == 0, res.output
     T = PolynomialTensors.load(out)
     assert T.bases[[*T.object_names].index("back")].J > 1 and T.bases[[*T.object_names].index("left")].J == 1
+
+
+def test_allocation_follows_sigma_over_sqrt_cost_and_meets_the_noise():
+    """n_i ~ sigma_i / sqrt(c_i) (Lagrange) on the level grid, the least such map for the noise."""
+    var = torch.tensor([[16.0, 16.0, 1.0, 0.0]], dtype=torch.float64)
+    cost = torch.tensor([[1.0, 4.0, 1.0, 1.0]], dtype=torch.float64)
+    n = allocate_spp(var, var.sqrt(), cost, noise=0.5)
+    assert float((var / n).sum()) <= 0.5
+    assert n[0, 0] > n[0, 1] > n[0, 2] >= n[0, 3] == MIN_SPP  # sigma 4 at cost 1 > at cost 4 > sigma 1
+    # one level less anywhere it matters breaks the noise (the least map on the grid)
+    smaller = spp_levels(n.double() / 1.5)
+    assert float((var / smaller).sum()) > 0.5
+    # a cost budget: the largest map whose mean cost fits
+    m = allocate_spp(var, var.sqrt(), cost, mean_cost=20.0)
+    assert float((cost * m).sum() / cost.sum()) <= 20.0 < float((cost * spp_levels(m * 1.5)).sum() / cost.sum())
+    assert torch.equal(spp_levels(torch.tensor([0.0, 4.0, 4.1, 5.6, 6.0])), torch.tensor([4, 4, 6, 6, 8]))
+
+
+def test_uniform_plan_on_request(planned):
+    sc, plan, _, _ = planned
+    flat = plan_polynomial(sc, error=0.2, seed=0, adaptive=False)
+    assert flat.spp_map is None and isinstance(flat.spp, int) and flat.kwargs()["spp"] == flat.spp
+    assert flat.series == plan.series  # the same pilots, bands and bounces; only the spp differ

@@ -16,12 +16,20 @@ requires, from cheap measurements:
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
   weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
-* **spp**: from two independent pilot runs of :math:`s_a` and :math:`s_b` spp, the relative
-  Monte Carlo error at one spp is
-  :math:`\sigma = \sqrt{\sum (I_a - I_b)^2 / (1/s_a + 1/s_b) / \sum \bar I^2}` and
-  :math:`\sigma/\sqrt{s}` at :math:`s`; the noise gets what the biases leave,
+* **spp**: from :math:`K \ge 2` independent pilot runs of :math:`s_k` spp (four by default:
+  more paths make the estimate steadier where the variance is heavy-tailed, as under a sun),
+  the per-pixel variance of one path is the pooled
+  :math:`\sigma_i^2 = \sum_k s_k (I_{k,i} - \bar I_i)^2 / (K - 1)` (unbiased; for two pilots
+  :math:`(I_a - I_b)^2 / (1/s_a + 1/s_b)`), and the relative noise at a map :math:`n_i` is
+  :math:`\sqrt{\sum_i \sigma_i^2 / n_i} / \|\bar I\|`; the noise gets what the biases leave,
   :math:`e_n^2 = (0.95e)^2 - e_b^2 - e_t^2` (the plan aims 5% under the budget: one run's
   error scatters by a few percent around the prediction);
+* **adaptive sampling** (default): the spp map :math:`n_i \propto \sigma_i / \sqrt{c_i}`
+  (:func:`allocate_spp`; :math:`c_i` the rays of a path from pixel :math:`i`) is the least-cost
+  map for that noise, since relative RMSE weighs every counted pixel alike; pixels the budget
+  does not count get ``MIN_SPP``. :math:`\sigma_i` for the allocation is smoothed over a
+  window (with a defensive floor), the prediction uses the unsmoothed estimate. Each pixel is
+  the average over its own paths, so the record stays unbiased and exactly polynomial;
 * objects not in ``edit`` are fixed (their full BRDF is baked into the path weights).
 
 The predicted error is :math:`\sqrt{e_b^2 + e_t^2 + e_n^2}` with the band error
@@ -48,7 +56,16 @@ from ..errors import SceneError, ValueRangeError
 from ..records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ..scene.scene import Scene
 
-__all__ = ["GIPlan", "choose_bands", "pilot_images", "plan_from_pilots", "planned_bases", "unlit_mask", "with_fixed"]
+__all__ = [
+    "GIPlan",
+    "allocate_spp",
+    "choose_bands",
+    "pilot_images",
+    "plan_from_pilots",
+    "planned_bases",
+    "unlit_mask",
+    "with_fixed",
+]
 
 #: the shares of the budget given to each deterministic error (the noise gets the rest); the
 #: bounce tail may take up to BOUNCE_SHARE, the bounces are then chosen for the least cost
@@ -59,6 +76,15 @@ BOUNCE_SHARE = 0.6
 AIM = 0.95
 SECOND_SHARE = 0.3
 MAX_BANDS = 128
+#: adaptive sampling: a pixel's noise estimate is averaged over the SMOOTH x SMOOTH window's
+#: counted pixels and DEFENSIVE x the image's mean is added (a pilot pixel has few paths and a
+#: heavy-tailed variance: allocating from the raw estimate gives too few paths where it came out
+#: low, and the achieved noise then exceeds the prediction); spp levels are MIN_SPP * 2^(k/2)
+#: (few levels, few tiles; rounding up to the next level costs ~1% against exact spp)
+SMOOTH = 7
+DEFENSIVE = 0.1
+MIN_SPP = 4
+LEVELS_PER_OCTAVE = 2
 
 
 def _quadrature(basis: BandBasis) -> PairQuadrature:
@@ -225,6 +251,71 @@ def pilot_images(
     return out.transpose(1, 2).reshape(-1, tensors.height, tensors.width, 3)
 
 
+def spp_levels(x: torch.Tensor) -> torch.Tensor:
+    """``x`` (any shape, >= 0) rounded up to the adaptive spp grid ``MIN_SPP * 2^(k / LEVELS_PER_OCTAVE)`` (made
+    integers), as int64: few distinct levels, so few tiles (each level is traced in its own)."""
+    k = torch.ceil(LEVELS_PER_OCTAVE * torch.log2(x.double().clamp_min(MIN_SPP) / MIN_SPP) - 1e-9)
+    return torch.ceil(MIN_SPP * 2 ** (k / LEVELS_PER_OCTAVE) - 1e-9).long()
+
+
+def _smoothed(var: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+    """(H, W): ``var`` averaged over the SMOOTH x SMOOTH window's counted pixels (0 elsewhere)."""
+    pool = torch.nn.functional.avg_pool2d
+    kw = {"kernel_size": SMOOTH, "stride": 1, "padding": SMOOTH // 2, "count_include_pad": False}
+    num = pool((var * keep)[None, None], **kw)[0, 0]
+    den = pool(keep.double()[None, None], **kw)[0, 0]
+    return torch.where(keep, num / den.clamp_min(1e-12), torch.zeros_like(num))
+
+
+def allocate_spp(
+    var: torch.Tensor,
+    shape: torch.Tensor,
+    cost: torch.Tensor,
+    noise: float | None = None,
+    mean_cost: float | None = None,
+) -> torch.Tensor:
+    r"""Per-pixel spp :math:`n_i \propto s_i / \sqrt{c_i}` on the :func:`spp_levels` grid (at
+    least ``MIN_SPP``): the allocation that minimises :math:`\sum_i \sigma_i^2 / n_i` at a fixed
+    cost :math:`\sum_i c_i n_i` (Lagrange: :math:`n_i = \lambda \sigma_i / \sqrt{c_i}`), with
+    the shape :math:`s_i` a smoothed estimate of :math:`\sigma_i`.
+
+    Args:
+        var: (H, W) per-path variance estimate :math:`\sigma_i^2` (0 where not counted).
+        shape: (H, W) :math:`s_i \ge 0` (0: the pixel gets ``MIN_SPP``).
+        cost: (H, W) relative cost of one path from pixel :math:`i` (> 0).
+        noise: the least :math:`\lambda` whose :math:`\sum_i \sigma_i^2 / n_i \le` ``noise``, or
+        mean_cost: the largest whose :math:`\sum_i c_i n_i / \sum_i c_i \le` ``mean_cost``
+            (both given: the cheaper of the two).
+    Returns:
+        (H, W) int64 spp map.
+    """
+    w = shape / cost.sqrt()
+
+    def at(t: float) -> torch.Tensor:  # the map at lambda = 2^t
+        return spp_levels(2.0**t * w)
+
+    def search(good, least: bool) -> torch.Tensor:
+        # bisection on log2 lambda: the least lambda where ``good`` holds (it holds above), or
+        # the largest (it holds below)
+        lo, hi = -40.0, 40.0
+        for _ in range(60):
+            mid = (lo + hi) / 2
+            if good(at(mid)) == least:
+                hi = mid
+            else:
+                lo = mid
+        return at(hi if least else lo)
+
+    def mean_cost_of(n: torch.Tensor) -> float:
+        return float((cost * n).sum() / cost.sum())
+
+    if noise is not None:
+        n = search(lambda m: float((var / m).sum()) <= noise, least=True)
+        if mean_cost is None or mean_cost_of(n) <= mean_cost:
+            return n
+    return search(lambda m: mean_cost_of(m) <= mean_cost, least=False)
+
+
 @dataclass(frozen=True)
 class GIPlan:
     """The planned settings of a multibounce precomputation and their predictions.
@@ -233,7 +324,8 @@ class GIPlan:
         series: the BRDF series (its length is the number of bounces).
         bases: per object (scene order) the :class:`ObjectBasis`, None for fixed objects.
         object_names: the scene's object names.
-        spp: paths per pixel.
+        spp: paths per pixel (uniform plans), or the mean of ``spp_map``.
+        spp_map: (H, W) int64 paths per pixel of an adaptive plan, None for a uniform one.
         fixed: editable objects of the scene that the plan fixes (not in ``edit``).
         error: the requested relative RMSE (None when only ``seconds`` was given).
         seconds: the requested precompute seconds (None: no time budget).
@@ -241,14 +333,15 @@ class GIPlan:
         projection_errors: ((object, J, projection error), ...) of the edited objects.
         glossy_to_glossy: relative RMS of the pilot's glossy-to-glossy bounce-2 light.
         predicted_seconds: the predicted precompute time, fixed + rate x spp fitted through
-            the two pilots (the rate scaled by bounces / pilot bounces).
+            the pilots (the rate scaled by bounces / pilot bounces; for a map, spp is the
+            mean weighted by each pixel's path cost).
         pilot_seconds: what the pilot runs cost.
     """
 
     series: Series
     bases: tuple[ObjectBasis | None, ...]
     object_names: tuple[str, ...]
-    spp: int
+    spp: float
     fixed: tuple[str, ...]
     error: float | None
     seconds: float | None
@@ -259,6 +352,7 @@ class GIPlan:
     glossy_to_glossy: float
     predicted_seconds: float
     pilot_seconds: float
+    spp_map: torch.Tensor | None = None
 
     @property
     def predicted_error(self) -> float:
@@ -268,8 +362,16 @@ class GIPlan:
     def __str__(self) -> str:
         want = [] if self.error is None else [f"error {self.error:g}"]
         want += [] if self.seconds is None else [f"time {self.seconds:g} s"]
+        if self.spp_map is None:
+            spp = f"spp {self.spp}"
+        else:
+            m = self.spp_map
+            spp = (
+                f"adaptive spp {self.spp:.1f} per pixel on average ({int(m.min())} to {int(m.max())},"
+                f" {torch.unique(m).numel()} levels)"
+            )
         lines = [
-            f"GI plan for {' and '.join(want)}: series {self.series.key}, spp {self.spp}",
+            f"GI plan for {' and '.join(want)}: series {self.series.key}, {spp}",
             f"  predicted error {self.predicted_error:.4f} = sqrt(bands {self.band_error:.4f}^2"
             f" + bounces {self.bounce_error:.4f}^2 + noise {self.noise_error:.4f}^2)",
             f"  predicted cost {self.predicted_seconds:.2f} s (pilot {self.pilot_seconds:.2f} s)",
@@ -283,7 +385,34 @@ class GIPlan:
 
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
-        return {"series": self.series, "spp": self.spp, "bases": list(self.bases)}
+        spp = self.spp_map if self.spp_map is not None else self.spp
+        return {"series": self.series, "spp": spp, "bases": list(self.bases)}
+
+
+def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
+    r"""Per-pixel per-path variance from K independent pilot images of ``spp`` paths each:
+    :math:`\sum_k s_k (I_k - \bar I)^2 / (K - 1)` with :math:`\bar I` the path-weighted mean
+    (unbiased; for two pilots :math:`(I_a - I_b)^2 / (1/s_a + 1/s_b)`), summed over channels.
+
+    Args:
+        x: (K, H, W, C). spp: (K,) float64.
+    Returns:
+        (H, W).
+    """
+    sk = spp[:, None, None, None]
+    m = (sk * x).sum(0) / spp.sum()
+    return (sk * (x - m) ** 2).sum((0, -1)) / (x.shape[0] - 1)
+
+
+def _path_cost(pilots: list[PolynomialTensors], n_max: int) -> torch.Tensor:
+    """(n_max + 1, H, W): relative rays of one path from each pixel with n bounces: 1 eye ray,
+    then 2 (a shadow and a continuation ray) per bounce that some pilot path of the pixel reached."""
+    h, w = pilots[0].height, pilots[0].width
+    reached = torch.zeros(n_max + 1, h * w, dtype=torch.bool)
+    for p in pilots:
+        for blk in p.blocks:
+            reached[blk.bounce, blk.pixels] = True
+    return (1 + 2 * reached.double().cumsum(0)).reshape(n_max + 1, h, w)
 
 
 def plan_from_pilots(
@@ -294,15 +423,18 @@ def plan_from_pilots(
     pilots: list[PolynomialTensors],
     error: float | None = None,
     seconds: float | None = None,
+    adaptive: bool = True,
 ) -> GIPlan:
-    """Decide bounces, second bounce and spp from two independent pilot records (see the module).
+    """Decide bounces, second bounce and spp from independent pilot records (see the module).
 
     Args:
         scene: the scene (with the plan's fixed objects already fixed).
         bases, projection_errors, fixed: from :func:`planned_bases`.
-        pilots: two records of the same series and bases, different seeds and (for the cost
-            fit) different spp; bounces >= the most the plan may choose; no second-bounce level.
+        pilots: at least two records of the same series and bases, different seeds and (for
+            the cost fit) at least two different spp; bounces >= the most the plan may
+            choose; no second-bounce level; uniform spp.
         error: relative RMSE budget; seconds: precompute time budget (at least one).
+        adaptive: a per-pixel spp map (:func:`allocate_spp`); False: one spp for all pixels.
     Returns:
         :class:`GIPlan`.
     """
@@ -310,27 +442,25 @@ def plan_from_pilots(
         raise ValueRangeError("plan for an error, a time or both; got neither")
     if error is not None and not error > 0:
         raise ValueRangeError(f"error must be > 0; got {error}")
-    if len(pilots) != 2:
-        raise ValueRangeError(f"the planner needs two independent pilot runs; got {len(pilots)}")
+    if len(pilots) < 2:
+        raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
+    if any(p.meta.get("spp_map") is not None for p in pilots):
+        raise ValueRangeError("pilot runs take one spp for every pixel")
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
     keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
-    a, b = (pilot_images(p, mats)[:, keep] for p in pilots)
-    s_a, s_b = (int(p.meta["spp"]) for p in pilots)
-    mean = (s_a * a + s_b * b) / (s_a + s_b)
-    total = mean.sum(0)
-    norm = float((total**2).sum()) ** 0.5
+    imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
+    s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
+    mean = (s[:, None, None, None, None] * imgs).sum(0) / s.sum()
+    norm = float((mean.sum(0)[keep] ** 2).sum()) ** 0.5
     if norm == 0:
         raise ValueRangeError("the pilot image is black: nothing to plan for")
     n_max = pilots[0].series.bounces
     # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
-    # sigma^2 / (s_a + s_b), and sigma^2 from the difference of the two pilots)
-    k = 1 / ((1 / s_a + 1 / s_b) * (s_a + s_b))
-    tails = [
-        max(0.0, float((mean[n + 1 :].sum(0) ** 2).sum()) - k * float(((a[n + 1 :] - b[n + 1 :]).sum(0) ** 2).sum()))
-        ** 0.5
-        / norm
-        for n in range(n_max + 1)
-    ]
+    # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
+    tails = []
+    for n in range(n_max + 1):
+        noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
+        tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
     budget = error if error is not None else 1.0
     names = list(pilots[0].object_names)
     # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
@@ -352,29 +482,47 @@ def plan_from_pilots(
     if glossy and n_max >= 2:
         part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
         g2g = float((part**2).sum()) ** 0.5 / norm
-    # noise at 1 spp of the first n bounces: per-pixel differences of two independent pilots,
-    # Var(I_a - I_b) = sigma^2 (1/s_a + 1/s_b)
-    cum_a, cum_b = a.cumsum(0), b.cumsum(0)
-    sigmas = [(float(((cum_a[n] - cum_b[n]) ** 2).sum()) / (1 / s_a + 1 / s_b)) ** 0.5 / norm for n in range(n_max + 1)]
-    # cost: t = fixed + rate * spp, fitted through the two pilots; the rate scales with bounces
-    # (each bounce casts a closest-hit and a shadow ray per live path: linear in the bounces)
-    t_a, t_b = (float(p.meta["seconds"]) for p in pilots)
-    rate_max = max(0.0, (t_b - t_a) / (s_b - s_a)) if s_b != s_a else t_b / s_b
-    fixed_s = max(0.0, t_b - rate_max * s_b)
+    # per-pixel noise of one path with the first n bounces (pooled over the pilots), 0 where
+    # the budget does not count; sigmas: the relative noise of the image at one spp
+    cum = imgs.cumsum(1)
+    pixvar = [_pooled_variance(cum[:, n], s) * keep for n in range(n_max + 1)]
+    sigmas = [float(v.sum()) ** 0.5 / norm for v in pixvar]
+    cost = _path_cost(pilots, n_max)
+    # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
+    # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
+    t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
+    if float(s.var()) > 0:
+        rate_max = max(0.0, float(((s - s.mean()) * (t - t.mean())).sum() / ((s - s.mean()) ** 2).sum()))
+    else:
+        rate_max = float(t.mean() / s.mean())
+    fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
 
-    def spp_for(n: int) -> tuple[int, float, float]:
-        # the fewest spp with n bounces (for the error, within the time budget), its cost and error
+    def spp_for(n: int) -> tuple[float, torch.Tensor | None, float, float]:
+        # the cheapest spp (map) with n bounces for the error within the time budget: its mean
+        # spp, map, cost and error
         rate = rate_max * n / n_max
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
-        spp_err = None
+        share2 = None
         if error is not None:
             share2 = (AIM * error) ** 2 - bias2
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
-            spp_err = max(1, math.ceil(sigmas[n] ** 2 / share2))
-        spp_time = None if seconds is None else max(1, int((seconds - fixed_s) / max(rate, 1e-12)))
-        spp = min(x for x in (spp_err, spp_time) if x is not None)
-        return spp, fixed_s + rate * spp, math.sqrt(bias2 + sigmas[n] ** 2 / spp)
+        spp_time = None if seconds is None else max(1e-9, (seconds - fixed_s) / max(rate, 1e-12))
+        if adaptive:
+            c = cost[n]
+            noise = None if share2 is None else share2 * norm**2
+            shape = (_smoothed(pixvar[n], keep) + DEFENSIVE * float(pixvar[n][keep].mean())).sqrt() * keep
+            m = allocate_spp(pixvar[n], shape, c, noise=noise, mean_cost=spp_time)
+            eff = float((c * m).sum() / c.sum())
+            return (
+                float(m.double().mean()),
+                m,
+                fixed_s + rate * eff,
+                math.sqrt(bias2 + float((pixvar[n] / m).sum()) / norm**2),
+            )
+        spp_err = None if share2 is None else max(1, math.ceil(sigmas[n] ** 2 / share2))
+        spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
+        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigmas[n] ** 2 / spp)
 
     # bounces and spp together (a shorter series is cheaper per path but needs more paths for
     # what its tail takes from the budget): for an error, the cheapest number of bounces whose
@@ -382,10 +530,10 @@ def plan_from_pilots(
     options = {n: spp_for(n) for n in range(1, n_max + 1)}
     allowed = [n for n in options if tails[n] <= BOUNCE_SHARE * budget] or [n_max]
     if error is not None:
-        bounces = min(allowed, key=lambda n: (options[n][1], n))
+        bounces = min(allowed, key=lambda n: (options[n][2], n))
     else:
-        bounces = min(options, key=lambda n: (options[n][2], n))
-    spp, predicted_seconds, _ = options[bounces]
+        bounces = min(options, key=lambda n: (options[n][3], n))
+    spp, spp_map, predicted_seconds, predicted = options[bounces]
     band_error = band_error_at(bounces)
     series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
     if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
@@ -393,7 +541,7 @@ def plan_from_pilots(
     series = Series(tuple(series_bands))
     if series.two_level:
         bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
-    sigma = sigmas[bounces]
+    bias2 = band_error**2 + tails[bounces] ** 2
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -404,9 +552,10 @@ def plan_from_pilots(
         seconds=seconds,
         band_error=band_error,
         bounce_error=tails[bounces],
-        noise_error=sigma / math.sqrt(spp),
+        noise_error=math.sqrt(max(0.0, predicted**2 - bias2)),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
         predicted_seconds=predicted_seconds,
         pilot_seconds=sum(float(p.meta["seconds"]) for p in pilots),
+        spp_map=spp_map,
     )

@@ -163,7 +163,9 @@ def _check_spp(spp, height: int, width: int) -> torch.Tensor:
     if not isinstance(spp, torch.Tensor) or spp.ndim == 0:
         return torch.full((height, width), check_count(spp, "spp"), dtype=torch.long)
     if spp.shape != (height, width) or spp.dtype.is_floating_point or spp.dtype.is_complex or spp.dtype == torch.bool:
-        raise ShapeError(f"Expected an spp map of integers with shape ({height}, {width}); got {spp.dtype} {tuple(spp.shape)}")
+        raise ShapeError(
+            f"Expected an spp map of integers with shape ({height}, {width}); got {spp.dtype} {tuple(spp.shape)}"
+        )
     if int(spp.min()) < 1:
         raise ValueRangeError(f"every pixel needs spp >= 1; the map's least is {int(spp.min())}")
     return spp.long()
@@ -396,25 +398,32 @@ def plan_polynomial(
     seed: int = 0,
     env_point_lights: int | None = None,
     progress: bool = False,
+    pilot_runs: int = 4,
+    adaptive: bool = True,
 ) -> GIPlan:
     """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
 
-    Bands per object come from projection errors (no tracing); two pilot runs of
-    ``pilot_spp`` and twice that spp, ``pilot_bounces`` bounces (seeds independent of ``seed``'s final run)
-    measure the bounce tail, glossy-to-glossy transport and the Monte Carlo noise; the
-    decisions are :func:`torch_brdf.planner.plan_from_pilots`'s.
+    Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
+    runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
+    independent of ``seed``'s final run) measure the bounce tail, glossy-to-glossy transport,
+    the per-pixel Monte Carlo noise and the cost; the decisions are
+    :func:`torch_brdf.planner.plan_from_pilots`'s.
 
     Args:
         scene: the scene.
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp, pilot_bounces: the pilots' settings (spp and 2 x spp, all 1-band after the eye).
+        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
+        pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
+        adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
     Returns:
         :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
     """
+    if check_count(pilot_runs, "pilot_runs") < 2:
+        raise ValueRangeError(f"the planner needs at least two pilot runs; got {pilot_runs}")
     bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
     scene = with_fixed(scene, fixed)
     eye = max([1] + [b.J for b in bases if b is not None])
@@ -423,12 +432,12 @@ def plan_polynomial(
         precompute_polynomial(
             scene,
             series,
-            spp=pilot_spp * (k + 1),
+            spp=pilot_spp * (1, 2, 2, 4)[k % 4],
             seed=seed + 7919 * (k + 1),
             bases=bases,
             env_point_lights=env_point_lights,
             progress=progress,
         )
-        for k in range(2)
+        for k in range(pilot_runs)
     ]
-    return plan_from_pilots(scene, bases, errors, fixed, pilots, error=error, seconds=seconds)
+    return plan_from_pilots(scene, bases, errors, fixed, pilots, error=error, seconds=seconds, adaptive=adaptive)
