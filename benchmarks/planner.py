@@ -13,6 +13,8 @@ the pixels that do not see an emitter (``emitter_mask``). Per scene (``scenes``)
 * ``plan``: the planner's printed plan; ``planned``: its series, spp, predicted error,
   achieved error, ``reached`` (achieved <= requested), precompute seconds and rays;
   ``plan_seconds``: what planning cost (band projections and the two pilots).
+  An adaptive plan (the default) adds ``spp_min``, ``spp_max`` and ``spp_levels`` of its map;
+  ``planned_uniform``: the same planner with ``adaptive=False`` (one spp), carried out alike.
 * ``prediction_ratio``: max(achieved / predicted, predicted / achieved) (goal <= 1.5).
 * ``defaults``: every fixed default series -- the CLI's "64,1,1,1" and the seed's teatray
   series "128,1,1,1", "16,8,1,1", "128,8,1", "64,16" -- at spp 8, 11, 16, 23, 32, ... (steps of
@@ -29,7 +31,8 @@ over three light-sample seeds against a dense 4096-sample (quick 2048), 147-lobe
 ``default`` = the design defaults (1024 samples, 147 lobes, dense) measured the same way.
 
 Top level (one JSON object, the last line): ``prediction_ratio`` (worst over scenes and
-capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` (worst over the GI scenes),
+capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` and the same against the
+sqrt-2 grid, ``planner_cost_ratio_fine_spp`` / ``planner_cost_ratio_rays_fine_spp`` (worst over the GI scenes),
 ``load`` / ``load_end`` (1-min load average at start and end).
 """
 
@@ -129,8 +132,26 @@ def run_scene(sc, error: float, ref_spp: int, max_spp: int, defaults: tuple[str,
         "predicted_seconds": plan.predicted_seconds,
         "rays": _rays(T),
     }
+    if plan.spp_map is not None:
+        out["planned"] |= {"spp_min": int(plan.spp_map.min()), "spp_max": int(plan.spp_map.max())}
+        out["planned"]["spp_levels"] = int(torch.unique(plan.spp_map).numel())
     out["prediction_ratio"] = max(a / plan.predicted_error, plan.predicted_error / a)
     print(f"planned: achieved {a:.4f}, predicted {plan.predicted_error:.4f}, {secs:.2f} s, {_rays(T)} rays", flush=True)
+    # the same planner with one spp for every pixel (what adaptive sampling buys)
+    flat = plan_polynomial(sc, error=error, seed=0, adaptive=False)
+    t0 = time.perf_counter()
+    U = precompute_polynomial(sc, plan=flat, seed=1, progress=False)
+    u_secs, u = time.perf_counter() - t0, achieved(U)
+    out["planned_uniform"] = {
+        "series": flat.series.key,
+        "spp": flat.spp,
+        "predicted_error": flat.predicted_error,
+        "achieved_error": u,
+        "reached": u <= error,
+        "seconds": u_secs,
+        "rays": _rays(U),
+    }
+    print(f"planned, one spp: {flat.spp} spp, achieved {u:.4f}, {u_secs:.2f} s, {_rays(U)} rays", flush=True)
     # every default series on the fine spp grid (steps of sqrt 2 from 8) until it reaches the
     # error; the doubling grid (8, 16, 32, ...) is its every other point
     rows_by_key = {}
@@ -260,6 +281,8 @@ def main() -> None:
     }
     out["planner_cost_ratio"] = out["gi"].get("planner_cost_ratio")
     out["planner_cost_ratio_rays"] = out["gi"].get("planner_cost_ratio_rays")
+    out["planner_cost_ratio_fine_spp"] = out["gi"].get("planner_cost_ratio_fine_spp")
+    out["planner_cost_ratio_rays_fine_spp"] = out["gi"].get("planner_cost_ratio_rays_fine_spp")
     out["prediction_ratio"] = max(
         [out["gi"]["prediction_ratio"]] + ([out["inverse"]["prediction_ratio"]] if "inverse" in out else [])
     )

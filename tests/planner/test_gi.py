@@ -161,3 +161,18 @@ def test_uniform_plan_on_request(planned):
     flat = plan_polynomial(sc, error=0.2, seed=0, adaptive=False)
     assert flat.spp_map is None and isinstance(flat.spp, int) and flat.kwargs()["spp"] == flat.spp
     assert flat.series == plan.series  # the same pilots, bands and bounces; only the spp differ
+
+
+def test_a_sun_lit_scene_splits_its_light_samples():
+    """teatray's noise is almost all the eye vertex's next-event estimate (a sky with a sun):
+    the plan takes several light samples there, and the record carries them out."""
+    from torch_brdf.scene.builtin import teatray
+
+    sc = teatray(12)
+    plan = plan_polynomial(sc, error=0.1, seed=0)  # (at 0.3 the least spp, 4, already does)
+    assert plan.eye_light_share > 0.5 and plan.light_samples > 1
+    assert f"{plan.light_samples} light samples per eye vertex" in str(plan)
+    one = plan_polynomial(sc, error=0.1, seed=0, max_light_samples=1)
+    assert one.light_samples == 1 and one.eye_light_share == 0.0
+    T = precompute_polynomial(sc, plan=plan, seed=1, progress=False, guides=False)
+    assert T.meta["light_samples"] == plan.light_samples

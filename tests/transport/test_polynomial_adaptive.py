@@ -103,3 +103,65 @@ def test_bad_maps_are_refused():
         precompute_polynomial(sc, "1,1", spp=torch.ones(8, 8), progress=False)  # float
     with pytest.raises(ValueRangeError):
         precompute_polynomial(sc, "1,1", spp=torch.zeros(8, 8, dtype=torch.long), progress=False)
+
+
+# -- light splitting at the eye vertex ---------------------------------------------------------
+def _bounce_images(T: PolynomialTensors) -> torch.Tensor:
+    """(N + 1, H, W, C) per-bounce images at random coefficients (seeded)."""
+    from torch_brdf.render.polynomial import PolynomialRenderer
+
+    R = PolynomialRenderer(T, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(5)
+    for m, b in enumerate(T.bases):
+        if b is not None:
+            R.set_coefficients(
+                m,
+                torch.rand(b.size, 3, generator=gen, dtype=torch.float64),
+                d=torch.rand(3, generator=gen, dtype=torch.float64),
+            )
+    with torch.no_grad():
+        return torch.stack(R.evaluate(per_bounce=True))
+
+
+def test_light_splitting_is_exact_on_the_same_paths(gen):
+    """k light samples per eye vertex, each weighted 1/k: the exactness oracle still holds."""
+    from torch_brdf.scene.builtin import teatray
+
+    from .test_polynomial import _oracle
+
+    sc = teatray(10)
+    paths: dict = {}
+    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=1, light_samples=3, tile_rows=10, progress=False, paths=paths)
+    assert T.meta["light_samples"] == 3
+    from torch_brdf.render.polynomial import PolynomialRenderer
+
+    R = PolynomialRenderer(T, dtype=torch.float64)
+    c, d = {}, torch.zeros(len(sc.objects), 3, dtype=torch.float64)
+    for m, b in enumerate(T.bases):
+        if b is not None:
+            c[m] = torch.rand(b.size, 3, generator=gen, dtype=torch.float64)
+            d[m] = torch.rand(3, generator=gen, dtype=torch.float64)
+            R.set_coefficients(m, c[m], d=d[m])
+    with torch.no_grad():
+        want = _oracle(sc, T, paths, c, {}, d, 2)
+    assert float(want.sum()) > 0
+    torch.testing.assert_close(R.evaluate(), want, rtol=1e-4, atol=1e-6 * float(want.abs().max()))
+
+
+def test_light_splitting_weights_average_to_one_sample():
+    """A directional light is sampled without random numbers: k copies of the same sample
+    weighted 1/k give the 1-sample record up to rounding, on the same paths."""
+    import dataclasses
+
+    from torch_brdf.scene.lights import DirectionalLight
+
+    from torch_brdf.scene.builtin import teatray
+
+    sc = dataclasses.replace(teatray(10), lights=[DirectionalLight((0.3, 1.0, 0.4), 2.0)])
+    kw = {"series": "4,1,1", "spp": 2, "seed": 1, "progress": False, "guides": False}
+    one, three = (precompute_polynomial(sc, light_samples=k, **kw) for k in (1, 3))
+    a, b = _bounce_images(one), _bounce_images(three)
+    assert float(a[1].abs().max()) > 0 and float(a[2].abs().max()) > 0
+    torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7 * float(a.abs().max()))
+    assert three.meta["rays"]["shadow"] > one.meta["rays"]["shadow"]
+    assert "light_samples" not in one.meta  # k = 1 keeps the key (and bits) of before

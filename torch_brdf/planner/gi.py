@@ -23,13 +23,19 @@ requires, from cheap measurements:
   :math:`(I_a - I_b)^2 / (1/s_a + 1/s_b)`), and the relative noise at a map :math:`n_i` is
   :math:`\sqrt{\sum_i \sigma_i^2 / n_i} / \|\bar I\|`; the noise gets what the biases leave,
   :math:`e_n^2 = (0.95e)^2 - e_b^2 - e_t^2` (the plan aims 5% under the budget: one run's
-  error scatters by a few percent around the prediction);
+  error scatters by a few percent around the prediction; adaptive plans aim 10% under, see
+  :data:`AIM_ADAPTIVE`);
 * **adaptive sampling** (default): the spp map :math:`n_i \propto \sigma_i / \sqrt{c_i}`
   (:func:`allocate_spp`; :math:`c_i` the rays of a path from pixel :math:`i`) is the least-cost
   map for that noise, since relative RMSE weighs every counted pixel alike; pixels the budget
   does not count get ``MIN_SPP``. :math:`\sigma_i` for the allocation is smoothed over a
   window (with a defensive floor), the prediction uses the unsmoothed estimate. Each pixel is
   the average over its own paths, so the record stays unbiased and exactly polynomial;
+* **light samples per eye vertex** :math:`k` (splitting, :data:`LIGHT_SAMPLES`): two more pilots
+  with :math:`K = 4` samples give the share :math:`B` of a path's variance that the eye vertex's
+  next-event estimate makes, :math:`V(k) = A + B/k`; each extra sample costs a path
+  :data:`EXTRA_SAMPLE_COST` ray units per light; the plan takes the :math:`k` of least cost (a
+  sun-lit scene's noise is almost all direct light: 98% on teatray);
 * objects not in ``edit`` are fixed (their full BRDF is baked into the path weights).
 
 The predicted error is :math:`\sqrt{e_b^2 + e_t^2 + e_n^2}` with the band error
@@ -74,6 +80,11 @@ BOUNCE_SHARE = 0.6
 #: the plan aims its predicted error at this fraction of the budget: one run's achieved error
 #: scatters by a few percent around the prediction (pilot noise in sigma, the run's own noise)
 AIM = 0.95
+#: adaptive plans aim lower: allocating paths from the same noisy pilot variance the noise is
+#: predicted with puts too few paths where the estimate came out low (heavy-tailed pixels, e.g.
+#: a glossy tray under a sun), and the achieved noise came out 2-8% above the prediction
+#: on the benchmark scenes (glossy Cornell box, teatray at 32^2)
+AIM_ADAPTIVE = 0.9
 SECOND_SHARE = 0.3
 MAX_BANDS = 128
 #: adaptive sampling: a pixel's noise estimate is averaged over the SMOOTH x SMOOTH window's
@@ -85,6 +96,11 @@ SMOOTH = 7
 DEFENSIVE = 0.1
 MIN_SPP = 4
 LEVELS_PER_OCTAVE = 2
+#: the light samples per eye vertex a plan may choose, and what one more costs a path in ray
+#: units (a shadow ray is 1; measured on teatray at 32^2: seconds per path grew by ~0.36 of a
+#: 2.8-ray path per extra sample, ~1 ray; 1.5 leaves room for the bookkeeping of 32-band entries)
+LIGHT_SAMPLES = (1, 2, 4, 8, 16)
+EXTRA_SAMPLE_COST = 1.5
 
 
 def _quadrature(basis: BandBasis) -> PairQuadrature:
@@ -336,6 +352,9 @@ class GIPlan:
             the pilots (the rate scaled by bounces / pilot bounces; for a map, spp is the
             mean weighted by each pixel's path cost).
         pilot_seconds: what the pilot runs cost.
+        light_samples: next-event samples per light at the eye vertex.
+        eye_light_share: the share of a path's variance that the eye vertex's next-event
+            estimate makes (what light samples divide), at the planned bounces.
     """
 
     series: Series
@@ -353,6 +372,8 @@ class GIPlan:
     predicted_seconds: float
     pilot_seconds: float
     spp_map: torch.Tensor | None = None
+    light_samples: int = 1
+    eye_light_share: float = 0.0
 
     @property
     def predicted_error(self) -> float:
@@ -379,6 +400,10 @@ class GIPlan:
         for name, J, e in self.projection_errors:
             lines.append(f"  {name}: {J} band{'s' if J > 1 else ''} (projection error {e:.4f})")
         lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
+        lines.append(
+            f"  {self.light_samples} light sample{'s' if self.light_samples > 1 else ''} per eye vertex"
+            f" (its next-event estimate makes {self.eye_light_share:.0%} of a path's variance)"
+        )
         if self.fixed:
             lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
         return "\n".join(lines)
@@ -386,7 +411,7 @@ class GIPlan:
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
         spp = self.spp_map if self.spp_map is not None else self.spp
-        return {"series": self.series, "spp": spp, "bases": list(self.bases)}
+        return {"series": self.series, "spp": spp, "bases": list(self.bases), "light_samples": self.light_samples}
 
 
 def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
@@ -402,6 +427,13 @@ def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
     sk = spp[:, None, None, None]
     m = (sk * x).sum(0) / spp.sum()
     return (sk * (x - m) ** 2).sum((0, -1)) / (x.shape[0] - 1)
+
+
+def _slope(s: torch.Tensor, t: torch.Tensor) -> float:
+    """Seconds per spp, least squares through pilots (``s`` spp, ``t`` seconds; >= 0)."""
+    if float(s.var()) > 0:
+        return max(0.0, float(((s - s.mean()) * (t - t.mean())).sum() / ((s - s.mean()) ** 2).sum()))
+    return float(t.mean() / s.mean())
 
 
 def _path_cost(pilots: list[PolynomialTensors], n_max: int) -> torch.Tensor:
@@ -424,6 +456,8 @@ def plan_from_pilots(
     error: float | None = None,
     seconds: float | None = None,
     adaptive: bool = True,
+    split_pilots: list[PolynomialTensors] | None = None,
+    max_light_samples: int = max(LIGHT_SAMPLES),
 ) -> GIPlan:
     """Decide bounces, second bounce and spp from independent pilot records (see the module).
 
@@ -435,6 +469,10 @@ def plan_from_pilots(
             choose; no second-bounce level; uniform spp.
         error: relative RMSE budget; seconds: precompute time budget (at least one).
         adaptive: a per-pixel spp map (:func:`allocate_spp`); False: one spp for all pixels.
+        split_pilots: optional, at least two more records like ``pilots`` but with
+            ``light_samples`` K >= 2: the plan then also chooses the light samples per eye vertex
+            (one of :data:`LIGHT_SAMPLES`, at most ``max_light_samples``) from how much of the
+            noise they take away.
     Returns:
         :class:`GIPlan`.
     """
@@ -491,49 +529,72 @@ def plan_from_pilots(
     # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
     # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
     t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
-    if float(s.var()) > 0:
-        rate_max = max(0.0, float(((s - s.mean()) * (t - t.mean())).sum() / ((s - s.mean()) ** 2).sum()))
-    else:
-        rate_max = float(t.mean() / s.mean())
+    rate_max = _slope(s, t)
     fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
 
-    def spp_for(n: int) -> tuple[float, torch.Tensor | None, float, float]:
-        # the cheapest spp (map) with n bounces for the error within the time budget: its mean
-        # spp, map, cost and error
-        rate = rate_max * n / n_max
+    # light splitting at the eye vertex: a path's variance is V(k) = A + B / k with k light
+    # samples (B: the variance of the eye vertex's next-event estimate), from the variance at
+    # k = 1 (the pilots) and at k = K (``split_pilots``); each extra sample costs a path
+    # EXTRA_SAMPLE_COST ray units per light where the eye ray hits something (the pilots'
+    # seconds are too short to measure it on a loaded machine)
+    ratios = {n: {1: 1.0} for n in range(n_max + 1)}
+    shares = [0.0] * (n_max + 1)
+    hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
+    extra = EXTRA_SAMPLE_COST * len(scene.lights)
+    if split_pilots:
+        k_p = int(split_pilots[0].meta.get("light_samples", 1))
+        if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
+            raise ValueRangeError("split_pilots: at least two runs, all with the same light_samples >= 2")
+        s_k = torch.tensor([float(p.meta["spp"]) for p in split_pilots], dtype=torch.float64)
+        cum_k = torch.stack([pilot_images(p, mats) for p in split_pilots]).cumsum(1)
+        for n in range(1, n_max + 1):
+            v1, vk = float(pixvar[n].sum()), float((_pooled_variance(cum_k[:, n], s_k) * keep).sum())
+            b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
+            shares[n] = b / v1 if v1 > 0 else 0.0
+            ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
+
+    def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float]:
+        # the cheapest spp (map) with n bounces and k eye light samples for the error within the
+        # time budget: its mean spp, map, cost and error
+        c = cost[n] + (k - 1) * extra * hit
+        rate = rate_max * n / n_max * float(c.mean() / cost[n].mean())
+        var = pixvar[n] * ratios[n][k]
+        sigma = sigmas[n] * ratios[n][k] ** 0.5
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
         share2 = None
         if error is not None:
-            share2 = (AIM * error) ** 2 - bias2
+            share2 = ((AIM_ADAPTIVE if adaptive else AIM) * error) ** 2 - bias2
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
         spp_time = None if seconds is None else max(1e-9, (seconds - fixed_s) / max(rate, 1e-12))
         if adaptive:
-            c = cost[n]
             noise = None if share2 is None else share2 * norm**2
-            shape = (_smoothed(pixvar[n], keep) + DEFENSIVE * float(pixvar[n][keep].mean())).sqrt() * keep
-            m = allocate_spp(pixvar[n], shape, c, noise=noise, mean_cost=spp_time)
+            shape = (_smoothed(var, keep) + DEFENSIVE * float(var[keep].mean())).sqrt() * keep
+            m = allocate_spp(var, shape, c, noise=noise, mean_cost=spp_time)
             eff = float((c * m).sum() / c.sum())
             return (
                 float(m.double().mean()),
                 m,
                 fixed_s + rate * eff,
-                math.sqrt(bias2 + float((pixvar[n] / m).sum()) / norm**2),
+                math.sqrt(bias2 + float((var / m).sum()) / norm**2),
             )
-        spp_err = None if share2 is None else max(1, math.ceil(sigmas[n] ** 2 / share2))
+        spp_err = None if share2 is None else max(1, math.ceil(sigma**2 / share2))
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
-        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigmas[n] ** 2 / spp)
+        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp)
 
-    # bounces and spp together (a shorter series is cheaper per path but needs more paths for
-    # what its tail takes from the budget): for an error, the cheapest number of bounces whose
-    # tail is at most BOUNCE_SHARE of the budget; for a time alone, the most accurate
-    options = {n: spp_for(n) for n in range(1, n_max + 1)}
-    allowed = [n for n in options if tails[n] <= BOUNCE_SHARE * budget] or [n_max]
+    # bounces, eye light samples and spp together (a shorter series is cheaper per path but
+    # needs more paths for what its tail takes from the budget): for an error, the cheapest
+    # number of bounces whose tail is at most BOUNCE_SHARE of the budget; for a time alone,
+    # the most accurate
+    options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
+    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [
+        nk for nk in options if nk[0] == n_max
+    ]
     if error is not None:
-        bounces = min(allowed, key=lambda n: (options[n][2], n))
+        bounces, light_samples = min(allowed, key=lambda nk: (options[nk][2], nk))
     else:
-        bounces = min(options, key=lambda n: (options[n][3], n))
-    spp, spp_map, predicted_seconds, predicted = options[bounces]
+        bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
+    spp, spp_map, predicted_seconds, predicted = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
     if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
@@ -558,4 +619,6 @@ def plan_from_pilots(
         predicted_seconds=predicted_seconds,
         pilot_seconds=sum(float(p.meta["seconds"]) for p in pilots),
         spp_map=spp_map,
+        light_samples=light_samples,
+        eye_light_share=shares[bounces],
     )

@@ -82,9 +82,10 @@ class _TileWork:
     Pickles without its tracer (rebuilt lazily where it runs) and without ``paths``.
     """
 
-    def __init__(self, scene, plan, series, mixture, lights, tiles, spp, group, seed, paths=None):
+    def __init__(self, scene, plan, series, mixture, lights, tiles, spp, group, seed, paths=None, light_samples=1):
         self.scene, self.plan, self.series, self.mixture, self.lights = scene, plan, series, mixture, lights
         self.tiles, self.spp, self.group, self.seed, self.paths = tiles, spp, group, seed, paths
+        self.light_samples = light_samples
         self._tracer = None
 
     def __getstate__(self):
@@ -93,7 +94,7 @@ class _TileWork:
     @property
     def tracer(self) -> _Tracer:
         if self._tracer is None:
-            self._tracer = _Tracer(self.scene, self.plan, self.series, self.mixture, self.lights)
+            self._tracer = _Tracer(self.scene, self.plan, self.series, self.mixture, self.lights, self.light_samples)
         return self._tracer
 
     def pixels(self, k: int) -> torch.Tensor:
@@ -193,6 +194,7 @@ def precompute_polynomial(
     bases: list[ObjectBasis | None] | dict[str, dict[str, Any]] | None = None,
     mixture: Mixture | None = None,
     env_point_lights: int | None = None,
+    light_samples: int = 1,
     tile_rows: int | None = None,
     group: int | None = None,
     checkpoint: str | Path | None = None,
@@ -219,6 +221,9 @@ def precompute_polynomial(
         bases: per-object :class:`ObjectBasis` list, or overrides for :func:`plan_bases`.
         mixture: direction sampling (default 70% cosine, 30% Blinn 200).
         env_point_lights: replace the environment by its K median-cut point lights for NEE.
+        light_samples: next-event samples per light at the eye vertex, each weighted 1/k
+            (the same polynomial with less direct-light noise for k - 1 more shadow rays per
+            path; later vertices take one).
         tile_rows: image rows per tile (default: about 16k pixels per tile).
         group: passes traced together (default: enough for >= 64k rays per batch, which
             lets embree use both cores).
@@ -303,7 +308,8 @@ def precompute_polynomial(
     tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
     group_of = [group or max(1, min(s, math.ceil(65536 / max(1, tile_rows * w)))) for s in tile_spp]
     num_tiles = len(tiles)
-    work = _TileWork(scene, plan, series, mixture, lights, tiles, tile_spp, group_of, seed, paths)
+    light_samples = check_count(light_samples, "light_samples", 1024)
+    work = _TileWork(scene, plan, series, mixture, lights, tiles, tile_spp, group_of, seed, paths, light_samples)
     uniform = bool((spp_map == spp_map.flatten()[0]).all())
     settings = {
         "scene": scene.name,
@@ -320,12 +326,16 @@ def precompute_polynomial(
     }
     if not uniform:  # a uniform run keeps the key it always had; a map enters it as run lengths
         settings["spp_map"] = _run_lengths(spp_map.reshape(-1))
+    if light_samples != 1:  # likewise
+        settings["light_samples"] = light_samples
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
     ray_work = None
     if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
-        ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed)
+        ray_work = _TileWork(
+            single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
+        )
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
@@ -400,6 +410,7 @@ def plan_polynomial(
     progress: bool = False,
     pilot_runs: int = 4,
     adaptive: bool = True,
+    max_light_samples: int = 16,
 ) -> GIPlan:
     """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
 
@@ -419,6 +430,8 @@ def plan_polynomial(
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
         pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
         adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
+        max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
+            two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
     Returns:
         :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
     """
@@ -440,4 +453,30 @@ def plan_polynomial(
         )
         for k in range(pilot_runs)
     ]
-    return plan_from_pilots(scene, bases, errors, fixed, pilots, error=error, seconds=seconds, adaptive=adaptive)
+    split = []
+    if check_count(max_light_samples, "max_light_samples") > 1:
+        split = [
+            precompute_polynomial(
+                scene,
+                series,
+                spp=pilot_spp * (k + 1),
+                seed=seed + 7919 * (pilot_runs + k + 1),
+                bases=bases,
+                env_point_lights=env_point_lights,
+                light_samples=4,
+                progress=progress,
+            )
+            for k in range(2)
+        ]
+    return plan_from_pilots(
+        scene,
+        bases,
+        errors,
+        fixed,
+        pilots,
+        error=error,
+        seconds=seconds,
+        adaptive=adaptive,
+        split_pilots=split,
+        max_light_samples=max_light_samples,
+    )

@@ -206,10 +206,18 @@ class _Entries:
 
 
 class _Tracer:
-    """The batched symbolic path tracer (one instance per precomputation)."""
+    """The batched symbolic path tracer (one instance per precomputation).
 
-    def __init__(self, scene: Scene, bases, series: Series, mixture: Mixture, lights: list[Light]):
+    ``eye_light_samples``: next-event samples per light at the eye vertex, each weighted
+    1/k (splitting: the same estimator of the same polynomial, less noise where direct
+    light dominates it, e.g. under a sun); later vertices take one.
+    """
+
+    def __init__(
+        self, scene: Scene, bases, series: Series, mixture: Mixture, lights: list[Light], eye_light_samples: int = 1
+    ):
         self.scene, self.series, self.mixture, self.lights = scene, series, mixture, lights
+        self.eye_light_samples = eye_light_samples
         self.brdfs = material_brdfs(scene)
         self.bases = bases
         self.num_objects = len(scene.objects)
@@ -262,14 +270,15 @@ class _Tracer:
             with clock("sampling"):
                 ng, ns, frame, wo = shading_frame(d_in, ng, ns)
                 ed = self.editable[oid]
-            for light in self.lights:
+            reps = self.eye_light_samples if v == 1 else 1
+            for light in [li for li in self.lights for _ in range(reps)]:
                 with clock("sampling"):
                     ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
                     self.rays["shadow"] += cast
                     if kk.numel() == 0:
                         continue
                     wl = frame.to_local(ls.direction)[kk]
-                    hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None])
+                    hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None] / reps)
                 with clock("bookkeeping"):
                     self._emit(ent, st, v, hit, paths, rec)
             if v == nb:
