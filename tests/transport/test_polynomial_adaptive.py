@@ -1,4 +1,5 @@
-"""Adaptive sampling in the multibounce precomputation: a per-pixel spp map (issue #17).
+"""Adaptive sampling in the multibounce precomputation: a per-pixel spp map, and light
+splitting at the eye vertex (issue #17).
 
 The pixels of each spp level are traced in tiles of their own; a tile of an adaptive run must
 be, entry for entry, the same tile of a uniform run at that tile's spp (same random numbers),
@@ -7,13 +8,19 @@ polynomials."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
 from torch_brdf.errors import ShapeError, ValueRangeError
 from torch_brdf.records.polynomial import PolynomialTensors
-from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.render.polynomial import PolynomialRenderer
+from torch_brdf.scene.builtin import cornell_box_glossy, teatray
+from torch_brdf.scene.lights import DirectionalLight
 from torch_brdf.transport.polynomial import precompute_polynomial, spp_map_of
+
+from .test_polynomial import _oracle
 
 SIZE, ROWS = 12, 4
 KW = {"series": "8,1,1", "seed": 3, "tile_rows": ROWS, "progress": False, "guides": False}
@@ -106,44 +113,26 @@ def test_bad_maps_are_refused():
 
 
 # -- light splitting at the eye vertex ---------------------------------------------------------
-def _bounce_images(T: PolynomialTensors) -> torch.Tensor:
-    """(N + 1, H, W, C) per-bounce images at random coefficients (seeded)."""
-    from torch_brdf.render.polynomial import PolynomialRenderer
-
+def _renderer_at_random_coefficients(T: PolynomialTensors, gen: torch.Generator):
+    """(renderer, eye coefficients per object, diffuse equivalents (M, 3)) at random values."""
     R = PolynomialRenderer(T, dtype=torch.float64)
-    gen = torch.Generator().manual_seed(5)
+    coef, d = {}, torch.zeros(T.num_objects, 3, dtype=torch.float64)
     for m, b in enumerate(T.bases):
         if b is not None:
-            R.set_coefficients(
-                m,
-                torch.rand(b.size, 3, generator=gen, dtype=torch.float64),
-                d=torch.rand(3, generator=gen, dtype=torch.float64),
-            )
-    with torch.no_grad():
-        return torch.stack(R.evaluate(per_bounce=True))
+            coef[m], d[m] = torch.rand(b.size, 3, generator=gen, dtype=torch.float64), torch.rand(3, generator=gen)
+            R.set_coefficients(m, coef[m], d=d[m])
+    return R, coef, d
 
 
 def test_light_splitting_is_exact_on_the_same_paths(gen):
     """k light samples per eye vertex, each weighted 1/k: the exactness oracle still holds."""
-    from torch_brdf.scene.builtin import teatray
-
-    from .test_polynomial import _oracle
-
     sc = teatray(10)
     paths: dict = {}
     T = precompute_polynomial(sc, "8,1,1", spp=2, seed=1, light_samples=3, tile_rows=10, progress=False, paths=paths)
     assert T.meta["light_samples"] == 3
-    from torch_brdf.render.polynomial import PolynomialRenderer
-
-    R = PolynomialRenderer(T, dtype=torch.float64)
-    c, d = {}, torch.zeros(len(sc.objects), 3, dtype=torch.float64)
-    for m, b in enumerate(T.bases):
-        if b is not None:
-            c[m] = torch.rand(b.size, 3, generator=gen, dtype=torch.float64)
-            d[m] = torch.rand(3, generator=gen, dtype=torch.float64)
-            R.set_coefficients(m, c[m], d=d[m])
+    R, coef, d = _renderer_at_random_coefficients(T, gen)
     with torch.no_grad():
-        want = _oracle(sc, T, paths, c, {}, d, 2)
+        want = _oracle(sc, T, paths, coef, {}, d, 2)
     assert float(want.sum()) > 0
     torch.testing.assert_close(R.evaluate(), want, rtol=1e-4, atol=1e-6 * float(want.abs().max()))
 
@@ -151,16 +140,16 @@ def test_light_splitting_is_exact_on_the_same_paths(gen):
 def test_light_splitting_weights_average_to_one_sample():
     """A directional light is sampled without random numbers: k copies of the same sample
     weighted 1/k give the 1-sample record up to rounding, on the same paths."""
-    import dataclasses
-
-    from torch_brdf.scene.lights import DirectionalLight
-
-    from torch_brdf.scene.builtin import teatray
-
     sc = dataclasses.replace(teatray(10), lights=[DirectionalLight((0.3, 1.0, 0.4), 2.0)])
     kw = {"series": "4,1,1", "spp": 2, "seed": 1, "progress": False, "guides": False}
     one, three = (precompute_polynomial(sc, light_samples=k, **kw) for k in (1, 3))
-    a, b = _bounce_images(one), _bounce_images(three)
+    with torch.no_grad():
+        a, b = (
+            torch.stack(
+                _renderer_at_random_coefficients(T, torch.Generator().manual_seed(5))[0].evaluate(per_bounce=True)
+            )
+            for T in (one, three)
+        )
     assert float(a[1].abs().max()) > 0 and float(a[2].abs().max()) > 0
     torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-7 * float(a.abs().max()))
     assert three.meta["rays"]["shadow"] > one.meta["rays"]["shadow"]
