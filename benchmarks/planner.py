@@ -128,7 +128,7 @@ def run_scene(
     out["plan"] = str(plan)
     out["planned"] = {
         "series": plan.series.key,
-        "spp": plan.spp,
+        "spp": round(plan.spp, 1),
         "predicted_error": plan.predicted_error,
         "achieved_error": a,
         "reached": a <= error,
