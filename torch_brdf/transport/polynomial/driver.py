@@ -306,11 +306,17 @@ def precompute_polynomial(
     h, w = cam.height, cam.width
     tile_rows = tile_rows or max(1, min(h, 16384 // w))
     tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
-    group_of = [group or max(1, min(s, math.ceil(65536 / max(1, tile_rows * w)))) for s in tile_spp]
+    uniform = bool((spp_map == spp_map.flatten()[0]).all())
+    # passes traced together: >= 64k rays per batch; a uniform run counts tile_rows x width
+    # pixels per tile (as it always did), an adaptive run its tile's own pixels (a level may
+    # hold few, and small batches cost far more per ray)
+    group_of = [
+        group or max(1, min(s, math.ceil(65536 / max(1, tile_rows * w if uniform else t.numel()))))
+        for s, t in zip(tile_spp, tiles, strict=True)
+    ]
     num_tiles = len(tiles)
     light_samples = check_count(light_samples, "light_samples", 1024)
     work = _TileWork(scene, plan, series, mixture, lights, tiles, tile_spp, group_of, seed, paths, light_samples)
-    uniform = bool((spp_map == spp_map.flatten()[0]).all())
     settings = {
         "scene": scene.name,
         "width": w,
