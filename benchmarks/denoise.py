@@ -13,7 +13,12 @@ frozen on the edited object and rendered by four methods:
 * ``linear``: the guide-only à-trous filter applied once to every basis image of the frozen
   tensor (``PolynomialRenderer.freeze(obj, denoiser="linear")``);
 * ``oidn_basis``: Open Image Denoise once per grouped basis image (``denoiser="oidn"``);
-* ``oidn_frame``: the path-tracer user's baseline: OIDN on every final frame.
+* ``oidn_frame``: the path-tracer user's baseline: OIDN on every final frame;
+* ``regression``: the guide-only local polynomial regression (:class:`RegressionFilter`, NFOR-
+  style, linear) applied once to every basis image of the frozen tensor
+  (``denoiser="regression"``). It is computed in its own cached part (the precompute is redone
+  with the same seed, and its noisy frame is checked to equal the cached one), so runs cached
+  before it existed are reused.
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -48,7 +53,7 @@ import numpy as np
 import torch
 
 from torch_brdf.data import cache_path
-from torch_brdf.denoise import glossy_objects, oidn_frame
+from torch_brdf.denoise import RegressionFilter, RegressionSettings, glossy_objects, oidn_frame
 from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
@@ -56,8 +61,9 @@ from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
-METHODS = ("none", "linear", "oidn_basis", "oidn_frame")
+METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
+EXTRA = ("regression",)  # computed in the "extra" part
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -169,6 +175,31 @@ def _unit(scene, obj, mats, edited, series, spp, seed, full: bool):
     return arrays, meta
 
 
+def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy):
+    """The ``EXTRA`` methods of one full unit: the same precompute (seed) again, its frozen
+    tensor denoised by each, frames, denoise seconds and frame seconds timed in turns with the
+    noisy frozen frame of this run (the ratio's baseline)."""
+    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    R = PolynomialRenderer(T, mats)
+    _, freeze_s = _secs(lambda: R.freeze(obj))
+    frame = _frames(R, obj, mats, edited)[0]
+    same = float((frame - noisy).abs().max() / noisy.abs().max().clamp_min(1e-30))
+    meta = {"precompute_s": pre_s, "freeze_s": freeze_s, "same_as_cached_unit": same, "denoise_s": {}}
+    arrays, renderers = {}, {"none": R}
+    for method in EXTRA:
+        print(f"[{scene.name}] {method} at {spp} spp ...", flush=True)
+        D = PolynomialRenderer(T, mats)
+        A = RegressionFilter.for_tensors(T)
+        _, secs = _secs(lambda D=D, A=A: D.freeze(obj, denoiser=A))
+        meta["denoise_s"][method] = max(secs - freeze_s, 0.0)
+        meta["settings_" + method] = A.description
+        arrays[method], arrays[method + "_e"] = _frames(D, obj, mats, edited)
+        renderers[method] = D
+    meta["frozen_mb"] = {k: D.frozen_nbytes / 2**20 for k, D in renderers.items()}
+    meta["frame_s"] = _interleaved_frame_times(renderers, obj)
+    return arrays, meta
+
+
 def _regions(object_id: torch.Tensor, depth: torch.Tensor, glossy: list[int], mask: torch.Tensor, radius: int = 3):
     """(H, W) bool masks where a filter can blur: glossy objects' pixels, contact regions
     (within ``radius`` pixels of another object at a depth within 3%) and the rest."""
@@ -241,6 +272,17 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             hi["none_e"].append(a["none_e"])
         if not full:
             continue
+        x, xmeta = _cached(
+            folder,
+            "extra",
+            {**settings, "methods": [RegressionFilter.__name__, repr(RegressionSettings())]},
+            scene,
+            lambda spp=spp, seed=seed, a=a: _extra_unit(scene, obj, mats, edited, series, spp, seed, a["none"]),
+        )
+        a = {**a, **x}
+        out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
+        out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
+        meta["denoise_s"] = {**meta["denoise_s"], **xmeta["denoise_s"]}
         key = str(spp)
         mask = a["emitter_free"].bool()
         out["precompute_s"][key] = meta["precompute_s"]
@@ -253,11 +295,13 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             out["denoise_s"][m][key] = meta["denoise_s"][m]
         if key == mid:
             out["record_mb"] = meta["record_mb"]
-            out["frozen_mb"] = meta["frozen_mb"]
+            out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
+            out["regression_settings"] = xmeta["settings_regression"]
             out["frame_s_before"] = meta["frame_s"]["none"]
             for m in METHODS:
-                out["frame_s_after"][m] = meta["frame_s"][m]
-                out["frame_ratio"][m] = meta["frame_s"][m] / meta["frame_s"]["none"]
+                fs = xmeta["frame_s"] if m in EXTRA else meta["frame_s"]  # ratio to the same run's noisy frame
+                out["frame_s_after"][m] = fs[m]
+                out["frame_ratio"][m] = fs[m] / fs["none"]
                 out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
             regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
             out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
@@ -270,7 +314,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
                 if int(v.sum())
             }
             if figure:
-                _figure(figure, a["none"], a["linear"], a["oidn_basis"], ref)
+                _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], ref)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
     top = str(hi_spp)
     a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
@@ -285,7 +329,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
 def _goals(out: dict, mid: str, top: str) -> dict:
     """The issue's goals per denoising method at the middle spp, each with its figures."""
     goals = {}
-    for m in ("linear", "oidn_basis"):
+    for m in ("linear", "oidn_basis", "regression"):
         e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]
         n, n_e = out["rel_rmse"]["none"][top], out["rel_rmse_edited"]["none"][top]
         goals[m] = {
@@ -297,11 +341,11 @@ def _goals(out: dict, mid: str, top: str) -> dict:
     return goals
 
 
-def _figure(path: str, noisy, linear, oidn, ref) -> None:
-    """noisy | linear | oidn_basis | reference side by side (exposure from the reference)."""
+def _figure(path: str, noisy, linear, oidn, regression, ref) -> None:
+    """noisy | linear | oidn_basis | regression | reference side by side (exposure from the reference)."""
     from torch_brdf.io.png import write_png
 
-    strip = torch.cat([noisy, linear, oidn, ref], 1)
+    strip = torch.cat([noisy, linear, oidn, regression, ref], 1)
     exposure = -float(np.log2(max(float(ref.quantile(0.99)), 1e-6)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_png(path, strip, exposure=exposure, tonemap="clip")
@@ -315,7 +359,9 @@ def main() -> None:
     ap.add_argument("--spp", default="16,64,256", help="precomputation spp (the middle one: goals, figure)")
     ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of the last spp)")
     ap.add_argument("--ref-spp", type=int, default=4096, help="Mitsuba reference spp")
-    ap.add_argument("--figure", default=None, help="PNG: noisy | linear | oidn_basis | reference (Cornell, middle spp)")
+    ap.add_argument(
+        "--figure", default=None, help="PNG: noisy | linear | oidn_basis | regression | reference (Cornell, middle spp)"
+    )
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
     args = ap.parse_args()
