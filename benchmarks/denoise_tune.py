@@ -44,7 +44,13 @@ GRIDS = {
     "regression": (
         RegressionFilter,
         RegressionSettings,
-        {"radius": (2, 3, 5), "order": (1, 2), "sigma_space": (1.5, 100.0), "sigma_half": (0.02, INF)},
+        {
+            "radius": (3, 5),
+            "order": (1, 2),
+            "sigma_space": (1.5, 100.0),
+            "sigma_half": (0.02, INF),
+            "min_taps": (0.0, 2.0),
+        },
     ),
 }
 

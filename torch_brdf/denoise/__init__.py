@@ -10,7 +10,7 @@
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
 
-from .atrous import AtrousSettings, EdgeAwareFilter, GuideWeights, glossy_objects
+from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
@@ -20,6 +20,7 @@ __all__ = [
     "AtrousSettings",
     "EdgeAwareFilter",
     "GuideBuffers",
+    "GuideSigmas",
     "GuideWeights",
     "OIDNBasis",
     "RegressionFilter",

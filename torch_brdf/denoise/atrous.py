@@ -47,21 +47,20 @@ _B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 
 
 @dataclass(frozen=True)
-class AtrousSettings:
-    """What decides the filter (hashable; benchmarks report it).
+class GuideSigmas:
+    """The tolerances of the guide weights (:class:`GuideWeights`), shared by the settings of
+    the linear filters.
 
     Attributes:
-        levels: à-trous levels; the footprint is :math:`4 (2^L - 1) + 1` pixels wide.
         sigma_normal: exponent of the normal weight (larger: stops at smaller creases).
         sigma_plane: tolerance of the distance to the tangent plane, in pixel footprints per
             pixel of offset (smaller: stops at smaller depth steps, e.g. contact edges).
         sigma_albedo: tolerance of the albedo-proxy difference (L1).
         sigma_mirror: tolerance of the difference of log(1 + radiance seen by the mirror ray).
         sigma_half: tolerance of the difference of the half-vector cosine to the brightest
-            light (a Blinn-Phong lobe of exponent n falls by 1/e over 1/n of it).
+            light (a Blinn-Phong lobe of exponent n falls by 1/e over 1/n of it; ``inf``: off).
     """
 
-    levels: int = 3
     sigma_normal: float = 64.0
     sigma_plane: float = 1.0
     sigma_albedo: float = 0.05
@@ -69,11 +68,25 @@ class AtrousSettings:
     sigma_half: float = 0.002
 
     def __post_init__(self):
-        if (
-            self.levels < 1
-            or min(self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror, self.sigma_half) <= 0
-        ):
-            raise ValueRangeError(f"need levels >= 1 and positive sigmas; got {self}")
+        if min(self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror, self.sigma_half) <= 0:
+            raise ValueRangeError(f"need positive sigmas; got {self}")
+
+
+@dataclass(frozen=True)
+class AtrousSettings(GuideSigmas):
+    """What decides the à-trous filter (hashable; benchmarks report it): the guide
+    tolerances of :class:`GuideSigmas` and
+
+    Attributes:
+        levels: à-trous levels; the footprint is :math:`4 (2^L - 1) + 1` pixels wide.
+    """
+
+    levels: int = 3
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.levels < 1:
+            raise ValueRangeError(f"need levels >= 1; got {self}")
 
 
 def _shift(x: torch.Tensor, dy: int, dx: int, fill: float = 0.0) -> torch.Tensor:

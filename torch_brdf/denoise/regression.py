@@ -38,40 +38,36 @@ import torch.nn.functional as F
 
 from .._threads import tuned
 from ..errors import ValueRangeError
-from .atrous import GuideFilter, GuideWeights
+from .atrous import GuideFilter, GuideSigmas, GuideWeights
 from .guides import GuideBuffers
 
 
 @dataclass(frozen=True)
-class RegressionSettings:
-    """What decides the regression filter (hashable; benchmarks report it).
+class RegressionSettings(GuideSigmas):
+    """What decides the regression filter (hashable; benchmarks report it): the guide
+    tolerances of :class:`~.atrous.GuideSigmas` and the fit's own settings. The defaults were
+    chosen on 16-spp frames of both benchmark scenes (``benchmarks/denoise_tune.py``).
 
     Attributes:
         radius: window half-width r in pixels (the window is 2r + 1 wide).
         order: polynomial degree in the screen offset: 0 (weighted mean), 1 or 2.
-        sigma_space: standard deviation of the spatial Gaussian, pixels.
+        sigma_space: standard deviation of the spatial Gaussian, pixels (large: a box).
         ridge: ridge on the non-constant coefficients, relative to the weight sum.
         min_taps: effective taps (:math:`(\\sum w)^2 / \\sum w^2`) needed per fitted feature;
-            below it the pixel uses the weighted mean.
-        sigma_normal, sigma_plane, sigma_albedo, sigma_mirror, sigma_half: the guide weights,
-            as in :class:`~.atrous.AtrousSettings`.
+            below it the pixel uses the weighted mean (0: never).
     """
 
-    radius: int = 3
+    sigma_half: float = 0.02
+    radius: int = 5
     order: int = 2
-    sigma_space: float = 1.5
+    sigma_space: float = 100.0
     ridge: float = 1e-3
-    min_taps: float = 2.0
-    sigma_normal: float = 64.0
-    sigma_plane: float = 1.0
-    sigma_albedo: float = 0.05
-    sigma_mirror: float = 0.25
-    sigma_half: float = 0.002
+    min_taps: float = 0.0
 
     def __post_init__(self):
-        sig = (self.sigma_space, self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror)
-        if self.radius < 1 or self.order not in (0, 1, 2) or min(sig + (self.sigma_half,)) <= 0:
-            raise ValueRangeError(f"need radius >= 1, order 0, 1 or 2 and positive sigmas; got {self}")
+        super().__post_init__()
+        if self.radius < 1 or self.order not in (0, 1, 2) or self.sigma_space <= 0:
+            raise ValueRangeError(f"need radius >= 1, order 0, 1 or 2 and sigma_space > 0; got {self}")
         if self.ridge < 0 or self.min_taps < 0:
             raise ValueRangeError(f"need ridge >= 0 and min_taps >= 0; got {self}")
 
@@ -86,7 +82,7 @@ class RegressionFilter(GuideFilter):
 
     Args:
         guides: the view's :class:`GuideBuffers`.
-        settings: :class:`RegressionSettings` (default: radius 3, degree 2).
+        settings: :class:`RegressionSettings` (default: radius 5, degree 2).
         glossy: object ids where the half-vector guide applies (as :class:`~.atrous.EdgeAwareFilter`).
 
     Calling it on images (..., H, W) returns the filtered images in their dtype; it is linear:
