@@ -32,7 +32,9 @@ freeze), ``frame_s_before`` (noisy frozen frame) and ``frame_s_after`` ``{method
 denoised frozen frame; for ``oidn_frame`` frame + OIDN) timed interleaved in one process,
 ``frame_ratio`` (after / before), ``mean_ratio`` ``{method: mean / reference mean}`` at the
 middle spp, ``record_mb`` (sparse tensors) and ``frozen_mb`` ``{method: MB}``, ``goals``
-(the issue's acceptance goals, each with its figures), ``load`` (1-min load average at the
+(the issue's acceptance goals, each with its figures), ``budget`` (per region and material:
+the hi-spp noise, the bias left at hi spp, the reference's own noise and each method's excess
+over that bias; see :func:`_budget`), ``load`` (1-min load average at the
 start and end of each part). Edited material: exponent 1000 and another colour, a material
 the denoisers never saw (they see only guides and basis images).
 
@@ -53,7 +55,14 @@ import numpy as np
 import torch
 
 from torch_brdf.data import cache_path
-from torch_brdf.denoise import RegressionFilter, RegressionSettings, glossy_objects, oidn_frame
+from torch_brdf.denoise import (
+    EdgeAwareFilter,
+    RegressionFilter,
+    RegressionSettings,
+    glossy_objects,
+    guide_buffers,
+    oidn_frame,
+)
 from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
@@ -103,17 +112,17 @@ def _cached(folder: Path, what: str, settings: dict, scene, compute):
     return arrays, meta
 
 
-def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int):
+def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int, seed: int = 7):
     """(image, label): Mitsuba llvm when it runs, else our MIS reference tracer."""
     try:
         from torch_brdf.transport import mitsuba as tm
 
         if tm.mitsuba_available() and tm.default_variant().startswith("llvm"):
-            img = tm.render_mitsuba(scene, spp=spp_mitsuba, max_bounces=bounces, seed=7)
+            img = tm.render_mitsuba(scene, spp=spp_mitsuba, max_bounces=bounces, seed=seed)
             return img, f"mitsuba {tm.default_variant()} {spp_mitsuba} spp"
     except ImportError:
         pass
-    img = reference_path_trace(scene, spp=spp_ours, max_bounces=bounces, seed=7, progress=False)
+    img = reference_path_trace(scene, spp=spp_ours, max_bounces=bounces, seed=seed, progress=False)
     return img, f"reference_path_trace (MIS) {spp_ours} spp"
 
 
@@ -294,6 +303,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             out["flip_edited"][m][key] = hdr_flip(img_e, ref_e, mask)
             out["denoise_s"][m][key] = meta["denoise_s"][m]
         if key == mid:
+            at_mid, mid_meta = a, meta
             out["record_mb"] = meta["record_mb"]
             out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
             out["regression_settings"] = xmeta["settings_regression"]
@@ -323,6 +333,51 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     out["flip"]["none"][top] = hdr_flip(a, ref, mask)
     out["flip_edited"]["none"][top] = hdr_flip(b, ref_e, mask)
     out["goals"] = _goals(out, mid, top)
+
+    def check():  # a second, independent reference at a quarter of the spp: the reference's own noise
+        img, label = _reference(scene, cfg["ref_spp"] // 4, cfg["ref_spp_ours"] // 4, bounces, seed=8)
+        return {"ref": img}, {"label": label}
+
+    second, _ = _cached(folder, "reference_check", {"ref_spp": cfg["ref_spp"], "b": bounces}, scene, check)
+    g, gl = guide_buffers(scene), mid_meta["glossy"]
+    filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
+    out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
+    return out
+
+
+def _budget(hi, at_mid, ref, ref_e, second_ref, regions, mask, filters) -> dict:
+    """Where each method's error at the middle spp comes from, per region and material, as
+    relative RMS figures (squares add): ``noise_hi`` (the hi-spp mean's noise, from the spread
+    of its independent runs), ``bias_hi`` (what is left of the hi-spp error: the series' and
+    model's bias plus the reference's noise), ``ref_noise`` (the reference's own noise, from a
+    second reference at a quarter of the spp and another seed; default material), ``excess``
+    ``{method: sqrt(err^2 - bias_hi^2)}`` (what a denoiser adds or leaves: residual noise and
+    blur; the goal needs it <= noise_hi) and ``blur_le`` ``{linear filter: |A m - m|}`` on the
+    hi-spp mean m (an upper bound of the filter's blur: it includes the part of m's noise the
+    filter removes)."""
+    out = {}
+    regions = {**regions, "all": mask}
+    for suf, r_img in (("", ref), ("_e", ref_e)):
+        runs = torch.stack(hi["none" + suf]).double()
+        m, var = runs.mean(0), runs.var(0) / runs.shape[0]
+        rd = r_img.double()
+        for name, v in regions.items():
+            if not int(v.sum()):
+                continue
+            r2 = float((rd**2)[v].sum())
+            noise2 = float(var[v].sum()) / r2
+            bias2 = float(((m - rd) ** 2)[v].sum()) / r2 - noise2
+            row = {"noise_hi": noise2**0.5, "bias_hi": max(bias2, 0.0) ** 0.5, "excess": {}, "blur_le": {}}
+            if not suf:
+                # E|second - ref|^2 = s2 (1/n + 4/n): the reference's noise^2 s2/n is a fifth of it
+                row["ref_noise"] = (float(((second_ref.double() - rd) ** 2)[v].sum()) / 5 / r2) ** 0.5
+            for meth in METHODS:
+                e2 = float(((at_mid[meth + suf].double() - rd) ** 2)[v].sum()) / r2
+                row["excess"][meth] = max(e2 - max(bias2, 0.0), 0.0) ** 0.5
+            for meth, A in filters.items():
+                am = A(m.permute(2, 0, 1)).permute(1, 2, 0)
+                row["blur_le"][meth] = (float(((am - m) ** 2)[v].sum()) / r2) ** 0.5
+            out[name + suf] = row
     return out
 
 
