@@ -341,5 +341,7 @@ def test_regression_filter_reproduces_polynomials_and_is_linear(gen):
     assert float(A(noise)[floor].std()) < 0.6 * float(noise[floor].std())
     with pytest.raises(ValueRangeError):
         RegressionSettings(order=3)
+    with pytest.raises(ValueRangeError):
+        RegressionFilter(g, AtrousSettings())
     with pytest.raises(ShapeError):
         A(torch.zeros(3, 5, 5))
