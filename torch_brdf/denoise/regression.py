@@ -93,6 +93,8 @@ class RegressionFilter(GuideFilter):
     Attributes:
         interior: (H, W) bool pixels that are filtered (the others are left as they are).
         fallback: (H, W) bool interior pixels that use the weighted mean (too few taps).
+        weights: ((2r + 1)², H, W) float32 hat weights, one plane per window offset (at the
+            default r = 5, 121 planes: 32 MB at 256², 127 MB at 512²).
     """
 
     def __init__(self, guides: GuideBuffers, settings: RegressionSettings | None = None, glossy=()):
