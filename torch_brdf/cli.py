@@ -742,13 +742,15 @@ def relight(
     check_real(rotate, "--rotate")
     if exposure is not None:
         check_real(exposure, "--exposure")
+    if error is not None and psnr is not None:
+        raise ValueRangeError("give --error or --psnr, not both")
+    if psnr is not None:
+        check_real(psnr, "--psnr")
     sc = load_scene(scene, resolution, width, height)
     coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
-    if error is not None and psnr is not None:
-        raise ValueRangeError("give --error or --psnr, not both")
     plan = None
     if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
         from .render.relight_plan import plan_relighting, planned_renderer
