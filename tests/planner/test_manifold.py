@@ -58,9 +58,26 @@ def test_achieved_heldout_median_within_1_5x_of_predicted(planned):
     assert 1 / 1.5 <= ratio <= 1.5, f"achieved / predicted = {ratio:.3f}"
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize(
+    "seed",
+    [
+        1,
+        2,
+        pytest.param(
+            3,
+            marks=pytest.mark.xfail(
+                reason="known gap (#17): this order's plan is the whole pool (n = 34), beyond the "
+                "pilots (n <= 17); the power law from n = 8 to 17 predicted 0.0085 and 0.0035 was "
+                "reached (0.41x: on the safe side, but outside 1.5x)",
+                strict=False,
+            ),
+        ),
+    ],
+)
 def test_prediction_holds_for_other_pool_orders(family, seed):
-    """The same check for other seeded orders of the pool (other validation sets and ladders)."""
+    """The same check for other seeded orders of the pool (other validation sets and ladders).
+    Orders 0-2 plan n = 17 (a measured size, its level cross-fitted); order 3 plans n = 34,
+    extrapolated."""
     obs, test, pool = family
     plan = plan_manifold(obs, pool, error=0.01, generator=torch.Generator().manual_seed(seed), **FIT)
     ratio = _achieved_ratio(obs, test, plan)
