@@ -10,9 +10,9 @@ requires, from cheap measurements:
 * **bounces and spp together**: for each number of bounces :math:`N` the pilots give the tail
   :math:`\|\sum_{k>N} B^k\| / \|B\|` (less what the pilots' own noise adds to it), the
   band error and the noise of the first :math:`N` bounces; the spp that reach the budget with
-  :math:`N` bounces follow, and the plan takes the :math:`N` of least predicted cost (a
-  shorter series is cheaper per path, linear in :math:`N`, but leaves the noise less of the
-  budget), among those whose tail is at most :math:`0.6e`;
+  :math:`N` bounces follow, and the plan takes the :math:`N` of least cost in ray units
+  (:func:`_path_cost` x spp: a shorter series is cheaper per path but leaves the noise less of
+  the budget), among those whose tail is at most :math:`0.6e`;
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
   weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
@@ -553,9 +553,10 @@ def plan_from_pilots(
             shares[n] = b / v1 if v1 > 0 else 0.0
             ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
 
-    def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float]:
+    def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float, float]:
         # the cheapest spp (map) with n bounces and k eye light samples for the error within the
-        # time budget: its mean spp, map, cost and error
+        # time budget: its mean spp, map, seconds, error and ray units per pixel (the cost the
+        # plan minimises: the pilots' seconds are too short to rank options on a loaded machine)
         c = cost[n] + (k - 1) * extra * hit
         rate = rate_max * n / n_max * float(c.mean() / cost[n].mean())
         var = pixvar[n] * ratios[n][k]
@@ -577,10 +578,11 @@ def plan_from_pilots(
                 m,
                 fixed_s + rate * eff,
                 math.sqrt(bias2 + float((var / m).sum()) / norm**2),
+                float((c * m).mean()),
             )
         spp_err = None if share2 is None else max(1, math.ceil(sigma**2 / share2))
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
-        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp)
+        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp), float(c.mean()) * spp
 
     # bounces, eye light samples and spp together (a shorter series is cheaper per path but
     # needs more paths for what its tail takes from the budget): for an error, the cheapest
@@ -591,10 +593,10 @@ def plan_from_pilots(
         nk for nk in options if nk[0] == n_max
     ]
     if error is not None:
-        bounces, light_samples = min(allowed, key=lambda nk: (options[nk][2], nk))
+        bounces, light_samples = min(allowed, key=lambda nk: (options[nk][4], nk))
     else:
         bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
-    spp, spp_map, predicted_seconds, predicted = options[bounces, light_samples]
+    spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
     if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
