@@ -111,6 +111,10 @@ NAMED = [
     (("lights", 2, "rotation_deg"), math.nan, r"lights\[2\].rotation_deg"),
     (("lights", 1, "direction"), [0.0, math.inf, 0.0], r"lights\[1\].direction"),
     (("lights", 0, "radiance"), [1.0, math.nan, 1.0], r"lights\[0\].radiance"),
+    # beyond float32 (the lights' buffers): the render came out Inf, refused only after it
+    (("lights", 1, "irradiance"), 1e300, r"lights\[1\].irradiance"),
+    (("lights", 0, "radiance"), [1.0, 1e39, 1.0], r"lights\[0\].radiance"),
+    (("objects", 1, "vertices", 0), [-0.5, 1e300, -0.5], r"objects\[1\].vertices\[0\]"),
     (("lights", 2, "height"), 100000, r"lights\[2\].height"),
     (("materials", "white", "albedo"), "red", "materials.white.albedo"),
     (("materials", "shiny", "exponent"), math.inf, "materials.shiny.exponent"),
