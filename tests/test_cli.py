@@ -79,6 +79,26 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert bad.exit_code == 2
 
 
+def test_edit_checks_its_scene_and_changes_models(tmp_path):
+    out = tmp_path / "t.npz"
+    args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--spp", "1", "--series", "2,1", "--out", str(out)]
+    assert runner.invoke(app, args).exit_code == 0
+    edit = ["edit", str(out), "--out", str(tmp_path / "e")]
+    # a lambert wall made glossy: the scene's albedo was kept and Blinn-Phong refused it
+    res = runner.invoke(app, [*edit, "--set", "left.type=blinn_phong", "--set", "left.exponent=50"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout.splitlines()[-1])["materials"]["left"] == {"type": "blinn_phong", "exponent": 50}
+    res = runner.invoke(app, [*edit, "--set", "back.ks=0.2", "--set", "back.type=phong"])  # phong keeps kd, ks, n
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, [*edit, "--set", "back.type=lambert"])  # blinn_phong's kd/ks are not lambert's
+    assert res.exit_code == 0, res.output
+    # another scene's objects: its materials were rendered onto the tensors' objects without a word
+    toml = tmp_path / "other.toml"
+    toml.write_text(RELIGHT_TOML)
+    bad = runner.invoke(app, [*edit, "--scene", str(toml)])
+    assert bad.exit_code == 2 and "does not match the tensors" in bad.output
+
+
 RELIGHT_TOML = """
 name = "tiny_relight"
 [camera]

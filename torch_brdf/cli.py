@@ -359,6 +359,37 @@ def precompute(
     typer.echo(json.dumps(info))
 
 
+def _tensors_scene(T, scene: str | None, resolution: int):
+    """The scene of saved polynomial tensors ``T``: ``--scene``, else the name saved in them; its
+    objects must be the tensors' (another scene's materials would be rendered onto them)."""
+    name = scene or str(T.meta.get("scene", ""))
+    try:
+        sc = load_scene(name, resolution)
+    except SceneError as exc:
+        if scene is not None:
+            raise
+        raise SceneError(f"{exc}; the tensors were precomputed from scene {name!r}: pass it with --scene") from None
+    names = [o.name for o in sc.objects]
+    if names != list(T.object_names):
+        raise SceneError(
+            f"scene {sc.name!r} does not match the tensors: they hold objects {list(T.object_names)}, "
+            f"the scene {names}; pass the precomputed scene with --scene"
+        )
+    return sc
+
+
+def _retyped(material: dict, kind) -> dict:
+    """``--set OBJECT.type=KIND``: a ``kind`` material keeping the parameters that model takes."""
+    import inspect
+
+    from .brdf.base import model_class
+
+    params = inspect.signature(model_class(str(kind)).__init__).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return {**material, "type": kind}
+    return {"type": kind, **{k: v for k, v in material.items() if k in params and k != "self"}}
+
+
 def _parse_set(item: str) -> tuple[str, str, object]:
     """``OBJECT.PARAM=VALUE`` -> (object, param, value); VALUE is JSON or else a plain word."""
     key, sep, raw = item.partition("=")
@@ -393,14 +424,19 @@ def edit(
     if exposure is not None:
         check_real(exposure, "--exposure")
     T = PolynomialTensors.load(tensors)
-    sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
+    sc = _tensors_scene(T, scene, 16)
     editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
     by_name = {o.name: o for o in sc.objects}
-    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
-    for obj, param, value in edits:
+    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable}
+    for obj, param, _ in edits:
         if obj not in materials:
             raise SceneError(f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}")
-        materials[obj][param] = value
+    for obj, param, value in edits:  # a new model first: it keeps only the scene's parameters it takes
+        if param == "type":
+            materials[obj] = _retyped(materials[obj], value)
+    for obj, param, value in edits:
+        if param != "type":
+            materials[obj][param] = value
     t0 = time.perf_counter()
     image = PolynomialRenderer(T, materials)().detach()
     seconds = time.perf_counter() - t0
@@ -629,7 +665,7 @@ def fit_image_cmd(
     t0 = time.perf_counter()
     if source.endswith(".npz") and Path(source).is_file():
         T = PolynomialTensors.load(source)
-        sc = load_scene(scene or T.meta.get("scene", ""), T.width)
+        sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
         T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
