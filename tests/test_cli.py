@@ -75,6 +75,10 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert T.bases[T.object_id("left")].J == 2 and not (tmp_path / "t.tiles").exists()
     bad = runner.invoke(app, [*args, "--bases", "{not json"])
     assert bad.exit_code == 2 and "JSON" in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"j": 2}}'])  # was an internal error (TypeError)
+    assert bad.exit_code == 2 and "--bases left: unknown key(s) ['j']; known keys: ['J'," in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"fresnel": "yes"}}'])  # was taken as true
+    assert bad.exit_code == 2 and "--bases left.fresnel must be true or false" in bad.output
     bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
     assert bad.exit_code == 2
 

@@ -316,7 +316,10 @@ def precompute(
     ray: str = RAY,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
+    from dataclasses import fields
+
     from .records.cache import remove_cache
+    from .records.polynomial import ObjectBasis
     from .transport.polynomial import Series, precompute_polynomial
 
     # every option is checked before the scene is loaded and the precompute starts
@@ -328,8 +331,14 @@ def precompute(
     for name, spec in (overrides or {}).items():
         if not isinstance(spec, dict):
             raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
+        known = [f.name for f in fields(ObjectBasis)]
+        unknown = sorted(set(spec) - set(known))
+        if unknown:
+            raise ValueRangeError(f"--bases {name}: unknown key(s) {unknown}; known keys: {known}")
         if "J" in spec:
             check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
+        if not isinstance(spec.get("fresnel", False), bool):
+            raise ValueRangeError(f"--bases {name}.fresnel must be true or false; got {spec['fresnel']!r}")
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
