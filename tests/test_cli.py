@@ -96,6 +96,9 @@ def test_edit_checks_its_scene_and_changes_models(tmp_path):
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, [*edit, "--set", "back.type=lambert"])  # blinn_phong's kd/ks are not lambert's
     assert res.exit_code == 0, res.output
+    for value in ("back.kd=[0.5,0.5,inf]", "back.exponent=inf", "back.exponent=NaN"):  # was "invalid data type 'str'"
+        bad = runner.invoke(app, [*edit, "--set", value])
+        assert bad.exit_code == 2 and "numbers must be finite" in bad.output, bad.output
     # another scene's objects: its materials were rendered onto the tensors' objects without a word
     toml = tmp_path / "other.toml"
     toml.write_text(RELIGHT_TOML)

@@ -19,6 +19,7 @@ import errno
 import functools
 import hashlib
 import json
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -406,10 +407,16 @@ def _parse_set(item: str) -> tuple[str, str, object]:
     if not sep or not dot or not obj or not param:
         raise ValueRangeError(f"--set expects OBJECT.PARAM=VALUE (e.g. back.exponent=400); got {item!r}")
     try:
-        value = json.loads(raw)
+        value = json.loads(raw, parse_constant=lambda c: _not_finite(item))
     except json.JSONDecodeError:
+        if re.search(r"(?i)\b(nan|inf|infinity)\b", raw):  # [0.5,0.5,inf] went on as a string
+            _not_finite(item)
         value = raw.strip()
     return obj, param, value
+
+
+def _not_finite(item: str):
+    raise ValueRangeError(f"--set {item!r}: numbers must be finite (no nan or inf)")
 
 
 @app.command()
