@@ -122,6 +122,20 @@ NAMED = [
 ]
 
 
+# values of the right type the BRDF refuses: refused only once rendering (or a precompute) began
+MATERIAL_VALUES = [
+    ("exponent", -5.0, r"BlinnPhong.exponent must lie in \[0.001, 10000\]; got -5.0"),
+    ("exponent", "abc", "bad parameters for BRDF model 'blinn_phong'"),
+    ("ks", 1.5, r"must lie in \[0.0, 1.0\]"),
+]
+
+
+@pytest.mark.parametrize(("param", "value", "words"), MATERIAL_VALUES)
+def test_material_values_the_brdf_refuses_raise_scene_error_at_load(folder, param, value, words):
+    with pytest.raises(SceneError, match=rf"^materials.shiny: .*{words}"):
+        Scene.from_toml(write_scene(folder, mutated(("materials", "shiny", param), "set", value)))
+
+
 @pytest.mark.parametrize(("path", "value", "key"), NAMED, ids=[n[2].replace("\\", "") for n in NAMED])
 def test_bad_values_raise_scene_error_naming_the_key(folder, path, value, key):
     with pytest.raises(SceneError, match=rf"^{key}: expected"):

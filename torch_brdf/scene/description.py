@@ -206,7 +206,19 @@ def _material(v, key: str) -> dict[str, Any]:
     for k in ("albedo", "kd", "ks"):
         if k in v:
             _rgb(v[k], f"{key}.{k}")
+    if kind not in _DATA_MODELS:  # values in range (exponent = -5, "abc"): before any long work
+        from ..brdf.base import create
+        from ..errors import TorchBRDFError
+
+        try:
+            create(dict(v))
+        except TorchBRDFError as exc:
+            raise SceneError(f"{key}: {exc}") from None
     return dict(v)
+
+
+#: models built from data files (read when the scene is rendered, not when it is checked)
+_DATA_MODELS = ("merl", "nbrdf")
 
 
 def _plain_value(v, key: str) -> None:
