@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -297,3 +298,11 @@ def test_sizes_beyond_the_caps_are_usage_errors():
     for args in (["demo", "--resolution", "100000"], ["render", "cornell_box", "--spp", str(2**40)]):
         res = runner.invoke(app, args)
         assert res.exit_code == 2 and "Traceback" not in res.stderr and "Invalid value" in res.stderr
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc (a folder that refuses files)")
+def test_an_output_folder_that_refuses_files_is_an_io_error():
+    # OpenEXR's RuntimeError there was reported as "internal error ... report the traceback"
+    res = runner.invoke(app, [*RENDER, "--out", "/proc/refused"])
+    assert res.exit_code == 1 and "internal error" not in res.output and "/proc/refused.exr" in res.output
+
