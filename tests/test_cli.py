@@ -306,3 +306,7 @@ def test_an_output_folder_that_refuses_files_is_an_io_error():
     res = runner.invoke(app, [*RENDER, "--out", "/proc/refused"])
     assert res.exit_code == 1 and "internal error" not in res.output and "/proc/refused.exr" in res.output
 
+
+def test_render_with_neither_scene_nor_mesh_says_so():
+    res = runner.invoke(app, ["render", "--envmap", "sky.exr"])  # was "..., not both"
+    assert res.exit_code == 2 and "neither was given" in res.output

@@ -167,7 +167,8 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
     from .scene import EnvironmentMap, mesh_scene
 
     if (spec is None) == (mesh is None):
-        raise ValueRangeError("give a SCENE (built-in name or TOML file) or --mesh FILE, not both")
+        which = "not both" if mesh is not None else "neither was given"  # `render --envmap X` said "not both"
+        raise ValueRangeError(f"give a SCENE (built-in name or TOML file) or --mesh FILE; {which}")
     for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
         if path is not None and not path.is_file():
             raise SceneError(f"{option}: no such file: {path}")
