@@ -330,3 +330,10 @@ def test_an_output_folder_that_refuses_files_is_an_io_error():
 def test_render_with_neither_scene_nor_mesh_says_so():
     res = runner.invoke(app, ["render", "--envmap", "sky.exr"])  # was "..., not both"
     assert res.exit_code == 2 and "neither was given" in res.output
+
+
+def test_relight_without_an_environment_map_says_so_before_reading_the_record(tmp_path):
+    toml = tmp_path / "dark.toml"
+    toml.write_text(RELIGHT_TOML.split("[[lights]]")[0])
+    res = runner.invoke(app, ["relight", str(toml), "--visibility", str(tmp_path / "none.npz")])
+    assert res.exit_code == 2 and "relight needs an environment map" in res.output  # not "array file not found"

@@ -800,6 +800,8 @@ def relight(
     if psnr is not None:
         check_real(psnr, "--psnr")
     sc = load_scene(scene, resolution, width, height)
+    if sc.environment is None:  # before the record loads; the renderer's "pass envmap=" is the API's
+        raise SceneError(f"relight needs an environment map; scene {sc.name!r} has none (add an envmap light)")
     coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
