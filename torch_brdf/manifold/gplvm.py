@@ -211,6 +211,7 @@ def fit_gplvm(
     callback: Callable[[int, float], None] | None = None,
     warmup_mu: float | None = WARMUP_MU,
     warmup_fraction: float = 0.2,
+    tol_window: int = 1,
 ) -> GPLVMFit:
     r"""Maximise the GPLVM log-likelihood (seed Eq. 6) over the latents, from a PCA start.
 
@@ -222,7 +223,9 @@ def fit_gplvm(
         method: ``"lbfgs"`` (exact gradient, strong-Wolfe line search, monotone), ``"adam"``
             (autograd, step halving on a decrease) or ``"hooke-jeeves"`` (the seed's direct search).
         max_iter: iterations (L-BFGS/Adam steps; Hooke–Jeeves sweeps over all coordinates).
-        tol: stop when an iteration improves L by less than ``tol * |L|``.
+        tol, tol_window: stop when the last ``tol_window`` iterations together improved L by less
+            than ``tol * |L|`` (``tol_window > 1``: L-BFGS only; on this multimodal objective single
+            iterations can gain little just before a larger gain, so a window is the safer test).
         init: (N, q) starting latents (default :func:`pca_latents`).
         normalise: divide S by :math:`\operatorname{tr}(S)/(Nd)` (unit mean square entries).
         jitter_floor, jitter_cap: Cholesky jitter escalation (x10 steps) when :math:`K` is not
@@ -273,21 +276,25 @@ def fit_gplvm(
             raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
     if not 0 <= warmup_fraction < 1:
         raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
+    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
+        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+    window = {"window": tol_window} if method == "lbfgs" else {}
     meta = {}
     n_warm = round(warmup_fraction * max_iter)
     if method == "lbfgs" and warmup_mu is not None and warmup_mu > mu and n_warm > 0:
         jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
         with small_matrix_mode(n):
             x0, hist_w, _, _ = _fit_lbfgs(x0, s, d, lengthscale, warmup_mu, jw, n_warm, tol, lr, progress, None,
-                                          jitter_floor, jitter_cap, autograd)  # fmt: skip
+                                          jitter_floor, jitter_cap, autograd, **window)  # fmt: skip
         meta["warmup"] = {"mu": float(warmup_mu), "iterations": len(hist_w) - 1, "seconds": time.perf_counter() - t0}
         max_iter -= n_warm
     jitter = _initial_jitter(x0, lengthscale, mu, jitter_floor, jitter_cap)
     with small_matrix_mode(n):
         run = {"lbfgs": _fit_lbfgs, "adam": _fit_adam, "hooke-jeeves": _fit_hooke_jeeves}[method]
         x, hist, rejected, jitter = run(
-            x0, s, d, lengthscale, mu, jitter, max_iter, tol, lr, progress, callback, jitter_floor, jitter_cap, autograd
-        )
+            x0, s, d, lengthscale, mu, jitter, max_iter, tol, lr, progress, callback, jitter_floor, jitter_cap,
+            autograd, **window,
+        )  # fmt: skip
     seconds = time.perf_counter() - t0
     if not bool(torch.isfinite(x).all()):  # pragma: no cover - guarded by the accept test
         raise NumericalError("GPLVM latents became non-finite")
@@ -421,13 +428,15 @@ def _two_loop(g: np.ndarray, pairs: list[tuple[np.ndarray, np.ndarray, float]]) 
     return qv
 
 
-def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20):
+def _fit_lbfgs(
+    x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20, window=1
+):
     """L-BFGS ascent (two-loop recursion), strong-Wolfe line search with Armijo backtracking as fallback.
 
     Monotone by construction: a step is taken only if it raises L by at least
     ``1e-4 * t * g.p``; when no step length passes, the curvature memory is dropped and a
     gradient step is tried; when that fails too, the fit stops (a local optimum to
-    numerical precision).
+    numerical precision). Stops when L rose by less than ``tol * |L|`` over ``window`` iterations.
     """
     x = x0.clone()
     f, g = _value_and_grad(x, s, d, ell, mu + jitter, autograd)
@@ -475,9 +484,9 @@ def _fit_lbfgs(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback,
             pairs.append((sk, yk, 1.0 / sy))
             if len(pairs) > memory:
                 pairs.pop(0)
-        done = _converged(f, fn, tol)
         x, f, gf = xn, fn, gnf
         hist.append(f)
+        done = len(hist) > window and _converged(hist[-1 - window], f, tol)
         if callback is not None:
             callback(it, f)
         bar.set_postfix(loglik=f"{f:.6g}", refresh=False)
