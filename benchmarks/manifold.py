@@ -510,10 +510,12 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--negatives", choices=NEGATIVES, default="penalise", help="held-out placement (project_perceptual)"
     )
+    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
     ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
     args = ap.parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
-    place = {"negatives": args.negatives, "max_columns": args.max_columns or None}
+    place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
+    place["max_columns"] = args.max_columns or None
     quick = args.quick
     max_iter = args.max_iter or (200 if quick else 1000)
     out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}

@@ -385,6 +385,8 @@ def test_signed_log_mapping_charges_negative_values():
     t = _signed_logmap(torch.tensor([0.0, 0.1, 5.0], dtype=torch.float64), c)
     neg = _signed_logmap(torch.tensor([-1e-4, -0.2, -3.0], dtype=torch.float64), c)
     assert bool(((neg - t).abs() > t.abs()).all())
+    torch.testing.assert_close(_signed_logmap(-v, c, negative_weight=10.0), -10.0 * _signed_logmap(v, c))
+    torch.testing.assert_close(_signed_logmap(v, c, negative_weight=10.0), _signed_logmap(v, c), rtol=0, atol=0)
 
 
 def test_perceptual_placement_options():
@@ -402,13 +404,15 @@ def test_perceptual_placement_options():
     z = obs.rows(names[12:13]).double()[0]
     full = project_perceptual(m, z_tr, z, cos, max_columns=None)
     torch.testing.assert_close(project_perceptual(m, z_tr, z, cos, max_columns=z_tr.shape[1]), full, rtol=0, atol=0)
-    for negatives in ("penalise", "free"):
+    for negatives, weight in (("penalise", 1.0), ("penalise", 10.0), ("free", 1.0)):
         for cols in (None, 97):
-            x = project_perceptual(m, z_tr, z, cos, negatives=negatives, max_columns=cols)
+            x = project_perceptual(m, z_tr, z, cos, negatives=negatives, negative_weight=weight, max_columns=cols)
             err = float(((_logmap(m.predict(x), cos) - _logmap(z, cos)) ** 2).mean())
             nearest = float(((_logmap(z_tr, cos) - _logmap(z, cos)) ** 2).mean(-1).min())
             assert err <= nearest + 1e-12
     with pytest.raises(ValueRangeError, match="negatives"):
         project_perceptual(m, z_tr, z, cos, negatives="clamp")
+    with pytest.raises(ValueRangeError, match="negative_weight"):
+        project_perceptual(m, z_tr, z, cos, negative_weight=0.5)
     with pytest.raises(ValueRangeError, match="max_columns"):
         project_perceptual(m, z_tr, z, cos, max_columns=0)

@@ -70,15 +70,16 @@ def _logmap(z: torch.Tensor, cos: torch.Tensor, eps: float = 1e-3) -> torch.Tens
     return torch.log(z.clamp_min(0) * _cos_columns(cos, z.shape[-1]) + eps)
 
 
-def _signed_logmap(v: torch.Tensor, c: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+def _signed_logmap(v: torch.Tensor, c: torch.Tensor, eps: float = 1e-3, negative_weight: float = 1.0) -> torch.Tensor:
     r""":math:`\operatorname{sign}(v)\log(1 + |v| c / \epsilon)`: (..., d), ``c`` the per-column cosine (d,).
 
     For :math:`v \ge 0` it differs from :func:`_logmap` by the constant :math:`\log\epsilon`, so
     differences of non-negative values are those of the log-relative RMSE; a negative value
-    lands as far below zero as its magnitude would land above it (continuous, with a finite
-    slope :math:`c/\epsilon` at 0).
+    lands ``negative_weight`` times as far below zero as its magnitude would land above it
+    (continuous, with finite slopes at 0).
     """
-    return torch.sign(v) * torch.log1p(v.abs() * c / eps)
+    m = torch.sign(v) * torch.log1p(v.abs() * c / eps)
+    return m if negative_weight == 1.0 else torch.where(v < 0, negative_weight * m, m)
 
 
 #: placement error options of :func:`project_perceptual`
@@ -94,6 +95,7 @@ def project_perceptual(
     max_iter: int = 30,
     *,
     negatives: str = "penalise",
+    negative_weight: float = 1.0,
     max_columns: int | None = 8192,
     train_map: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -122,6 +124,8 @@ def project_perceptual(
         model: a fitted :class:`GPLVM`. z_train: (N, d) its raw rows. z_new: (d,) the new BRDF.
         cosine: (B,) or (d,) clipped cosine map. starts: starting points. max_iter: per start.
         negatives: ``"penalise"`` or ``"free"`` (above).
+        negative_weight: with ``"penalise"``, the factor (>= 1) on the mapped negative values: a
+            larger weight trades a little log-RMSE for fewer negative values (README, "BRDF manifold").
         max_columns: columns the L-BFGS search evaluates (None = all).
         train_map: optional (N, d) :func:`_logmap` of ``z_train`` (computed when None; pass it
             when placing many materials against the same training rows).
@@ -130,6 +134,8 @@ def project_perceptual(
     """
     if negatives not in NEGATIVES:
         raise ValueRangeError(f"negatives must be one of {NEGATIVES}; got {negatives!r}")
+    if not (math.isfinite(negative_weight) and negative_weight >= 1):
+        raise ValueRangeError(f"negative_weight must be finite and >= 1; got {negative_weight}")
     if max_columns is not None and max_columns < 1:
         raise ValueRangeError(f"max_columns must be >= 1 or None; got {max_columns}")
     z_train = torch.as_tensor(z_train, dtype=torch.float64)
@@ -137,14 +143,15 @@ def project_perceptual(
     d = z_train.shape[1]
     c = _cos_columns(cosine, d)
     penalise = negatives == "penalise"
-    target = _signed_logmap(z_new, c) if penalise else _logmap(z_new, cosine)
+    target = _signed_logmap(z_new, c, negative_weight=negative_weight) if penalise else _logmap(z_new, cosine)
     step = 1 if max_columns is None else max(1, math.ceil(d / max_columns))
     cols = slice(None, None, step)
     zc_sub, c_sub, t_sub = z_train[:, cols], c[cols], target[cols]
 
     def error(x: torch.Tensor) -> float:
         p = model.predict(x)
-        return float((((_signed_logmap(p, c) if penalise else _logmap(p, cosine)) - target) ** 2).mean())
+        m = _signed_logmap(p, c, negative_weight=negative_weight) if penalise else _logmap(p, cosine)
+        return float(((m - target) ** 2).mean())
 
     if train_map is None:
         train_map = _logmap(z_train, cosine)
@@ -160,7 +167,7 @@ def project_perceptual(
                 opt.zero_grad()
                 p = _weights_differentiable(model, x) @ zc_sub
                 if penalise:
-                    m = _signed_logmap(p, c_sub)
+                    m = _signed_logmap(p, c_sub, negative_weight=negative_weight)
                 else:
                     m = torch.log(torch.nn.functional.softplus(p * c_sub, beta=1e4) + 1e-3)
                 e = ((m - t_sub) ** 2).mean()
@@ -194,6 +201,7 @@ def heldout_reconstruction(
     continuous: bool = False,
     metric: str = "log",
     negatives: str = "penalise",
+    negative_weight: float = 1.0,
     max_columns: int | None = 8192,
     **fit_kwargs,
 ) -> HeldOut:
@@ -217,8 +225,8 @@ def heldout_reconstruction(
         starts: starting points of the projection. fit_kwargs: passed to :func:`fit_gplvm`.
         continuous: predict with the smooth GP mean (:class:`GPLVM` ``continuous=True``).
         metric: ``"log"`` or ``"weighted"`` (see above).
-        negatives, max_columns: how :func:`project_perceptual` treats negative predicted values
-            and how many columns its search evaluates (``metric="log"`` only).
+        negatives, negative_weight, max_columns: how :func:`project_perceptual` treats negative
+            predicted values and how many columns its search evaluates (``metric="log"`` only).
     """
     if metric not in ("log", "weighted"):
         raise ValueRangeError(f"metric must be 'log' or 'weighted'; got {metric!r}")
@@ -234,8 +242,9 @@ def heldout_reconstruction(
     for z in z_te:
         if metric == "log":
             x = project_perceptual(
-                model, z_tr, z, cos, starts=starts, negatives=negatives, max_columns=max_columns, train_map=train_map
-            )
+                model, z_tr, z, cos, starts=starts, negatives=negatives, negative_weight=negative_weight,
+                max_columns=max_columns, train_map=train_map,
+            )  # fmt: skip
             nearest.append(z_tr[int(((train_map - _logmap(z, cos)) ** 2).mean(-1).argmin())])
         else:
             g_mat, g_vec, c = projection_terms(z_tr, z, weights=w)
