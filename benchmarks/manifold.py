@@ -334,18 +334,20 @@ def wolfe_peer(obs: Observations, q: int, iters: int) -> dict:
     return {"loglik": float(log_likelihood(x.detach(), s, d, 1.0, MU)), "seconds": seconds}
 
 
-def heldout_study(obs: Observations, max_iter: int, splits: int = 5, with_seed: bool = True, **kwargs) -> dict:
+def heldout_study(
+    obs: Observations, max_iter: int, splits: int = 5, with_seed: bool = True, qs: tuple = (2, 3, 5), **kwargs
+) -> dict:
     """Held-out log-RMSE mean/std over random splits and family hold-outs (see the module docstring)."""
     names = list(obs.names)
     res: dict = {}
     keys = ("gplvm", "pca", "nearest", "neg", "pca_neg", "cont", "cos", "pca_cos", "proj_cos", "pca_proj_cos")
-    per: dict = {k: {q: [] for q in (2, 3, 5)} for k in keys}
+    per: dict = {k: {q: [] for q in qs} for k in keys}
     for seed in range(splits):
         perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_test = len(names) // 5
         test = sorted(names[i] for i in perm[:n_test])
         train = sorted(names[i] for i in perm[n_test:])
-        for q in (2, 3, 5):
+        for q in qs:
             for seed_config in (True, False)[0 if with_seed else 1 :]:
                 h = heldout_reconstruction(
                     obs, train, test, q, max_iter=max_iter, continuous=not seed_config,
@@ -392,7 +394,7 @@ def heldout_study(obs: Observations, max_iter: int, splits: int = 5, with_seed: 
         for family in ("metallic-paint", "phenolic", "fabric"):
             test = [n for n in names if family in n]
             train = [n for n in names if family not in n]
-            for q in (2, 3, 5):
+            for q in qs:
                 h = heldout_reconstruction(
                     obs, train, test, q, max_iter=max_iter, mu=MU, continuous=True,
                     generator=torch.Generator().manual_seed(0), **kwargs,
@@ -502,34 +504,8 @@ def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
     return out
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small grid and short fits")
-    ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
-    ap.add_argument("--max-iter", type=int, default=None, help="GPLVM iterations (default 1000, quick 200)")
-    ap.add_argument("--no-peer", action="store_true", help="skip the GPyTorch comparison")
-    ap.add_argument("--peer-seconds", type=float, default=900.0, help="time cap of the GPyTorch / GPy runs")
-    ap.add_argument("--tol", type=float, default=1e-10, help="fit stop: L rose by < tol |L| over --tol-window its")
-    ap.add_argument("--tol-window", type=int, default=1, help="iterations of the --tol test")
-    ap.add_argument(
-        "--negatives", choices=NEGATIVES, default="penalise", help="held-out placement (project_perceptual)"
-    )
-    ap.add_argument("--fits-only", action="store_true", help="fits, continuity and the optimiser comparison only")
-    ap.add_argument("--heldout-only", action="store_true", help="fits, continuity, optimisers, held-out study only")
-    ap.add_argument("--no-seed-config", action="store_true", help="held-out study without the seed's configuration")
-    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
-    ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
-    args = ap.parse_args(argv)
-    stop = {"tol": args.tol, "tol_window": args.tol_window}
-    place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
-    place["max_columns"] = args.max_columns or None
-    quick = args.quick
-    max_iter = args.max_iter or (200 if quick else 1000)
-    out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
-    out["settings"] = {"max_iter": max_iter, **stop, **place}
-    obs, desc = load_data(quick, args.cache)
-    out["data"] = desc
-    out["n_materials"], out["d"] = obs.z.shape
+def _fit_section(obs: Observations, max_iter: int, stop: dict, out: dict) -> dict:
+    """Fits on all materials, continuity, the optimiser comparison; fills ``out``, returns our q = 2 fit."""
     for q in (2, 5):
         r = fit_all(obs, q, max_iter, **stop)
         _log(f"q={q}: loglik {r['loglik']:.6g} in {r['seconds']:.3f} s ({r['iterations']} it), repro {r['repro']:.2e}")
@@ -562,12 +538,48 @@ def main(argv=None) -> dict:
     out["loglik_q2_no_warmup"], out["fit_s_q2_no_warmup"] = cold["loglik"], round(cold["seconds"], 4)
     _log(f"ours q=2 without the mu warm-up: {cold['loglik']:.6g} in {cold['seconds']:.2f} s")
     _log(f"strong-Wolfe L-BFGS q=2: {peer['loglik']:.6g} in {peer['seconds']:.2f} s")
+    return ours_q2
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small grid and short fits")
+    ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
+    ap.add_argument("--max-iter", type=int, default=None, help="GPLVM iterations (default 1000, quick 200)")
+    ap.add_argument("--no-peer", action="store_true", help="skip the GPyTorch comparison")
+    ap.add_argument("--peer-seconds", type=float, default=900.0, help="time cap of the GPyTorch / GPy runs")
+    ap.add_argument("--tol", type=float, default=1e-10, help="fit stop: L rose by < tol |L| over --tol-window its")
+    ap.add_argument("--tol-window", type=int, default=1, help="iterations of the --tol test")
+    ap.add_argument(
+        "--negatives", choices=NEGATIVES, default="penalise", help="held-out placement (project_perceptual)"
+    )
+    ap.add_argument("--fits-only", action="store_true", help="fits, continuity and the optimiser comparison only")
+    ap.add_argument("--heldout-only", action="store_true", help="fits, continuity, optimisers, held-out study only")
+    ap.add_argument("--qs", default="2,3,5", help="latent dimensions of the held-out study (e.g. one per process)")
+    ap.add_argument("--skip-fits", action="store_true", help="no fits / continuity / optimisers (with --heldout-only)")
+    ap.add_argument("--no-seed-config", action="store_true", help="held-out study without the seed's configuration")
+    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
+    ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
+    args = ap.parse_args(argv)
+    stop = {"tol": args.tol, "tol_window": args.tol_window}
+    place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
+    place["max_columns"] = args.max_columns or None
+    quick = args.quick
+    max_iter = args.max_iter or (200 if quick else 1000)
+    out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
+    out["settings"] = {"max_iter": max_iter, **stop, **place}
+    obs, desc = load_data(quick, args.cache)
+    out["data"] = desc
+    out["n_materials"], out["d"] = obs.z.shape
+    if not args.skip_fits:
+        ours_q2 = _fit_section(obs, max_iter, stop, out)
     if args.fits_only:
         out["load_end"] = os.getloadavg()[0]
         print(json.dumps(out))
         return out
-    out.update(heldout_study(obs, max_iter, with_seed=not args.no_seed_config, **stop, **place))
-    if args.heldout_only:
+    qs = tuple(int(v) for v in args.qs.split(","))
+    out.update(heldout_study(obs, max_iter, with_seed=not args.no_seed_config, qs=qs, **stop, **place))
+    if args.heldout_only or args.skip_fits:
         out["load_end"] = os.getloadavg()[0]
         print(json.dumps(out))
         return out
@@ -578,6 +590,7 @@ def main(argv=None) -> dict:
         hj["iterations"],
     )
     _log(f"Hooke-Jeeves q=2: {hj['loglik']:.6g} in {hj['seconds']:.2f} s")
+    model2 = ours_q2["model"]
     rate, rows = interp_rate(model2, obs.z, quick)
     out["interp_per_s"], out["predict_rows_per_s"] = round(rate), round(rows, 1)
     ends = ("chrome", "silver-paint") if obs.source == "nbrdf" else (0, 5)
