@@ -117,8 +117,9 @@ def project_perceptual(
     error; the candidates (the training latents themselves included) are scored with the exact
     error on every column and the best is kept. The search itself sees at most ``max_columns``
     columns (every k-th, evenly spread over the grid and the colour channels): its cost is
-    :math:`O(N \cdot \text{columns})` per evaluation, 8x less on the full MERL grid
-    (d = 63,339), with the held-out errors of the benchmark unchanged (README, "BRDF manifold").
+    :math:`O(N \cdot \text{columns})` per evaluation, 8x fewer columns on the full MERL grid
+    (d = 63,339): a placement there took half the CPU time (the exact scoring of the candidates
+    stays O(N d)) with the same log-RMSE to 4 digits (README, "BRDF manifold").
 
     Args:
         model: a fitted :class:`GPLVM`. z_train: (N, d) its raw rows. z_new: (d,) the new BRDF.
@@ -146,7 +147,7 @@ def project_perceptual(
     target = _signed_logmap(z_new, c, negative_weight=negative_weight) if penalise else _logmap(z_new, cosine)
     step = 1 if max_columns is None else max(1, math.ceil(d / max_columns))
     cols = slice(None, None, step)
-    zc_sub, c_sub, t_sub = z_train[:, cols], c[cols], target[cols]
+    zc_sub, c_sub, t_sub = z_train[:, cols].contiguous(), c[cols].contiguous(), target[cols].contiguous()
 
     def error(x: torch.Tensor) -> float:
         p = model.predict(x)
