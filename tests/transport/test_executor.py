@@ -72,6 +72,16 @@ def test_local_resume_and_split(scene, local, tmp_path):
     assert all(v >= 0 for v in split.values()) and split["rays"] > 0
 
 
+def test_local_processes_equal_one_process(scene, local):
+    """Tiles in two forked processes (the default on two cores) give the tensors of one process."""
+    one = precompute_polynomial(scene, **SETTINGS, processes=1)
+    two = precompute_polynomial(scene, **SETTINGS, processes=2)
+    assert one.meta["processes"] == 1 and two.meta["processes"] == 2
+    _assert_identical(one, two)
+    _assert_identical(one, local)
+    assert one.meta["rays"] == two.meta["rays"]
+
+
 def test_executor_arguments(scene):
     with pytest.raises(ValueRangeError):
         precompute_polynomial(scene, **SETTINGS, executor="dask")

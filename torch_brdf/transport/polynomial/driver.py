@@ -158,6 +158,7 @@ def precompute_polynomial(
     address: str | None = None,
     max_retries: int = 3,
     guides: bool = True,
+    processes: int | None = None,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -194,13 +195,16 @@ def precompute_polynomial(
             versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
+        processes: ``local`` only: tiles computed at once in forked processes (None: one per
+            usable core; 1: in this process, as ``paths`` needs); the tensors are the same.
     Returns:
         :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
         ``meta["split"]`` holds the profile split in seconds
         (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
         computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
         ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
-        Ray nodes that computed tiles (0 for ``local``).
+        Ray nodes that computed tiles (0 for ``local``), ``meta["processes"]`` the local
+        processes that computed tiles at once (0 for Ray).
     """
     if plan is not None:
         if isinstance(plan, str):
@@ -226,6 +230,7 @@ def precompute_polynomial(
             address=address,
             max_retries=max_retries,
             guides=guides,
+            processes=processes,
         )
         out.meta["plan"] = str(plan)
         return out
@@ -268,9 +273,8 @@ def precompute_polynomial(
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
-    ray_work = None
-    if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
-        ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
+    # Ray tasks and forked tile processes trace in their own process (one per CPU)
+    ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
@@ -311,6 +315,7 @@ def precompute_polynomial(
         ray_context=ray_work,
         meta={"settings": settings},
         consume=consume,
+        processes=1 if paths is not None else processes,
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
@@ -322,6 +327,7 @@ def precompute_polynomial(
         "tiles_cached": cached[0],
         "executor": executor,
         "ray_nodes": len(results.nodes),
+        "processes": results.processes,
     }
     view_guides = None
     meta["guides"] = None
