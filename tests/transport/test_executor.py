@@ -82,6 +82,25 @@ def test_local_processes_equal_one_process(scene, local):
     assert one.meta["rays"] == two.meta["rays"]
 
 
+def _tile_or_fail(ctx, k):
+    if k == ctx:
+        raise ValueError(f"tile {k} is bad")
+    if k == -ctx:
+        raise KeyboardInterrupt
+    return {"x": np.full(3, k)}, {"k": k}
+
+
+def test_forked_tiles_in_order_and_errors_raised_here():
+    cache = TileCache(None, "t", "k")
+    tiles = run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2)
+    assert tiles.processes == 2 and [m["k"] for _, m in tiles] == list(range(5))
+    assert all(np.array_equal(a["x"], np.full(3, k)) for k, (a, _) in enumerate(tiles))
+    with pytest.raises(ValueError, match="tile 3 is bad"):
+        run_tiles(_tile_or_fail, 3, 5, cache, progress=False, processes=2)
+    with pytest.raises(TileError, match="tile 2 stopped: KeyboardInterrupt"):  # a worker's Ctrl-C
+        run_tiles(_tile_or_fail, -2, 5, cache, progress=False, processes=2)
+
+
 def test_executor_arguments(scene):
     with pytest.raises(ValueRangeError):
         precompute_polynomial(scene, **SETTINGS, executor="dask")

@@ -31,10 +31,12 @@ from __future__ import annotations
 
 import copy
 import multiprocessing
+import signal
 import time
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
 
 import numpy as np
@@ -250,30 +252,44 @@ def run_tiles(
 _FORKED: tuple[TileFn, Any] | None = None
 
 
-def _forked_tile(k: int) -> tuple[int, TileResult]:
+def _forked_init() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which stops us
+    configure_worker(1)
+
+
+def _forked_tile(k: int) -> TileResult:
     fn, ctx = _FORKED
-    return k, fn(ctx, k)
+    try:
+        return fn(ctx, k)
+    except Exception:
+        raise
+    except BaseException as exc:  # e.g. KeyboardInterrupt: would kill the worker; report it
+        raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
 
 
 def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes: int) -> None:
     """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
-    here as each tile arrives (any order; it assembles in tile order)."""
+    here as each tile arrives (any order; it assembles in tile order). A tile's exception is
+    raised here; a process that dies (killed, out of memory) raises ``BrokenProcessPool``;
+    either way, and on Ctrl-C, the other processes are stopped."""
     global _FORKED
     prepare_fork()
     _FORKED = (fn, context)
-    try:
-        with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
-            warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
-            pool = multiprocessing.get_context("fork").Pool(processes, initializer=configure_worker, initargs=(1,))
+    with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
+        warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+        pool = ProcessPoolExecutor(processes, multiprocessing.get_context("fork"), initializer=_forked_init)
         try:
             with single_thread():
-                for k, res in pool.imap_unordered(_forked_tile, todo):
-                    finish(k, res)
+                futures = {pool.submit(_forked_tile, k): k for k in todo}
+                for f in as_completed(futures):
+                    finish(futures[f], f.result())
+        except BaseException:
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()  # running tiles are not waited for
+            raise
         finally:
-            pool.terminate()
-            pool.join()
-    finally:
-        _FORKED = None
+            pool.shutdown(wait=True, cancel_futures=True)
+            _FORKED = None
 
 
 def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta) -> None:
