@@ -265,3 +265,12 @@ def test_openmp_threads_sleep_instead_of_spinning():
     late = _python("import torch, torch_brdf, os; print(os.environ.get('OMP_WAIT_POLICY'), "
                    "torch_brdf._threads.omp_wait_policy())")  # fmt: skip
     assert late == "None default"
+
+
+def test_available_memory_reads_meminfo(tmp_path):
+    f = tmp_path / "meminfo"
+    f.write_text("MemTotal:       24000000 kB\nMemFree:  100 kB\nMemAvailable:   1234 kB\n")
+    assert th.available_memory(f) == 1234 * 1024
+    f.write_text("MemTotal:       24000000 kB\n")
+    assert th.available_memory(f) is None
+    assert th.available_memory(tmp_path / "missing") is None

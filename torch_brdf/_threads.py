@@ -6,6 +6,8 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
   else ``TORCH_BRDF_WORKERS``, else the usable cores (at most :data:`MAX_DEFAULT_WORKERS`).
 - :func:`intra_op_threads`: torch threads of the calling process; argument, else
   ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set when torch loads).
+- :func:`available_memory`: bytes the system can still give (``MemAvailable``), e.g. to bound
+  how many tiles run at once.
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
@@ -172,6 +174,17 @@ def worker_count(workers: int | None = None) -> int:
         return _positive(workers, "workers")
     env = _from_env(ENV_WORKERS)
     return env if env is not None else min(usable_cores(), MAX_DEFAULT_WORKERS)
+
+
+def available_memory(meminfo: str | os.PathLike = "/proc/meminfo") -> int | None:
+    """Bytes of memory available to new work (Linux ``MemAvailable``: free memory plus what
+    the page cache can give back); None when unknown (not Linux, unreadable)."""
+    for line in (_read(Path(meminfo)) or "").splitlines():
+        if line.startswith("MemAvailable:"):
+            parts = line.split()
+            if len(parts) >= 2 and parts[1].isdigit():
+                return int(parts[1]) * 1024  # kB
+    return None
 
 
 def intra_op_threads(threads: int | None = None) -> int:

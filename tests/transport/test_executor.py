@@ -82,6 +82,22 @@ def test_local_processes_equal_one_process(scene, local):
     assert one.meta["rays"] == two.meta["rays"]
 
 
+def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
+    """Fewer tiles at once when they would not fit in memory; the tensors stay the same."""
+    from torch_brdf.transport.polynomial import driver
+
+    monkeypatch.setattr(driver, "worker_count", lambda: 2)
+    tile_bytes = 4 * 16 * SETTINGS["spp"] * driver.TILE_BYTES_PER_PATH  # tile_rows x width x spp
+    monkeypatch.setattr(driver, "available_memory", lambda: tile_bytes + 1)
+    one = precompute_polynomial(scene, **SETTINGS)
+    assert one.meta["processes"] == 1
+    monkeypatch.setattr(driver, "available_memory", lambda: 2 * tile_bytes)
+    two = precompute_polynomial(scene, **SETTINGS)
+    assert two.meta["processes"] == 2
+    _assert_identical(one, local)
+    _assert_identical(two, local)
+
+
 def _tile_or_fail(ctx, k):
     if k == ctx:
         raise ValueError(f"tile {k} is bad")

@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from ..._checks import MAX_BANDS, check_count, check_seed
+from ..._threads import available_memory, worker_count
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
@@ -31,6 +32,20 @@ from .tracer import _Tracer
 __all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial"]
 
 TILE_KIND = "multibounce-tile"
+
+#: peak memory of a tile per path (bytes): its transient entries set it (measured 0.6-0.9 kB
+#: on the 128² box at 64-1024 spp, ../shared/FACTS.md); bounds the tiles run at once.
+TILE_BYTES_PER_PATH = 1024
+
+
+def _default_processes(tile_paths: int) -> int:
+    """Tiles at once by default: one per usable core, fewer when that many tiles would not fit
+    in the available memory (at least one)."""
+    n = worker_count()
+    free = available_memory()
+    if free is not None:
+        n = min(n, max(1, free // max(1, tile_paths * TILE_BYTES_PER_PATH)))
+    return n
 
 
 def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
@@ -196,7 +211,9 @@ def precompute_polynomial(
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
         processes: ``local`` only: tiles computed at once in forked processes (None: one per
-            usable core; 1: in this process, as ``paths`` needs); the tensors are the same.
+            usable core while that many tiles fit in the available memory at
+            :data:`TILE_BYTES_PER_PATH`; 1: in this process, as ``paths`` needs); the tensors
+            are the same.
     Returns:
         :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
         ``meta["split"]`` holds the profile split in seconds
@@ -273,6 +290,8 @@ def precompute_polynomial(
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
+    if processes is None:
+        processes = _default_processes(tile_rows * w * spp)
     # Ray tasks and forked tile processes trace in their own process (one per CPU)
     ray_work = _TileWork(single_process(scene), plan, series, mixture, lights, tile_rows, spp, group, seed)
     term_index: dict[int, dict] = {}
