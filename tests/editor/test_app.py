@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -34,6 +35,47 @@ def test_form_follows_the_model_and_refuses_typed_values(app):
     assert "tb-error" in app.message.value and "roughness" in app.message.value
     app._guard(app._on_typed, "roughness", "abc")
     assert "not a number" in app.message.value
+
+
+def _typed_box(app, name):
+    return next(
+        w
+        for row in app.panel.box.children
+        for w in getattr(row, "children", ())
+        if f"tb-typed-{name}" in w._dom_classes
+    )
+
+
+def _snapped(ctl, value):
+    """What chromium's log slider sends back for ``value``: 10 ** (the nearest grid point)."""
+    k = round((math.log10(value) - ctl.min) / ctl.step)
+    return 10 ** (ctl.min + k * ctl.step)
+
+
+def test_the_browsers_grid_echo_is_not_an_edit(app):
+    # ipywidgets' FloatLogSlider sends back every value the kernel gives it, moved to its grid
+    # (a new form's first value too); arriving after a typed value, it used to re-render, clear
+    # that value's message and overwrite the typed box (#18: "a value typed the instant a form
+    # appears is lost").
+    app.model.value = "lambert"
+    app.model.value = "GGX (cook_torrance)"
+    ctl, typed = app.controls["roughness"], _typed_box(app, "roughness")
+    start = app.session.materials["back"]["roughness"]
+    typed.value = "7"  # typed before the slider's echo arrives
+    assert "tb-error" in app.message.value and "roughness" in app.message.value
+    frame = bytes(app.frame.pixels)
+    assert _snapped(ctl, start) != start
+    ctl.value = _snapped(ctl, start)  # the echo
+    assert "tb-error" in app.message.value and typed.value == "7" and bytes(app.frame.pixels) == frame
+    assert app.session.materials["back"]["roughness"] == start
+    typed.value = "0.5"  # in range: applied exactly as typed, and its echo changes nothing
+    assert app.session.materials["back"]["roughness"] == 0.5 and "tb-error" not in app.message.value
+    ctl.value = _snapped(ctl, 0.5)
+    assert app.session.materials["back"]["roughness"] == 0.5 and typed.value == "0.5"
+    app.controls["kd"].value = "#336699"  # another edit keeps the exact roughness
+    assert app.session.materials["back"]["roughness"] == 0.5
+    ctl.value = _snapped(ctl, 0.5) * 10**ctl.step  # one step of a drag is an edit
+    assert app.session.materials["back"]["roughness"] == ctl.value and typed.value == f"{ctl.value:.4g}"
 
 
 def test_clicks_and_fixed_objects(app, small_tensors_file, small_scene):

@@ -66,6 +66,8 @@ class MaterialForm:
         self.controls: dict[str, W.Widget] = {}
         self.shown: dict[str, Any] | None = None  # the material last shown or applied
         self.busy = False  # True while controls are rebuilt (their observers stay quiet)
+        self.setting = False  # True while the kernel moves a slider to a typed value
+        self.exact: dict[str, float] = {}  # slider values kept exact under the browser's grid snap
 
     # -- showing ---------------------------------------------------------------------------------
     def choice_for(self, material: dict[str, Any]) -> ModelChoice:
@@ -92,6 +94,7 @@ class MaterialForm:
         """One control per parameter of ``choice``'s own list (see :mod:`.params`)."""
         self.busy = True
         self.controls = {}
+        self.exact = {}
         rows = []
         p = self.prefix
         for spec in choice_specs(choice):
@@ -121,10 +124,11 @@ class MaterialForm:
                 typed = W.Text(value=f"{v:.4g}", continuous_update=False, layout=W.Layout(width="90px"))
                 typed.add_class(f"{p}-typed-{spec.name}")
                 typed.observe(lambda ch, n=spec.name: self.guard(self.on_typed, n, ch["new"]), "value")
-                ctl.observe(lambda ch, t=typed: setattr(t, "value", f"{ch['new']:.4g}"), "value")
+                ctl.observe(lambda ch, s=spec, t=typed: self._slider_moved(s, t, ch), "value")
                 rows.append(W.HBox([ctl, typed]))
+            if spec.kind not in ("log", "linear"):
+                ctl.observe(lambda _c: self.changed(), "value")
             ctl.add_class(f"{p}-param-{spec.name}")
-            ctl.observe(lambda _c: self.changed(), "value")
             self.controls[spec.name] = ctl
         self.box.children = rows
         self.busy = False
@@ -140,7 +144,7 @@ class MaterialForm:
             elif isinstance(ctl, W.Textarea):
                 out[name] = text_to_curve(ctl.value, self.bands.count())
             else:
-                out[name] = float(ctl.value)
+                out[name] = self.exact.get(name, float(ctl.value))
         return out
 
     def material(self) -> dict[str, Any]:
@@ -161,10 +165,30 @@ class MaterialForm:
             value = float(text)
         except ValueError:
             raise TorchBRDFError(f"{name}: {text!r} is not a number") from None
-        if math.isclose(value, float(ctl.value), rel_tol=1e-3):
+        if math.isclose(value, self.values()[name], rel_tol=1e-3):
             return
         checked_create({**self.material(), name: value})  # out of range: raises
-        ctl.value = value
+        self.setting = True
+        try:
+            ctl.value = value
+        finally:
+            self.setting = False
+
+    def _slider_moved(self, spec, typed: W.Text, change: dict) -> None:
+        """A slider's new value. The browser's slider moves every value it is sent to its own
+        grid and sends that back (ipywidgets' ``FloatLogSlider`` does so for each value the kernel
+        sets, including a new form's first one); such an echo, within half a step of the value
+        the kernel holds, is not an edit: it neither re-renders nor clears a message shown for a
+        value typed meanwhile, and the material keeps the exact value."""
+        if self.busy:
+            return
+        held = self.exact.get(spec.name, change["old"])
+        if not self.setting and _within_half_step(spec, self.controls[spec.name].step, held, change["new"]):
+            self.exact[spec.name] = held
+            return
+        self.exact.pop(spec.name, None)
+        typed.value = f"{change['new']:.4g}"
+        self.changed()
 
     def _on_model(self, _change) -> None:
         if self.busy or self.shown is None:
@@ -183,3 +207,13 @@ class MaterialForm:
         material = self.material()
         self.on_apply(material)
         self.shown = material
+
+
+def _within_half_step(spec, step: float, held: float, new: float) -> bool:
+    """True if ``new`` is ``held`` moved to a slider grid of ``step`` (log10 units for log
+    sliders), i.e. no farther than half a step."""
+    if spec.kind == "log":
+        if held <= 0 or new <= 0:
+            return False
+        return abs(math.log10(new) - math.log10(held)) <= 0.5 * step * (1 + 1e-9)
+    return abs(new - held) <= 0.5 * step * (1 + 1e-9)
