@@ -236,7 +236,7 @@ def run_tiles(
         nproc = max(1, min(worker_count(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
         if executor == "local" and nproc > 1:
-            _run_forked(fn, ray_context, todo, finish, nproc)
+            _run_forked(fn, ray_context, todo, finish, nproc, cache, meta or {})
         elif executor == "local":
             with single_thread():
                 for k in todo:
@@ -249,7 +249,7 @@ def run_tiles(
 
 
 # what forked tile processes run: set before forking, inherited by the children
-_FORKED: tuple[TileFn, Any] | None = None
+_FORKED: tuple[TileFn, Any, TileCache, dict] | None = None
 
 
 def _forked_init() -> None:
@@ -257,24 +257,27 @@ def _forked_init() -> None:
     configure_worker(1)
 
 
-def _forked_tile(k: int) -> TileResult:
-    fn, ctx = _FORKED
+def _forked_tile(k: int) -> tuple[TileResult, bytes | None]:
+    """Tile ``k`` in a forked process, and the bytes of its checkpoint file (encoded here, as a
+    Ray task does, so the driver only writes them; None without a checkpoint folder)."""
+    fn, ctx, cache, meta = _FORKED
     try:
-        return fn(ctx, k)
+        arrays, tile_meta = fn(ctx, k)
     except Exception:
         raise
     except BaseException as exc:  # e.g. KeyboardInterrupt: would kill the worker; report it
         raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
+    return (arrays, tile_meta), cache.encode(arrays, {**meta, **tile_meta})
 
 
-def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes: int) -> None:
+def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes: int, cache, meta) -> None:
     """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
     here as each tile arrives (any order; it assembles in tile order). A tile's exception is
     raised here; a process that dies (killed, out of memory) raises ``BrokenProcessPool``;
     either way, and on Ctrl-C, the other processes are stopped."""
     global _FORKED
     prepare_fork()
-    _FORKED = (fn, context)
+    _FORKED = (fn, context, cache, meta)
     with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
         warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
         pool = ProcessPoolExecutor(processes, multiprocessing.get_context("fork"), initializer=_forked_init)
@@ -282,7 +285,8 @@ def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes
             with single_thread():
                 futures = {pool.submit(_forked_tile, k): k for k in todo}
                 for f in as_completed(futures):
-                    finish(futures[f], f.result())
+                    res, encoded = f.result()
+                    finish(futures[f], res, encoded)
         except BaseException:
             for proc in list((getattr(pool, "_processes", None) or {}).values()):
                 proc.terminate()  # running tiles are not waited for
