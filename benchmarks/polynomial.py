@@ -11,8 +11,9 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   trace those rays, measured on the first rays of a second, 8x fewer-spp run in this process
   (recorded after the timed run; the timed run's tiles may trace in forked processes) and
   scaled by the timed run's total counts; ``precompute_over_rays``: the ratio (the goal is
-  <= 1.5). ``precompute_processes``: processes that computed tiles at once; with
-  ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
+  <= 1.5). ``precompute_processes``: processes that computed tiles at once (by default one
+  per core unless the machine is busy; with ``--baseline`` one per core whatever the load),
+  and with ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
   #14's parallel tiles), ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
   calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
@@ -52,6 +53,7 @@ import time
 import numpy as np
 import torch
 
+from torch_brdf._threads import usable_cores
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
@@ -137,7 +139,8 @@ def main() -> None:
     res, spp = (64, 8) if q else (256, 64)
     sc = cornell_box_glossy(res)
     t0 = time.perf_counter()
-    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True)
+    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
+    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
     if args.baseline:  # the same precompute with its tiles in this process, one after another

@@ -13,7 +13,8 @@ culled vertices. Prints progress, then one JSON object as the last line:
 
 * ``vertices`` (all), ``shaded_vertices`` (per frame, after culling), ``precompute_s`` (the
   visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s`` (embree alone
-  on as many rays, the physical limit; chunks run in one forked process per core); with
+  on as many rays, the physical limit; chunks run in one forked process per core unless the
+  machine is busy, with ``--baseline`` whatever the load); with
   ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays on
   the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
   bit); ``visibility_bytes_per_vertex``
@@ -44,6 +45,7 @@ import time
 import torch
 from _timing import best_of
 
+from torch_brdf._threads import usable_cores
 from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
@@ -97,7 +99,8 @@ def main() -> None:
     print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
 
     t = time.perf_counter()
-    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512)
+    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
+    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512, **forked)
     precompute_s = time.perf_counter() - t
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool

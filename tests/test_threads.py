@@ -274,3 +274,14 @@ def test_available_memory_reads_meminfo(tmp_path):
     f.write_text("MemTotal:       24000000 kB\n")
     assert th.available_memory(f) is None
     assert th.available_memory(tmp_path / "missing") is None
+
+
+def test_tile_processes_one_on_a_busy_machine(monkeypatch):
+    monkeypatch.delenv(th.ENV_WORKERS, raising=False)
+    monkeypatch.setattr(th, "usable_cores", lambda: 2)
+    assert th.tile_processes(load=0.5) == 2
+    assert th.tile_processes(load=3.9) == 2
+    assert th.tile_processes(load=4.1) == 1  # above BUSY_LOAD_PER_CORE per core
+    assert th.tile_processes(3, load=20.0) == 3  # an explicit count wins
+    monkeypatch.setenv(th.ENV_WORKERS, "2")
+    assert th.tile_processes(load=20.0) == 2

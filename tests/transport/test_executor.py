@@ -86,7 +86,7 @@ def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
     """Fewer tiles at once when they would not fit in memory; the tensors stay the same."""
     from torch_brdf.transport.polynomial import driver
 
-    monkeypatch.setattr(driver, "worker_count", lambda: 2)
+    monkeypatch.setattr(driver, "tile_processes", lambda: 2)
     tile_bytes = 4 * 16 * SETTINGS["spp"] * driver.TILE_BYTES_PER_PATH  # tile_rows x width x spp
     monkeypatch.setattr(driver, "available_memory", lambda: tile_bytes + 1)
     one = precompute_polynomial(scene, **SETTINGS)

@@ -14,7 +14,7 @@ Executors:
   run one after another in this process, with one torch thread (on a shared 2-core machine
   torch's second thread spin-waits and made the 64² precompute 30x slower under load); ray
   casting still uses the scene's forked trace workers. With more (default: one per usable
-  core, :func:`~torch_brdf._threads.worker_count`), tiles run at once in that many forked
+  core, or 1 on a busy machine, :func:`~torch_brdf._threads.tile_processes`), tiles run at once in that many forked
   processes, each tracing its own rays with one torch thread (the torch stages of a tile are
   serial, so this is what keeps every core busy); this process writes the checkpoint and
   assembles, in tile order, as for one process.
@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._threads import configure_worker, prepare_fork, single_thread, worker_count
+from .._threads import configure_worker, prepare_fork, single_thread, tile_processes
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
@@ -184,8 +184,9 @@ def run_tiles(
         max_new: compute at most this many tiles not in ``cache`` (the first ones missing; the
             others stay None in the result): for tests of resuming.
         processes: local only: tiles computed at once in forked processes (each gets
-            ``ray_context`` as for Ray); None: :func:`~torch_brdf._threads.worker_count`; 1: all
-            in this process (needed when ``fn`` fills something of ``context``'s, e.g. an oracle).
+            ``ray_context`` as for Ray); None: :func:`~torch_brdf._threads.tile_processes` (one
+            per usable core, 1 on a busy machine); 1: all in this process (needed when ``fn``
+            fills something of ``context``'s, e.g. an oracle).
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -233,7 +234,7 @@ def run_tiles(
         drain()
         if ray_context is None:
             ray_context = context.for_ray() if hasattr(context, "for_ray") else context
-        nproc = max(1, min(worker_count(processes), len(todo))) if executor == "local" else 0
+        nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
         if executor == "local" and nproc > 1:
             _run_forked(fn, ray_context, todo, finish, nproc, cache, meta or {})

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from ..._checks import MAX_BANDS, check_count, check_seed
-from ..._threads import available_memory, worker_count
+from ..._threads import available_memory, tile_processes
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
@@ -39,9 +39,10 @@ TILE_BYTES_PER_PATH = 1024
 
 
 def _default_processes(tile_paths: int) -> int:
-    """Tiles at once by default: one per usable core, fewer when that many tiles would not fit
-    in the available memory (at least one)."""
-    n = worker_count()
+    """Tiles at once by default: :func:`~torch_brdf._threads.tile_processes` (one per usable
+    core, 1 on a busy machine), fewer when that many tiles would not fit in the available
+    memory (at least one)."""
+    n = tile_processes()
     free = available_memory()
     if free is not None:
         n = min(n, max(1, free // max(1, tile_paths * TILE_BYTES_PER_PATH)))
@@ -211,7 +212,7 @@ def precompute_polynomial(
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
         processes: ``local`` only: tiles computed at once in forked processes (None: one per
-            usable core while that many tiles fit in the available memory at
+            usable core, 1 on a busy machine, while that many tiles fit in the available memory at
             :data:`TILE_BYTES_PER_PATH`; 1: in this process, as ``paths`` needs); the tensors
             are the same.
     Returns:
