@@ -13,7 +13,12 @@ frozen on the edited object and rendered by four methods:
 * ``linear``: the guide-only à-trous filter applied once to every basis image of the frozen
   tensor (``PolynomialRenderer.freeze(obj, denoiser="linear")``);
 * ``oidn_basis``: Open Image Denoise once per grouped basis image (``denoiser="oidn"``);
-* ``oidn_frame``: the path-tracer user's baseline: OIDN on every final frame.
+* ``oidn_frame``: the path-tracer user's baseline: OIDN on every final frame;
+* ``regression``: the guide-only local polynomial regression (:class:`RegressionFilter`, NFOR-
+  style, linear) applied once to every basis image of the frozen tensor
+  (``denoiser="regression"``). It is computed in its own cached part (the precompute is redone
+  with the same seed, and its noisy frame is checked to equal the cached one), so runs cached
+  before it existed are reused.
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -27,7 +32,9 @@ freeze), ``frame_s_before`` (noisy frozen frame) and ``frame_s_after`` ``{method
 denoised frozen frame; for ``oidn_frame`` frame + OIDN) timed interleaved in one process,
 ``frame_ratio`` (after / before), ``mean_ratio`` ``{method: mean / reference mean}`` at the
 middle spp, ``record_mb`` (sparse tensors) and ``frozen_mb`` ``{method: MB}``, ``goals``
-(the issue's acceptance goals, each with its figures), ``load`` (1-min load average at the
+(the issue's acceptance goals, each with its figures), ``budget`` (per region and material:
+the hi-spp noise, the bias left at hi spp, the reference's own noise and each method's excess
+over that bias; see :func:`_budget`), ``load`` (1-min load average at the
 start and end of each part). Edited material: exponent 1000 and another colour, a material
 the denoisers never saw (they see only guides and basis images).
 
@@ -48,7 +55,14 @@ import numpy as np
 import torch
 
 from torch_brdf.data import cache_path
-from torch_brdf.denoise import glossy_objects, oidn_frame
+from torch_brdf.denoise import (
+    EdgeAwareFilter,
+    RegressionFilter,
+    RegressionSettings,
+    glossy_objects,
+    guide_buffers,
+    oidn_frame,
+)
 from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
@@ -56,8 +70,9 @@ from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
-METHODS = ("none", "linear", "oidn_basis", "oidn_frame")
+METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
+EXTRA = ("regression",)  # computed in the "extra" part
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -97,17 +112,17 @@ def _cached(folder: Path, what: str, settings: dict, scene, compute):
     return arrays, meta
 
 
-def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int):
+def _reference(scene, spp_mitsuba: int, spp_ours: int, bounces: int, seed: int = 7):
     """(image, label): Mitsuba llvm when it runs, else our MIS reference tracer."""
     try:
         from torch_brdf.transport import mitsuba as tm
 
         if tm.mitsuba_available() and tm.default_variant().startswith("llvm"):
-            img = tm.render_mitsuba(scene, spp=spp_mitsuba, max_bounces=bounces, seed=7)
+            img = tm.render_mitsuba(scene, spp=spp_mitsuba, max_bounces=bounces, seed=seed)
             return img, f"mitsuba {tm.default_variant()} {spp_mitsuba} spp"
     except ImportError:
         pass
-    img = reference_path_trace(scene, spp=spp_ours, max_bounces=bounces, seed=7, progress=False)
+    img = reference_path_trace(scene, spp=spp_ours, max_bounces=bounces, seed=seed, progress=False)
     return img, f"reference_path_trace (MIS) {spp_ours} spp"
 
 
@@ -166,6 +181,31 @@ def _unit(scene, obj, mats, edited, series, spp, seed, full: bool):
     meta["denoise_s"]["oidn_frame"] = secs  # per frame
     meta["frame_s"] = _interleaved_frame_times(renderers, obj)
     meta["frame_s"]["oidn_frame"] = meta["frame_s"]["none"] + secs
+    return arrays, meta
+
+
+def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy):
+    """The ``EXTRA`` methods of one full unit: the same precompute (seed) again, its frozen
+    tensor denoised by each, frames, denoise seconds and frame seconds timed in turns with the
+    noisy frozen frame of this run (the ratio's baseline)."""
+    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    R = PolynomialRenderer(T, mats)
+    _, freeze_s = _secs(lambda: R.freeze(obj))
+    frame = _frames(R, obj, mats, edited)[0]
+    same = float((frame - noisy).abs().max() / noisy.abs().max().clamp_min(1e-30))
+    meta = {"precompute_s": pre_s, "freeze_s": freeze_s, "same_as_cached_unit": same, "denoise_s": {}}
+    arrays, renderers = {}, {"none": R}
+    for method in EXTRA:
+        print(f"[{scene.name}] {method} at {spp} spp ...", flush=True)
+        D = PolynomialRenderer(T, mats)
+        A = RegressionFilter.for_tensors(T)
+        _, secs = _secs(lambda D=D, A=A: D.freeze(obj, denoiser=A))
+        meta["denoise_s"][method] = max(secs - freeze_s, 0.0)
+        meta["settings_" + method] = A.description
+        arrays[method], arrays[method + "_e"] = _frames(D, obj, mats, edited)
+        renderers[method] = D
+    meta["frozen_mb"] = {k: D.frozen_nbytes / 2**20 for k, D in renderers.items()}
+    meta["frame_s"] = _interleaved_frame_times(renderers, obj)
     return arrays, meta
 
 
@@ -241,6 +281,17 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             hi["none_e"].append(a["none_e"])
         if not full:
             continue
+        x, xmeta = _cached(
+            folder,
+            "extra",
+            {**settings, "methods": [RegressionFilter.__name__, repr(RegressionSettings())]},
+            scene,
+            lambda spp=spp, seed=seed, a=a: _extra_unit(scene, obj, mats, edited, series, spp, seed, a["none"]),
+        )
+        a = {**a, **x}
+        out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
+        out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
+        meta["denoise_s"] = {**meta["denoise_s"], **xmeta["denoise_s"]}
         key = str(spp)
         mask = a["emitter_free"].bool()
         out["precompute_s"][key] = meta["precompute_s"]
@@ -252,12 +303,15 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             out["flip_edited"][m][key] = hdr_flip(img_e, ref_e, mask)
             out["denoise_s"][m][key] = meta["denoise_s"][m]
         if key == mid:
+            at_mid, mid_meta = a, meta
             out["record_mb"] = meta["record_mb"]
-            out["frozen_mb"] = meta["frozen_mb"]
+            out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
+            out["regression_settings"] = xmeta["settings_regression"]
             out["frame_s_before"] = meta["frame_s"]["none"]
             for m in METHODS:
-                out["frame_s_after"][m] = meta["frame_s"][m]
-                out["frame_ratio"][m] = meta["frame_s"][m] / meta["frame_s"]["none"]
+                fs = xmeta["frame_s"] if m in EXTRA else meta["frame_s"]  # ratio to the same run's noisy frame
+                out["frame_s_after"][m] = fs[m]
+                out["frame_ratio"][m] = fs[m] / fs["none"]
                 out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
             regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
             out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
@@ -270,7 +324,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
                 if int(v.sum())
             }
             if figure:
-                _figure(figure, a["none"], a["linear"], a["oidn_basis"], ref)
+                _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], ref)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
     top = str(hi_spp)
     a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
@@ -279,13 +333,58 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     out["flip"]["none"][top] = hdr_flip(a, ref, mask)
     out["flip_edited"]["none"][top] = hdr_flip(b, ref_e, mask)
     out["goals"] = _goals(out, mid, top)
+
+    def check():  # a second, independent reference at a quarter of the spp: the reference's own noise
+        img, label = _reference(scene, cfg["ref_spp"] // 4, cfg["ref_spp_ours"] // 4, bounces, seed=8)
+        return {"ref": img}, {"label": label}
+
+    second, _ = _cached(folder, "reference_check", {"ref_spp": cfg["ref_spp"], "b": bounces}, scene, check)
+    g, gl = guide_buffers(scene), mid_meta["glossy"]
+    filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
+    out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
+    return out
+
+
+def _budget(hi, at_mid, ref, ref_e, second_ref, regions, mask, filters) -> dict:
+    """Where each method's error at the middle spp comes from, per region and material, as
+    relative RMS figures (squares add): ``noise_hi`` (the hi-spp mean's noise, from the spread
+    of its independent runs), ``bias_hi`` (what is left of the hi-spp error: the series' and
+    model's bias plus the reference's noise), ``ref_noise`` (the reference's own noise, from a
+    second reference at a quarter of the spp and another seed; default material), ``excess``
+    ``{method: sqrt(err^2 - bias_hi^2)}`` (what a denoiser adds or leaves: residual noise and
+    blur; the goal needs it <= noise_hi) and ``blur_le`` ``{linear filter: |A m - m|}`` on the
+    hi-spp mean m (an upper bound of the filter's blur: it includes the part of m's noise the
+    filter removes)."""
+    out = {}
+    regions = {**regions, "all": mask}
+    for suf, r_img in (("", ref), ("_e", ref_e)):
+        runs = torch.stack(hi["none" + suf]).double()
+        m, var = runs.mean(0), runs.var(0) / runs.shape[0]
+        rd = r_img.double()
+        for name, v in regions.items():
+            if not int(v.sum()):
+                continue
+            r2 = float((rd**2)[v].sum())
+            noise2 = float(var[v].sum()) / r2
+            bias2 = float(((m - rd) ** 2)[v].sum()) / r2 - noise2
+            row = {"noise_hi": noise2**0.5, "bias_hi": max(bias2, 0.0) ** 0.5, "excess": {}, "blur_le": {}}
+            if not suf:
+                # E|second - ref|^2 = s2 (1/n + 4/n): the reference's noise^2 s2/n is a fifth of it
+                row["ref_noise"] = (float(((second_ref.double() - rd) ** 2)[v].sum()) / 5 / r2) ** 0.5
+            for meth in METHODS:
+                e2 = float(((at_mid[meth + suf].double() - rd) ** 2)[v].sum()) / r2
+                row["excess"][meth] = max(e2 - max(bias2, 0.0), 0.0) ** 0.5
+            for meth, A in filters.items():
+                am = A(m.permute(2, 0, 1)).permute(1, 2, 0)
+                row["blur_le"][meth] = (float(((am - m) ** 2)[v].sum()) / r2) ** 0.5
+            out[name + suf] = row
     return out
 
 
 def _goals(out: dict, mid: str, top: str) -> dict:
     """The issue's goals per denoising method at the middle spp, each with its figures."""
     goals = {}
-    for m in ("linear", "oidn_basis"):
+    for m in ("linear", "oidn_basis", "regression"):
         e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]
         n, n_e = out["rel_rmse"]["none"][top], out["rel_rmse_edited"]["none"][top]
         goals[m] = {
@@ -297,11 +396,11 @@ def _goals(out: dict, mid: str, top: str) -> dict:
     return goals
 
 
-def _figure(path: str, noisy, linear, oidn, ref) -> None:
-    """noisy | linear | oidn_basis | reference side by side (exposure from the reference)."""
+def _figure(path: str, noisy, linear, oidn, regression, ref) -> None:
+    """noisy | linear | oidn_basis | regression | reference side by side (exposure from the reference)."""
     from torch_brdf.io.png import write_png
 
-    strip = torch.cat([noisy, linear, oidn, ref], 1)
+    strip = torch.cat([noisy, linear, oidn, regression, ref], 1)
     exposure = -float(np.log2(max(float(ref.quantile(0.99)), 1e-6)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_png(path, strip, exposure=exposure, tonemap="clip")
@@ -315,7 +414,9 @@ def main() -> None:
     ap.add_argument("--spp", default="16,64,256", help="precomputation spp (the middle one: goals, figure)")
     ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of the last spp)")
     ap.add_argument("--ref-spp", type=int, default=4096, help="Mitsuba reference spp")
-    ap.add_argument("--figure", default=None, help="PNG: noisy | linear | oidn_basis | reference (Cornell, middle spp)")
+    ap.add_argument(
+        "--figure", default=None, help="PNG: noisy | linear | oidn_basis | regression | reference (Cornell, middle spp)"
+    )
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
     args = ap.parse_args()

@@ -131,6 +131,24 @@ def test_precompute_visibility_and_relight(tmp_path):
     assert bad.exit_code == 2 and "multiple" in bad.output
 
 
+def test_relight_plans_for_a_psnr(tmp_path):
+    """--psnr plans the visibility and rule (the plan on stderr), saves the planned record beside
+    the image and renders with it."""
+    from torch_brdf.transport.visibility import VertexVisibility
+
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(RELIGHT_TOML)
+    img_out = tmp_path / "frame"
+    res = runner.invoke(app, ["relight", str(toml), "--out", str(img_out), "--psnr", "30"])
+    assert res.exit_code == 0, res.output
+    assert "relighting plan for error" in res.stderr and "dB" in res.stderr
+    plan = json.loads(res.stdout.strip().splitlines()[-1])["plan"]
+    vis = VertexVisibility.load(plan["visibility"])
+    assert vis.geometry.resolution == plan["cubemap"] and vis.bits == plan["bits"]
+    assert plan["predicted_error"] <= 10 ** (-30 / 20)
+    assert read_exr(img_out.with_suffix(".exr")).shape == (16, 24, 3)
+
+
 # -- failures: one line on stderr, a non-zero exit, no traceback (unless --debug) -------------
 def _one_line_error(res, code: int, *words: str) -> str:
     assert res.exit_code == code, (res.exit_code, res.stdout, res.stderr)
@@ -250,6 +268,8 @@ def test_bad_strokes_files_are_one_line(tmp_path, monkeypatch, content, words):
         (["precompute-visibility", "cornell_box", "--bits", "3"], ("--bits",)),
         (["relight", "cornell_box", "--visibility", "v.npz", "--method", "fast"], ("--method", "fast")),
         (["relight", "cornell_box", "--visibility", "v.npz", "--rotate", "nan"], ("--rotate",)),
+        (["relight", "cornell_box", "--error", "0.1", "--psnr", "40"], ("--error", "--psnr")),
+        (["relight", "cornell_box", "--psnr", "nan"], ("--psnr",)),
         (["render", "cornell_box", "--exposure", "inf"], ("--exposure",)),
         (
             ["fit-strokes", "cornell_box", "--object", "o", "--strokes", "s", "--width", "16384", "--height", "16384"],

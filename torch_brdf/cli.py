@@ -728,6 +728,10 @@ def relight(
     width: int = WIDTH,
     height: int = HEIGHT,
     progress: bool = PROGRESS,
+    error: float = typer.Option(
+        None, min=0.0, help="Plan cubemap, visibility bits and rule for this RMSE / peak (--visibility ignored)."
+    ),
+    psnr: float = typer.Option(None, help="The same budget in dB (instead of --error)."),
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
     from .render.triple import METHODS, TripleProductRenderer
@@ -738,19 +742,36 @@ def relight(
     check_real(rotate, "--rotate")
     if exposure is not None:
         check_real(exposure, "--exposure")
+    if error is not None and psnr is not None:
+        raise ValueRangeError("give --error or --psnr, not both")
+    if psnr is not None:
+        check_real(psnr, "--psnr")
     sc = load_scene(scene, resolution, width, height)
     coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
-    vis = VertexVisibility.load(visibility)
-    r = TripleProductRenderer(sc, vis)
-    if rotate:
-        r.set_lighting(r.envmap.rotated(rotate))
+    plan = None
+    if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
+        from .render.relight_plan import plan_relighting, planned_renderer
+
+        env = sc.environment.rotated(rotate) if rotate and sc.environment is not None else None
+        plan = plan_relighting(sc, error=error, psnr=psnr, envmap=env)
+        typer.echo(str(plan), err=True)
+        r = planned_renderer(sc, plan, env, progress=progress)
+        visibility = out.with_name(out.name + ".vis.npz")
+        visibility.parent.mkdir(parents=True, exist_ok=True)
+        r.visibility.save(visibility)
+    else:
+        r = TripleProductRenderer(sc, VertexVisibility.load(visibility))
+        if rotate:
+            r.set_lighting(r.envmap.rotated(rotate))
     t0 = time.perf_counter()
     image, stats = r.render(method=method, progress=progress)
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
+    if plan is not None:
+        info["plan"] = dict(plan.settings, predicted_error=plan.predicted_error, visibility=str(visibility))
     if stats is not None:
         info["stats"] = stats.as_dict()
     typer.echo(json.dumps(info))

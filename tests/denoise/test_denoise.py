@@ -1,4 +1,5 @@
-"""Denoising basis images keeps every edit exact: linearity of the guide-only filter,
+"""Denoising basis images keeps every edit exact: linearity of the guide-only filters
+(à-trous and local regression),
 OIDN per basis image (edits exact given the denoised bases), freeze/denoise commutation,
 guide buffers and their file round trip, HDR-FLIP."""
 
@@ -14,6 +15,8 @@ from torch_brdf.denoise import (
     EdgeAwareFilter,
     GuideBuffers,
     OIDNBasis,
+    RegressionFilter,
+    RegressionSettings,
     denoise,
     denoise_tensors,
     guide_buffers,
@@ -152,13 +155,17 @@ def _glossy(tensors):
     return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
 
 
-def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, gen):
+LINEAR_FILTERS = [EdgeAwareFilter, RegressionFilter]
+
+
+@pytest.mark.parametrize("cls", LINEAR_FILTERS)
+def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, gen, cls):
     """(a) linearity: the denoised record at random (c, d) equals the filter applied to the
     noisy record's frame at the same (c, d) (minus the emission, which is not filtered)."""
     _, tensors, mats, g = setup
-    A = EdgeAwareFilter(g, glossy=_glossy(tensors))
+    A = cls(g, glossy=_glossy(tensors))
     den = denoise_tensors(tensors, A)
-    assert den.meta["denoised"].startswith("linear")
+    assert den.meta["denoised"] == A.description
     R = PolynomialRenderer(tensors, mats, dtype=torch.float64)
     D = PolynomialRenderer(den, mats, dtype=torch.float64)
     e = tensors.emission.double().T.reshape(SIZE, SIZE, 3)
@@ -189,10 +196,11 @@ def _frozen_frames(tensors, mats, obj, gen, n=3, den=None):
     return frames, R
 
 
+@pytest.mark.parametrize("cls", LINEAR_FILTERS)
 @pytest.mark.parametrize("obj", ["back", "left"])
-def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj):
+def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj, cls):
     _, tensors, mats, g = setup
-    A = EdgeAwareFilter(g, glossy=_glossy(tensors))
+    A = cls(g, glossy=_glossy(tensors))
     after, _ = _frozen_frames(denoise_tensors(tensors, A), mats, obj, torch.Generator().manual_seed(5))
     before, R = _frozen_frames(tensors, mats, obj, torch.Generator().manual_seed(5), den=A)
     for a, b in zip(after, before, strict=True):
@@ -234,6 +242,9 @@ def test_denoise_uses_the_guides_the_precomputation_attached(setup, gen):
         PolynomialRenderer(plain, mats).freeze("back", denoiser="linear")
     with pytest.raises(ValueRangeError):
         denoise(tensors, "bilateral")
+    # the regression filter by name: the record's own guides and banded objects
+    _, Q = _frozen_frames(tensors, mats, "back", torch.Generator(), n=0, den="regression")
+    assert Q.frozen_denoiser == RegressionFilter.for_tensors(tensors).description
 
 
 def test_precompute_without_guides(setup):
@@ -290,3 +301,47 @@ def test_oidn_frame_reduces_noise_of_a_flat_image(setup, gen):
     out = oidn_frame(noisy, g)
     assert out.shape == noisy.shape
     assert float((out - base).square().mean()) < 0.5 * float((noisy - base).square().mean())
+
+
+def test_regression_filter_reproduces_polynomials_and_is_linear(gen):
+    """The local regression of degree k returns any image that is a polynomial of degree k in
+    the pixel coordinates unchanged wherever the window lies in one object's interior (it
+    removes noise, not gradients), while the weighted mean (degree 0) does not; it is linear,
+    never moves values across object ids and leaves silhouette pixels as they are."""
+    size = 48
+    g = guide_buffers(cornell_box(size))
+    yy, xx = torch.meshgrid(
+        torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij"
+    )
+    ramp = 1.0 + 0.02 * yy - 0.03 * xx
+    bowl = ramp + 4e-4 * (yy - 20) ** 2 + 3e-4 * (xx - 30) ** 2 - 2e-4 * (yy - 20) * (xx - 30)
+    errors = {}
+    for order, img in ((1, ramp), (2, bowl), (0, ramp)):
+        s = RegressionSettings(radius=3, order=order, ridge=1e-12, min_taps=0.0)
+        A = RegressionFilter(g, s)
+        # pixels whose whole window is interior pixels of their own object
+        oid = torch.where(A.interior, g.object_id, -1)
+        pad = torch.nn.functional.pad(oid[None, None].double(), (3, 3, 3, 3), value=-9.0)[0, 0]
+        full = A.interior.clone()
+        for dy in range(7):
+            for dx in range(7):
+                full &= pad[dy : dy + size, dx : dx + size] == oid.double()
+        assert int(full.sum()) >= 200
+        errors[order] = float((A(img) - img)[full].abs().max())
+    assert errors[1] < 1e-5 and errors[2] < 1e-5  # float32 hat weights
+    assert errors[0] > 1e-3  # the weighted mean flattens a ramp where the weights are lopsided
+    A = RegressionFilter(g)
+    x, y = torch.rand(2, 3, size, size, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(A(0.7 * x - 1.3 * y), 0.7 * A(x) - 1.3 * A(y), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(A(x)[:, ~A.interior], x[:, ~A.interior])
+    floor = A.interior & (g.object_id == cornell_box(size).object_id("floor"))
+    out = A(floor.double())
+    assert float(out[~floor].abs().max()) == 0.0
+    noise = torch.rand(size, size, generator=gen, dtype=torch.float64) * floor
+    assert float(A(noise)[floor].std()) < 0.6 * float(noise[floor].std())
+    with pytest.raises(ValueRangeError):
+        RegressionSettings(order=3)
+    with pytest.raises(ValueRangeError):
+        RegressionFilter(g, AtrousSettings())
+    with pytest.raises(ShapeError):
+        A(torch.zeros(3, 5, 5))

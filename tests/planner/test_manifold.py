@@ -1,5 +1,6 @@
 """The manifold planner (issue #17): q and the training materials from validation pilots; its
-predicted held-out error against the achieved one on the analytic family (no data needed)."""
+predicted median held-out error against the achieved one on the analytic family (no data
+needed), for three orders of the pool."""
 
 from __future__ import annotations
 
@@ -15,11 +16,18 @@ FIT = {"metric": "weighted", "max_iter": 100}
 
 
 @pytest.fixture(scope="module")
-def planned():
-    obs, _ = analytic_observations(50, MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(7))
+def family():
+    """120 analytic materials: 80 held out (the achieved median's own scatter between sets of
+    materials must stay well inside 1.5x), 40 the training pool."""
+    obs, _ = analytic_observations(120, MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(7))
     names = list(obs.names)
-    test, pool = names[:10], names[10:]
-    plan = plan_manifold(obs, pool, error=0.02, **FIT)
+    return obs, names[:80], names[80:]
+
+
+@pytest.fixture(scope="module")
+def planned(family):
+    obs, test, pool = family
+    plan = plan_manifold(obs, pool, error=0.01, generator=torch.Generator().manual_seed(0), **FIT)
     return obs, test, pool, plan
 
 
@@ -27,30 +35,60 @@ def test_plan_trains_on_pool_materials_and_meets_the_budget(planned):
     _, test, pool, plan = planned
     s = plan.settings
     assert set(s["train"]) <= set(pool) and not set(s["train"]) & set(test) and len(s["train"]) == s["n"]
-    assert plan.predicted_error <= 0.02
-    assert all(o.predicted_error > 0.02 for o in plan.options if o.predicted_seconds < plan.predicted_seconds)
+    assert plan.predicted_error <= 0.01
+    assert all(o.predicted_error > 0.01 for o in plan.options if o.predicted_seconds < plan.predicted_seconds)
     assert f"q {s['q']}, n {s['n']}" in str(plan) and "predicted cost" in str(plan)
 
 
-@pytest.mark.xfail(
-    reason="known gap (#17, open): the planner predicts the held-out error from 6 validation "
-    "materials and misses it beyond 1.5x (here predicted 0.0101, achieved 0.0168); a 4-fold "
-    "cross-validated variant passed 1 of 4 pool orders (ratios 0.11-0.96), because per-material "
-    "errors are heavy-tailed and 10 test materials are too few to estimate their mean",
-    strict=False,
-)
-def test_achieved_heldout_error_within_1_5x_of_predicted(planned):
-    obs, test, _, plan = planned
+def _achieved_ratio(obs, test, plan) -> float:
     s = plan.settings
     h = heldout_reconstruction(
         obs, list(s["train"]), test, s["q"], generator=torch.Generator().manual_seed(s["q"]), **FIT
     )
-    achieved = float(h.gplvm_logrmse.mean())
-    ratio = achieved / plan.predicted_error
-    assert 1 / 1.5 <= ratio <= 1.5, f"achieved {achieved:.4f}, predicted {plan.predicted_error:.4f}"
+    return float(h.gplvm_logrmse.median()) / plan.predicted_error
+
+
+def test_achieved_heldout_median_within_1_5x_of_predicted(planned):
+    """The plan predicts the median held-out log-RMSE (per-material errors are heavy-tailed:
+    the mean of 40 held-out materials was 2.3-11x their median in trials, set by a few); achieved: the
+    median over the 80 held-out materials, scored by the same statistic."""
+    obs, test, _, plan = planned
+    assert plan.metric.startswith("median")
+    ratio = _achieved_ratio(obs, test, plan)
+    assert 1 / 1.5 <= ratio <= 1.5, f"achieved / predicted = {ratio:.3f}"
+
+
+@pytest.mark.parametrize(
+    "seed",
+    [
+        1,
+        2,
+        pytest.param(
+            3,
+            marks=pytest.mark.xfail(
+                reason="known gap (#17): this order's plan is the whole pool (n = 34), beyond the "
+                "pilots (n <= 17); the power law from n = 8 to 17 predicted 0.0085 and 0.0035 was "
+                "reached (0.41x: on the safe side, but outside 1.5x)",
+                strict=False,
+            ),
+        ),
+    ],
+)
+def test_prediction_holds_for_other_pool_orders(family, seed):
+    """The same check for other seeded orders of the pool (other validation sets and ladders).
+    Orders 0-2 plan n = 17 (a measured size, its level cross-fitted); order 3 plans n = 34,
+    extrapolated."""
+    obs, test, pool = family
+    plan = plan_manifold(obs, pool, error=0.01, generator=torch.Generator().manual_seed(seed), **FIT)
+    ratio = _achieved_ratio(obs, test, plan)
+    assert 1 / 1.5 <= ratio <= 1.5, (
+        f"seed {seed}: achieved / predicted = {ratio:.3f} ({plan.settings['q']}, {plan.settings['n']})"
+    )
 
 
 def test_manifold_plan_needs_enough_materials(planned):
     obs, _, pool, _ = planned
     with pytest.raises(ValueRangeError):
         plan_manifold(obs, pool[:10], error=0.02)
+    with pytest.raises(ValueRangeError):
+        plan_manifold(obs, pool, error=0.02, statistic="max")

@@ -144,7 +144,10 @@ def test_missing_keys_and_grown_planner_json_degrade_gracefully():
         "scenes": {
             "teatray": {"scene": "teatray", "planned": {"series": "8,1", "achieved_error": 0.05, "seconds": 2.0}}
         },
-        "relighting": {"planned": {"frame_s": 0.1, "psnr": 40.0}},
+        "relighting": {
+            "planned": {"frame_s": 0.1, "psnr": 40.0, "cost_s": 2.0, "predicted_cost_s": 1.5, "predicted_psnr": 41.0},
+            "defaults": [{"cubemap": 64, "rule": "appendix-a:1", "cost_s": 3.0, "psnr": 38.0}],
+        },
         "inverse": {
             "error": 0.05,
             "planned": {"light_samples": 256, "achieved_error": 0.04, "seconds": 1.0},
@@ -163,6 +166,7 @@ def test_missing_keys_and_grown_planner_json_degrade_gracefully():
     }
     assert "gi_planner_relighting" not in {f.key for f in secs["gi"].figures}  # another capability's planner
     assert [f.key for f in secs["inverse"].figures if f.has_data()] == ["inverse_planner"]
+    assert "relight_planner" in {f.key for f in secs["relight"].figures if f.has_data()}
     assert len(sections({})) == len(CAPABILITIES)  # nothing ran: every section, no figure, no error
 
 

@@ -2,6 +2,7 @@
 
 * :mod:`.guides`: per-pixel guide buffers from the camera's pixel-centre rays;
 * :mod:`.atrous`: a linear edge-aware à-trous filter with weights from the guides only;
+* :mod:`.regression`: a linear local polynomial regression (NFOR-style) with the same weights;
 * :mod:`.oidn`: Intel Open Image Denoise per grouped basis image and per frame (optional
   extra ``denoise``);
 * :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor.
@@ -9,16 +10,21 @@
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
 
-from .atrous import AtrousSettings, EdgeAwareFilter, glossy_objects
+from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
+from .regression import RegressionFilter, RegressionSettings
 from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser
 
 __all__ = [
     "AtrousSettings",
     "EdgeAwareFilter",
     "GuideBuffers",
+    "GuideSigmas",
+    "GuideWeights",
     "OIDNBasis",
+    "RegressionFilter",
+    "RegressionSettings",
     "denoise",
     "denoise_frozen",
     "denoise_planes",

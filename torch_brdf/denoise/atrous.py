@@ -47,21 +47,20 @@ _B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 
 
 @dataclass(frozen=True)
-class AtrousSettings:
-    """What decides the filter (hashable; benchmarks report it).
+class GuideSigmas:
+    """The tolerances of the guide weights (:class:`GuideWeights`), shared by the settings of
+    the linear filters.
 
     Attributes:
-        levels: à-trous levels; the footprint is :math:`4 (2^L - 1) + 1` pixels wide.
         sigma_normal: exponent of the normal weight (larger: stops at smaller creases).
         sigma_plane: tolerance of the distance to the tangent plane, in pixel footprints per
             pixel of offset (smaller: stops at smaller depth steps, e.g. contact edges).
         sigma_albedo: tolerance of the albedo-proxy difference (L1).
         sigma_mirror: tolerance of the difference of log(1 + radiance seen by the mirror ray).
         sigma_half: tolerance of the difference of the half-vector cosine to the brightest
-            light (a Blinn-Phong lobe of exponent n falls by 1/e over 1/n of it).
+            light (a Blinn-Phong lobe of exponent n falls by 1/e over 1/n of it; ``inf``: off).
     """
 
-    levels: int = 3
     sigma_normal: float = 64.0
     sigma_plane: float = 1.0
     sigma_albedo: float = 0.05
@@ -69,11 +68,25 @@ class AtrousSettings:
     sigma_half: float = 0.002
 
     def __post_init__(self):
-        if (
-            self.levels < 1
-            or min(self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror, self.sigma_half) <= 0
-        ):
-            raise ValueRangeError(f"need levels >= 1 and positive sigmas; got {self}")
+        if min(self.sigma_normal, self.sigma_plane, self.sigma_albedo, self.sigma_mirror, self.sigma_half) <= 0:
+            raise ValueRangeError(f"need positive sigmas; got {self}")
+
+
+@dataclass(frozen=True)
+class AtrousSettings(GuideSigmas):
+    """What decides the à-trous filter (hashable; benchmarks report it): the guide
+    tolerances of :class:`GuideSigmas` and
+
+    Attributes:
+        levels: à-trous levels; the footprint is :math:`4 (2^L - 1) + 1` pixels wide.
+    """
+
+    levels: int = 3
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.levels < 1:
+            raise ValueRangeError(f"need levels >= 1; got {self}")
 
 
 def _shift(x: torch.Tensor, dy: int, dx: int, fill: float = 0.0) -> torch.Tensor:
@@ -92,7 +105,82 @@ def glossy_objects(tensors) -> list[int]:
     return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
 
 
-class EdgeAwareFilter:
+class GuideWeights:
+    """The edge-stopping weight of tap ``q = p + (dy, dx)`` for every pixel ``p`` of a view,
+    from the guides only (the product in this module's docstring, without the spatial kernel):
+    shared by :class:`EdgeAwareFilter` and :class:`~.regression.RegressionFilter`.
+
+    Args:
+        guides: the view's :class:`GuideBuffers`.
+        glossy: object ids where the half-vector guide applies.
+
+    Attributes:
+        interior: (H, W) bool pixels whose 3 x 3 neighbourhood sees one object (the only
+            pixels filtered and used as taps).
+    """
+
+    def __init__(self, guides: GuideBuffers, glossy=()):
+        g = guides
+        self.oid = g.object_id.double()
+        self.n = g.normal.double().permute(2, 0, 1)  # (3, H, W)
+        self.x = g.position.double().permute(2, 0, 1)
+        self.a = g.albedo.double().permute(2, 0, 1)
+        self.mid = g.mirror_id.double()
+        self.ml = torch.log1p(g.mirror_radiance.double().clamp_min(0)).permute(2, 0, 1)
+        self.ch = g.light_cos_h.double()
+        self.gl = torch.isin(g.object_id, torch.tensor(sorted(glossy), dtype=torch.long))
+        foot = torch.where(torch.isfinite(g.depth), g.depth.double(), 0.0) * g.pixel_angle
+        self.foot = foot.clamp_min(1e-12)
+        same = torch.stack([_shift(self.oid, dy, dx, fill=-2.0) == self.oid for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+        self.interior = same.all(0) & (g.object_id >= 0)
+
+    def weight(self, dy: int, dx: int, s) -> torch.Tensor:
+        """(H, W) float64 weight of the tap at offset (dy, dx); 0 across object ids, mirror
+        ids, and from silhouette taps. ``s`` carries ``sigma_normal``, ``sigma_plane``,
+        ``sigma_albedo``, ``sigma_mirror`` and ``sigma_half`` (:class:`AtrousSettings`)."""
+        oid, n, x, a, ml, ch = self.oid, self.n, self.x, self.a, self.ml, self.ch
+        o_q = _shift(oid, dy, dx, fill=-2.0)  # -2: outside the image
+        inner_q = _shift(self.interior.double(), dy, dx) > 0
+        same = (o_q == oid) & (_shift(self.mid, dy, dx, fill=-3.0) == self.mid)
+        wt = torch.where(same & inner_q, 1.0, 0.0).double()
+        if dy or dx:
+            n_q, x_q, a_q = _shift(n, dy, dx), _shift(x, dy, dx), _shift(a, dy, dx)
+            wt = wt * (n * n_q).sum(0).clamp_min(0) ** s.sigma_normal
+            plane = ((x_q - x) * n).sum(0).abs() / (s.sigma_plane * self.foot * (dy * dy + dx * dx) ** 0.5)
+            wt = wt * torch.exp(-plane) * torch.exp(-(a - a_q).abs().sum(0) / s.sigma_albedo)
+            wt = wt * torch.exp(-(ml - _shift(ml, dy, dx)).abs().sum(0) / s.sigma_mirror)
+            wt = torch.where(self.gl, wt * torch.exp(-(ch - _shift(ch, dy, dx)).abs() / s.sigma_half), wt)
+        return wt
+
+
+class GuideFilter:
+    """What the linear guide-only filters share: building from a record that carries its
+    guides, and the input check. Subclasses take ``(guides, settings, glossy=...)``."""
+
+    shape: tuple[int, int]
+
+    @classmethod
+    def for_tensors(cls, tensors, settings=None):
+        """The filter of a record that carries its guides (``tensors.guides``, e.g. the
+        multibounce tensors), with the half-vector guide on its banded objects (J > 1).
+
+        Raises:
+            ValueRangeError: the record has no guides (attach :func:`~.guides.guide_buffers`).
+        """
+        if getattr(tensors, "guides", None) is None:
+            raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
+        return cls(tensors.guides, settings, glossy=glossy_objects(tensors))
+
+    def _planes(self, images: torch.Tensor) -> torch.Tensor:
+        """images (..., H, W) -> planes (N, H, W), after checking the shape."""
+        if images.ndim < 2 or tuple(images.shape[-2:]) != self.shape:
+            raise ShapeError(
+                f"expected images of shape (..., {self.shape[0]}, {self.shape[1]}); got {tuple(images.shape)}"
+            )
+        return images.reshape(-1, *self.shape)
+
+
+class EdgeAwareFilter(GuideFilter):
     """The à-trous cascade for one view, weights precomputed from ``guides``.
 
     Args:
@@ -117,20 +205,8 @@ class EdgeAwareFilter:
 
     def _build(self) -> None:
         s = self.settings
-        g = self.guides
-        oid = g.object_id.double()
-        n = g.normal.double().permute(2, 0, 1)  # (3, H, W)
-        x = g.position.double().permute(2, 0, 1)
-        a = g.albedo.double().permute(2, 0, 1)
-        mid = g.mirror_id.double()
-        ml = torch.log1p(g.mirror_radiance.double().clamp_min(0)).permute(2, 0, 1)
-        ch = g.light_cos_h.double()
-        gl = torch.isin(g.object_id, torch.tensor(self.glossy, dtype=torch.long))
-        foot = torch.where(torch.isfinite(g.depth), g.depth.double(), 0.0) * g.pixel_angle
-        foot = foot.clamp_min(1e-12)
-        same = torch.stack([_shift(oid, dy, dx, fill=-2.0) == oid for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-        interior = same.all(0) & (g.object_id >= 0)
-        self.interior = interior
+        gw = GuideWeights(self.guides, self.glossy)
+        interior = self.interior = gw.interior
         self.offsets: list[list[tuple[int, int]]] = []
         self.weights: list[torch.Tensor] = []  # per level (25, H, W), normalised over taps
         for level in range(s.levels):
@@ -139,37 +215,14 @@ class EdgeAwareFilter:
             for iy, hy in enumerate(_B3):
                 for ix, hx in enumerate(_B3):
                     dy, dx = (iy - 2) * step, (ix - 2) * step
-                    o_q = _shift(oid, dy, dx, fill=-2.0)  # -2: outside the image
-                    inner_q = _shift(interior.double(), dy, dx) > 0
-                    same = (o_q == oid) & (_shift(mid, dy, dx, fill=-3.0) == mid)
-                    wt = torch.where(same & inner_q, hy * hx, 0.0)
-                    if dy or dx:
-                        n_q, x_q, a_q = _shift(n, dy, dx), _shift(x, dy, dx), _shift(a, dy, dx)
-                        wt = wt * (n * n_q).sum(0).clamp_min(0) ** s.sigma_normal
-                        plane = ((x_q - x) * n).sum(0).abs() / (s.sigma_plane * foot * (dy * dy + dx * dx) ** 0.5)
-                        wt = wt * torch.exp(-plane) * torch.exp(-(a - a_q).abs().sum(0) / s.sigma_albedo)
-                        wt = wt * torch.exp(-(ml - _shift(ml, dy, dx)).abs().sum(0) / s.sigma_mirror)
-                        wt = torch.where(gl, wt * torch.exp(-(ch - _shift(ch, dy, dx)).abs() / s.sigma_half), wt)
                     offs.append((dy, dx))
-                    ws.append(wt)
+                    ws.append(hy * hx * gw.weight(dy, dx, s))
             wl = torch.stack(ws)
             centre = len(offs) // 2  # the (0, 0) tap: silhouette pixels keep their value
             wl = torch.where(interior, wl, torch.zeros_like(wl))
             wl[centre] = torch.where(interior, wl[centre], 1.0)
             self.weights.append((wl / wl.sum(0).clamp_min(1e-300)).float())
             self.offsets.append(offs)
-
-    @classmethod
-    def for_tensors(cls, tensors, settings: AtrousSettings | None = None) -> EdgeAwareFilter:
-        """The filter of a record that carries its guides (``tensors.guides``, e.g. the
-        multibounce tensors), with the half-vector guide on its banded objects (J > 1).
-
-        Raises:
-            ValueRangeError: the record has no guides (attach :func:`~.guides.guide_buffers`).
-        """
-        if getattr(tensors, "guides", None) is None:
-            raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
-        return cls(tensors.guides, settings, glossy=glossy_objects(tensors))
 
     @property
     def description(self) -> str:
@@ -178,12 +231,8 @@ class EdgeAwareFilter:
     def __call__(self, images: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
         """Filter images (..., H, W) (any float dtype; e.g. (B, 3, H, W) basis images) ->
         the same shape. ``groups`` is ignored (a linear filter treats every image alike)."""
-        if images.ndim < 2 or tuple(images.shape[-2:]) != self.shape:
-            raise ShapeError(
-                f"expected images of shape (..., {self.shape[0]}, {self.shape[1]}); got {tuple(images.shape)}"
-            )
         lead = images.shape[:-2]
-        x = images.reshape(-1, *self.shape)
+        x = self._planes(images)
         h, w = self.shape
         with tuned("denoise.atrous", x.numel() * len(self.offsets)):
             for offs, wl in zip(self.offsets, self.weights, strict=True):

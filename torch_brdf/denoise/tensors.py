@@ -190,23 +190,28 @@ def dense_fraction(tensors: PolynomialTensors) -> float:
 
 def make_denoiser(guides, method: str = "linear", glossy=(), settings=None, quality: str = "high") -> Denoiser:
     """The denoiser ``method`` of a view: ``"linear"`` (:class:`~.atrous.EdgeAwareFilter`,
-    ``settings`` an :class:`~.atrous.AtrousSettings`) or ``"oidn"`` (:class:`~.oidn.OIDNBasis`
-    over that filter; needs the ``denoise`` extra).
+    ``settings`` an :class:`~.atrous.AtrousSettings`), ``"regression"``
+    (:class:`~.regression.RegressionFilter`, ``settings`` a
+    :class:`~.regression.RegressionSettings`) or ``"oidn"`` (:class:`~.oidn.OIDNBasis` over
+    the à-trous filter; needs the ``denoise`` extra).
 
     Args:
         guides: the view's :class:`~torch_brdf.scene.guides.GuideBuffers`.
-        method: ``"linear"`` or ``"oidn"``.
+        method: ``"linear"``, ``"regression"`` or ``"oidn"``.
         glossy: object ids with more than one band (the half-vector guide applies there).
-        settings: the linear filter's settings (default :class:`~.atrous.AtrousSettings`).
+        settings: the linear filter's settings (default: its settings class's defaults).
         quality: OIDN quality.
     Raises:
         ValueRangeError: an unknown method.
     """
     from .atrous import EdgeAwareFilter
     from .oidn import OIDNBasis
+    from .regression import RegressionFilter
 
-    if method not in ("linear", "oidn"):
-        raise ValueRangeError(f"method must be 'linear' or 'oidn'; got {method!r}")
+    if method not in ("linear", "regression", "oidn"):
+        raise ValueRangeError(f"method must be 'linear', 'regression' or 'oidn'; got {method!r}")
+    if method == "regression":
+        return RegressionFilter(guides, settings, glossy=glossy)
     linear = EdgeAwareFilter(guides, settings, glossy=glossy)
     return linear if method == "linear" else OIDNBasis(guides, linear, quality=quality)
 
@@ -219,8 +224,8 @@ def denoise(
 
     Args:
         tensors: the precomputed tensors (with ``tensors.guides``).
-        method: ``"linear"``, ``"oidn"`` (see :func:`make_denoiser`) or a denoiser.
-        settings: the linear filter's :class:`~.atrous.AtrousSettings`.
+        method: ``"linear"``, ``"regression"``, ``"oidn"`` (see :func:`make_denoiser`) or a denoiser.
+        settings: the linear filter's settings (see :func:`make_denoiser`).
         **options: passed to :func:`denoise_tensors` (``chunk``, ``max_entries``).
     Returns:
         the denoised :class:`PolynomialTensors` (render them as before).

@@ -9,6 +9,9 @@
 * :mod:`.inverse` plans inverse BRDF design (light samples, SRBF count, visibility-cut
   tolerance): ``from torch_brdf.planner.inverse import plan_inverse`` (not imported here, so
   that transport's import of :mod:`.gi` does not pull in the inverse package).
+* :mod:`.relight` decides all-frequency relighting (cubemap resolution, visibility bits, BRDF-
+  sampling rule) for a PSNR from pilot measurements that
+  :func:`torch_brdf.render.relight_plan.plan_relighting` makes with the renderer (a layer above).
 * :mod:`.table`: the candidate table, the choice for an error and/or time budget and the
   printed :class:`Plan` that the capability planners share.
 """

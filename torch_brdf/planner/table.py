@@ -9,6 +9,7 @@ priced, so the user sees the trade and not only the answer.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,12 +31,15 @@ class Option:
         predicted_error: the planner's error measure (lower is better; see :attr:`Plan.metric`).
         predicted_seconds: predicted cost of carrying the settings out.
         parts: ((name, error), ...) the error's components where the planner splits it.
+        costs: ((name, value), ...) the cost's components, printed with it (e.g. precompute
+            and frame seconds, bytes).
     """
 
     settings: tuple[tuple[str, Any], ...]
     predicted_error: float
     predicted_seconds: float
     parts: tuple[tuple[str, float], ...] = ()
+    costs: tuple[tuple[str, float], ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """The settings as a dict."""
@@ -128,6 +132,10 @@ class Plan:
     def predicted_seconds(self) -> float:
         return self.chosen.predicted_seconds
 
+    def for_budget(self, error: float | None = None, seconds: float | None = None) -> Plan:
+        """The same candidates chosen for another budget (no new pilots)."""
+        return dataclasses.replace(self, error=error, seconds=seconds, chosen=choose(self.options, error, seconds))
+
     def _err(self, e: float) -> str:
         return f"{e:.4g}" + (f" ({-20 * math.log10(max(e, 1e-300)):.2f} dB)" if self.psnr else "")
 
@@ -139,7 +147,9 @@ class Plan:
             f"{self.capability} plan for {' and '.join(want)}: {c.describe()}",
             f"  predicted error {self._err(c.predicted_error)} ({self.metric})"
             + (" = sqrt(" + " + ".join(f"{k} {v:.4g}^2" for k, v in c.parts) + ")" if c.parts else ""),
-            f"  predicted cost {c.predicted_seconds:.3g} s (pilots {self.pilot_seconds:.3g} s)",
+            f"  predicted cost {c.predicted_seconds:.3g} s"
+            + "".join(f", {k} {v:.3g}" for k, v in c.costs)
+            + f" (pilots {self.pilot_seconds:.3g} s)",
             "  the other candidates on the cost/error front:",
         ]
         for o in pareto(self.options):

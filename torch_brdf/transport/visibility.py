@@ -40,7 +40,7 @@ from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from .executor import TileWork, run_tiles
 
-__all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices"]
+__all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices", "visibility_fraction"]
 
 CHUNK_KIND = "vertex-visibility-chunk"
 BITS = (0, 2, 6, 8)
@@ -49,26 +49,48 @@ BITS = (0, 2, 6, 8)
 HORIZON_EPS = 1e-9
 
 
-def _chunk_visibility(
-    scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: torch.Tensor, bits: int
-) -> BlockVisibility:
-    """Visibility of a few vertices: (m, NB, S^2) by casting the rays above each horizon."""
+def visibility_fraction(
+    scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, supersample: int = 1
+) -> torch.Tensor:
+    """The undecoded visibility of a few vertices: the fraction of each texel's ``k x k`` rays
+    that escape (0 below the horizon, tested at the texel centre; 0 or 1 when ``k = 1``).
+
+    Args:
+        scene: the scene (its tracer casts the rays).
+        geom: cubemap layout.
+        pos, nrm: (m, 3) vertex positions and unit normals.
+        supersample: k, rays per texel side.
+    Returns:
+        (m, NB, S^2) float32; encode it with
+        :meth:`~torch_brdf.records.visibility_codec.BlockVisibility.encode` (``bits=0`` after
+        ``> 0.5`` for binary maps).
+    """
+    dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
+    return _fraction(scene, geom, pos, nrm, dirs)
+
+
+def _fraction(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: torch.Tensor):
+    """:func:`visibility_fraction` for precomputed (T, k^2, 3) ray directions."""
     m = pos.shape[0]
     centres = geom.directions.reshape(-1, 3)  # (T, 3) float64: the horizon test is exact-ish
     T, k2 = centres.shape[0], dirs.shape[1]
     up = (nrm.to(torch.float64) @ centres.T) > HORIZON_EPS  # (m, T) horizon at texel centres
     vi, ti = up.nonzero(as_tuple=True)
     o = (pos + scene.ray_epsilon * nrm).float()[vi]
-    if k2 == 1:
-        occ = scene.occluded(o, dirs[ti, 0], float("inf"))
-        V = torch.zeros(m, T, dtype=torch.bool)
-        V[vi, ti] = ~occ
-        return BlockVisibility.encode(V.view(m, geom.block_count, geom.block_size), bits=0)
     o = o[:, None, :].expand(-1, k2, -1).reshape(-1, 3)
     occ = scene.occluded(o, dirs[ti].reshape(-1, 3), float("inf")).view(-1, k2)
     V = torch.zeros(m, T, dtype=torch.float32)
     V[vi, ti] = (~occ).float().mean(1)
-    V = V.view(m, geom.block_count, geom.block_size)
+    return V.view(m, geom.block_count, geom.block_size)
+
+
+def _chunk_visibility(
+    scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: torch.Tensor, bits: int
+) -> BlockVisibility:
+    """Visibility of a few vertices: (m, NB, S^2) by casting the rays above each horizon."""
+    V = _fraction(scene, geom, pos, nrm, dirs)
+    if dirs.shape[1] == 1:
+        return BlockVisibility.encode(V > 0.5, bits=0)
     return BlockVisibility.encode(V, bits=bits)
 
 
