@@ -1,6 +1,8 @@
 """BRDF manifold benchmark: GPLVM fits, interpolation, held-out reconstruction vs PCA, blending.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/manifold.py [--quick] [--cache PATH] [--no-peer]
+        [--fits-only | --heldout-only] [--no-seed-config] [--max-iter N] [--tol T --tol-window W]
+        [--negatives penalise|free] [--negative-weight L] [--max-columns C] [--peer-seconds S]
 
 Data: the 100 NBRDF fits of the MERL materials (an APPROXIMATION of MERL, shared data)
 tabulated on the default grid (theta_h / theta_d every 3rd index, phi_d every 6th; valid bins
@@ -58,13 +60,27 @@ Prints progress lines, then one JSON object as the LAST line:
   iterations until it reaches our final L (``gpytorch_s_to_our_loglik_q2``; None = not reached),
   converges or hits ``--peer-seconds``; L is Eq. 6 evaluated by our code at their latents (same
   objective, directly comparable); ``time_ratio_gpytorch_over_ours``,
-  ``loglik_ours_minus_gpytorch``. ``gpy``: GPy is not compared when it is not installed.
+  ``loglik_ours_minus_gpytorch``.
+* ``gpy`` (:func:`gpy_peer`): GPy's GPLVM (L-BFGS-B) on the same objective at mu = GPY_MU (1e-6),
+  same start; ours runs ``max_iter`` iterations first, GPy until it reaches our L
+  (``gpy_s_to_our_loglik``) or ``--peer-seconds``; ``time_ratio_gpy_over_ours``;
+  ``gpy_objective_gap`` = relative difference of the two objectives at the start. "not installed"
+  without GPy.
+* ``objective_ms_q2/_q5``: one objective + gradient evaluation at the fitted latents (median of
+  30, same run); ``fit_q2_in_objective_evaluations``: the fit's wall time in those units;
+  ``fit_cpu_s_q2/_q5``: the fit's CPU time (``time.process_time``, one thread): on a shared,
+  overloaded machine the wall time mostly waits for a core, the CPU time is the work.
+  ``settings``: budget, stop rule, placement.
+* ``heldout_cosrmse_mean`` / ``heldout_projected_cosrmse_mean`` (and ``pca_...``): cosine-weighted
+  RMSE of the held-out reconstructions as they are and projected onto the non-negative cone
+  (max(z, 0), no negative values left; the log-RMSE is the same both ways, it clamps at 0).
 * ``load_start`` / ``load_end``: 1-minute load average (the machine is shared; timings vary).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -72,6 +88,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torch_brdf.data import cache_path, data_path
@@ -84,8 +101,16 @@ from torch_brdf.manifold.data import (
     read_split,
     split_names,
 )
-from torch_brdf.manifold.evaluate import heldout_reconstruction
-from torch_brdf.manifold.gplvm import GPLVM, fit_gplvm, gram, log_likelihood, pca_latents, small_matrix_mode
+from torch_brdf.manifold.evaluate import NEGATIVES, heldout_reconstruction
+from torch_brdf.manifold.gplvm import (
+    GPLVM,
+    fit_gplvm,
+    gram,
+    log_likelihood,
+    log_likelihood_and_grad,
+    pca_latents,
+    small_matrix_mode,
+)
 from torch_brdf.manifold.materials import material_record, random_record, sphere_scene
 from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
 from torch_brdf.render.manifold import blend, gi_blend_error, render_rows
@@ -93,6 +118,8 @@ from torch_brdf.render.manifold import blend, gi_blend_error, render_rows
 ROOT = Path(__file__).resolve().parents[1]
 #: the kernel's mu for every fit here (the seed's 1e-6 is reported beside it in the held-out study)
 MU = 1e-10
+#: mu of the GPy comparison (the seed's): GPy adds 1e-8 to its noise, so MU = 1e-10 cannot be matched
+GPY_MU = 1e-6
 
 
 def _log(msg: str) -> None:
@@ -115,16 +142,26 @@ def load_data(quick: bool, cache: Path | None) -> tuple[Observations, str]:
 
 def fit_all(obs: Observations, q: int, max_iter: int, method: str = "lbfgs", **kwargs) -> dict:
     s, d = gram(obs.z, obs.cosine_weights())
+    cpu0 = time.process_time()
     fit = fit_gplvm(
         s, d, q, max_iter=max_iter, method=method, mu=MU, names=obs.names, generator=torch.Generator().manual_seed(0),
         **kwargs,
     )  # fmt: skip
+    cpu = time.process_time() - cpu0
     model = GPLVM(fit, obs.z.double())
     z = obs.z.double()
     pred = model.predict(model.latents)
     repro = float(((pred - z).abs().max(1).values / z.abs().max(1).values.clamp_min(1e-300)).max())
     ll = fit.loglik
+    evals = []
+    with small_matrix_mode(s.shape[0]):
+        for _ in range(30):  # one objective + gradient evaluation at the fitted latents, the fit's unit of work
+            t0 = time.perf_counter()
+            log_likelihood_and_grad(fit.latents, s, d, 1.0, MU)
+            evals.append(time.perf_counter() - t0)
     return {
+        "objective_s": sorted(evals)[len(evals) // 2],
+        "cpu_seconds": cpu,
         "fit": fit,
         "model": model,
         "seconds": fit.seconds,
@@ -199,6 +236,77 @@ def gpytorch_peer(obs: Observations, q: int, target: float, seconds_cap: float, 
     return {"seconds": seconds, "iterations": iters, "loglik": ll, "seconds_to_our_loglik": reached}
 
 
+def gpy_peer(obs: Observations, q: int, mu: float, max_iter: int, seconds_cap: float) -> dict | None:
+    """GPy's GPLVM (L-BFGS-B from scipy) against ours on the same objective, to our final L.
+
+    Same normalised, cosine-weighted data, RBF with unit variance and lengthscale (fixed), noise
+    ``mu - 1e-8`` (fixed; GPy's exact inference adds 1e-8 to the noise), the same nudged PCA start.
+    So ``mu`` must exceed 1e-8 (the seed's 1e-6 here; the default MU = 1e-10 cannot be matched);
+    ``gpy_objective_gap`` is the relative difference of GPy's L (without its constant) and Eq. 6
+    at the start. Ours runs first (``max_iter``
+    iterations, no warm-up); GPy runs until it reaches our L (every evaluation is scored), its own
+    convergence or ``seconds_cap``.
+    """
+    try:
+        import GPy
+    except ImportError:
+        return None
+    s, d = gram(obs.z, obs.cosine_weights())
+    n = s.shape[0]
+    scale = float(torch.diagonal(s).sum()) / (n * d)
+    s = s / scale
+    y = ((obs.z.double() * obs.cosine_weights()) / math.sqrt(scale)).numpy()
+    x0 = pca_latents(s, q)
+    x0 = x0 + 1e-6 * torch.randn(x0.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * float(
+        x0.std()
+    )
+    ours = fit_gplvm(s, d, q, mu=mu, max_iter=max_iter, init=x0, normalise=False, warmup_mu=None)
+    kern = GPy.kern.RBF(q, variance=1.0, lengthscale=1.0)
+    kern.variance.fix()
+    kern.lengthscale.fix()
+    m = GPy.models.GPLVM(y, q, X=x0.numpy().copy(), kernel=kern)
+    m.likelihood.variance = mu - 1e-8
+    m.likelihood.variance.fix()
+    const = 0.5 * n * d * math.log(2 * math.pi)  # GPy's L includes it; Eq. 6 here does not
+    ll0 = float(log_likelihood(x0, s, d, 1.0, mu))
+    gap = abs(float(m.log_likelihood()) + const - ll0) / abs(ll0)
+    target = ours.final_loglik
+    state = {"reached": None, "evals": 0, "best": -math.inf}
+
+    class _Stop(Exception):
+        pass
+
+    objective = m._objective_grads
+    t0 = time.perf_counter()
+
+    def scored(p):
+        f, g = objective(p)
+        state["evals"] += 1
+        state["best"] = max(state["best"], -float(f) + const)
+        if state["best"] >= target and state["reached"] is None:
+            state["reached"] = time.perf_counter() - t0
+            raise _Stop
+        if time.perf_counter() - t0 > seconds_cap:
+            raise _Stop
+        return f, g
+
+    m._objective_grads = scored
+    with contextlib.suppress(_Stop), small_matrix_mode(n):
+        m.optimize("lbfgsb", max_iters=100 * max_iter, messages=False)
+    seconds = time.perf_counter() - t0
+    return {
+        "mu": mu,
+        "ours_loglik": target,
+        "ours_s": ours.seconds,
+        "ours_iterations": ours.iterations,
+        "gpy_loglik": float(log_likelihood(torch.as_tensor(np.asarray(m.X)), s, d, 1.0, mu)),
+        "gpy_s": seconds,
+        "gpy_evaluations": state["evals"],
+        "gpy_s_to_our_loglik": state["reached"],
+        "gpy_objective_gap": gap,
+    }
+
+
 def row_jump(model: GPLVM, eps: float = 1e-6) -> torch.Tensor:
     """(N,) relative max difference of the interpolated rows at x_i + eps and at x_i."""
     at = model.predict(model.latents)
@@ -231,21 +339,24 @@ def wolfe_peer(obs: Observations, q: int, iters: int) -> dict:
     return {"loglik": float(log_likelihood(x.detach(), s, d, 1.0, MU)), "seconds": seconds}
 
 
-def heldout_study(obs: Observations, max_iter: int, splits: int = 5) -> dict:
+def heldout_study(
+    obs: Observations, max_iter: int, splits: int = 5, with_seed: bool = True, qs: tuple = (2, 3, 5), **kwargs
+) -> dict:
     """Held-out log-RMSE mean/std over random splits and family hold-outs (see the module docstring)."""
     names = list(obs.names)
     res: dict = {}
-    per: dict = {k: {q: [] for q in (2, 3, 5)} for k in ("gplvm", "pca", "nearest", "neg", "pca_neg", "cont")}
+    keys = ("gplvm", "pca", "nearest", "neg", "pca_neg", "cont", "cos", "pca_cos", "proj_cos", "pca_proj_cos")
+    per: dict = {k: {q: [] for q in qs} for k in keys}
     for seed in range(splits):
         perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_test = len(names) // 5
         test = sorted(names[i] for i in perm[:n_test])
         train = sorted(names[i] for i in perm[n_test:])
-        for q in (2, 3, 5):
-            for seed_config in (True, False):
+        for q in qs:
+            for seed_config in (True, False)[0 if with_seed else 1 :]:
                 h = heldout_reconstruction(
                     obs, train, test, q, max_iter=max_iter, continuous=not seed_config,
-                    mu=1e-6 if seed_config else MU, generator=torch.Generator().manual_seed(0),
+                    mu=1e-6 if seed_config else MU, generator=torch.Generator().manual_seed(0), **kwargs,
                 )  # fmt: skip
                 if seed_config:
                     per["cont"][q].append(float(h.gplvm_logrmse.mean()))
@@ -255,9 +366,14 @@ def heldout_study(obs: Observations, max_iter: int, splits: int = 5) -> dict:
                 per["nearest"][q].append(float(h.nearest_logrmse.mean()))
                 per["neg"][q].append(float(h.gplvm_negative.mean()))
                 per["pca_neg"][q].append(float(h.pca_negative.mean()))
+                per["cos"][q].append(float(h.gplvm_cosrmse.mean()))
+                per["pca_cos"][q].append(float(h.pca_cosrmse.mean()))
+                per["proj_cos"][q].append(float(h.gplvm_projected_cosrmse.mean()))
+                per["pca_proj_cos"][q].append(float(h.pca_projected_cosrmse.mean()))
+            seed_s = f"{per['cont'][q][-1]:.3f}" if with_seed else "-"
             _log(
-                f"split {seed} q={q}: GPLVM {per['gplvm'][q][-1]:.3f} (seed's {per['cont'][q][-1]:.3f}), "
-                f"PCA {per['pca'][q][-1]:.3f}, nearest {per['nearest'][q][-1]:.3f}"
+                f"split {seed} q={q}: GPLVM {per['gplvm'][q][-1]:.3f} (seed's {seed_s}), PCA {per['pca'][q][-1]:.3f}, "
+                f"nearest {per['nearest'][q][-1]:.3f}, negatives {per['neg'][q][-1]:.4f} / {per['pca_neg'][q][-1]:.4f}"
             )
 
     def stats(key):
@@ -270,18 +386,23 @@ def heldout_study(obs: Observations, max_iter: int, splits: int = 5) -> dict:
         ("nearest", "nearest_heldout_logrmse"),
     ):
         res[f"{name}_mean"], res[f"{name}_std"] = stats(key)
-    res["heldout_seed_logrmse_mean"] = stats("cont")[0]
+    if with_seed:
+        res["heldout_seed_logrmse_mean"] = stats("cont")[0]
     res["heldout_negative_mean"], _ = stats("neg")
     res["pca_heldout_negative_mean"], _ = stats("pca_neg")
+    res["heldout_cosrmse_mean"], _ = stats("cos")
+    res["pca_heldout_cosrmse_mean"], _ = stats("pca_cos")
+    res["heldout_projected_cosrmse_mean"], _ = stats("proj_cos")
+    res["pca_heldout_projected_cosrmse_mean"], _ = stats("pca_proj_cos")
     if obs.source == "nbrdf":
         fam = {}
         for family in ("metallic-paint", "phenolic", "fabric"):
             test = [n for n in names if family in n]
             train = [n for n in names if family not in n]
-            for q in (2, 3, 5):
+            for q in qs:
                 h = heldout_reconstruction(
                     obs, train, test, q, max_iter=max_iter, mu=MU, continuous=True,
-                    generator=torch.Generator().manual_seed(0),
+                    generator=torch.Generator().manual_seed(0), **kwargs,
                 )  # fmt: skip
                 fam[f"{family}_q{q}"] = {
                     "n": len(test),
@@ -290,6 +411,10 @@ def heldout_study(obs: Observations, max_iter: int, splits: int = 5) -> dict:
                     "nearest": round(float(h.nearest_logrmse.mean()), 4),
                     "negative": round(float(h.gplvm_negative.mean()), 4),
                     "pca_negative": round(float(h.pca_negative.mean()), 4),
+                    "cosrmse": round(float(h.gplvm_cosrmse.mean()), 4),
+                    "projected_cosrmse": round(float(h.gplvm_projected_cosrmse.mean()), 4),
+                    "pca_cosrmse": round(float(h.pca_cosrmse.mean()), 4),
+                    "pca_projected_cosrmse": round(float(h.pca_projected_cosrmse.mean()), 4),
                 }
                 _log(f"family {family} q={q}: {fam[f'{family}_q{q}']}")
         res["family_heldout"] = fam
@@ -384,26 +509,17 @@ def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
     return out
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small grid and short fits")
-    ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
-    ap.add_argument("--max-iter", type=int, default=None, help="GPLVM iterations (default 1000, quick 200)")
-    ap.add_argument("--no-peer", action="store_true", help="skip the GPyTorch comparison")
-    ap.add_argument("--peer-seconds", type=float, default=900.0, help="time cap of the GPyTorch L-BFGS run")
-    args = ap.parse_args(argv)
-    quick = args.quick
-    max_iter = args.max_iter or (200 if quick else 1000)
-    out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
-    obs, desc = load_data(quick, args.cache)
-    out["data"] = desc
-    out["n_materials"], out["d"] = obs.z.shape
+def _fit_section(obs: Observations, max_iter: int, stop: dict, out: dict) -> dict:
+    """Fits on all materials, continuity, the optimiser comparison; fills ``out``, returns our q = 2 fit."""
     for q in (2, 5):
-        r = fit_all(obs, q, max_iter)
+        r = fit_all(obs, q, max_iter, **stop)
         _log(f"q={q}: loglik {r['loglik']:.6g} in {r['seconds']:.3f} s ({r['iterations']} it), repro {r['repro']:.2e}")
         out[f"fit_s_q{q}"] = round(r["seconds"], 4)
         out[f"loglik_q{q}"] = r["loglik"]
         out[f"iterations_q{q}"] = r["iterations"]
+        out[f"objective_ms_q{q}"] = round(1e3 * r["objective_s"], 4)
+        out[f"fit_q{q}_in_objective_evaluations"] = round(r["seconds"] / r["objective_s"], 1)
+        out[f"fit_cpu_s_q{q}"] = round(r["cpu_seconds"], 4)
         out[f"monotone_q{q}"] = r["monotone"]
         out[f"repro_rel_err_q{q}"] = r["repro"]
         out[f"loglik_curve_q{q}"] = r["curve"]
@@ -424,11 +540,55 @@ def main(argv=None) -> dict:
     _log(f"continuity: smooth mean {out['continuity_max']:.3g}, seed interpolant {out['continuity_max_seed']:.3g}")
     peer = wolfe_peer(obs, 2, max_iter)
     out["lbfgs_wolfe_loglik_q2"], out["lbfgs_wolfe_s_q2"] = peer["loglik"], round(peer["seconds"], 3)
-    cold = fit_all(obs, 2, max_iter, warmup_mu=None)
+    cold = fit_all(obs, 2, max_iter, warmup_mu=None, **stop)
     out["loglik_q2_no_warmup"], out["fit_s_q2_no_warmup"] = cold["loglik"], round(cold["seconds"], 4)
     _log(f"ours q=2 without the mu warm-up: {cold['loglik']:.6g} in {cold['seconds']:.2f} s")
     _log(f"strong-Wolfe L-BFGS q=2: {peer['loglik']:.6g} in {peer['seconds']:.2f} s")
-    out.update(heldout_study(obs, max_iter))
+    return ours_q2
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small grid and short fits")
+    ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
+    ap.add_argument("--max-iter", type=int, default=None, help="GPLVM iterations (default 1000, quick 200)")
+    ap.add_argument("--no-peer", action="store_true", help="skip the GPyTorch comparison")
+    ap.add_argument("--peer-seconds", type=float, default=900.0, help="time cap of the GPyTorch / GPy runs")
+    ap.add_argument("--tol", type=float, default=1e-10, help="fit stop: L rose by < tol |L| over --tol-window its")
+    ap.add_argument("--tol-window", type=int, default=1, help="iterations of the --tol test")
+    ap.add_argument(
+        "--negatives", choices=NEGATIVES, default="penalise", help="held-out placement (project_perceptual)"
+    )
+    ap.add_argument("--fits-only", action="store_true", help="fits, continuity and the optimiser comparison only")
+    ap.add_argument("--heldout-only", action="store_true", help="fits, continuity, optimisers, held-out study only")
+    ap.add_argument("--qs", default="2,3,5", help="latent dimensions of the held-out study (e.g. one per process)")
+    ap.add_argument("--skip-fits", action="store_true", help="no fits / continuity / optimisers (with --heldout-only)")
+    ap.add_argument("--no-seed-config", action="store_true", help="held-out study without the seed's configuration")
+    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
+    ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
+    args = ap.parse_args(argv)
+    stop = {"tol": args.tol, "tol_window": args.tol_window}
+    place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
+    place["max_columns"] = args.max_columns or None
+    quick = args.quick
+    max_iter = args.max_iter or (200 if quick else 1000)
+    out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
+    out["settings"] = {"max_iter": max_iter, **stop, **place}
+    obs, desc = load_data(quick, args.cache)
+    out["data"] = desc
+    out["n_materials"], out["d"] = obs.z.shape
+    if not args.skip_fits:
+        ours_q2 = _fit_section(obs, max_iter, stop, out)
+    if args.fits_only:
+        out["load_end"] = os.getloadavg()[0]
+        print(json.dumps(out))
+        return out
+    qs = tuple(int(v) for v in args.qs.split(","))
+    out.update(heldout_study(obs, max_iter, with_seed=not args.no_seed_config, qs=qs, **stop, **place))
+    if args.heldout_only or args.skip_fits:
+        out["load_end"] = os.getloadavg()[0]
+        print(json.dumps(out))
+        return out
     hj = fit_all(obs, 2, 30 if quick else 100, method="hooke-jeeves")
     out["hj_fit_s_q2"], out["hj_loglik_q2"], out["hj_sweeps_q2"] = (
         round(hj["seconds"], 3),
@@ -436,6 +596,7 @@ def main(argv=None) -> dict:
         hj["iterations"],
     )
     _log(f"Hooke-Jeeves q=2: {hj['loglik']:.6g} in {hj['seconds']:.2f} s")
+    model2 = ours_q2["model"]
     rate, rows = interp_rate(model2, obs.z, quick)
     out["interp_per_s"], out["predict_rows_per_s"] = round(rate), round(rows, 1)
     ends = ("chrome", "silver-paint") if obs.source == "nbrdf" else (0, 5)
@@ -450,7 +611,9 @@ def main(argv=None) -> dict:
     train, test = read_split(split_file) if obs.source == "nbrdf" else split_names(obs.names)
     out["split"] = str(split_file.relative_to(ROOT)) if obs.source == "nbrdf" else "split_names (every 5th)"
     for q in (2, 5):
-        h = heldout_reconstruction(obs, train, test, q, max_iter=max_iter, generator=torch.Generator().manual_seed(0))
+        h = heldout_reconstruction(
+            obs, train, test, q, max_iter=max_iter, generator=torch.Generator().manual_seed(0), **stop, **place
+        )
         sm = h.summary()
         _log(f"held-out q={q}: {sm}")
         suffix = "" if q == 5 else "_q2"
@@ -470,12 +633,14 @@ def main(argv=None) -> dict:
             out["time_ratio_gpytorch_over_ours"] = round(peer["seconds"] / max(ours_q2["seconds"], 1e-9), 2)
             out["loglik_ours_minus_gpytorch"] = ours_q2["loglik"] - peer["loglik"]
             _log(f"GPyTorch q=2 (L-BFGS): {peer['loglik']:.6g} in {peer['seconds']:.2f} s (reached ours: {reached})")
-        try:
-            import GPy  # noqa: F401
-        except ImportError:
+        gp = gpy_peer(obs, 2, GPY_MU, max_iter, seconds_cap=args.peer_seconds)
+        if gp is None:
             out["gpy"] = "not installed"
-        else:  # pragma: no cover - not installed here
-            out["gpy"] = "installed but not compared (no driver written)"
+        else:
+            out["gpy"] = gp
+            reached = gp["gpy_s_to_our_loglik"]
+            out["time_ratio_gpy_over_ours"] = None if reached is None else round(reached / gp["ours_s"], 1)
+            _log(f"GPy q=2 (mu {GPY_MU:g}): {gp}")
     out["load_end"] = os.getloadavg()[0]
     print(json.dumps(out))
     return out

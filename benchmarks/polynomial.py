@@ -1,6 +1,6 @@
 """BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
 
-    python benchmarks/polynomial.py [--quick] [--precompute-only]
+    python benchmarks/polynomial.py [--quick] [--precompute-only] [--baseline]
 
 Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
 coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
@@ -8,8 +8,13 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 * ``precompute_s``: tensors for 256x256, series (64,1,1,1), 64 spp, 4 bounces (``--quick``:
   64x64, 8 spp); ``precompute_paths_per_s``; ``rays`` cast (closest-hit, shadow).
 * ``rays_s``: the time embreex alone (one ``EmbreeScene.run`` per batch, one process) takes to
-  trace those rays, measured on the rays of the first tiles recorded during the run and
-  scaled by the total counts; ``precompute_over_rays``: the ratio (the goal is <= 1.5).
+  trace those rays, measured on the first rays of a second, 8x fewer-spp run in this process
+  (recorded after the timed run; the timed run's tiles may trace in forked processes) and
+  scaled by the timed run's total counts; ``precompute_over_rays``: the ratio (the goal is
+  <= 1.5). ``precompute_processes``: processes that computed tiles at once (by default one
+  per core unless the machine is busy; with ``--baseline`` one per core whatever the load),
+  and with ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
+  #14's parallel tiles), ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
   calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
   direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
@@ -48,6 +53,7 @@ import time
 import numpy as np
 import torch
 
+from torch_brdf._threads import usable_cores
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
@@ -122,6 +128,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
+    ap.add_argument(
+        "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
+    )
     args = ap.parse_args()
     q = args.quick
     out: dict = {"quick": q}
@@ -129,10 +138,26 @@ def main() -> None:
     # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
     res, spp = (64, 8) if q else (256, 64)
     sc = cornell_box_glossy(res)
-    log = _record_rays(sc, limit=1 << 20 if q else 1 << 22)
     t0 = time.perf_counter()
-    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True)
+    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
+    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
+    out["precompute_processes"] = T.meta["processes"]
+    if args.baseline:  # the same precompute with its tiles in this process, one after another
+        t0 = time.perf_counter()
+        T1 = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, processes=1)
+        out["one_process_s"] = time.perf_counter() - t0
+        out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
+        a, b = T.to_arrays()[0], T1.to_arrays()[0]
+        out["equals_one_process"] = sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+        out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
+        del T1
+    # embree alone: the rays of a run in this process (tiles may run in forked processes),
+    # recorded after the timed run (which stays the first call in the process)
+    rec_spp = max(1, spp // 8)
+    rsc = cornell_box_glossy(res)
+    log = _record_rays(rsc, limit=1 << 20 if q else 1 << 22)
+    precompute_polynomial(rsc, "64,1,1,1", spp=rec_spp, seed=1, progress=False, processes=1, guides=False)
     out["precompute_resolution"], out["precompute_spp"] = res, spp
     out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
     out["rays"] = T.meta["rays"]

@@ -1,6 +1,6 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
-    python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only]
+    python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
@@ -13,7 +13,11 @@ culled vertices. Prints progress, then one JSON object as the last line:
 
 * ``vertices`` (all), ``shaded_vertices`` (per frame, after culling), ``precompute_s`` (the
   visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s`` (embree alone
-  on as many rays, the physical limit), ``visibility_bytes_per_vertex``
+  on as many rays, the physical limit; chunks run in one forked process per core unless the
+  machine is busy, with ``--baseline`` whatever the load); with
+  ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays on
+  the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
+  bit); ``visibility_bytes_per_vertex``
   (varint stream) beside ``dense_bytes_per_vertex`` (one bit per texel) and the seed's
   ~1 KB goal; ``lighting_s`` (a lighting update); ``cull_s`` (primary rays + culling).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
@@ -41,6 +45,7 @@ import time
 import torch
 from _timing import best_of
 
+from torch_brdf._threads import usable_cores
 from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
@@ -77,6 +82,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small scene and image")
     ap.add_argument("--checkpoint", default=None, help="folder for resumable visibility chunks")
     ap.add_argument("--precompute-only", action="store_true", help="stop after the visibility precompute vs embree")
+    ap.add_argument(
+        "--baseline", action="store_true", help="also time the visibility with its chunks in one process (processes=1)"
+    )
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per frame (best is kept)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     args = ap.parse_args()
@@ -91,8 +99,21 @@ def main() -> None:
     print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
 
     t = time.perf_counter()
-    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512)
+    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
+    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512, **forked)
     precompute_s = time.perf_counter() - t
+    baseline = {}
+    if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
+        t = time.perf_counter()
+        vis1 = precompute_visibility(scene, res, chunk=512, processes=1)
+        baseline["one_process_s"] = time.perf_counter() - t
+        baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
+        a, b = vis1.blocks, vis.blocks
+        names = ("counts", "offsets", "index", "states")
+        baseline["equals_one_process"] = all(torch.equal(getattr(a, n), getattr(b, n)) for n in names) and (
+            (a.delta is None and b.delta is None) or torch.equal(a.delta, b.delta)
+        )
+        del vis1
     # the physical limit: embree alone on the same number of rays (one ray per texel above
     # each vertex's horizon), timed on the rays of the first 512 vertices and scaled
     geom = vis.geometry
@@ -115,6 +136,7 @@ def main() -> None:
                     "rays": rays,
                     "rays_s": rays_s,
                     "precompute_over_rays": precompute_s / rays_s,
+                    **baseline,
                     "load_avg": load,
                 }
             )
@@ -140,6 +162,7 @@ def main() -> None:
         "rays": rays,
         "rays_s": rays_s,
         "precompute_over_rays": precompute_s / rays_s,
+        **baseline,
         "visibility_bytes_per_vertex": vis.bytes_per_vertex,
         "dense_bytes_per_vertex": CubemapBlocks(res).texel_count / 8,
         "seed_bytes_per_vertex": 1024,

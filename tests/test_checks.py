@@ -59,3 +59,15 @@ def test_image_sizes_are_capped():
         check_image_size(100000, 100000)
     with pytest.raises(ValueRangeError, match="exceeds the cap"):
         check_image_size(MAX_IMAGE_SIDE, MAX_IMAGE_SIDE)
+
+
+def test_rgb_beyond_float32_is_refused():
+    # lights keep RGB in float32 buffers: 1e300 became Inf and the render failed only at its end
+    from torch_brdf._checks import check_rgb
+    from torch_brdf.scene import DirectionalLight
+
+    assert check_rgb([0.0, 3e38, 1.0], "radiance") == (0.0, 3e38, 1.0)
+    with pytest.raises(ValueRangeError, match="radiance exceeds the float32 range"):
+        check_rgb([1.0, 1e300, 1.0], "radiance")
+    with pytest.raises(ValueRangeError, match="irradiance exceeds the float32 range"):
+        DirectionalLight([0.0, 1.0, 0.0], 1e39)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -75,8 +76,35 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert T.bases[T.object_id("left")].J == 2 and not (tmp_path / "t.tiles").exists()
     bad = runner.invoke(app, [*args, "--bases", "{not json"])
     assert bad.exit_code == 2 and "JSON" in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"j": 2}}'])  # was an internal error (TypeError)
+    assert bad.exit_code == 2 and "--bases left: unknown key(s) ['j']; known keys: ['J'," in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"fresnel": "yes"}}'])  # was taken as true
+    assert bad.exit_code == 2 and "--bases left.fresnel must be true or false" in bad.output
     bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
     assert bad.exit_code == 2
+
+
+def test_edit_checks_its_scene_and_changes_models(tmp_path):
+    out = tmp_path / "t.npz"
+    args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--spp", "1", "--series", "2,1", "--out", str(out)]
+    assert runner.invoke(app, args).exit_code == 0
+    edit = ["edit", str(out), "--out", str(tmp_path / "e")]
+    # a lambert wall made glossy: the scene's albedo was kept and Blinn-Phong refused it
+    res = runner.invoke(app, [*edit, "--set", "left.type=blinn_phong", "--set", "left.exponent=50"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout.splitlines()[-1])["materials"]["left"] == {"type": "blinn_phong", "exponent": 50}
+    res = runner.invoke(app, [*edit, "--set", "back.ks=0.2", "--set", "back.type=phong"])  # phong keeps kd, ks, n
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, [*edit, "--set", "back.type=lambert"])  # blinn_phong's kd/ks are not lambert's
+    assert res.exit_code == 0, res.output
+    for value in ("back.kd=[0.5,0.5,inf]", "back.exponent=inf", "back.exponent=NaN"):  # was "invalid data type 'str'"
+        bad = runner.invoke(app, [*edit, "--set", value])
+        assert bad.exit_code == 2 and "numbers must be finite" in bad.output, bad.output
+    # another scene's objects: its materials were rendered onto the tensors' objects without a word
+    toml = tmp_path / "other.toml"
+    toml.write_text(RELIGHT_TOML)
+    bad = runner.invoke(app, [*edit, "--scene", str(toml)])
+    assert bad.exit_code == 2 and "does not match the tensors" in bad.output
 
 
 RELIGHT_TOML = """
@@ -290,3 +318,22 @@ def test_sizes_beyond_the_caps_are_usage_errors():
     for args in (["demo", "--resolution", "100000"], ["render", "cornell_box", "--spp", str(2**40)]):
         res = runner.invoke(app, args)
         assert res.exit_code == 2 and "Traceback" not in res.stderr and "Invalid value" in res.stderr
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc (a folder that refuses files)")
+def test_an_output_folder_that_refuses_files_is_an_io_error():
+    # OpenEXR's RuntimeError there was reported as "internal error ... report the traceback"
+    res = runner.invoke(app, [*RENDER, "--out", "/proc/refused"])
+    assert res.exit_code == 1 and "internal error" not in res.output and "/proc/refused.exr" in res.output
+
+
+def test_render_with_neither_scene_nor_mesh_says_so():
+    res = runner.invoke(app, ["render", "--envmap", "sky.exr"])  # was "..., not both"
+    assert res.exit_code == 2 and "neither was given" in res.output
+
+
+def test_relight_without_an_environment_map_says_so_before_reading_the_record(tmp_path):
+    toml = tmp_path / "dark.toml"
+    toml.write_text(RELIGHT_TOML.split("[[lights]]")[0])
+    res = runner.invoke(app, ["relight", str(toml), "--visibility", str(tmp_path / "none.npz")])
+    assert res.exit_code == 2 and "relight needs an environment map" in res.output  # not "array file not found"

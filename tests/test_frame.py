@@ -119,3 +119,17 @@ def test_polar_angle(gen):
     w = _hemi(100, gen)
     torch.testing.assert_close(polar_angle(w), torch.acos(w[:, 2]), atol=1e-7, rtol=0)
     assert float(polar_angle(torch.tensor([0.0, 1e-20, 1.0], dtype=torch.float64))) == 1e-20
+
+
+def test_half_and_angle_gradients_are_finite_where_the_functions_are_singular():
+    # the module's epsilon policy promises finite gradients: sqrt(0) at wi = -wo (the sum's
+    # length), at wi = wo (sin theta_d) and atan2(0, 0) at the pole gave NaN
+    z, x = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    wi = torch.stack([-z, z, x, -x]).requires_grad_(True)
+    wo = torch.stack([z, z, -x, x]).requires_grad_(True)
+    ht = half_terms(wi, wo)
+    loss = sum(t.sum() for t in (ht.h, ht.cos_d, ht.sin_d, ht.one_minus_cos_d)) + half_vector(wi, wo).sum()
+    loss = loss + sum(a.sum() for a in half_diff_angles(wi, wo))
+    gi, go = torch.autograd.grad(loss, (wi, wo))
+    assert bool(torch.isfinite(gi).all()) and bool(torch.isfinite(go).all())
+    assert ht.cos_d[0] == 0 and ht.sin_d[1] == 0  # the values at the singular points are exact

@@ -265,3 +265,23 @@ def test_openmp_threads_sleep_instead_of_spinning():
     late = _python("import torch, torch_brdf, os; print(os.environ.get('OMP_WAIT_POLICY'), "
                    "torch_brdf._threads.omp_wait_policy())")  # fmt: skip
     assert late == "None default"
+
+
+def test_available_memory_reads_meminfo(tmp_path):
+    f = tmp_path / "meminfo"
+    f.write_text("MemTotal:       24000000 kB\nMemFree:  100 kB\nMemAvailable:   1234 kB\n")
+    assert th.available_memory(f) == 1234 * 1024
+    f.write_text("MemTotal:       24000000 kB\n")
+    assert th.available_memory(f) is None
+    assert th.available_memory(tmp_path / "missing") is None
+
+
+def test_tile_processes_one_on_a_busy_machine(monkeypatch):
+    monkeypatch.delenv(th.ENV_WORKERS, raising=False)
+    monkeypatch.setattr(th, "usable_cores", lambda: 2)
+    assert th.tile_processes(load=0.5) == 2
+    assert th.tile_processes(load=3.9) == 2
+    assert th.tile_processes(load=4.1) == 1  # above BUSY_LOAD_PER_CORE per core
+    assert th.tile_processes(3, load=20.0) == 3  # an explicit count wins
+    monkeypatch.setenv(th.ENV_WORKERS, "2")
+    assert th.tile_processes(load=20.0) == 2

@@ -88,7 +88,7 @@ def check_nonnegative(x: torch.Tensor, name: str) -> torch.Tensor:
 
 
 def check_rgb(value, name: str) -> tuple[float, float, float]:
-    """Accept a scalar or 3 numbers >= 0 and return an RGB triple of floats."""
+    """Accept a scalar or 3 numbers >= 0 (finite in float32) and return an RGB triple of floats."""
     import torch
 
     t = as_float_tensor(value, name, torch.float64).reshape(-1)
@@ -97,6 +97,12 @@ def check_rgb(value, name: str) -> tuple[float, float, float]:
     if t.numel() != 3:
         raise ShapeError(f"Expected {name} to be a scalar or 3 values (RGB); got {t.numel()} values")
     check_nonnegative(t, name)
+    big = float(t.max())
+    if big > torch.finfo(torch.float32).max:
+        # lights and materials keep RGB in float32 buffers: 1e300 would become Inf there
+        raise ValueRangeError(
+            f"{name} exceeds the float32 range (max {torch.finfo(torch.float32).max:.4g}); got {big:.4g}"
+        )
     return (float(t[0]), float(t[1]), float(t[2]))
 
 

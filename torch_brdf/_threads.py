@@ -6,6 +6,10 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
   else ``TORCH_BRDF_WORKERS``, else the usable cores (at most :data:`MAX_DEFAULT_WORKERS`).
 - :func:`intra_op_threads`: torch threads of the calling process; argument, else
   ``TORCH_BRDF_THREADS``, else torch's own count capped at the usable cores (set when torch loads).
+- :func:`tile_processes`: processes that compute tiles at once: argument, else
+  ``TORCH_BRDF_WORKERS``, else the usable cores unless the machine is busy (then 1).
+- :func:`available_memory`: bytes the system can still give (``MemAvailable``), e.g. to bound
+  how many tiles run at once.
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
@@ -172,6 +176,44 @@ def worker_count(workers: int | None = None) -> int:
         return _positive(workers, "workers")
     env = _from_env(ENV_WORKERS)
     return env if env is not None else min(usable_cores(), MAX_DEFAULT_WORKERS)
+
+
+#: the machine counts as busy for :func:`tile_processes` above this 1-minute load per usable core.
+BUSY_LOAD_PER_CORE = 2.0
+
+
+def tile_processes(processes: int | None = None, load: float | None = None) -> int:
+    """Processes that compute tiles at once (each a single-threaded worker tracing its own rays).
+
+    Args:
+        processes: explicit count (wins); None reads ``TORCH_BRDF_WORKERS``, else takes
+            :func:`worker_count`'s default, or 1 when the 1-minute load average is above
+            :data:`BUSY_LOAD_PER_CORE` per usable core: beside other sessions a second process
+            mostly splits the same CPU share (Linux groups a session's processes,
+            ``sched_autogroup``) and costs extra CPU time and page faults (measured 0.79x at
+            load 13 on 2 cores, README "Where the precompute's time goes").
+        load: the load average to judge by (default ``os.getloadavg()[0]``; tests pass one).
+    """
+    if processes is not None or _from_env(ENV_WORKERS) is not None:
+        return worker_count(processes)
+    cores = usable_cores()
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except OSError:  # pragma: no cover - not available
+            load = 0.0
+    return 1 if load > BUSY_LOAD_PER_CORE * cores else min(cores, MAX_DEFAULT_WORKERS)
+
+
+def available_memory(meminfo: str | os.PathLike = "/proc/meminfo") -> int | None:
+    """Bytes of memory available to new work (Linux ``MemAvailable``: free memory plus what
+    the page cache can give back); None when unknown (not Linux, unreadable)."""
+    for line in (_read(Path(meminfo)) or "").splitlines():
+        if line.startswith("MemAvailable:"):
+            parts = line.split()
+            if len(parts) >= 2 and parts[1].isdigit():
+                return int(parts[1]) * 1024  # kB
+    return None
 
 
 def intra_op_threads(threads: int | None = None) -> int:

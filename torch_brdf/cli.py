@@ -19,6 +19,7 @@ import errno
 import functools
 import hashlib
 import json
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -166,7 +167,8 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
     from .scene import EnvironmentMap, mesh_scene
 
     if (spec is None) == (mesh is None):
-        raise ValueRangeError("give a SCENE (built-in name or TOML file) or --mesh FILE, not both")
+        which = "not both" if mesh is not None else "neither was given"  # `render --envmap X` said "not both"
+        raise ValueRangeError(f"give a SCENE (built-in name or TOML file) or --mesh FILE; {which}")
     for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
         if path is not None and not path.is_file():
             raise SceneError(f"{option}: no such file: {path}")
@@ -316,7 +318,10 @@ def precompute(
     ray: str = RAY,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
+    from dataclasses import fields
+
     from .records.cache import remove_cache
+    from .records.polynomial import ObjectBasis
     from .transport.polynomial import Series, precompute_polynomial
 
     # every option is checked before the scene is loaded and the precompute starts
@@ -328,8 +333,14 @@ def precompute(
     for name, spec in (overrides or {}).items():
         if not isinstance(spec, dict):
             raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
+        known = [f.name for f in fields(ObjectBasis)]
+        unknown = sorted(set(spec) - set(known))
+        if unknown:
+            raise ValueRangeError(f"--bases {name}: unknown key(s) {unknown}; known keys: {known}")
         if "J" in spec:
             check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
+        if not isinstance(spec.get("fresnel", False), bool):
+            raise ValueRangeError(f"--bases {name}.fresnel must be true or false; got {spec['fresnel']!r}")
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
@@ -359,6 +370,37 @@ def precompute(
     typer.echo(json.dumps(info))
 
 
+def _tensors_scene(T, scene: str | None, resolution: int):
+    """The scene of saved polynomial tensors ``T``: ``--scene``, else the name saved in them; its
+    objects must be the tensors' (another scene's materials would be rendered onto them)."""
+    name = scene or str(T.meta.get("scene", ""))
+    try:
+        sc = load_scene(name, resolution)
+    except SceneError as exc:
+        if scene is not None:
+            raise
+        raise SceneError(f"{exc}; the tensors were precomputed from scene {name!r}: pass it with --scene") from None
+    names = [o.name for o in sc.objects]
+    if names != list(T.object_names):
+        raise SceneError(
+            f"scene {sc.name!r} does not match the tensors: they hold objects {list(T.object_names)}, "
+            f"the scene {names}; pass the precomputed scene with --scene"
+        )
+    return sc
+
+
+def _retyped(material: dict, kind) -> dict:
+    """``--set OBJECT.type=KIND``: a ``kind`` material keeping the parameters that model takes."""
+    import inspect
+
+    from .brdf.base import model_class
+
+    params = inspect.signature(model_class(str(kind)).__init__).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return {**material, "type": kind}
+    return {"type": kind, **{k: v for k, v in material.items() if k in params and k != "self"}}
+
+
 def _parse_set(item: str) -> tuple[str, str, object]:
     """``OBJECT.PARAM=VALUE`` -> (object, param, value); VALUE is JSON or else a plain word."""
     key, sep, raw = item.partition("=")
@@ -366,10 +408,16 @@ def _parse_set(item: str) -> tuple[str, str, object]:
     if not sep or not dot or not obj or not param:
         raise ValueRangeError(f"--set expects OBJECT.PARAM=VALUE (e.g. back.exponent=400); got {item!r}")
     try:
-        value = json.loads(raw)
+        value = json.loads(raw, parse_constant=lambda c: _not_finite(item))
     except json.JSONDecodeError:
+        if re.search(r"(?i)\b(nan|inf|infinity)\b", raw):  # [0.5,0.5,inf] went on as a string
+            _not_finite(item)
         value = raw.strip()
     return obj, param, value
+
+
+def _not_finite(item: str):
+    raise ValueRangeError(f"--set {item!r}: numbers must be finite (no nan or inf)")
 
 
 @app.command()
@@ -393,14 +441,19 @@ def edit(
     if exposure is not None:
         check_real(exposure, "--exposure")
     T = PolynomialTensors.load(tensors)
-    sc = load_scene(scene or str(T.meta.get("scene", "")), 16)
+    sc = _tensors_scene(T, scene, 16)
     editable = {T.object_names[k] for k, b in enumerate(T.bases) if b is not None}
     by_name = {o.name: o for o in sc.objects}
-    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable if n in by_name}
-    for obj, param, value in edits:
+    materials = {n: dict(sc.materials[by_name[n].material]) for n in editable}
+    for obj, param, _ in edits:
         if obj not in materials:
             raise SceneError(f"--set {obj}.{param}: {obj!r} is not an editable object; choose from {sorted(materials)}")
-        materials[obj][param] = value
+    for obj, param, value in edits:  # a new model first: it keeps only the scene's parameters it takes
+        if param == "type":
+            materials[obj] = _retyped(materials[obj], value)
+    for obj, param, value in edits:
+        if param != "type":
+            materials[obj][param] = value
     t0 = time.perf_counter()
     image = PolynomialRenderer(T, materials)().detach()
     seconds = time.perf_counter() - t0
@@ -629,7 +682,7 @@ def fit_image_cmd(
     t0 = time.perf_counter()
     if source.endswith(".npz") and Path(source).is_file():
         T = PolynomialTensors.load(source)
-        sc = load_scene(scene or T.meta.get("scene", ""), T.width)
+        sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
         T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
@@ -747,6 +800,8 @@ def relight(
     if psnr is not None:
         check_real(psnr, "--psnr")
     sc = load_scene(scene, resolution, width, height)
+    if sc.environment is None:  # before the record loads; the renderer's "pass envmap=" is the API's
+        raise SceneError(f"relight needs an environment map; scene {sc.name!r} has none (add an envmap light)")
     coarse = [f"{o.name} ({n} vertices)" for o in sc.objects if (n := len(o.mesh.vertices)) < COARSE_VERTICES]
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "

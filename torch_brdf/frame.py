@@ -99,13 +99,24 @@ def cos_theta(w: torch.Tensor) -> torch.Tensor:
 def polar_angle(w: torch.Tensor) -> torch.Tensor:
     r"""Polar angle :math:`\theta \in [0, \pi]` of local vectors (*B, 3) -> (*B,), as
     :math:`\operatorname{atan2}(|w_{xy}|, w_z)` (accurate near the poles, unlike an arccos)."""
-    return torch.atan2(torch.linalg.vector_norm(w[..., :2], dim=-1), w[..., 2])
+    return torch.atan2(_sqrt0(w[..., 0] ** 2 + w[..., 1] ** 2), w[..., 2])
 
 
 def spherical_angles(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     r"""Polar and azimuthal angles of local unit vectors: :math:`\theta \in [0, \pi]`,
-    :math:`\phi \in (-\pi, \pi]`. Args: w (*B, 3). Returns: theta, phi (*B,) each."""
-    return polar_angle(w), torch.atan2(w[..., 1], w[..., 0])
+    :math:`\phi \in (-\pi, \pi]` (0 at the poles, with a zero gradient there rather than
+    atan2(0, 0)'s NaN). Args: w (*B, 3). Returns: theta, phi (*B,) each."""
+    x, y = w[..., 0], w[..., 1]
+    pole = (x == 0) & (y == 0)
+    phi = torch.where(pole, torch.zeros_like(x), torch.atan2(y, torch.where(pole, torch.ones_like(x), x)))
+    return polar_angle(w), phi
+
+
+def _sqrt0(x: torch.Tensor) -> torch.Tensor:
+    """``sqrt(x)`` of ``x >= 0`` with a finite gradient at 0 (the value there is exactly 0;
+    a plain sqrt's infinite derivative turned the gradients of wi = -wo pairs into NaN)."""
+    pos = x > 0
+    return torch.where(pos, torch.where(pos, x, torch.ones_like(x)).sqrt(), torch.zeros_like(x))
 
 
 def _unit_sum(s: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
@@ -124,7 +135,7 @@ def half_vector(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     with the angles computed without cancellation.
     """
     s = wi + wo
-    return _unit_sum(s, torch.linalg.vector_norm(s, dim=-1))
+    return _unit_sum(s, _sqrt0((s * s).sum(-1)))
 
 
 class HalfTerms(NamedTuple):
@@ -169,14 +180,14 @@ def half_terms(wi: torch.Tensor, wo: torch.Tensor) -> HalfTerms:
     s = wi + wo
     sxy2 = s[..., 0] ** 2 + s[..., 1] ** 2
     sz = s[..., 2]
-    length = (sxy2 + sz * sz).sqrt()
+    length = _sqrt0(sxy2 + sz * sz)
     tan2 = sxy2 / (sz * sz).clamp_min(math.sqrt(torch.finfo(s.dtype).tiny))
     h = _unit_sum(s, length)
     d = wi - wo
     q = ((d * d).sum(-1) * 0.25).clamp(0.0, 1.0)
-    one_minus_cos_d = q / (1.0 + (1.0 - q).sqrt())
+    one_minus_cos_d = q / (1.0 + _sqrt0(1.0 - q))
     up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
-    return HalfTerms(s, h, tan2, h[..., 2], 0.5 * length, one_minus_cos_d, q.sqrt(), up)
+    return HalfTerms(s, h, tan2, h[..., 2], 0.5 * length, one_minus_cos_d, _sqrt0(q), up)
 
 
 def _rotate_z(v: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:

@@ -35,6 +35,8 @@ returns ``(wi, pdf)`` with ``pdf = 0`` for invalid samples):
   float32 and float64 at :meth:`~BRDFContract.extremes` and at extreme directions
   (normal, :math:`\cos\theta = 10^{-7}`, on and below the horizon, :math:`\omega_i = -\omega_o`,
   :math:`\omega_i = \omega_o`, mirror pairs, u at 0 and 1);
+* ``test_direction_gradients_are_finite``: so are the gradients of eval with respect to
+  the directions at those pairs;
 * ``test_world_frame_matches_local``: eval/sample through a :class:`~torch_brdf.frame.Frame`
   (with a tangent) match the local versions; isotropic models (``anisotropic = False``) are
   invariant under a rotation about the normal.
@@ -596,6 +598,18 @@ class BRDFContract:
                     grads = torch.autograd.grad(loss, params, allow_unused=True)
                     for q, gr in zip(params, grads, strict=True):
                         assert gr is None or bool(torch.isfinite(gr).all()), (dt, i, "gradient", q.shape)
+
+    def test_direction_gradients_are_finite(self):
+        # d f / d(wi, wo) at the extreme pairs: sqrt at wi = -wo and at the horizon gave NaN
+        for dt in (F32, F64):
+            wi, wo = (w.clone().requires_grad_(True) for w in extreme_pairs(dt))
+            for i, brdf in enumerate([self.make(dt), *self.extremes(dt)]):
+                f = brdf.eval(wi, wo)
+                if not f.requires_grad:  # a table lookup: not differentiable in the directions
+                    continue
+                gi, go = torch.autograd.grad(f.sum(), (wi, wo), allow_unused=True)
+                for g in (gi, go):
+                    assert g is None or bool(torch.isfinite(g).all()), (dt, i, int((~torch.isfinite(g)).sum()))
 
     def test_world_frame_matches_local(self):
         brdf = self.make(F64)

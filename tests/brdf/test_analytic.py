@@ -505,3 +505,14 @@ def test_extreme_pairs_cover_the_hard_cases(dtype):
     assert bool(((wi + wo).norm(dim=-1) == 0).any())  # wi = -wo
     assert bool((wi[:, 2] == 0).any()) and bool((wi[:, 2] < 0).any())
     assert bool(((wi[:, 2] > 0) & (wi[:, 2] < 1e-6)).any())
+
+
+def test_out_of_range_parameters_name_the_parameter():
+    # the transforms alone said "value must lie in [0.0, 1.0]; got [...]" without saying which
+    with pytest.raises(ValueRangeError, match=r"^Lambert\.reflectance: value must lie in \[0.0, 1.0\]"):
+        create("lambert", albedo=-0.1)
+    brdf = create("blinn_phong")
+    with pytest.raises(ValueRangeError, match=r"^BlinnPhong\.ks: value must lie in \[0.0, 1.0\]"):
+        brdf.ks = 1.5
+    with pytest.raises(ValueRangeError, match=r"^BlinnPhong\.exponent: value must be > "):
+        brdf.exponent = -1.0

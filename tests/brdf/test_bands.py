@@ -90,6 +90,25 @@ def test_band_edges_cover_the_domain(spacing):
         torch.testing.assert_close(e, (math.pi / 2) * (torch.arange(17, dtype=F64) / 16) ** 2)
 
 
+@pytest.mark.parametrize(
+    ("J", "spacing", "words"),
+    [
+        (16, "lobe:inf", "zero width"),  # 12 of 16 bands were [6e-25, 6e-25]
+        (16, 1e300, "zero width"),
+        (16, "log:inf", "NaN edges"),
+        (10**9, "uniform", "J must be <= 4096"),  # allocated until the process was killed
+        (16.7, "uniform", "J must be an integer"),  # was cut to 16 bands
+    ],
+)
+def test_band_edges_refuse_empty_bands_and_huge_or_fractional_J(J, spacing, words):
+    from torch_brdf.errors import ValueRangeError
+
+    with pytest.raises(ValueRangeError, match=words):
+        band_edges(J, spacing)
+    with pytest.raises(ValueRangeError, match=words):
+        BandBasis("theta_h", J, spacing)
+
+
 def test_band_index_and_evaluate():
     b = BandBasis("theta_h", 8, "uniform")
     e = b.edges

@@ -85,3 +85,13 @@ def test_a_failed_write_removes_its_own_temporary(tmp_path):
         Path(tmp).write_bytes(b"half")
         raise OSError(28, "No space left on device")
     assert _temporaries(tmp_path) == [] and not target.exists()
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc (a folder that refuses files)")
+def test_a_folder_that_refuses_files_raises_the_os_error_naming_the_target():
+    # OpenEXR raised a bare RuntimeError there, which the CLI reported as an internal error
+    from torch_brdf.io import write_exr
+
+    with pytest.raises(OSError) as info:
+        write_exr("/proc/refused.exr", np.zeros((2, 2, 3), np.float32))
+    assert info.value.errno is not None and info.value.filename == "/proc/refused.exr"

@@ -161,7 +161,7 @@ def test_write_replaces_atomically_and_leaves_no_temp(tmp_path, monkeypatch):
         raise RuntimeError("disk full")
 
     monkeypatch.setattr(OpenEXR.File, "write", fail)
-    with pytest.raises(RuntimeError, match="disk full"):
+    with pytest.raises(OSError, match="disk full"):  # OpenEXR's RuntimeError becomes an OSError (the CLI's I/O line)
         write_exr(path, _random_image(seed=3))
     monkeypatch.undo()
     assert torch.equal(read_exr(path), _random_image(seed=2))  # old file intact

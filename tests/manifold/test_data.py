@@ -112,3 +112,17 @@ def test_nbrdf_observations_cache_resume_and_corruption(tmp_path):
     with pytest.warns(CorruptCacheWarning, match="obs.npz"):  # moved aside, named, recomputed
         fresh = nbrdf_observations(weights, grid, names, cache=cache, progress=False)
     assert torch.equal(fresh.z, obs.z) and (tmp_path / "obs.npz.corrupt").exists()
+
+
+def test_pca_gram_route_spans_the_svd_subspace(gen):
+    """fit_pca goes through the N x N Gram matrix: orthonormal components spanning the same
+    subspace as the SVD's top right singular vectors (projectors equal)."""
+    obs, _ = small_family(12)
+    z = obs.z.double()
+    w = obs.cosine_weights()
+    c = z * w - (z * w).mean(0)
+    vh = torch.linalg.svd(c, full_matrices=False)[2]
+    for q in (1, 2, 3):
+        comps = fit_pca(z, q, w).components
+        torch.testing.assert_close(comps @ comps.T, torch.eye(q, dtype=torch.float64), rtol=0, atol=1e-9)
+        torch.testing.assert_close(comps.T @ comps, vh[:q].T @ vh[:q], rtol=0, atol=1e-8)

@@ -326,3 +326,93 @@ def test_lbfgs_stops_at_a_stationary_point():
     init = 1e4 * torch.arange(6, dtype=torch.float64)[:, None]
     fit = fit_gplvm(s, d, 1, init=init, normalise=False, max_iter=20)
     assert torch.equal(fit.latents, init)
+
+
+def test_two_loop_recursion_equals_the_dense_bfgs_update(gen):
+    """The numpy two-loop recursion gives H g of the dense inverse-BFGS recursion
+    H <- (I - rho s y^T) H (I - rho y s^T) + rho s s^T from H0 = (s^T y / y^T y) I of the last pair."""
+    from torch_brdf.manifold.gplvm import _two_loop
+
+    n = 12
+    a = torch.randn(n, n, generator=gen, dtype=torch.float64)
+    hess = (a @ a.T + n * torch.eye(n, dtype=torch.float64)).numpy()  # SPD: every pair has s^T y > 0
+    pairs = []
+    for _ in range(5):
+        sk = torch.randn(n, generator=gen, dtype=torch.float64).numpy()
+        yk = hess @ sk
+        pairs.append((sk, yk, 1.0 / float(sk @ yk)))
+    g = torch.randn(n, generator=gen, dtype=torch.float64).numpy()
+    sl, yl, _ = pairs[-1]
+    h = np.eye(n) * float(sl @ yl) / float(yl @ yl)
+    for sk, yk, rho in pairs:
+        v = np.eye(n) - rho * np.outer(yk, sk)
+        h = v.T @ h @ v + rho * np.outer(sk, sk)
+    np.testing.assert_allclose(_two_loop(g, pairs), h @ g, rtol=1e-10, atol=1e-12)
+    # no pairs: a gradient step scaled to at most 0.1 per coordinate
+    np.testing.assert_allclose(np.abs(_two_loop(g, [])).max(), 0.1, rtol=1e-12)
+
+
+def test_windowed_tolerance_stops_the_fit_and_is_checked():
+    """tol over tol_window iterations: the fit stops at the first iteration where the last
+    window together gained less than tol |L|, and not before."""
+    obs, _ = small_family(16)
+    s, d = gram(obs.z)
+    tol, window = 1e-3, 5
+    fit = fit_gplvm(s, d, 2, max_iter=400, tol=tol, tol_window=window, generator=torch.Generator().manual_seed(0))
+    ll = fit.loglik.tolist()
+    assert fit.iterations < 400
+
+    def stop(k):
+        return abs(ll[k] - ll[k - window]) <= tol * max(1.0, abs(ll[k - window]))
+
+    assert stop(len(ll) - 1)
+    assert not any(stop(k) for k in range(window, len(ll) - 1))
+    with pytest.raises(ValueRangeError, match="tol_window"):
+        fit_gplvm(s, d, 2, tol_window=0)
+    with pytest.raises(ValueRangeError, match="tol_window"):
+        fit_gplvm(s, d, 2, method="hooke-jeeves", tol_window=3)
+
+
+def test_signed_log_mapping_charges_negative_values():
+    """The placement's signed log mapping: the log-RMSE mapping (up to a constant) on values >= 0,
+    odd, and a negative value is never closer to a non-negative target than 0 is."""
+    from torch_brdf.manifold.evaluate import _logmap, _signed_logmap
+
+    c = torch.tensor([0.01, 0.5, 1.0], dtype=torch.float64)
+    v = torch.tensor([0.0, 0.3, 200.0], dtype=torch.float64)
+    torch.testing.assert_close(_signed_logmap(v, c), _logmap(v, c) - math.log(1e-3), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(_signed_logmap(-v, c), -_signed_logmap(v, c), rtol=0, atol=0)
+    t = _signed_logmap(torch.tensor([0.0, 0.1, 5.0], dtype=torch.float64), c)
+    neg = _signed_logmap(torch.tensor([-1e-4, -0.2, -3.0], dtype=torch.float64), c)
+    assert bool(((neg - t).abs() > t.abs()).all())
+    torch.testing.assert_close(_signed_logmap(-v, c, negative_weight=10.0), -10.0 * _signed_logmap(v, c))
+    torch.testing.assert_close(_signed_logmap(v, c, negative_weight=10.0), _signed_logmap(v, c), rtol=0, atol=0)
+
+
+def test_perceptual_placement_options():
+    """Column subsampling with every column kept is the full search; the penalised placement is
+    scored with an error >= the clamped one, so it stays no worse than the nearest material in the
+    clamped (log-RMSE) mapping; bad options raise."""
+    from torch_brdf.manifold.evaluate import _logmap, project_perceptual
+
+    obs, _ = small_family(16)
+    names = list(obs.names)
+    z_tr = obs.rows(names[:12]).double()
+    s, d = gram(z_tr)
+    m = GPLVM(fit_gplvm(s, d, 2, max_iter=60, generator=torch.Generator().manual_seed(0)), z_tr)
+    cos = obs.grid.cosine_map()
+    z = obs.rows(names[12:13]).double()[0]
+    full = project_perceptual(m, z_tr, z, cos, max_columns=None)
+    torch.testing.assert_close(project_perceptual(m, z_tr, z, cos, max_columns=z_tr.shape[1]), full, rtol=0, atol=0)
+    for negatives, weight in (("penalise", 1.0), ("penalise", 10.0), ("free", 1.0)):
+        for cols in (None, 97):
+            x = project_perceptual(m, z_tr, z, cos, negatives=negatives, negative_weight=weight, max_columns=cols)
+            err = float(((_logmap(m.predict(x), cos) - _logmap(z, cos)) ** 2).mean())
+            nearest = float(((_logmap(z_tr, cos) - _logmap(z, cos)) ** 2).mean(-1).min())
+            assert err <= nearest + 1e-12
+    with pytest.raises(ValueRangeError, match="negatives"):
+        project_perceptual(m, z_tr, z, cos, negatives="clamp")
+    with pytest.raises(ValueRangeError, match="negative_weight"):
+        project_perceptual(m, z_tr, z, cos, negative_weight=0.5)
+    with pytest.raises(ValueRangeError, match="max_columns"):
+        project_perceptual(m, z_tr, z, cos, max_columns=0)

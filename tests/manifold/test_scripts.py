@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 from pathlib import Path
+
+import pytest
 
 from tests.conftest import shared_file
 from torch_brdf.manifold import GPLVM, GPLVMFit, read_split
@@ -37,3 +40,19 @@ def test_trainer_fits_the_training_split_and_saves(tmp_path, monkeypatch, capsys
     assert again["loglik"] == summary["loglik"]
     b = GPLVM(fit).weights(fit.latents[3])
     assert abs(float(b[3]) - 1.0) < 1e-6
+
+
+@pytest.mark.reference
+def test_gpy_peer_optimises_the_same_objective():
+    """benchmarks/manifold.py's GPy driver: GPy's GPLVM objective (noise mu - 1e-8, its +1e-8 added
+    back) equals Eq. 6 at the start, and its latents are scored with our log-likelihood."""
+    pytest.importorskip("GPy")
+    from tests.manifold.common import small_family
+
+    bench = _load("benchmarks/manifold.py", "bench_manifold")
+    obs, _ = small_family(12)
+    res = bench.gpy_peer(obs, 2, 1e-6, 20, seconds_cap=60.0)
+    assert res["gpy_objective_gap"] < 1e-9
+    assert res["ours_iterations"] >= 1 and math.isfinite(res["gpy_loglik"])
+    if res["gpy_s_to_our_loglik"] is not None:
+        assert res["gpy_loglik"] >= res["ours_loglik"] - 1e-8 * abs(res["ours_loglik"])

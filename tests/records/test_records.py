@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import re
+
+import pytest
 import torch
 
 from tests.records.contract import RecordContract
+from torch_brdf.errors import FileFormatError
 from torch_brdf.records import (
     BasisImage,
     BlockVisibility,
@@ -58,6 +62,27 @@ class TestPolynomialTensors(RecordContract):
         return PolynomialTensors(
             3, 3, series, ["a", "b"], bases, torch.rand(3, 9, generator=gen), terms, blocks, {"s": 1}
         )
+
+    @pytest.mark.parametrize(
+        ("array", "entry", "value", "words"),
+        [
+            ("b0_pixels", 0, -1, "block 0: pixels outside [0, 9)"),  # wrapped around to the last pixel
+            ("b0_pixels", 0, 10**9, "block 0: pixels outside"),  # an IndexError when rendered
+            ("b1_index", 0, 10**6, "block 1: index outside [0, 24)"),
+            ("b2_terms", 0, 7, "block 2: terms outside [0, 1)"),
+        ],
+    )
+    def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
+        # checksummed, so only a faulty writer makes these: refused at load, naming the array
+        from torch_brdf.io import load_arrays, save_arrays
+
+        path = self.make(gen).save(tmp_path / "t.npz")
+        arrays, meta = load_arrays(path)
+        arrays[array] = arrays[array].copy()
+        arrays[array][entry] = value
+        save_arrays(path, arrays, PolynomialTensors.kind, meta, kind_version=PolynomialTensors.version)
+        with pytest.raises(FileFormatError, match=re.escape(words)):
+            PolynomialTensors.load(path)
 
     def assert_same(self, a, b):
         assert (a.height, a.width, a.series, a.object_names, a.bases, a.meta) == (

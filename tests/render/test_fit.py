@@ -171,6 +171,34 @@ def test_library_brdf_parameters_recovered(box):
     assert float((res.parameters["back"] - truth).abs().max() / truth.abs().max()) < 1e-4
 
 
+def test_family_fit_error_is_the_tensors_noise_not_the_series():
+    """Why a fit through the tensors misses a target it did not render (benchmarks/inverse_gi.py):
+    fitting (kd, ks) to an independent 256-spp render, the error shrinks with the tensors' spp
+    (mean over three seeds, 4 -> 64 spp), while 16 instead of 64 eye bands moves the fit far
+    less (the same paths: the sampling does not depend on the basis)."""
+    from torch_brdf.render import blinn_phong_family
+
+    sc = cornell_box_glossy(24)
+    mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
+    truth_mat = {"type": "blinn_phong", "kd": 0.3, "ks": 0.5, "exponent": 100.0}
+    Tt = precompute_polynomial(sc, "64,1,1,1", spp=256, seed=99, progress=False)
+    Rt = PolynomialRenderer(Tt, mats, dtype=torch.float64)
+    Rt.set_material("back", truth_mat)
+    target, mask = Rt().detach(), object_mask(Tt, "back")
+
+    def fit(series, spp, seed):  # (2, C) fitted (kd, ks)
+        T = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=False)
+        R = PolynomialRenderer(T, mats, dtype=torch.float64)
+        fam = {"back": blinn_phong_family(R, "back", 100.0)}
+        return fit_image(R, "back", target, weights=mask, families=fam).parameters["back"]
+
+    truth = torch.tensor([[0.3], [0.5]], dtype=torch.float64)
+    err = {s: sum(float((fit("64,1,1,1", s, k) - truth).abs().max()) / 0.5 for k in range(3)) / 3 for s in (4, 64)}
+    assert err[64] < 0.5 * err[4], err
+    bands = float((fit("16,1,1,1", 64, 0) - fit("64,1,1,1", 64, 0)).abs().max()) / 0.5
+    assert bands < 0.01 and bands < 0.5 * err[64], (bands, err)
+
+
 @pytest.mark.parametrize("bounces", [None, 1])
 def test_reduced_form_matches_renderer_and_its_jacobian(box, bounces):
     """The painted pixels frozen once (fit._Reduced, two edited objects) give the renderer's own

@@ -111,11 +111,29 @@ NAMED = [
     (("lights", 2, "rotation_deg"), math.nan, r"lights\[2\].rotation_deg"),
     (("lights", 1, "direction"), [0.0, math.inf, 0.0], r"lights\[1\].direction"),
     (("lights", 0, "radiance"), [1.0, math.nan, 1.0], r"lights\[0\].radiance"),
+    # beyond float32 (the lights' buffers): the render came out Inf, refused only after it
+    (("lights", 1, "irradiance"), 1e300, r"lights\[1\].irradiance"),
+    (("lights", 0, "radiance"), [1.0, 1e39, 1.0], r"lights\[0\].radiance"),
+    (("objects", 1, "vertices", 0), [-0.5, 1e300, -0.5], r"objects\[1\].vertices\[0\]"),
     (("lights", 2, "height"), 100000, r"lights\[2\].height"),
     (("materials", "white", "albedo"), "red", "materials.white.albedo"),
     (("materials", "shiny", "exponent"), math.inf, "materials.shiny.exponent"),
     (("materials", "white", "type"), "gold", "materials.white.type"),
 ]
+
+
+# values of the right type the BRDF refuses: refused only once rendering (or a precompute) began
+MATERIAL_VALUES = [
+    ("exponent", -5.0, r"BlinnPhong.exponent must lie in \[0.001, 10000\]; got -5.0"),
+    ("exponent", "abc", "bad parameters for BRDF model 'blinn_phong'"),
+    ("ks", 1.5, r"must lie in \[0.0, 1.0\]"),
+]
+
+
+@pytest.mark.parametrize(("param", "value", "words"), MATERIAL_VALUES)
+def test_material_values_the_brdf_refuses_raise_scene_error_at_load(folder, param, value, words):
+    with pytest.raises(SceneError, match=rf"^materials.shiny: .*{words}"):
+        Scene.from_toml(write_scene(folder, mutated(("materials", "shiny", param), "set", value)))
 
 
 @pytest.mark.parametrize(("path", "value", "key"), NAMED, ids=[n[2].replace("\\", "") for n in NAMED])

@@ -78,6 +78,16 @@ def test_non_finite_vertex_raises_mesh_error_naming_the_mesh(bad):
         mesh_from_arrays(v, [[0, 1, 2], [1, 2, 3]], "teapot")
 
 
+def test_vertices_beyond_float32_raise_mesh_error(tmp_path):
+    # finite in float64 but Inf in the float32 that embree traces: the render used to run
+    obj = tmp_path / "huge.obj"
+    obj.write_text("v 0 0 0\nv 1e300 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"huge\.obj.*1 vertices exceed the float32 range"):
+        load_mesh(obj)
+    with pytest.raises(MeshError, match="float32 range"):  # also what a TOML 'scale' makes
+        validate_mesh(trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False).apply_scale(1e39))
+
+
 def test_nan_vertex_in_files_raises_mesh_error_naming_the_file(tmp_path):
     obj = tmp_path / "broken.obj"
     obj.write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")

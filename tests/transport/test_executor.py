@@ -72,6 +72,51 @@ def test_local_resume_and_split(scene, local, tmp_path):
     assert all(v >= 0 for v in split.values()) and split["rays"] > 0
 
 
+def test_local_processes_equal_one_process(scene, local):
+    """Tiles in two forked processes (the default on two cores) give the tensors of one process."""
+    one = precompute_polynomial(scene, **SETTINGS, processes=1)
+    two = precompute_polynomial(scene, **SETTINGS, processes=2)
+    assert one.meta["processes"] == 1 and two.meta["processes"] == 2
+    _assert_identical(one, two)
+    _assert_identical(one, local)
+    assert one.meta["rays"] == two.meta["rays"]
+
+
+def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
+    """Fewer tiles at once when they would not fit in memory; the tensors stay the same."""
+    from torch_brdf.transport.polynomial import driver
+
+    monkeypatch.setattr(driver, "tile_processes", lambda: 2)
+    tile_bytes = 4 * 16 * SETTINGS["spp"] * driver.TILE_BYTES_PER_PATH  # tile_rows x width x spp
+    monkeypatch.setattr(driver, "available_memory", lambda: tile_bytes + 1)
+    one = precompute_polynomial(scene, **SETTINGS)
+    assert one.meta["processes"] == 1
+    monkeypatch.setattr(driver, "available_memory", lambda: 2 * tile_bytes)
+    two = precompute_polynomial(scene, **SETTINGS)
+    assert two.meta["processes"] == 2
+    _assert_identical(one, local)
+    _assert_identical(two, local)
+
+
+def _tile_or_fail(ctx, k):
+    if k == ctx:
+        raise ValueError(f"tile {k} is bad")
+    if k == -ctx:
+        raise KeyboardInterrupt
+    return {"x": np.full(3, k)}, {"k": k}
+
+
+def test_forked_tiles_in_order_and_errors_raised_here():
+    cache = TileCache(None, "t", "k")
+    tiles = run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2)
+    assert tiles.processes == 2 and [m["k"] for _, m in tiles] == list(range(5))
+    assert all(np.array_equal(a["x"], np.full(3, k)) for k, (a, _) in enumerate(tiles))
+    with pytest.raises(ValueError, match="tile 3 is bad"):
+        run_tiles(_tile_or_fail, 3, 5, cache, progress=False, processes=2)
+    with pytest.raises(TileError, match="tile 2 stopped: KeyboardInterrupt"):  # a worker's Ctrl-C
+        run_tiles(_tile_or_fail, -2, 5, cache, progress=False, processes=2)
+
+
 def test_executor_arguments(scene):
     with pytest.raises(ValueRangeError):
         precompute_polynomial(scene, **SETTINGS, executor="dask")

@@ -250,8 +250,10 @@ class _WardBase(MicrofacetMixture):
         wi, wo, up = safe_pair(wi, wo)
         ht = half_terms(wi, wo)
         s = ht.s
-        hz2 = (s[..., 2] ** 2).clamp_min(_floor(dt))
-        t_aniso = (s[..., 0] ** 2 / ax**2 + s[..., 1] ** 2 / ay**2) / hz2
+        # (s_x / (alpha_x s_z))^2 + ...: squaring last keeps the gradient finite where s_x = 0
+        # and the lobe is 1e21 (float32, grazing opposite pairs: 0 * Inf was NaN)
+        hz = s[..., 2].abs().clamp_min(math.sqrt(_floor(dt)))
+        t_aniso = (s[..., 0] / (ax * hz)) ** 2 + (s[..., 1] / (ay * hz)) ** 2
         # in log space: the lobe reaches 1e21 in float32 (alpha 1e-4, grazing), and the
         # gradient of a plain quotient would overflow through the squared denominator
         log_norm = math.log(4.0 * math.pi) + torch.log(ax) + torch.log(ay)

@@ -139,7 +139,15 @@ class ConstrainedModule(nn.Module):
                 f"{type(self).__name__}.{name}: expected a scalar or shape {shape}; got {value!r}"
             ) from exc
         self._constraints[name] = transform
-        self.register_parameter("raw_" + name, nn.Parameter(transform.inverse(v)))
+        self.register_parameter("raw_" + name, nn.Parameter(self._inverse(name, v)))
+
+    def _inverse(self, name: str, value: torch.Tensor) -> torch.Tensor:
+        """The raw value of ``value`` for constraint ``name``; a refusal names the parameter
+        (the transforms alone said "value must lie in [0.0, 1.0]" without saying which)."""
+        try:
+            return self._constraints[name].inverse(value)
+        except ValueRangeError as exc:
+            raise ValueRangeError(f"{type(self).__name__}.{name}: {exc}") from None
 
     def __getattr__(self, name: str):
         cons = self.__dict__.get("_constraints")
@@ -178,7 +186,7 @@ class ConstrainedModule(nn.Module):
             raise ShapeError(
                 f"{type(self).__name__}.{name}: expected a scalar or shape {tuple(raw.shape)}; got {tuple(v.shape)}"
             ) from exc
-        new_raw = self._constraints[name].inverse(v)
+        new_raw = self._inverse(name, v)
         with torch.no_grad():
             raw.copy_(new_raw)
 

@@ -77,6 +77,8 @@ def replacing(path: str | os.PathLike) -> Iterator[str]:
 
     Raises:
         FileNotFoundError: the destination directory does not exist.
+        OSError: the temporary file cannot be created there (permission denied, read-only
+            file system, ...).
     """
     path = os.fspath(path)
     head, tail = os.path.split(path)
@@ -84,6 +86,12 @@ def replacing(path: str | os.PathLike) -> Iterator[str]:
         raise FileNotFoundError(f"Cannot write {path}: directory {head} does not exist")
     remove_stale_temporaries(path)
     tmp = os.path.join(head, f".{tail}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp")
+    # created here, so a folder that refuses files fails with the OSError that says why
+    # (writers such as OpenEXR only raise a RuntimeError that names no errno)
+    try:
+        open(tmp, "xb").close()
+    except OSError as exc:  # named by the target, not the hidden temporary
+        raise type(exc)(exc.errno, exc.strerror, path) from None
     try:
         yield tmp
         os.replace(tmp, path)

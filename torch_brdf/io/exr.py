@@ -9,6 +9,7 @@ the old file as it was.
 
 from __future__ import annotations
 
+import errno
 import os
 
 import numpy as np
@@ -100,4 +101,7 @@ def write_exr(path: str | os.PathLike, image, half: bool = False) -> None:
     # A fresh header each time: OpenEXR.File fills in (mutates) the dict it is given.
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with replacing(path) as tmp, OpenEXR.File(header, {"RGB": pixels.numpy()}) as f:
-        f.write(tmp)
+        try:
+            f.write(tmp)
+        except RuntimeError as exc:  # OpenEXR's I/O failures (disk full, ...): an OSError
+            raise OSError(errno.EIO, f"cannot write EXR ({exc})", os.fspath(path)) from exc

@@ -101,7 +101,11 @@ def merl_coordinates(
     Returns:
         u_h, u_d, u_p: (*B,) each.
     """
-    u_h = torch.sqrt(theta_h.clamp_min(0) / _HALF_PI) * MERL_RES[0]
+    # sqrt with a zero (not infinite) derivative at theta_h = 0, so gradients through a
+    # trilinear lookup stay finite at the mirror direction (wi = wo gave NaN)
+    x = theta_h.clamp_min(0) / _HALF_PI
+    pos = x > 0
+    u_h = torch.where(pos, torch.where(pos, x, torch.ones_like(x)).sqrt(), torch.zeros_like(x)) * MERL_RES[0]
     u_d = theta_d / _HALF_PI * MERL_RES[1]
     u_p = merl_fold_phi_d(phi_d) / math.pi * MERL_RES[2]
     return u_h, u_d, u_p

@@ -132,7 +132,7 @@ def write_png(path: str | os.PathLike, image, exposure: float = 0.0, tonemap: st
     rgb8 = to_srgb8(image, exposure, tonemap)
     if rgb8.shape[0] == 0 or rgb8.shape[1] == 0:
         raise ShapeError(f"Expected image with H, W >= 1 for a PNG; got {tuple(rgb8.shape)}")
-    with replacing(path) as tmp, open(tmp, "xb") as f:
+    with replacing(path) as tmp, open(tmp, "wb") as f:
         f.write(_encode_png(rgb8.numpy()))
 
 

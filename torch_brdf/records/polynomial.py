@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from .._checks import MAX_BANDS
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
 from ..scene.guides import GuideBuffers
@@ -211,6 +212,43 @@ class TensorBlock:
         return n + (0 if self.variance is None else self.variance.numel() * self.variance.element_size())
 
 
+def _check_indices(
+    n_pixels: int, n_objects: int, n_bases: int, series: Series, terms: dict[int, TermTable], blocks: list
+) -> None:
+    """Indices of a loaded record within their ranges (a checksummed file can still come from a
+    faulty writer: pixel -1 wrapped around silently, 10**9 failed later as an IndexError).
+
+    Raises:
+        FileFormatError: the first index out of range, naming the block and the array.
+    """
+
+    def bad(x: torch.Tensor, hi: int) -> bool:
+        return x.numel() > 0 and (int(x.min()) < 0 or int(x.max()) >= hi)
+
+    if n_objects < 1 or n_bases != n_objects:
+        raise FileFormatError(f"{n_objects} objects and {n_bases} bases: expected as many bases as objects (>= 1)")
+    for n, tt in terms.items():
+        if tt.counts.ndim != 2 or tt.counts.shape != (tt.w.numel(), n_objects) or bad(tt.w + 1, 1 << 62):
+            raise FileFormatError(f"terms{n}: w {tuple(tt.w.shape)} / counts {tuple(tt.counts.shape)} are inconsistent")
+    for i, b in enumerate(blocks):
+        z, p = b.terms.numel(), b.pixels.numel()
+        checks = [
+            ("object id", torch.tensor([b.object_id]), n_objects),
+            ("bounce", torch.tensor([b.bounce - 1]), series.bounces),
+            ("J", torch.tensor([b.J - 1]), MAX_BANDS * 2),
+            ("pixels", b.pixels, n_pixels),
+            ("terms", b.terms, terms[b.bounce].size if b.bounce in terms else 0),
+            ("index", b.index, b.J * z * p),
+        ]
+        for what, x, hi in checks:
+            if bad(x, hi):
+                raise FileFormatError(f"block {i}: {what} outside [0, {hi}) (min {int(x.min())}, max {int(x.max())})")
+        e = b.index.numel()
+        for what, v in (("values", b.values), ("variance", b.variance)):
+            if v is not None and (v.ndim != 2 or v.shape[1] != e):
+                raise FileFormatError(f"block {i}: {what} {tuple(v.shape)} do not match its {e} indices")
+
+
 @dataclass(frozen=True)
 class PolynomialTensors(Record):
     """The multibounce tensors of one view (the output of :func:`precompute_polynomial`).
@@ -383,6 +421,7 @@ class PolynomialTensors(Record):
             raise FileFormatError(
                 f"emission {tuple(t['emission'].shape)} does not fit {meta['height']}x{meta['width']}"
             )
+        _check_indices(t["emission"].shape[1], len(meta["objects"]), len(bases), series, terms, blocks)
         return cls(
             int(meta["height"]),
             int(meta["width"]),

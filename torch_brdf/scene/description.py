@@ -26,6 +26,8 @@ from ..errors import SceneError
 MAX_SCENE_FILE_BYTES = 64 * 2**20
 
 Check = Callable[[Any, str], Any]
+#: largest finite float32: radiance, albedos and vertices live in float32 buffers
+FLOAT32_MAX = 3.4028234663852886e38
 
 
 def _fail(key: str, want: str, value: Any) -> SceneError:
@@ -95,8 +97,8 @@ def _vec3(v, key):
 def _rgb(v, key):
     ok = _is_number(v) or (isinstance(v, list | tuple) and len(v) == 3 and all(_is_number(x) for x in v))
     vals = [v] if _is_number(v) else list(v) if ok else []
-    if not ok or not all(math.isfinite(x) and x >= 0 for x in vals):
-        raise _fail(key, "a finite number >= 0 or 3 of them (RGB)", v)
+    if not ok or not all(math.isfinite(x) and 0 <= x <= FLOAT32_MAX for x in vals):
+        raise _fail(key, f"a finite number in [0, {FLOAT32_MAX:.4g}] (float32) or 3 of them (RGB)", v)
     return float(v) if _is_number(v) else [float(x) for x in v]
 
 
@@ -117,6 +119,8 @@ def _rows(width: int, check: Check, what: str) -> Check:
 
 
 _finite = _real()
+#: vertex coordinates are traced in float32: larger magnitudes would become Inf there
+_coordinate = _real(-FLOAT32_MAX, FLOAT32_MAX)
 _index = _int(0, 2**31 - 1)
 
 _CAMERA: dict[str, Check] = {
@@ -131,7 +135,7 @@ _OBJECT: dict[str, Check] = {
     "name": _str,
     "material": _str,
     "mesh": _str,
-    "vertices": _rows(3, _finite, "vertices [x, y, z]"),
+    "vertices": _rows(3, _coordinate, "vertices [x, y, z]"),
     "faces": _rows(3, _index, "faces [i, j, k] (vertex indices >= 0)"),
     "editable": _bool,
     "smooth": _bool,
@@ -202,7 +206,19 @@ def _material(v, key: str) -> dict[str, Any]:
     for k in ("albedo", "kd", "ks"):
         if k in v:
             _rgb(v[k], f"{key}.{k}")
+    if kind not in _DATA_MODELS:  # values in range (exponent = -5, "abc"): before any long work
+        from ..brdf.base import create
+        from ..errors import TorchBRDFError
+
+        try:
+            create(dict(v))
+        except TorchBRDFError as exc:
+            raise SceneError(f"{key}: {exc}") from None
     return dict(v)
+
+
+#: models built from data files (read when the scene is rendered, not when it is checked)
+_DATA_MODELS = ("merl", "nbrdf")
 
 
 def _plain_value(v, key: str) -> None:

@@ -2,7 +2,8 @@
 
 Policy for bad meshes (documented here and in the README):
 
-* NaN/Inf vertex coordinates, face indices out of range, or no faces at all raise
+* NaN/Inf vertex coordinates (or beyond float32, which embree traces), face indices out of
+  range, or no faces at all raise
   :class:`~torch_brdf.errors.MeshError` naming the mesh: there is no safe repair.
 * Zero-area (degenerate) faces — repeated or collinear vertices, judged on the float32
   coordinates that embree traces — are dropped with a :class:`DegenerateFacesWarning` that
@@ -65,6 +66,12 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         raise MeshError(f"mesh {name!r}: {int(bad.sum())} vertices have NaN/Inf coordinates")
+    big = (np.abs(v) > np.finfo(np.float32).max).any(axis=1)
+    if big.any():  # embree traces float32: these would become Inf there
+        raise MeshError(
+            f"mesh {name!r}: {int(big.sum())} vertices exceed the float32 range "
+            f"(max {np.finfo(np.float32).max:.4g}, largest here {np.abs(v).max():.4g}); rescale the mesh"
+        )
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"mesh {name!r}: face indices outside [0, {len(v)}) (min {f.min()}, max {f.max()})")
     # judged on the float32 coordinates embree traces: a face is degenerate when its edges

@@ -22,6 +22,7 @@ processes (the caller plus forked children, see
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -236,6 +237,13 @@ class RayTracer:
         directions = check_vectors(directions, "directions")
         side = torch.where((directions * geometric_normal).sum(-1, keepdim=True) >= 0, 1.0, -1.0)
         return position + (side * self.ray_epsilon).to(position.dtype) * geometric_normal
+
+    def in_process(self) -> RayTracer:
+        """A shallow copy that traces in the calling process only (no pool; shares the embree
+        scene and tables): for a process that is itself one of several workers."""
+        out = copy.copy(self)
+        out.workers, out._pool, out.seconds = 1, None, 0.0
+        return out
 
     def close(self) -> None:
         """Stop the worker processes, if any (the next large batch starts them again)."""

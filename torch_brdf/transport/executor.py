@@ -10,9 +10,14 @@ the number of workers, or the order in which tiles finish.
 
 Executors:
 
-- ``local`` (default): tiles one after another in this process, with one torch thread (on a
-  shared 2-core machine torch's second thread spin-waits and made the 64² precompute 30x
-  slower under load); ray casting still uses the scene's forked trace workers.
+- ``local`` (default): with one process (``processes=1``, or a single tile to compute) tiles
+  run one after another in this process, with one torch thread (on a shared 2-core machine
+  torch's second thread spin-waits and made the 64² precompute 30x slower under load); ray
+  casting still uses the scene's forked trace workers. With more (default: one per usable
+  core, or 1 on a busy machine, :func:`~torch_brdf._threads.tile_processes`), tiles run at once in that many forked
+  processes, each tracing its own rays with one torch thread (the torch stages of a tile are
+  serial, so this is what keeps every core busy); this process writes the checkpoint and
+  assembles, in tile order, as for one process.
 - ``ray``: one Ray task per tile (``pip install torch_brdf[cluster]``). The context is put
   into the object store once and each worker process fetches it once (it is cached per
   worker under its key), so per task only the tile index travels; the worker also encodes
@@ -25,15 +30,19 @@ Executors:
 from __future__ import annotations
 
 import copy
+import multiprocessing
+import signal
 import time
 import uuid
+import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._threads import configure_worker, single_thread
+from .._threads import configure_worker, prepare_fork, single_thread, tile_processes
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
@@ -48,9 +57,11 @@ TileFn = Callable[[Any, int], TileResult]
 
 class Tiles(list):
     """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles;
-    ``nodes``: the Ray node ids that computed tiles in this call (empty for ``local``)."""
+    ``nodes``: the Ray node ids that computed tiles in this call (empty for ``local``);
+    ``processes``: local processes that computed tiles at once (0 for Ray)."""
 
     write_seconds: float = 0.0
+    processes: int = 0
 
     def __init__(self, items):
         super().__init__(items)
@@ -96,9 +107,11 @@ def connect_ray(address: str | None = None, attempts: int = 3, **init_kwargs):
 
 def single_process(scene):
     """A shallow copy of ``scene`` that traces in the calling process only (``workers = 1``):
-    what a Ray task gets, since Ray already runs one task per CPU. Shares the ray tracer."""
+    what a Ray task or a forked tile process gets, since those already run one per CPU. Shares
+    the embree scene (:meth:`~torch_brdf.scene.raytrace.RayTracer.in_process`)."""
     out = copy.copy(scene)
     out.workers = 1
+    out._tracer = scene._tracer.in_process()
     return out
 
 
@@ -148,6 +161,7 @@ def run_tiles(
     meta: dict[str, Any] | None = None,
     consume: Callable[[int, dict[str, np.ndarray], dict[str, Any]], None] | None = None,
     max_new: int | None = None,
+    processes: int | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -169,6 +183,10 @@ def run_tiles(
             compute), with one torch thread; the tile is then dropped from the result.
         max_new: compute at most this many tiles not in ``cache`` (the first ones missing; the
             others stay None in the result): for tests of resuming.
+        processes: local only: tiles computed at once in forked processes (each gets
+            ``ray_context`` as for Ray); None: :func:`~torch_brdf._threads.tile_processes` (one
+            per usable core, 1 on a busy machine); 1: all in this process (needed when ``fn``
+            fills something of ``context``'s, e.g. an oracle).
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -214,17 +232,69 @@ def run_tiles(
 
     try:
         drain()
-        if executor == "local":
+        if ray_context is None:
+            ray_context = context.for_ray() if hasattr(context, "for_ray") else context
+        nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
+        out.processes = nproc
+        if executor == "local" and nproc > 1:
+            _run_forked(fn, ray_context, todo, finish, nproc, cache, meta or {})
+        elif executor == "local":
             with single_thread():
                 for k in todo:
                     finish(k, fn(context, k))
         elif todo:
-            if ray_context is None:
-                ray_context = context.for_ray() if hasattr(context, "for_ray") else context
             _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {})
     finally:
         bar.close()
     return out
+
+
+# what forked tile processes run: set before forking, inherited by the children
+_FORKED: tuple[TileFn, Any, TileCache, dict] | None = None
+
+
+def _forked_init() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which stops us
+    configure_worker(1)
+
+
+def _forked_tile(k: int) -> tuple[TileResult, bytes | None]:
+    """Tile ``k`` in a forked process, and the bytes of its checkpoint file (encoded here, as a
+    Ray task does, so the driver only writes them; None without a checkpoint folder)."""
+    fn, ctx, cache, meta = _FORKED
+    try:
+        arrays, tile_meta = fn(ctx, k)
+    except Exception:
+        raise
+    except BaseException as exc:  # e.g. KeyboardInterrupt: would kill the worker; report it
+        raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
+    return (arrays, tile_meta), cache.encode(arrays, {**meta, **tile_meta})
+
+
+def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes: int, cache, meta) -> None:
+    """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
+    here as each tile arrives (any order; it assembles in tile order). A tile's exception is
+    raised here; a process that dies (killed, out of memory) raises ``BrokenProcessPool``;
+    either way, and on Ctrl-C, the other processes are stopped."""
+    global _FORKED
+    prepare_fork()
+    _FORKED = (fn, context, cache, meta)
+    with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
+        warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+        pool = ProcessPoolExecutor(processes, multiprocessing.get_context("fork"), initializer=_forked_init)
+        try:
+            with single_thread():
+                futures = {pool.submit(_forked_tile, k): k for k in todo}
+                for f in as_completed(futures):
+                    res, encoded = f.result()
+                    finish(futures[f], res, encoded)
+        except BaseException:
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()  # running tiles are not waited for
+            raise
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            _FORKED = None
 
 
 def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta) -> None:

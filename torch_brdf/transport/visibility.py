@@ -118,6 +118,7 @@ def precompute_visibility(
     executor: str = "local",
     address: str | None = None,
     max_retries: int = 3,
+    processes: int | None = None,
 ) -> VertexVisibility:
     """Visibility cubemaps of every vertex of ``scene``.
 
@@ -135,6 +136,8 @@ def precompute_visibility(
         keep_checkpoint: keep the finished chunks after success.
         executor, address, max_retries: where the chunks run (``"local"`` or ``"ray"``), see
             :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
+        processes: ``local`` only: chunks computed at once in forked processes (None: one per
+            usable core; 1: one after another in this process, rays on ``scene.workers``).
     Returns:
         :class:`VertexVisibility` (or None when stopped by ``max_chunks``).
     Raises:
@@ -177,7 +180,17 @@ def precompute_visibility(
     desc = f"visibility {scene.name} ({resolution}^2x6)"
     show = progress_default(progress)
     tiles = run_tiles(
-        _visibility_chunk, work, num, cache, executor, address, max_retries, desc, show, max_new=max_chunks
+        _visibility_chunk,
+        work,
+        num,
+        cache,
+        executor,
+        address,
+        max_retries,
+        desc,
+        show,
+        max_new=max_chunks,
+        processes=processes,
     )
     if any(t is None for t in tiles):
         return None  # stopped by max_chunks

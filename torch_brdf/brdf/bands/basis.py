@@ -10,6 +10,7 @@ import math
 import torch
 from torch import nn
 
+from ..._checks import MAX_BANDS, check_int
 from ...errors import ValueRangeError
 from ...frame import polar_angle
 from ._geometry import HALF_PI, anisotropy_ratio, half_and_diff
@@ -46,9 +47,12 @@ def band_edges(J: int, spacing: str | float = "uniform", domain: tuple[float, fl
       editable. Edges: the CDF :math:`(1-\beta)\frac{1 - e^{-n\gamma^2/3}}{1 - e^{-n\,
       hi^2/3}} + \beta\frac{\gamma}{hi}` inverted at :math:`k/J` (for ``lo = 0``);
     * ``"top:..."``: any of the above mirrored so the bands are dense near ``hi``.
+
+    Raises:
+        ValueRangeError: ``J`` not an integer in [1, ``MAX_BANDS``] (4096), an unknown or
+            out-of-range spacing, or one whose edges do not increase strictly (zero-width bands).
     """
-    if J < 1:
-        raise ValueRangeError(f"J must be >= 1; got {J}")
+    J = check_int(J, "J", 1, MAX_BANDS)  # 16.7 was cut to 16, 10**9 allocated until killed
     lo, hi = float(domain[0]), float(domain[1])
     t = torch.arange(J + 1, dtype=torch.float64) / J
     mirror = isinstance(spacing, str) and spacing.startswith("top:")
@@ -74,7 +78,14 @@ def band_edges(J: int, spacing: str | float = "uniform", domain: tuple[float, fl
     if mirror:
         g = 1 - g.flip(0)
     g[0], g[-1] = 0.0, 1.0
-    return lo + (hi - lo) * g
+    e = lo + (hi - lo) * g
+    empty = int((~(e[1:] > e[:-1])).sum())  # NaN counts as empty
+    if empty:  # e.g. "lobe:inf" or a power of 1e300: zero-width bands that no BRDF value falls in
+        raise ValueRangeError(
+            f"spacing {spacing!r} gives {empty} of {J} bands of zero width (or NaN edges); "
+            "use a finite, smaller lobe exponent or power, or fewer bands"
+        )
+    return e
 
 
 def _lobe_grid(t: torch.Tensor, spec: str, scale: float) -> torch.Tensor:
@@ -152,7 +163,7 @@ class BandBasis(nn.Module):
             if spacing is None:
                 spacing = {"theta_h": "sqrt", "anisotropy_ratio": "top:sqrt"}.get(variable, "uniform")
             self.spacing = spacing
-            e = band_edges(int(J), spacing, self.domain)
+            e = band_edges(J, spacing, self.domain)
         self.register_buffer("edges", e)
 
     @property

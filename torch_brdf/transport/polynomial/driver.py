@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from ..._checks import MAX_BANDS, check_count, check_seed
+from ..._threads import available_memory, tile_processes
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
@@ -31,6 +32,21 @@ from .tracer import _Tracer
 __all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
 
 TILE_KIND = "multibounce-tile"
+
+#: peak memory of a tile per path (bytes): its transient entries set it (measured 0.6-0.9 kB
+#: on the 128² box at 64-1024 spp, ../shared/FACTS.md); bounds the tiles run at once.
+TILE_BYTES_PER_PATH = 1024
+
+
+def _default_processes(tile_paths: int) -> int:
+    """Tiles at once by default: :func:`~torch_brdf._threads.tile_processes` (one per usable
+    core, 1 on a busy machine), fewer when that many tiles would not fit in the available
+    memory (at least one)."""
+    n = tile_processes()
+    free = available_memory()
+    if free is not None:
+        n = min(n, max(1, free // max(1, tile_paths * TILE_BYTES_PER_PATH)))
+    return n
 
 
 def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
@@ -208,6 +224,7 @@ def precompute_polynomial(
     address: str | None = None,
     max_retries: int = 3,
     guides: bool = True,
+    processes: int | None = None,
 ) -> PolynomialTensors:
     """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
 
@@ -249,13 +266,18 @@ def precompute_polynomial(
             versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
+        processes: ``local`` only: tiles computed at once in forked processes (None: one per
+            usable core, 1 on a busy machine, while that many tiles fit in the available memory at
+            :data:`TILE_BYTES_PER_PATH`; 1: in this process, as ``paths`` needs); the tensors
+            are the same.
     Returns:
         :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
         ``meta["split"]`` holds the profile split in seconds
         (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
         computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
         ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
-        Ray nodes that computed tiles (0 for ``local``).
+        Ray nodes that computed tiles (0 for ``local``), ``meta["processes"]`` the local
+        processes that computed tiles at once (0 for Ray).
     """
     if plan is not None:
         if isinstance(plan, str):
@@ -281,6 +303,7 @@ def precompute_polynomial(
             address=address,
             max_retries=max_retries,
             guides=guides,
+            processes=processes,
         )
         out.meta["plan"] = str(plan)
         return out
@@ -337,11 +360,12 @@ def precompute_polynomial(
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
-    ray_work = None
-    if executor == "ray":  # workers trace in their own process (Ray runs one task per CPU)
-        ray_work = _TileWork(
-            single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
-        )
+    if processes is None:  # paths of the largest tile (k light samples: k x the eye entries)
+        processes = _default_processes(max(t.numel() * n for t, n in zip(tiles, tile_spp, strict=True)) * light_samples)
+    # Ray tasks and forked tile processes trace in their own process (one per CPU)
+    ray_work = _TileWork(
+        single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
+    )
     term_index: dict[int, dict] = {}
     blocks: list[TensorBlock] = []
     emission = torch.zeros(3, h * w)
@@ -382,6 +406,7 @@ def precompute_polynomial(
         ray_context=ray_work,
         meta={"settings": settings},
         consume=consume,
+        processes=1 if paths is not None else processes,
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
@@ -393,6 +418,7 @@ def precompute_polynomial(
         "tiles_cached": cached[0],
         "executor": executor,
         "ray_nodes": len(results.nodes),
+        "processes": results.processes,
     }
     view_guides = None
     meta["guides"] = None
