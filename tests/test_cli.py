@@ -299,6 +299,9 @@ def test_bad_strokes_files_are_one_line(tmp_path, monkeypatch, content, words):
         (["relight", "cornell_box", "--error", "0.1", "--psnr", "40"], ("--error", "--psnr")),
         (["relight", "cornell_box", "--psnr", "nan"], ("--psnr",)),
         (["render", "cornell_box", "--exposure", "inf"], ("--exposure",)),
+        (["demo", "--out", ""], ("--out", "file name")),  # was an internal error after the render
+        (["edit", "t.npz", "--out", "."], ("--out", "file name")),
+        (["precompute", "cornell_box", "--out", ""], ("--out", "file name")),
         (
             ["fit-strokes", "cornell_box", "--object", "o", "--strokes", "s", "--width", "16384", "--height", "16384"],
             (),

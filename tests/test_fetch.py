@@ -58,3 +58,8 @@ def test_cli_fetch_data(mirror, tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     assert len(json.loads(res.output.strip().splitlines()[-1])["files"]) == 2
     assert (tmp_path / "d" / "merl" / "nbrdf_merl100_weights.npz").is_file()
+
+
+def test_a_url_pooch_cannot_use_is_not_blamed_on_the_checksum(tmp_path):
+    with pytest.raises(DataNotFoundError, match="cannot download from notaurl"):
+        fetch_data(tmp_path, "notaurl", files=["meshes/bunny.ply"], progress=False)

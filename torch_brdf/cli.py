@@ -128,6 +128,12 @@ def _cli(fn: Callable) -> Callable:
     return run
 
 
+def _file_out(out: Path) -> None:
+    """Refuse an ``--out`` without a file name before any work (the outputs add suffixes)."""
+    if out.name in ("", ".", ".."):
+        raise ValueRangeError(f"--out needs a file name; got {str(out)!r}")
+
+
 def _json_object(text: str | None, option: str) -> dict | None:
     """Parse a JSON option that must be an object (``None`` stays ``None``)."""
     if text is None:
@@ -250,6 +256,7 @@ def demo(
     progress: bool = PROGRESS,
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
+    _file_out(out)
     scene = load_scene("cornell_box", resolution, width, height)
     info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
@@ -273,6 +280,7 @@ def render(
     progress: bool = PROGRESS,
 ):
     """Path-trace a scene (its materials' BRDFs) to EXR and PNG."""
+    _file_out(out)
     if exposure is not None:
         check_real(exposure, "--exposure")
     sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
@@ -318,6 +326,7 @@ def precompute(
     ray: str = RAY,
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
+    _file_out(out)
     from dataclasses import fields
 
     from .records.cache import remove_cache
@@ -434,6 +443,7 @@ def edit(
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
+    _file_out(out)
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
@@ -480,6 +490,7 @@ def fit_gplvm_cmd(
     progress: bool = PROGRESS,
 ):
     """Fit the GPLVM BRDF manifold (Soler et al. 2017) on measured materials and save the fit."""
+    _file_out(out)
     import torch
 
     from .manifold import fit_gplvm
@@ -546,6 +557,7 @@ def manifold(
     progress: bool = PROGRESS,
 ):
     """Render the interpolated material at a latent point, or a path of frames, on a sphere (Soler et al.)."""
+    _file_out(out)
     from itertools import pairwise
 
     import torch
@@ -737,6 +749,7 @@ def precompute_visibility_cmd(
     ray: str = RAY,
 ):
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
+    _file_out(out)
     from .records.cache import remove_cache
     from .sphere.cubemap import CubemapBlocks
     from .transport.visibility import BITS, precompute_visibility
@@ -787,6 +800,7 @@ def relight(
     psnr: float = typer.Option(None, help="The same budget in dB (instead of --error)."),
 ):
     """Render a frame of per-vertex direct lighting with locally adaptive triple products."""
+    _file_out(out)
     from .render.triple import METHODS, TripleProductRenderer
     from .transport.visibility import VertexVisibility
 

@@ -173,7 +173,10 @@ def fetch_data(
                 path=target.parent,
                 progressbar=progress_default(progress),
             )
-        except ValueError as exc:  # pooch: hash mismatch (the file was deleted)
+        except ValueError as exc:
+            if "does not match" not in str(exc):  # pooch: an unusable URL (protocol, ...)
+                raise DataNotFoundError(f"{name}: cannot download from {url}: {exc}") from None
+            # pooch: hash mismatch (the file was deleted)
             raise FileFormatError(f"{name}: downloaded file does not match its pinned SHA-256 ({exc})") from None
         except Exception as exc:  # requests' HTTP and connection errors
             raise DataNotFoundError(f"{name}: download from {url} failed: {exc}") from None

@@ -34,6 +34,13 @@ def plan_bases(
     unknown = sorted(set(overrides) - {o.name for o in scene.objects})
     if unknown:
         raise SceneError(f"basis overrides name unknown objects: {unknown}")
+    fields = ("J", "spacing", "quotient", "fresnel", "variable")
+    for name, spec in overrides.items():
+        if not isinstance(spec, dict):
+            raise SceneError(f"basis override of {name!r} must be a table of {list(fields)}; got {spec!r}")
+        bad = sorted(set(spec) - set(fields))
+        if bad:
+            raise SceneError(f"basis override of {name!r}: unknown keys {bad} (known: {list(fields)})")
     out: list[ObjectBasis | None] = []
     for obj in scene.objects:
         if not obj.editable:
