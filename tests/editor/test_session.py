@@ -153,7 +153,7 @@ def test_fresnel_layer_f0(small_scene):
 
 
 # -- loading ---------------------------------------------------------------------------------
-def test_load_source_errors_and_cache(tmp_path, small_tensors_file):
+def test_load_source_errors_and_cache(tmp_path, small_tensors_file, monkeypatch):
     path = small_tensors_file[0]
     t, sc, _ = load_source(str(path))
     assert t.object_names == small_tensors_file[1].object_names
@@ -171,6 +171,16 @@ def test_load_source_errors_and_cache(tmp_path, small_tensors_file):
     _, _, note = load_source("cornell_box_glossy", resolution=8, spp=1, series="4,1", cache_dir=tmp_path)
     t2, _, note2 = load_source("cornell_box_glossy", resolution=8, spp=1, series="4,1", cache_dir=tmp_path)
     assert note.startswith("precomputed") and note2.startswith("cached") and t2.height == 8
+    a_file = tmp_path / "cache_is_a_file"
+    a_file.write_text("")
+    import torch_brdf.editor.session as session_module
+
+    def no_precompute(*_a, **_k):
+        raise AssertionError("refused before the precompute")
+
+    monkeypatch.setattr(session_module, "precompute_polynomial", no_precompute)
+    with pytest.raises(FileFormatError, match="cache_is_a_file"):
+        load_source("cornell_box_glossy", resolution=8, spp=1, series="4,1", cache_dir=a_file)
 
 
 # -- reference -------------------------------------------------------------------------------

@@ -221,6 +221,8 @@ def load_source(
         cached = Path(cache_dir) / _cache_name(sc, source, series, spp, seed)
         if cached.is_file():
             return PolynomialTensors.load(cached), sc, f"cached precomputation {cached.name}"
+        if Path(cache_dir).exists() and not Path(cache_dir).is_dir():  # before the precompute
+            raise FileFormatError(f"the cache folder {str(cache_dir)!r} is a file (set TORCH_BRDF_CACHE to a folder)")
     tensors = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=progress)
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
