@@ -125,7 +125,8 @@ NAMED = [
 # values of the right type the BRDF refuses: refused only once rendering (or a precompute) began
 MATERIAL_VALUES = [
     ("exponent", -5.0, r"BlinnPhong.exponent must lie in \[0.001, 10000\]; got -5.0"),
-    ("exponent", "abc", "bad parameters for BRDF model 'blinn_phong'"),
+    ("exponent", "abc", "BlinnPhong.exponent must be a number or a list of numbers; got 'abc'"),
+    ("exponent", [[0], []], "BlinnPhong.exponent must be a number or a list of numbers"),  # ragged
     ("ks", 1.5, r"must lie in \[0.0, 1.0\]"),
 ]
 

@@ -29,7 +29,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..errors import ShapeError, ValueRangeError
+from ..errors import ShapeError, TorchBRDFError, ValueRangeError
 from ..frame import Frame
 from ..sphere.warps import cosine_hemisphere_pdf, square_to_cosine_hemisphere
 
@@ -104,7 +104,9 @@ def create(spec: str | dict[str, Any], **params: Any) -> BRDF:
         raise ValueRangeError(f"unknown BRDF model {spec!r}; available: {available()}")
     try:
         return _REGISTRY[spec](**params)
-    except TypeError as exc:
+    except TorchBRDFError:
+        raise
+    except (TypeError, ValueError) as exc:  # an unknown keyword, a ragged list, ...
         raise ValueRangeError(f"bad parameters for BRDF model {spec!r}: {exc}") from exc
 
 

@@ -81,7 +81,10 @@ def _floor(dtype: torch.dtype) -> float:
 
 def check_range(owner: str, name: str, value, lo: float, hi: float) -> None:
     """Raise :class:`ValueRangeError` unless every entry of ``value`` lies in [lo, hi]."""
-    v = torch.as_tensor(value, dtype=torch.float64)
+    try:
+        v = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):  # a string, a ragged list, ...
+        raise ValueRangeError(f"{owner}.{name} must be a number or a list of numbers; got {value!r}") from None
     if not bool(torch.isfinite(v).all()) or bool(((v < lo) | (v > hi)).any()):
         raise ValueRangeError(f"{owner}.{name} must lie in [{lo:g}, {hi:g}]; got {value!r}")
 

@@ -212,7 +212,7 @@ def _material(v, key: str) -> dict[str, Any]:
 
         try:
             create(dict(v))
-        except TorchBRDFError as exc:
+        except (TorchBRDFError, TypeError, ValueError, RuntimeError) as exc:  # e.g. a ragged list
             raise SceneError(f"{key}: {exc}") from None
     return dict(v)
 
