@@ -6,6 +6,7 @@ import functools
 import shutil
 import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
 import pytest
 import torch
@@ -39,12 +40,22 @@ def corrupted_copy(path, dest):
     return dest
 
 
+def registry_root(why: str = "") -> Path:
+    """The shared data folder holding every file of the fetch registry, else skip saying why
+    (no folder, or an empty one as in a user's fresh clone)."""
+    root = data_root()
+    if root is None:
+        pytest.skip(f"needs the shared data folder (TORCH_BRDF_DATA) {why}".strip())
+    missing = sorted(n for n in REGISTRY if not (root / n).is_file())
+    if missing:
+        pytest.skip(f"shared data not found in {root}: {missing[:3]}{' ...' if len(missing) > 3 else ''}")
+    return root
+
+
 @pytest.fixture
 def mirror(tmp_path):
     """(base URL, served folder): a copy of the shared data folder behind http.server."""
-    root = data_root()
-    if root is None:
-        pytest.skip("needs the shared data folder (TORCH_BRDF_DATA) to serve")
+    root = registry_root("to serve")
     served = tmp_path / "served"
     for name in REGISTRY:
         (served / name).parent.mkdir(parents=True, exist_ok=True)

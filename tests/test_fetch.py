@@ -10,17 +10,16 @@ import json
 import pytest
 from typer.testing import CliRunner
 
+from tests.conftest import registry_root
 from torch_brdf.cli import app
-from torch_brdf.data import REGISTRY, data_root, fetch_data
+from torch_brdf.data import REGISTRY, fetch_data
 from torch_brdf.errors import DataNotFoundError, FileFormatError
 
 pytest.importorskip("pooch")
 
 
 def test_registry_pins_the_shared_files():
-    root = data_root()
-    if root is None:
-        pytest.skip("needs the shared data folder (TORCH_BRDF_DATA)")
+    root = registry_root()
     for name, digest in REGISTRY.items():
         assert hashlib.sha256((root / name).read_bytes()).hexdigest() == digest, name
 

@@ -264,9 +264,7 @@ def _forked_tile(k: int) -> tuple[TileResult, bytes | None]:
     fn, ctx, cache, meta = _FORKED
     try:
         arrays, tile_meta = fn(ctx, k)
-    except Exception:
-        raise
-    except BaseException as exc:  # e.g. KeyboardInterrupt: would kill the worker; report it
+    except (KeyboardInterrupt, SystemExit) as exc:  # would kill the worker: report it as the tile's error
         raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
     return (arrays, tile_meta), cache.encode(arrays, {**meta, **tile_meta})
 
