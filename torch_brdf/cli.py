@@ -79,6 +79,13 @@ def main(
 ):
     """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
+    from .data import progress_default
+
+    try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
+        progress_default()
+    except ValueRangeError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2) from None
 
 
 _OS_ERRORS = {

@@ -15,11 +15,12 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import DataNotFoundError
+from .errors import DataNotFoundError, ValueRangeError
 
 ENV_VAR = "TORCH_BRDF_DATA"
 CACHE_ENV_VAR = "TORCH_BRDF_CACHE"
 PROGRESS_ENV_VAR = "TORCH_BRDF_PROGRESS"
+_PROGRESS_VALUES = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
 
 
 def cache_dir() -> Path:
@@ -49,13 +50,22 @@ def _in_kernel() -> bool:
 
 def progress_default(progress: bool | None = None) -> bool:
     """Whether to show progress bars: ``progress`` when given; else ``$TORCH_BRDF_PROGRESS``
-    (``1``/``0``) when set; else True when stderr is a terminal or the code runs in a
-    Jupyter kernel."""
+    (``1``/``0``, or true/false, yes/no, on/off) when set; else True when stderr is a terminal or the code runs in a
+    Jupyter kernel.
+
+    Raises:
+        ValueRangeError: ``$TORCH_BRDF_PROGRESS`` is set to anything else.
+    """
     if progress is not None:
         return bool(progress)
     env = os.environ.get(PROGRESS_ENV_VAR, "").strip().lower()
     if env:
-        return env not in ("0", "false", "no", "off")
+        if env not in _PROGRESS_VALUES:
+            raise ValueRangeError(
+                f"${PROGRESS_ENV_VAR}={os.environ[PROGRESS_ENV_VAR]!r} is not a switch: use 1, true, yes, on "
+                "(bars on) or 0, false, no, off (bars off), or unset it (on in a terminal or notebook)"
+            )
+        return _PROGRESS_VALUES[env]
     if "ipykernel" in sys.modules and _in_kernel():
         return True
     try:
