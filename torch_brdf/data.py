@@ -20,7 +20,8 @@ from .errors import DataNotFoundError, ValueRangeError
 ENV_VAR = "TORCH_BRDF_DATA"
 CACHE_ENV_VAR = "TORCH_BRDF_CACHE"
 PROGRESS_ENV_VAR = "TORCH_BRDF_PROGRESS"
-_PROGRESS_VALUES = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
+#: the values ``$TORCH_BRDF_PROGRESS`` accepts (case-insensitive) and what they mean
+_PROGRESS_VALUES = dict.fromkeys(("1", "true", "yes", "on"), True) | dict.fromkeys(("0", "false", "no", "off"), False)
 
 
 def cache_dir() -> Path:

@@ -199,4 +199,3 @@ def test_cli_report_refuses_a_malformed_extremes_file(tmp_path, text):
     (line,) = res.output.strip().splitlines()  # one line, no traceback
     assert line.startswith("error: ") and "extremes.json" in line
     assert not (tmp_path / "o" / "report.html").exists()
-
