@@ -135,6 +135,27 @@ class TestVertexVisibility(RecordContract):
         )
         return VertexVisibility(CubemapBlocks(16, 16), verts, _blocks(gen))
 
+    @pytest.mark.parametrize(
+        ("array", "entry", "value", "words"),
+        [
+            ("object_ids", 3, 7, "object_ids: vertex 3 has object 7, its offsets say 1 (objects 0..1)"),
+            ("object_ids", 0, -1, "object_ids: vertex 0 has object -1"),
+            ("object_offsets", 1, 9, "object_offsets [0, 9, 4]: expected (O + 1,) rising from 0 to the 4 vertices"),
+            ("object_offsets", 2, 3, "rising from 0 to the 4 vertices"),  # the last vertex in no object
+        ],
+    )
+    def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
+        # as the polynomial record: checksummed, so only a faulty writer makes these; refused at load
+        from torch_brdf.io import load_arrays, save_arrays
+
+        path = self.make(gen).save(tmp_path / "v.npz")
+        arrays, meta = load_arrays(path)
+        arrays[array] = arrays[array].copy()
+        arrays[array][entry] = value
+        save_arrays(path, arrays, VertexVisibility.kind, meta, kind_version=VertexVisibility.version)
+        with pytest.raises(FileFormatError, match=re.escape(words)):
+            VertexVisibility.load(path)
+
     def assert_same(self, a, b):
         assert a.settings() == b.settings()
         for k in ("positions", "normals", "object_ids", "offsets"):
