@@ -80,6 +80,8 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert bad.exit_code == 2 and "--bases left: unknown key(s) ['j']; known keys: ['J'," in bad.output
     bad = runner.invoke(app, [*args, "--bases", '{"left": {"fresnel": "yes"}}'])  # was taken as true
     assert bad.exit_code == 2 and "--bases left.fresnel must be true or false" in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"second": 2}}'])  # one check: CLI and planner agree
+    assert bad.exit_code == 2 and "--bases left: unknown key(s) ['second']" in bad.output
     bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
     assert bad.exit_code == 2
 

@@ -334,29 +334,16 @@ def precompute(
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
-    from dataclasses import fields
-
     from .records.cache import remove_cache
-    from .records.polynomial import ObjectBasis
     from .transport.polynomial import Series, precompute_polynomial
+    from .transport.polynomial.plan import check_basis_overrides
 
     # every option is checked before the scene is loaded and the precompute starts
     parsed = Series.parse(series)
     check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
     if storage not in _STORAGES:
         raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
-    overrides = _json_object(bases, "--bases")
-    for name, spec in (overrides or {}).items():
-        if not isinstance(spec, dict):
-            raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
-        known = [f.name for f in fields(ObjectBasis)]
-        unknown = sorted(set(spec) - set(known))
-        if unknown:
-            raise ValueRangeError(f"--bases {name}: unknown key(s) {unknown}; known keys: {known}")
-        if "J" in spec:
-            check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
-        if not isinstance(spec.get("fresnel", False), bool):
-            raise ValueRangeError(f"--bases {name}.fresnel must be true or false; got {spec['fresnel']!r}")
+    overrides = check_basis_overrides(_json_object(bases, "--bases"), "--bases")
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
