@@ -394,14 +394,12 @@ def _tensors_scene(T, scene: str | None, resolution: int):
 
 def _retyped(material: dict, kind) -> dict:
     """``--set OBJECT.type=KIND``: a ``kind`` material keeping the parameters that model takes."""
-    import inspect
+    from .brdf.base import model_parameters
 
-    from .brdf.base import model_class
-
-    params = inspect.signature(model_class(str(kind)).__init__).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+    params = model_parameters(str(kind))
+    if params is None:
         return {**material, "type": kind}
-    return {"type": kind, **{k: v for k, v in material.items() if k in params and k != "self"}}
+    return {"type": kind, **{k: v for k, v in material.items() if k in params}}
 
 
 def _parse_set(item: str) -> tuple[str, str, object]:
