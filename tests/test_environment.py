@@ -3,6 +3,8 @@ with the variable's name and the allowed values, never silently taken as somethi
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from typer.testing import CliRunner
 
@@ -26,3 +28,31 @@ def test_invalid_progress_switch_is_refused(monkeypatch):
     assert res.exit_code == 2
     assert "error: $TORCH_BRDF_PROGRESS='maybe' is not a switch" in res.output
     assert "objects" not in res.output
+
+
+def test_fetched_data_is_found_without_setting_the_variable(monkeypatch, tmp_path):
+    # `torch-brdf fetch-data` without --dest and $TORCH_BRDF_DATA writes under the cache folder;
+    # the package must look there too (it looked only in ../shared/data: the data was not found)
+    import pooch
+
+    from torch_brdf import data
+    from torch_brdf.errors import DataNotFoundError
+
+    def retrieve(url, known_hash, fname, path, progressbar):  # pooch without the network
+        Path(path).mkdir(parents=True, exist_ok=True)
+        (Path(path) / fname).write_text(url)
+        return str(Path(path) / fname)
+
+    monkeypatch.delenv("TORCH_BRDF_DATA", raising=False)
+    monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(pooch, "retrieve", retrieve)
+    with pytest.raises(DataNotFoundError, match=r"nothing\.ply' not found \(looked in .*cache/data; `torch-brdf fetch"):
+        data.data_path("meshes", "nothing.ply")
+    (path,) = data.fetch_data(base_url="http://127.0.0.1:9", files=["meshes/teapot.obj"], progress=False)
+    assert path == tmp_path / "cache" / "data" / "meshes" / "teapot.obj"
+    assert data.data_search_path()[-1] == tmp_path / "cache" / "data"
+    if not any(p.is_dir() for p in data.data_search_path()[:-1]):  # no ../shared/data beside this checkout
+        assert data.data_path("meshes", "teapot.obj") == path
+    monkeypatch.setenv("TORCH_BRDF_DATA", str(tmp_path / "elsewhere"))  # the variable alone, when set
+    assert data.data_search_path() == [tmp_path / "elsewhere"] and data.data_root() is None

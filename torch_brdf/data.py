@@ -75,21 +75,22 @@ def progress_default(progress: bool | None = None) -> bool:
         return False
 
 
-def data_root() -> Path | None:
-    """The shared data folder, or ``None`` when it cannot be found.
-
-    ``$TORCH_BRDF_DATA`` if set; otherwise ``../shared/data`` relative to the current
-    directory, then relative to the repository that holds this package.
-    """
+def data_search_path() -> list[Path]:
+    """Where :func:`data_root` looks, in order: ``$TORCH_BRDF_DATA`` alone if set; otherwise
+    ``../shared/data`` relative to the current directory, then to the repository that holds
+    this package, then ``data`` in :func:`cache_dir` (where ``torch-brdf fetch-data`` puts the
+    files by default)."""
     env = os.environ.get(ENV_VAR)
     if env:
-        p = Path(env).expanduser()
-        return p if p.is_dir() else None
-    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
-        p = (base / ".." / "shared" / "data").resolve()
-        if p.is_dir():
-            return p
-    return None
+        return [Path(env).expanduser()]
+    shared = [(base / ".." / "shared" / "data").resolve() for base in (Path.cwd(), Path(__file__).resolve().parents[1])]
+    return [*shared, cache_dir() / "data"]
+
+
+def data_root() -> Path | None:
+    """The shared data folder (the first folder of :func:`data_search_path` that exists), or
+    ``None`` when there is none."""
+    return next((p for p in data_search_path() if p.is_dir()), None)
 
 
 def data_path(*parts: str, required: bool = True) -> Path | None:
@@ -102,8 +103,11 @@ def data_path(*parts: str, required: bool = True) -> Path | None:
     p = None if root is None else root.joinpath(*parts)
     if p is None or not p.exists():
         if required:
-            where = f"${ENV_VAR}" if os.environ.get(ENV_VAR) else "../shared/data"
-            raise DataNotFoundError(f"shared data file {'/'.join(parts)!r} not found (looked in {where})")
+            where = ", ".join(str(p) for p in data_search_path())
+            raise DataNotFoundError(
+                f"shared data file {'/'.join(parts)!r} not found (looked in {where}; "
+                f"`torch-brdf fetch-data` downloads it, `{ENV_VAR}=FOLDER` points elsewhere)"
+            )
         return None
     return p
 
@@ -147,7 +151,8 @@ def fetch_data(
     checksum differs is deleted and refused.
 
     Args:
-        dest: the data folder (default ``$TORCH_BRDF_DATA``, else ``~/.cache/torch_brdf/data``).
+        dest: the data folder (default ``$TORCH_BRDF_DATA``, else ``data`` in :func:`cache_dir`,
+            where :func:`data_root` finds it without setting ``$TORCH_BRDF_DATA``).
         base_url: mirror of the folder (default ``$TORCH_BRDF_DATA_URL``).
         files: paths relative to the folder (default every file of :data:`REGISTRY`).
         progress: a bar per file (None: on in a terminal or notebook).
