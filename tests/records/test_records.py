@@ -31,6 +31,20 @@ def _equal(a, b):
         assert a.dtype == b.dtype and torch.equal(a, b)
 
 
+def _refused_on_load(record, path, array: str, entry: int, value: int, words: str) -> None:
+    """``record`` saved with ``array[entry] = value``, rewritten with a valid checksum (so only a
+    faulty writer makes it), is refused at load with a FileFormatError containing ``words``."""
+    from torch_brdf.io import load_arrays, save_arrays
+
+    cls = type(record)
+    arrays, meta = load_arrays(record.save(path))
+    arrays[array] = arrays[array].copy()
+    arrays[array][entry] = value
+    save_arrays(path, arrays, cls.kind, meta, kind_version=cls.version)
+    with pytest.raises(FileFormatError, match=re.escape(words)):
+        cls.load(path)
+
+
 class TestBasisImage(RecordContract):
     def make(self, gen):
         images = torch.rand(3, 4, 5, 3, generator=gen)
@@ -73,16 +87,7 @@ class TestPolynomialTensors(RecordContract):
         ],
     )
     def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
-        # checksummed, so only a faulty writer makes these: refused at load, naming the array
-        from torch_brdf.io import load_arrays, save_arrays
-
-        path = self.make(gen).save(tmp_path / "t.npz")
-        arrays, meta = load_arrays(path)
-        arrays[array] = arrays[array].copy()
-        arrays[array][entry] = value
-        save_arrays(path, arrays, PolynomialTensors.kind, meta, kind_version=PolynomialTensors.version)
-        with pytest.raises(FileFormatError, match=re.escape(words)):
-            PolynomialTensors.load(path)
+        _refused_on_load(self.make(gen), tmp_path / "t.npz", array, entry, value, words)
 
     def assert_same(self, a, b):
         assert (a.height, a.width, a.series, a.object_names, a.bases, a.meta) == (
@@ -145,16 +150,7 @@ class TestVertexVisibility(RecordContract):
         ],
     )
     def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
-        # as the polynomial record: checksummed, so only a faulty writer makes these; refused at load
-        from torch_brdf.io import load_arrays, save_arrays
-
-        path = self.make(gen).save(tmp_path / "v.npz")
-        arrays, meta = load_arrays(path)
-        arrays[array] = arrays[array].copy()
-        arrays[array][entry] = value
-        save_arrays(path, arrays, VertexVisibility.kind, meta, kind_version=VertexVisibility.version)
-        with pytest.raises(FileFormatError, match=re.escape(words)):
-            VertexVisibility.load(path)
+        _refused_on_load(self.make(gen), tmp_path / "v.npz", array, entry, value, words)
 
     def assert_same(self, a, b):
         assert a.settings() == b.settings()
