@@ -101,7 +101,7 @@ from torch_brdf.manifold.data import (
     read_split,
     split_names,
 )
-from torch_brdf.manifold.evaluate import NEGATIVES, heldout_reconstruction
+from torch_brdf.manifold.evaluate import NEGATIVE_WEIGHT, NEGATIVES, heldout_reconstruction
 from torch_brdf.manifold.gplvm import (
     GPLVM,
     fit_gplvm,
@@ -585,7 +585,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--qs", default="2,3,5", help="latent dimensions of the held-out study (e.g. one per process)")
     ap.add_argument("--skip-fits", action="store_true", help="no fits / continuity / optimisers (with --heldout-only)")
     ap.add_argument("--no-seed-config", action="store_true", help="held-out study without the seed's configuration")
-    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
+    ap.add_argument(
+        "--negative-weight", type=float, default=NEGATIVE_WEIGHT, help="placement: factor on negative values"
+    )
     ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
     args = ap.parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
