@@ -3,6 +3,7 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/manifold.py [--quick] [--cache PATH] [--no-peer]
         [--fits-only | --heldout-only] [--no-seed-config] [--max-iter N] [--tol T --tol-window W]
         [--negatives penalise|free] [--negative-weight L] [--max-columns C] [--peer-seconds S]
+        [--splits N] [--budget-map B1,B2,...]
 
 Data: the 100 NBRDF fits of the MERL materials (an APPROXIMATION of MERL, shared data)
 tabulated on the default grid (theta_h / theta_d every 3rd index, phi_d every 6th; valid bins
@@ -45,7 +46,10 @@ Prints progress lines, then one JSON object as the LAST line:
   training material in the same log mapping; ``heldout_seed_logrmse_mean``: the seed's
   configuration; ``heldout_negative_mean`` / ``pca_heldout_negative_mean``: fraction of
   negative values in the reconstructions; ``family_heldout``: each family held out whole
-  (names containing ``metallic-paint``, ``phenolic``, ``fabric``; q = 2, 3, 5; NBRDF data only).
+  (names containing ``metallic-paint``, ``phenolic``, ``fabric``; q = 2, 3, 5; NBRDF data only),
+  with ``on_training_latent`` (share placed where the predictive variance is < 1e-6) and the
+  blending weights' mean negative sum / minimum (``weights_negative_sum``, ``weights_min``): why
+  negative values appear. ``--splits 0``: the family hold-outs only.
 * ``continuity_max``: max over the training materials of the relative max difference between
   the rows at x_i + 1e-6 and at x_i (q = 2 fit on all materials, the default configuration);
   ``continuity_max_seed`` the same for the seed's interpolant; ``repro_rel_err_smooth_q2``: the
@@ -53,8 +57,10 @@ Prints progress lines, then one JSON object as the LAST line:
 * ``lbfgs_wolfe_loglik_q2``, ``lbfgs_wolfe_s_q2``: ``torch.optim.LBFGS`` with the strong-Wolfe
   line search on :func:`log_likelihood` (autograd), same data, mu, PCA start and iteration budget
   (``max_iter`` iterations, torch's default of 1.25 evaluations per iteration), one thread like
-  ours. Our fit includes its mu warm-up (the first 20 % of the budget at mu = 1e-6, see
+  ours. Our fit includes its mu warm-up (the first 20 % of the budget at mu = 3e-6, see
   :func:`fit_gplvm`); ``loglik_q2_no_warmup`` / ``fit_s_q2_no_warmup``: ours without it.
+  ``--budget-map 60,100,...``: ``lbfgs_wolfe_budget_map_q2`` ({budget: {"ours", "torch"}}, our
+  default fit and that peer at each budget) and ``budgets_ours_at_least_wolfe_q2``.
 * ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM), q = 2, same
   normalised data, noise = mu, PCA start, ``torch.optim.LBFGS`` (strong Wolfe) in chunks of 10
   iterations until it reaches our final L (``gpytorch_s_to_our_loglik_q2``; None = not reached),
