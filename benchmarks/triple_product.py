@@ -39,9 +39,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import multiprocessing
 import os
+import statistics
 import time
+from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import torch
 from _timing import best_of
 
@@ -52,8 +56,9 @@ from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TriplePr
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
+from torch_brdf.scene.parallel import CHUNK
 from torch_brdf.sphere.cubemap import CubemapBlocks
-from torch_brdf.transport.visibility import HORIZON_EPS, precompute_visibility
+from torch_brdf.transport.visibility import HORIZON_EPS, precompute_visibility, scene_vertices
 
 
 def _display(img: torch.Tensor, exposure: float) -> torch.Tensor:
@@ -77,6 +82,59 @@ def _orbit(cam: Camera, angle: float) -> Camera:
     )
 
 
+def _chunk_rays(scene, geom, verts, chunk: int, limit: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The rays the precompute casts, per chunk of ``chunk`` vertices (the first ``limit``
+    chunks): (n, 3) float32 origins and directions, one per texel centre above each vertex's
+    horizon, built the plain way (torch, one (n, 3) array each)."""
+    dirs = geom.supersampled_directions(1).reshape(-1, 3)
+    out = []
+    for s in range(0, min(len(verts), limit * chunk), chunk):
+        pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
+        vi, ti = ((nrm @ dirs.T) > HORIZON_EPS).nonzero(as_tuple=True)
+        o = (pos + scene.ray_epsilon * nrm).float()[vi]
+        out.append((np.ascontiguousarray(o.numpy()), np.ascontiguousarray(dirs[ti].float().numpy())))
+    return out
+
+
+def _ray_count(geom, verts) -> int:
+    """Texels above the horizon summed over all vertices."""
+    dirs = geom.directions.reshape(-1, 3)
+    return sum(int(((n @ dirs.T) > HORIZON_EPS).sum()) for n in verts.normals.split(4096))
+
+
+_RAYS: tuple | None = None  # (embree scene, rays): set before forking, inherited
+
+
+def _embree_chunk(i: int) -> int:
+    """Occluded rays of chunk ``i``: embreex's ``run`` on the prepared arrays, CHUNK rays a call."""
+    embree, rays = _RAYS
+    o, d = rays[i]
+    return sum(int((embree.run(o[a : a + CHUNK], d[a : a + CHUNK], query="OCCLUDED") != -1).sum())
+               for a in range(0, len(o), CHUNK))  # fmt: skip
+
+
+def _embree_alone(scene, rays, processes: int) -> int:
+    """Embree alone on ``rays`` (per chunk), chunks in ``processes`` forked processes as the
+    precompute's tiles (pool start included, as there); returns the occluded count."""
+    global _RAYS
+    embree = scene.tracer._kernel.scene  # the committed embreex scene the precompute traces
+    embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # BVH built before forking
+    _RAYS = (embree, rays)
+    try:
+        if processes == 1:
+            return sum(_embree_chunk(i) for i in range(len(rays)))
+        with ProcessPoolExecutor(processes, multiprocessing.get_context("fork")) as pool:
+            return sum(pool.map(_embree_chunk, range(len(rays))))
+    finally:
+        _RAYS = None
+
+
+def _visible_texels(vis) -> int:
+    """Visible texels of a binary record, from its flips: +1 at texel i adds 256 - i, -1 subtracts."""
+    b = vis.blocks
+    return int((b.values(torch.float64) * (256 - b.index.double())).sum())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene and image")
@@ -86,6 +144,11 @@ def main() -> None:
         "--baseline", action="store_true", help="also time the visibility with its chunks in one process (processes=1)"
     )
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per frame (best is kept)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved precompute / embree-alone pairs (median)")
+    ap.add_argument(
+        "--embree-chunks", type=int, default=None, help="chunks embree alone casts (default: all with --quick, else 16)"
+    )
+    ap.add_argument("--processes", type=int, default=None, help="processes for both (default: usable cores)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     args = ap.parse_args()
     torch.manual_seed(0)
@@ -98,14 +161,52 @@ def main() -> None:
     res = 64
     print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
 
-    t = time.perf_counter()
-    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
-    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512, **forked)
-    precompute_s = time.perf_counter() - t
+    # the visibility precompute against embree alone on the very rays it casts, with as many
+    # processes over the same chunks of vertices, interleaved (embree's own time varies most)
+    procs = args.processes or usable_cores()
+    chunk = 512
+    verts, geom = scene_vertices(scene), CubemapBlocks(res)
+    # the rays, built once (24 B a ray: the full scene's 544 M would not fit, it times the
+    # first --embree-chunks chunks and scales by the ray count)
+    n_chunks = -(-len(verts) // chunk)
+    limit = n_chunks if args.quick and args.embree_chunks is None else min(n_chunks, args.embree_chunks or 16)
+    rays = _chunk_rays(scene, geom, verts, chunk, limit)
+    n_rays = sum(len(o) for o, _ in rays)
+    all_rays = n_rays if limit == n_chunks else _ray_count(geom, verts)
+    vis, runs = None, []
+    for r in range(args.rounds):
+        pair = {}
+        for what in ("precompute", "embree") if r % 2 == 0 else ("embree", "precompute"):
+            t = time.perf_counter()
+            if what == "precompute":
+                vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
+            else:
+                occluded = _embree_alone(scene, rays, procs)
+            pair[what] = time.perf_counter() - t
+        pair["embree"] *= all_rays / n_rays
+        pair["ratio"] = pair["precompute"] / pair["embree"]
+        pair["load_avg"] = list(os.getloadavg())
+        runs.append(pair)
+        print(f"round {r}: precompute {pair['precompute']:.2f} s, embree {pair['embree']:.2f} s, "
+              f"ratio {pair['ratio']:.3f}, load {pair['load_avg'][0]:.1f}", flush=True)  # fmt: skip
+    del rays
+    precompute_s = statistics.median(p["precompute"] for p in runs)
+    rays_s = statistics.median(p["embree"] for p in runs)
+    figures = {
+        "processes": procs,
+        "rounds": runs,
+        "precompute_s": precompute_s,
+        "rays": all_rays,
+        "rays_s": rays_s,
+        "embree_timed_rays": n_rays,
+        "precompute_over_rays": statistics.median(p["ratio"] for p in runs),
+        # the record's visible texels = embree's escaping rays (when embree cast them all)
+        "same_rays": _visible_texels(vis) == n_rays - occluded if n_rays == all_rays else None,
+    }
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
         t = time.perf_counter()
-        vis1 = precompute_visibility(scene, res, chunk=512, processes=1)
+        vis1 = precompute_visibility(scene, res, chunk=chunk, processes=1)
         baseline["one_process_s"] = time.perf_counter() - t
         baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
         a, b = vis1.blocks, vis.blocks
@@ -114,33 +215,8 @@ def main() -> None:
             (a.delta is None and b.delta is None) or torch.equal(a.delta, b.delta)
         )
         del vis1
-    # the physical limit: embree alone on the same number of rays (one ray per texel above
-    # each vertex's horizon), timed on the rays of the first 512 vertices and scaled
-    geom = vis.geometry
-    up = (vis.vertices.normals @ geom.directions.reshape(-1, 3).T) > HORIZON_EPS
-    rays = int(up.sum())
-    vi, ti = up[:512].nonzero(as_tuple=True)
-    o = (vis.vertices.positions[vi] + scene.ray_epsilon * vis.vertices.normals[vi]).float()
-    d = geom.directions.reshape(-1, 3)[ti].float()
-    t = time.perf_counter()
-    scene.occluded(o, d, float("inf"))
-    rays_s = (time.perf_counter() - t) * rays / len(vi)
-    del up
     if args.precompute_only:
-        load = list(os.getloadavg())
-        print(
-            json.dumps(
-                {
-                    "vertices": len(vis.vertices),
-                    "precompute_s": precompute_s,
-                    "rays": rays,
-                    "rays_s": rays_s,
-                    "precompute_over_rays": precompute_s / rays_s,
-                    **baseline,
-                    "load_avg": load,
-                }
-            )
-        )
+        print(json.dumps({"vertices": len(vis.vertices), **figures, **baseline, "load_avg": list(os.getloadavg())}))
         return
     r = TripleProductRenderer(scene, vis)
     env = r.envmap
@@ -158,10 +234,7 @@ def main() -> None:
         "cubemap": f"{res}x{res}x6",
         "blocks_per_vertex": vis.geometry.block_count,
         "envmap": str(sun.name) if sun is not None else "procedural sky",
-        "precompute_s": precompute_s,
-        "rays": rays,
-        "rays_s": rays_s,
-        "precompute_over_rays": precompute_s / rays_s,
+        **figures,
         **baseline,
         "visibility_bytes_per_vertex": vis.bytes_per_vertex,
         "dense_bytes_per_vertex": CubemapBlocks(res).texel_count / 8,
