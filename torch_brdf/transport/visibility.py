@@ -26,6 +26,7 @@ of ray-casting processes.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +81,15 @@ def _fraction(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.T
     return torch.from_numpy(V).view(pos.shape[0], geom.block_count, geom.block_size)
 
 
-def _cast(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: np.ndarray):
+def _lap(split: dict[str, float] | None, stage: str, t0: float) -> float:
+    """Add the CPU seconds since ``t0`` to ``split[stage]`` (when profiling); the time now."""
+    t = time.process_time()
+    if split is not None:
+        split[stage] = split.get(stage, 0.0) + t - t0
+    return t
+
+
+def _cast(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: np.ndarray, split=None):
     """Cast the rays above each vertex's horizon, in numpy: one fan of rays per vertex (one
     embree call, no (m T, 3) origin array), the horizon test and the gather of the up
     directions once per distinct normal (a flat object's vertices share theirs).
@@ -92,7 +101,9 @@ def _cast(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tenso
         ``up``: (m, T) bool, texel centre above the horizon (``n . w > HORIZON_EPS`` in float64);
         ``free``: (U k^2,) bool, the rays of the ``U`` up texels (vertex by vertex, texels in
         order) that escape.
+        ``split`` (profiling): CPU seconds per stage are added to it.
     """
+    t = time.process_time()
     centres = _centres(geom)  # (3, T) float64
     normals, inverse = np.unique(nrm.to(torch.float64).numpy(), axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
@@ -102,6 +113,7 @@ def _cast(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tenso
         np.greater(n @ centres, HORIZON_EPS, out=up[u])
     counts = np.count_nonzero(up, axis=1)
     starts = np.cumsum(counts) - counts
+    t = _lap(split, "horizon", t)
     # directions padded to 16 bytes: np.compress moves one complex128 per ray, 1.4x faster
     padded = np.zeros((T, k2, 4), np.float32)
     padded[..., :3] = dirs
@@ -114,8 +126,12 @@ def _cast(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tenso
         np.compress(up[u], src, axis=0, out=dst)
     fans = np.stack([starts[inverse], counts[inverse]], axis=1) * k2
     o = (pos + scene.ray_epsilon * nrm).float().numpy()
+    t = _lap(split, "gather", t)
     free = ~scene.occluded_fans(o, fans, d.view(np.float32).reshape(-1, 4)[:, :3])
-    return up[inverse], free
+    t = _lap(split, "embree", t)
+    up = up[inverse]
+    _lap(split, "horizon", t)
+    return up, free
 
 
 def _centres(geom: CubemapBlocks) -> np.ndarray:
@@ -124,18 +140,29 @@ def _centres(geom: CubemapBlocks) -> np.ndarray:
 
 
 def _chunk_entries(
-    scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: torch.Tensor, bits: int
+    scene: Scene,
+    geom: CubemapBlocks,
+    pos: torch.Tensor,
+    nrm: torch.Tensor,
+    dirs: torch.Tensor,
+    bits: int,
+    split: dict[str, float] | None = None,
 ) -> dict[str, np.ndarray]:
     """The differential entries of a few vertices' maps (``counts`` (m, NB) int16, ``index``
     (F,) uint8, graded maps also ``delta`` (F,) int16), by casting the rays above each horizon;
-    binary maps go from the rays' results to the flips through bits packed 8 a byte."""
+    binary maps go from the rays' results to the flips through bits packed 8 a byte.
+    ``split`` (profiling, binary maps): CPU seconds per stage (horizon, gather, embree, scatter,
+    flips) are added to it."""
     if dirs.shape[1] > 1:
         rec = BlockVisibility.encode(_fraction(scene, geom, pos, nrm, dirs), bits=bits)
         return {"counts": rec.counts.numpy(), "index": rec.index.numpy(), "delta": rec.delta.numpy()}
-    up, free = _cast(scene, geom, pos, nrm, dirs.numpy())
+    up, free = _cast(scene, geom, pos, nrm, dirs.numpy(), split)
+    t = time.process_time()
     vis = np.zeros(up.shape, bool)
     vis[up] = free
+    t = _lap(split, "scatter", t)
     counts, index = packed_entries(np.packbits(vis.reshape(len(vis), geom.block_count, geom.block_size), axis=-1))
+    _lap(split, "flips", t)
     return {"counts": counts, "index": index}
 
 
