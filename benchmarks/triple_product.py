@@ -19,7 +19,8 @@ culled vertices. Prints progress, then one JSON object as the last line:
   ``(n, 3)`` arrays in calls of 16384 rays (``embree``) and one call per vertex with a
   zero-stride origin, as the precompute calls it (``embree_fans``). ``--rounds`` interleaved
   rounds (each of the three goes first in turn; ``rounds`` lists every time and the load);
-  the figures are medians, ``precompute_over_rays`` the median of the per-round ratios;
+  the figures are medians, ``precompute_over_rays`` the median of the per-round ratios,
+  ``precompute_over_rays_cpu`` the same of CPU seconds (all processes; less load-dependent);
   ``same_rays``: the record's visible texels equal embree's escaping rays. With ``--quick``
   embree casts every ray; else the first ``--embree-chunks`` chunks (16), scaled by the rays.
   ``--split``: ``split_cpu_s``, CPU seconds per stage over all chunks in one process (horizon
@@ -51,6 +52,7 @@ import json
 import math
 import multiprocessing
 import os
+import resource
 import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -113,6 +115,12 @@ def _ray_count(geom, verts) -> int:
     """Texels above the horizon summed over all vertices."""
     dirs = geom.directions.reshape(-1, 3)
     return sum(int(((n @ dirs.T) > HORIZON_EPS).sum()) for n in verts.normals.split(4096))
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its finished children."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
 
 _RAYS: tuple | None = None  # (embree scene, rays): set before forking, inherited
@@ -201,19 +209,22 @@ def main() -> None:
         pair = {}
         order = ("precompute", "embree", "embree_fans")
         for what in order[r % 3 :] + order[: r % 3]:  # each goes first in turn
-            t = time.perf_counter()
+            t, c = time.perf_counter(), _cpu_seconds()
             if what == "precompute":
                 vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
             else:
                 occluded = _embree_alone(scene, rays, procs, fans=what == "embree_fans")
             pair[what] = time.perf_counter() - t
-        for k in ("embree", "embree_fans"):
+            pair[f"{what}_cpu"] = _cpu_seconds() - c
+        for k in ("embree", "embree_fans", "embree_cpu", "embree_fans_cpu"):
             pair[k] *= all_rays / n_rays
         pair["ratio"] = pair["precompute"] / min(pair["embree"], pair["embree_fans"])
+        pair["cpu_ratio"] = pair["precompute_cpu"] / min(pair["embree_cpu"], pair["embree_fans_cpu"])
         pair["load_avg"] = list(os.getloadavg())
         runs.append(pair)
         print(f"round {r}: precompute {pair['precompute']:.2f} s, embree {pair['embree']:.2f} s "
-              f"(fans {pair['embree_fans']:.2f} s), ratio {pair['ratio']:.3f}, load {pair['load_avg'][0]:.1f}",
+              f"(fans {pair['embree_fans']:.2f} s), ratio {pair['ratio']:.3f} (CPU time {pair['cpu_ratio']:.3f}), "
+              f"load {pair['load_avg'][0]:.1f}",
               flush=True)  # fmt: skip
     del rays
     precompute_s = statistics.median(p["precompute"] for p in runs)
@@ -226,6 +237,7 @@ def main() -> None:
         "rays_s": rays_s,
         "embree_timed_rays": n_rays,
         "precompute_over_rays": statistics.median(p["ratio"] for p in runs),
+        "precompute_over_rays_cpu": statistics.median(p["cpu_ratio"] for p in runs),
         # the record's visible texels = embree's escaping rays (when embree cast them all)
         "same_rays": _visible_texels(vis) == n_rays - occluded if n_rays == all_rays else None,
     }
