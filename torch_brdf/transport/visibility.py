@@ -88,9 +88,10 @@ def _lap(split: dict[str, float] | None, stage: str, t0: float) -> float:
     return t
 
 
-#: vertices cast together: their up directions (16 B a ray, ~200 KB a vertex at 64^2) stay
-#: in cache and in the same pages from group to group
-GROUP = 16
+#: vertices cast together: their up directions (16 B a ray, ~200 KB a vertex at 64^2) are
+#: gathered into one buffer reused from group to group (not 100 MB of fresh pages a chunk);
+#: 64 measured faster than 16 (numpy's per-call costs) and 4 (1.7x the CPU overhead)
+GROUP = 64
 
 
 def _visible(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: np.ndarray, split=None):
