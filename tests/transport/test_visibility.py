@@ -17,6 +17,7 @@ from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.mesh import mesh_from_arrays
 from torch_brdf.scene.scene import Scene, SceneObject
 from torch_brdf.sphere.cubemap import CubemapBlocks
+from torch_brdf.transport import visibility
 from torch_brdf.transport.visibility import HORIZON_EPS, VertexVisibility, precompute_visibility, scene_vertices
 
 
@@ -174,9 +175,13 @@ def previous_pipeline(scene: Scene, resolution: int, supersample: int = 1, bits:
     return BlockVisibility.encode((V > 0.5).float() if k2 == 1 else V, bits=bits)
 
 
-@pytest.mark.parametrize(("supersample", "bits", "chunk"), [(1, 0, 16), (1, 0, 1000), (2, 2, 7)])
-def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk):
-    # the box's vertices have their own normals, the floor's share one (one horizon test for all)
+@pytest.mark.parametrize(
+    ("supersample", "bits", "chunk", "group"), [(1, 0, 16, 64), (1, 0, 1000, 64), (1, 0, 1000, 5), (2, 2, 7, 3)]
+)
+def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk, group, monkeypatch):
+    # the box's vertices have their own normals, the floor's share one (one horizon test for all);
+    # groups of cast vertices smaller than a chunk, the last one partial
+    monkeypatch.setattr(visibility, "GROUP", group)
     got = precompute_visibility(scene, 32, supersample=supersample, bits=bits, chunk=chunk, progress=False)
     ref = previous_pipeline(scene, 32, supersample, bits)
     assert ref.num_entries > 0 and bool((ref.states == 2).any())  # real shadows, partial blocks
