@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
 from .atrous import GuideFilter, GuideSigmas
 from .guides import GuideBuffers
@@ -136,7 +137,9 @@ class SelectedRegressionFilter(GuideFilter):
             pairs.append((self._planes(a).double(), self._planes(b).double()))
         if not pairs:
             raise ValueRangeError("need at least one pair of half buffers")
-        self._build(pairs)
+        # many small elementwise ops (the box over the error maps): pick the thread count
+        with tuned("denoise.selection", guides.height * guides.width * (2 * self.settings.smooth + 1) ** 2):
+            self._build(pairs)
 
     def _build(self, pairs) -> None:
         s = self.settings
