@@ -91,14 +91,14 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             pas, rec = torch.nonzero(counts[None, :] > torch.arange(s0, s1)[:, None], as_tuple=True)
             gen = seeded_generator(seed, tile, gi)
             off = torch.rand(rec.numel(), 2, generator=gen, dtype=torch.float64)
-            ray = torch.arange(rec.numel())
+            ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
-        e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
-        if paths is not None:  # the oracle's rows: ray index -> flat pixel index
+        e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray id as "path"
+        if paths is not None:  # the oracle's rows: ray id -> flat pixel index
             for r in paths.get("rows", [])[n_rows:]:
-                r["rec"] = pixels[rec[r["rec"]]]
+                r["rec"] = pixels[r["rec"] % p]
         with clock("bookkeeping"):
             emis.index_add_(0, rec, e.double())
             if tick is not None:
@@ -107,7 +107,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             if not dd:
                 continue
             ray_id = dd.pop("path")
-            dd["rec"], dd["path"] = rec[ray_id], pas[ray_id]
+            dd["rec"], dd["path"] = ray_id % p, ray_id // p
             reduced.append(_reduce(dd, {**sizes, "path": s1 - s0}, by_path=True))
     reduced = [r for r in reduced if r]
     if not reduced:
