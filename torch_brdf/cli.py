@@ -79,6 +79,13 @@ def main(
 ):
     """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
+    from .data import progress_default
+
+    try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
+        progress_default()
+    except ValueRangeError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2) from None
 
 
 _OS_ERRORS = {
@@ -327,29 +334,16 @@ def precompute(
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
-    from dataclasses import fields
-
     from .records.cache import remove_cache
-    from .records.polynomial import ObjectBasis
     from .transport.polynomial import Series, precompute_polynomial
+    from .transport.polynomial.plan import check_basis_overrides
 
     # every option is checked before the scene is loaded and the precompute starts
     parsed = Series.parse(series)
     check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
     if storage not in _STORAGES:
         raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
-    overrides = _json_object(bases, "--bases")
-    for name, spec in (overrides or {}).items():
-        if not isinstance(spec, dict):
-            raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
-        known = [f.name for f in fields(ObjectBasis)]
-        unknown = sorted(set(spec) - set(known))
-        if unknown:
-            raise ValueRangeError(f"--bases {name}: unknown key(s) {unknown}; known keys: {known}")
-        if "J" in spec:
-            check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
-        if not isinstance(spec.get("fresnel", False), bool):
-            raise ValueRangeError(f"--bases {name}.fresnel must be true or false; got {spec['fresnel']!r}")
+    overrides = check_basis_overrides(_json_object(bases, "--bases"), "--bases")
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
@@ -400,14 +394,12 @@ def _tensors_scene(T, scene: str | None, resolution: int):
 
 def _retyped(material: dict, kind) -> dict:
     """``--set OBJECT.type=KIND``: a ``kind`` material keeping the parameters that model takes."""
-    import inspect
+    from .brdf.base import model_parameters
 
-    from .brdf.base import model_class
-
-    params = inspect.signature(model_class(str(kind)).__init__).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+    params = model_parameters(str(kind))
+    if params is None:
         return {**material, "type": kind}
-    return {"type": kind, **{k: v for k, v in material.items() if k in params and k != "self"}}
+    return {"type": kind, **{k: v for k, v in material.items() if k in params}}
 
 
 def _parse_set(item: str) -> tuple[str, str, object]:

@@ -471,7 +471,7 @@ def plan_polynomial(
     pilot_bounces: int = 8,
     seed: int = 0,
     env_point_lights: int | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     pilot_runs: int = 4,
     adaptive: bool = True,
     max_light_samples: int = 16,
@@ -492,6 +492,7 @@ def plan_polynomial(
         pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
+        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
         pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
         adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
         max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
