@@ -20,6 +20,7 @@ import functools
 import hashlib
 import json
 import re
+import sys
 import time
 import traceback
 from collections.abc import Callable
@@ -50,7 +51,7 @@ MAX_SAMPLES = 1 << 20
 #: surface vertices per path accepted on the command line
 MAX_BOUNCES = 64
 
-_STATE = {"debug": False}
+_STATE = {"debug": False, "progress": False}
 
 #: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
 PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
@@ -82,10 +83,15 @@ def main(
     from .data import progress_default
 
     try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
-        progress_default()
+        progress = progress_default()
     except ValueRangeError as exc:
         typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from None
+    _STATE["progress"] = progress
+
+
+#: commands that never import torch (no "loading torch" line)
+_NO_TORCH = frozenset({"fetch_data_cmd"})
 
 
 _OS_ERRORS = {
@@ -121,6 +127,11 @@ def _cli(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
+        on = kwargs.get("progress")
+        on = _STATE["progress"] if on is None else on
+        if on and fn.__name__ not in _NO_TORCH and "torch" not in sys.modules:
+            # importing torch takes 1-2 s on a quiet machine and 5-10 s on a busy one: say so
+            typer.echo(f"torch-brdf {fn.__name__.removesuffix('_cmd').replace('_', '-')}: loading torch ...", err=True)
         try:
             return fn(*args, **kwargs)
         except typer.Exit:
