@@ -24,8 +24,9 @@ from ...scene.scene import Scene
 from ..executor import run_tiles, single_process
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
+from ._native import library
 from .plan import plan_bases
-from .reduce import _blocks_from_local, _local_blocks, _reduce, _term_tables
+from .reduce import NativeEntries, _blocks_from_local, _local_blocks, _reduce, _reduce_groups, _term_tables, native_bits
 from .sampler import Mixture
 from .tracer import _Tracer
 
@@ -49,9 +50,11 @@ def _default_processes(tile_paths: int) -> int:
     return n
 
 
-def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None):
+def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None, native=None):
     """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
-    ``tick()`` (if given) after each pass group."""
+    ``tick()`` (if given) after each pass group. ``native``: the compiled reduction kernel
+    (None: :func:`~._native.library`, which is None without a compiler; False: the torch path);
+    the sums are the same bit for bit."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
@@ -61,6 +64,9 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
         "j": max([1] + [b.size for b in tracer.bases if b is not None]),
         "w": max(1, sum(b.second_size for b in tracer.bases if b is not None) if tracer.series.two_level else 1),
     }
+    lib = (library() if native is None else native) or None
+    bits = native_bits({**sizes, "path": min(group, spp)}, tracer.num_objects, tracer.series.bounces) if lib else None
+    lib = lib if bits else None  # keys too wide for the kernel: the torch path
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
     for gi, g0 in enumerate(range(0, spp, group)):
@@ -72,11 +78,15 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
             rec = ray % p
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
-        e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray index as "path"
+        ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
+        e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray index as "path"
         with clock("bookkeeping"):
             emis.index_add_(0, rec, e.double())
             if tick is not None:
                 tick()
+            if lib:
+                reduced.append(ent.reduce())
+                continue
             dd = ent.cat()
             if not dd:
                 continue
@@ -87,6 +97,8 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
     if not reduced:
         return emis, {}
     with clock("bookkeeping"):
+        if lib:
+            return emis, _reduce_groups(lib, reduced, tracer.num_objects, bits)
         cat = {k: torch.cat([r[k] for r in reduced]) for k in reduced[0]}
         cat["weight"] = cat.pop("sum")
         return emis, _reduce(cat, sizes, by_path=False)
@@ -392,6 +404,8 @@ def precompute_polynomial(
         blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
+    if executor == "local":
+        library()  # build (or load) the compiled kernel once, before tiles fork
     t0 = time.perf_counter()
     results = run_tiles(
         _polynomial_tile,
