@@ -20,8 +20,9 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   build was loaded), ``native_load_s`` building or loading it, both before and outside
   ``precompute_s``. With ``--torch-path`` also ``torch_path_s`` (the same precompute with the
   kernel off, ``TORCH_BRDF_NATIVE=0``), ``native_again_s`` (the kernel once more, after it),
-  ``kernel_speedup`` (``torch_path_s / native_again_s``: both warm) and ``equals_torch_path``
-  (bit for bit).
+  ``kernel_speedup`` (``torch_path_s / native_again_s``: both warm), ``kernel_cpu_speedup``
+  (the same in CPU seconds of this process and its finished tile processes, ``*_cpu_s``: less
+  sensitive to the load than wall time) and ``equals_torch_path`` (bit for bit).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
   calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
   direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
@@ -55,6 +56,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import time
 
 import numpy as np
@@ -119,6 +121,13 @@ def _embree_seconds(scene, log, totals) -> float:
     return secs
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its finished children (forked tiles; the
+    scene's trace process, which lives on, is not counted: ray casting is outside)."""
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
 def _mitsuba(scene, spp, max_bounces, quiet=False):
     try:
         from torch_brdf.transport import mitsuba as tm
@@ -156,27 +165,36 @@ def main() -> None:
     T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
+
+    def again(**kw):
+        """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        T_ = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **kw)
+        cpu[0] = _cpu_seconds() - c0
+        return T_, time.perf_counter() - t0
+
+    cpu = [0.0]
+
+    def same(one, other) -> bool:
+        a, b = one.to_arrays()[0], other.to_arrays()[0]
+        return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
     if args.baseline:  # the same precompute with its tiles in this process, one after another
-        t0 = time.perf_counter()
-        T1 = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, processes=1)
-        out["one_process_s"] = time.perf_counter() - t0
+        T1, out["one_process_s"] = again(processes=1)
         out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
-        a, b = T.to_arrays()[0], T1.to_arrays()[0]
-        out["equals_one_process"] = sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+        out["equals_one_process"] = same(T, T1)
         out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
         del T1
     if args.torch_path:  # the same precompute with the kernel off, same processes
         os.environ[_native.ENV_VAR] = "0"
-        t0 = time.perf_counter()
-        T2 = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
-        out["torch_path_s"] = time.perf_counter() - t0
+        T2, out["torch_path_s"] = again(**forked)
+        out["torch_path_cpu_s"] = cpu[0]
         del os.environ[_native.ENV_VAR]
-        t0 = time.perf_counter()  # the kernel once more: both warm (the first call pays process warm-up)
-        precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
-        out["native_again_s"] = time.perf_counter() - t0
+        _, out["native_again_s"] = again(**forked)  # the kernel once more: both warm
+        out["native_again_cpu_s"] = cpu[0]
         out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
-        a, b = T.to_arrays()[0], T2.to_arrays()[0]
-        out["equals_torch_path"] = sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+        out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
+        out["equals_torch_path"] = same(T, T2)
         out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
         del T2
     # embree alone: the rays of a run in this process (tiles may run in forked processes),
