@@ -168,3 +168,37 @@ def test_build_is_cached_by_source_hash(monkeypatch, tmp_path):
     assert _native.library() is not None
     assert len(list((tmp_path / "native").glob("polynomial_*.so"))) == 2
     assert math.isfinite(_native.build_seconds()) and _native.build_seconds() > 0
+
+
+@needs_cc
+def test_area_light_samples_equal_torch(monkeypatch):
+    """Next-event samples of the area light (points on both sides of it, on its plane, far
+    away; normals facing anywhere): the same uniforms give the same bits in the kernel."""
+    from torch_brdf.transport.pathtrace import sample_light
+
+    sc = cornell_box_glossy(8)
+    light = sc.lights[0]
+    g = torch.Generator().manual_seed(3)
+    n = 5000
+    lo, hi = light.triangles.reshape(-1, 3).amin(0), light.triangles.reshape(-1, 3).amax(0)
+    pos = (lo + hi) / 2 + (hi - lo).amax() * torch.randn(n, 3, generator=g)  # around and across the light
+    pos[:100, 1] = light.triangles[0, 0, 1]  # on the light's plane
+    pos[100:200] *= 50
+    ng = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    ns = torch.where(torch.rand(n, 1, generator=g) < 0.5, ng, torch.nn.functional.normalize(ng + 0.3, dim=-1))
+    fast = _native.area_light_sample(light, pos, ng, ns, torch.Generator().manual_seed(9))
+    assert fast is not None
+    ls, cos, ok = fast
+    want = light.sample(pos, torch.Generator().manual_seed(9))
+    for k in ("direction", "distance", "weight", "pdf"):
+        assert torch.equal(getattr(ls, k), getattr(want, k)), k
+    want_cos = (want.direction * ns).sum(-1)
+    assert torch.equal(cos, want_cos)
+    assert torch.equal(ok, (want_cos > 0) & ((want.direction * ng).sum(-1) > 0) & (want.pdf > 0))
+    assert 0 < int(ok.sum()) < n
+    # sample_light takes the kernel and draws the same random numbers as the torch path
+    a = sample_light(sc, light, pos, ng, ns, torch.Generator().manual_seed(4))
+    monkeypatch.setenv(_native.ENV_VAR, "0")
+    b = sample_light(sc, light, pos, ng, ns, torch.Generator().manual_seed(4))
+    assert torch.equal(a[1], b[1]) and torch.equal(a[3], b[3]) and a[2] == b[2]
+    assert _native.area_light_sample(light, pos.double(), ng.double(), ns.double(), g) is None  # float64: torch

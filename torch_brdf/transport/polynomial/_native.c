@@ -274,3 +274,65 @@ int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_ou
     free(xv), free(yv), free(cnt);
     return 0;
 }
+
+/* Next-event samples of an area light from float32 points (scene/lights.py AreaLight.sample_points
+ * and AreaLight.sample, then pathtrace.py sample_light's cosines), operation for operation in
+ * the torch code's order and precision (float64 points on the triangle, float32 after). The two
+ * square roots stay in torch (its vectorised sqrt is not always the correctly rounded one), so
+ * the results are the same bit for bit: tb_area_points, then dist = sqrt(d2) in torch, then
+ * tb_area_finish.
+ * tb_area_points: u (n, 3) float64 uniforms and s = sqrt(u[:, 1]) (n,) float64 (both from torch);
+ * cdf (T,) float64; tri (T, 3, 3) float32; points (n, 3) float32 -> d (n, 3) = y - points and
+ * d2 (n,) = |d|^2 float32, idx (n,) int64 the triangle. */
+void tb_area_points(int64_t n, const double *u, const double *s, const double *cdf, int64_t T, const float *tri,
+                    const float *points, float *d, float *d2, int64_t *idx) {
+    for (int64_t i = 0; i < n; i++) {
+        double u0 = u[3 * i], b1 = 1 - s[i], b2 = u[3 * i + 2] * s[i];
+        int64_t a = 0, b = T; /* searchsorted(right=True): the first cdf entry > u0 */
+        while (a < b) {
+            int64_t m = (a + b) / 2;
+            if (cdf[m] <= u0)
+                a = m + 1;
+            else
+                b = m;
+        }
+        int64_t k = a < T - 1 ? a : T - 1;
+        const float *t = tri + 9 * k;
+        float *di = d + 3 * i;
+        for (int c = 0; c < 3; c++) {
+            double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
+            float y = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0));
+            di[c] = y - points[3 * i + c];
+        }
+        d2[i] = (di[0] * di[0] + di[1] * di[1]) + di[2] * di[2];
+        idx[i] = k;
+    }
+}
+
+/* tb_area_finish: d, d2, dist = sqrt(d2) (float32) and idx from above; nrm (T, 3) float32;
+ * radiance (3,); area: the total area as float32; ng, ns (n, 3) float32. Out: dir, weight (n, 3),
+ * pdf, cos (n,) float32 and ok (n,) uint8: cos > 0, the light in front of ng and pdf > 0. */
+void tb_area_finish(int64_t n, const float *d, const float *d2, const float *dist, const int64_t *idx,
+                    const float *nrm, const float *radiance, float area, const float *ng, const float *ns,
+                    float *dir, float *weight, float *pdf, float *cosv, uint8_t *ok) {
+    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
+    for (int64_t i = 0; i < n; i++) {
+        const float *nl = nrm + 3 * idx[i];
+        float r = dist[i], den = r < tiny ? tiny : r, w[3];
+        for (int c = 0; c < 3; c++) w[c] = d[3 * i + c] / den;
+        float cl = -((w[0] * nl[0] + w[1] * nl[1]) + w[2] * nl[2]);
+        int valid = cl > 0 && r > 0;
+        float p = valid ? d2[i] / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f;
+        float pc = p < lo_pdf ? lo_pdf : p;
+        for (int c = 0; c < 3; c++) {
+            dir[3 * i + c] = w[c];
+            weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
+        }
+        pdf[i] = p;
+        const float *s_ = ns + 3 * i, *g_ = ng + 3 * i;
+        float cs = (w[0] * s_[0] + w[1] * s_[1]) + w[2] * s_[2];
+        float cg = (w[0] * g_[0] + w[1] * g_[1]) + w[2] * g_[2];
+        cosv[i] = cs;
+        ok[i] = cs > 0 && cg > 0 && p > 0;
+    }
+}

@@ -27,8 +27,9 @@ import torch
 
 from ...data import cache_dir
 from ...errors import ValueRangeError
+from ...scene.lights import AreaLight, LightSample
 
-__all__ = ["ENV_VAR", "Accumulator", "build_seconds", "key_bits", "library"]
+__all__ = ["ENV_VAR", "Accumulator", "area_light_sample", "build_seconds", "key_bits", "library"]
 
 #: ``TORCH_BRDF_NATIVE=0`` keeps the torch path (no compiler call)
 ENV_VAR = "TORCH_BRDF_NATIVE"
@@ -55,6 +56,9 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_emit.restype = i32
     lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
     lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
+    lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
+    lib.tb_area_finish.restype = None
+    lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
     return lib
 
 
@@ -228,3 +232,35 @@ class Accumulator:
         u = ctypes.c_int64(0)
         self._check(self.lib.tb_reduce(self._h, int(forward), keys.data_ptr(), vals.data_ptr(), ctypes.byref(u)))
         return keys[: u.value], vals[: u.value]
+
+
+def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor, gen):
+    """Next-event samples of an :class:`~torch_brdf.scene.lights.AreaLight` in the kernel: the
+    same uniforms (one ``torch.rand``), the same float64/float32 arithmetic in the same order
+    as ``AreaLight.sample`` and the cosines of ``sample_light``, so the same bits.
+
+    Args:
+        pos, ng, ns: (n, 3) float32 points, geometric and shading normals.
+    Returns:
+        (:class:`LightSample`, cos (n,) at the shading normal, ok (n,) bool: cos > 0, the light
+        in front of ``ng`` and pdf > 0), or None (another light, another dtype, no kernel): use
+        the torch path.
+    """
+    lib = library()
+    if lib is None or type(light) is not AreaLight or pos.dtype != torch.float32:
+        return None
+    n = pos.shape[0]
+    u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
+    sq = u[:, 1].sqrt()  # square roots in torch: its vectorised sqrt decides the last bit
+    tri, nrm = light.triangles.contiguous(), light.normals.contiguous()
+    cdf, rad = light.cdf.contiguous(), light.radiance.to(torch.float32).contiguous()
+    pos, ng, ns = (_c(x, torch.float32) for x in (pos, ng, ns))
+    f32 = {"dtype": torch.float32}
+    d, d2, idx = torch.empty(n, 3, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.int64)
+    lib.tb_area_points(n, *map(_ptr, (u, sq, cdf)), cdf.numel(), *map(_ptr, (tri, pos, d, d2, idx)))
+    dist = d2.sqrt()
+    w, wt = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32)
+    pdf, cos, ok = torch.empty(n, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.bool)
+    area = ctypes.c_float(light.total_area)
+    lib.tb_area_finish(n, *map(_ptr, (d, d2, dist, idx, nrm, rad)), area, *map(_ptr, (ng, ns, w, wt, pdf, cos, ok)))
+    return LightSample(direction=w, distance=dist, weight=wt, pdf=pdf), cos, ok
