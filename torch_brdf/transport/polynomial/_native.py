@@ -1,4 +1,5 @@
-"""The compiled reduction kernel (``_native.c``): built on first use, cached, optional.
+"""The compiled kernel of the GI precompute (``_native.c``: the entries and their per-key sums,
+area-light next-event samples): built on first use, cached, optional.
 
 :func:`library` compiles ``_native.c`` with the system C compiler (``$CC``, else Python's
 own compiler, else ``cc``) into ``$TORCH_BRDF_CACHE/native/`` under a name keyed by the
