@@ -15,7 +15,7 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   per core unless the machine is busy; with ``--baseline`` one per core whatever the load),
   and with ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
   #14's parallel tiles), ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
-* ``native``: whether the compiled entry kernel (``transport/polynomial/_native.c``) ran;
+* ``native``: whether the compiled entry kernel (``transport/_native.c``) ran;
   ``native_build_s``: seconds this process spent compiling it on first use (0 when the cached
   build was loaded), ``native_load_s`` building or loading it, both before and outside
   ``precompute_s``. With ``--torch-path`` also ``torch_path_s`` (the same precompute with the
@@ -66,8 +66,9 @@ from torch_brdf._threads import usable_cores
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport import _native
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import _native, precompute_polynomial
+from torch_brdf.transport.polynomial import precompute_polynomial
 
 
 def _materials(scene):

@@ -1,4 +1,4 @@
-"""The compiled entry kernel (transport/polynomial/_native.c) against the torch path: exact equality."""
+"""The compiled entry kernel (transport/_native.c) against the torch path: exact equality."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import Mixture, _native, precompute_polynomial
+from torch_brdf.transport import _native
+from torch_brdf.transport.polynomial import Mixture, precompute_polynomial
 from torch_brdf.transport.polynomial.reduce import NativeEntries, _code_fits, _reduce, _reduce_groups, native_bits
 from torch_brdf.transport.polynomial.tracer import LightHit, PathState, _Entries, _Tracer
 

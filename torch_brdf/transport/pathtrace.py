@@ -39,6 +39,7 @@ from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
 from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
+from ._native import area_light_sample
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
 
@@ -119,8 +120,6 @@ def sample_light(scene: Scene, light, pos, ng, ns, gen):
         cosine at the shading normal (n,), how many shadow rays were cast, and the rows (long)
         that see the light.
     """
-    from .polynomial._native import area_light_sample  # (lazy: that package imports this module)
-
     fast = area_light_sample(light, pos, ng, ns, gen)  # the same bits in the compiled kernel
     if fast is not None:
         ls, cos, ok = fast

@@ -21,10 +21,10 @@ from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
+from .._native import library
 from ..executor import run_tiles, single_process
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
-from ._native import library
 from .plan import plan_bases
 from .reduce import NativeEntries, _blocks_from_local, _local_blocks, _reduce, _reduce_groups, _term_tables, native_bits
 from .sampler import Mixture
@@ -53,7 +53,7 @@ def _default_processes(tile_paths: int) -> int:
 def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None, native=None):
     """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
     ``tick()`` (if given) after each pass group. ``native``: the compiled reduction kernel
-    (None: :func:`~._native.library`, which is None without a compiler; False: the torch path);
+    (None: :func:`~torch_brdf.transport._native.library`, which is None without a compiler; False: the torch path);
     the sums are the same bit for bit."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()

@@ -14,7 +14,7 @@ import torch
 
 from ...errors import ValueRangeError
 from ...records.polynomial import TensorBlock, TermTable
-from ._native import Accumulator, key_bits
+from .._native import Accumulator, key_bits
 
 
 def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
@@ -85,11 +85,11 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
 
 class NativeEntries:
     """The entries of one pass group, made and summed per (key, path) in the compiled kernel
-    (:class:`~._native.Accumulator`): the twin of the tracer's ``_Entries`` followed by
+    (:class:`~torch_brdf.transport._native.Accumulator`): the twin of the tracer's ``_Entries`` followed by
     ``_reduce(..., sizes, by_path=True)``, without a torch op per layer combination or copy.
 
     Args:
-        lib: the kernel (:func:`~._native.library`).
+        lib: the kernel (:func:`~torch_brdf.transport._native.library`).
         num_objects: M.
         pixels: p, the tile's records: an entry's ray id ``r`` is record ``r % p``, path ``r // p``.
         bits: :func:`native_bits` of the tile (not None).

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import torch
 
-from ...data import cache_dir
-from ...errors import ValueRangeError
-from ...scene.lights import AreaLight, LightSample
+from ..data import cache_dir
+from ..errors import ValueRangeError
+from ..scene.lights import AreaLight, LightSample
 
 __all__ = ["ENV_VAR", "Accumulator", "area_light_sample", "build_seconds", "key_bits", "library"]
 
