@@ -18,7 +18,13 @@ frozen on the edited object and rendered by four methods:
   style, linear) applied once to every basis image of the frozen tensor
   (``denoiser="regression"``). It is computed in its own cached part (the precompute is redone
   with the same seed, and its noisy frame is checked to equal the cached one), so runs cached
-  before it existed are reused.
+  before it existed are reused;
+* ``selected``: the per-pixel choice among local regressions (:class:`SelectedRegressionFilter`,
+  NFOR's selection, linear once picked): the spp is spent as two half-spp precomputations
+  (other seeds), whose frames at the default material pick the window per pixel; the mean
+  record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. Its own
+  part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
+  ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed.
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -59,8 +65,11 @@ from torch_brdf.denoise import (
     EdgeAwareFilter,
     RegressionFilter,
     RegressionSettings,
+    SelectedRegressionFilter,
+    SelectionSettings,
     glossy_objects,
     guide_buffers,
+    mean_tensors,
     oidn_frame,
 )
 from torch_brdf.metrics import hdr_flip, relative_rmse
@@ -70,9 +79,10 @@ from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
-METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression")
+METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression", "selected")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
 EXTRA = ("regression",)  # computed in the "extra" part
+HALVES = ("selected",)  # computed in the "halves" part
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -209,6 +219,43 @@ def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy):
     return arrays, meta
 
 
+def _halves_unit(scene, obj, mats, edited, series, spp, seed):
+    """``selected`` at ``spp``: two precomputations at spp / 2 (seeds 1000 + 2 seed and the
+    next), the filter picked from their default-material frames, their mean record frozen and
+    denoised with it; also ``none`` and ``regression`` of that mean record (``*_h``), the
+    halves' frames (``half_a``, ``half_b``: to rebuild the filter) and frame seconds timed in
+    turns with the mean record's noisy frozen frame."""
+    halves, secs = [], 0.0
+    for k in range(2):
+        T, t = _secs(
+            lambda k=k: precompute_polynomial(scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False)
+        )
+        halves.append(T)
+        secs += t
+    pilots = [PolynomialRenderer(T, mats).evaluate() for T in halves]
+    T = mean_tensors(halves)
+    gl = glossy_objects(T)
+    A, pick_s = _secs(
+        lambda: SelectedRegressionFilter(T.guides, [tuple(p.permute(2, 0, 1) for p in pilots)], glossy=gl)
+    )
+    arrays = {"half_a": pilots[0], "half_b": pilots[1]}
+    meta = {"precompute_s": secs, "pick_s": pick_s, "settings_selected": A.description, "denoise_s": {}}
+    R = PolynomialRenderer(T, mats)
+    _, freeze_s = _secs(lambda: R.freeze(obj))
+    arrays["none_h"], arrays["none_h_e"] = _frames(R, obj, mats, edited)
+    renderers = {"none": R}
+    for method, den in (("selected", A), ("regression_h", RegressionFilter.for_tensors(T))):
+        print(f"[{scene.name}] {method} at {spp} spp ...", flush=True)
+        D = PolynomialRenderer(T, mats)
+        _, secs = _secs(lambda D=D, den=den: D.freeze(obj, denoiser=den))
+        meta["denoise_s"][method] = max(secs - freeze_s, 0.0) + (pick_s if method == "selected" else 0.0)
+        arrays[method], arrays[method + "_e"] = _frames(D, obj, mats, edited)
+        renderers[method] = D
+    meta["frozen_mb"] = {k: D.frozen_nbytes / 2**20 for k, D in renderers.items()}
+    meta["frame_s"] = _interleaved_frame_times(renderers, obj)
+    return arrays, meta
+
+
 def _regions(object_id: torch.Tensor, depth: torch.Tensor, glossy: list[int], mask: torch.Tensor, radius: int = 3):
     """(H, W) bool masks where a filter can blur: glossy objects' pixels, contact regions
     (within ``radius`` pixels of another object at a depth within 3%) and the rest."""
@@ -288,10 +335,25 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             scene,
             lambda spp=spp, seed=seed, a=a: _extra_unit(scene, obj, mats, edited, series, spp, seed, a["none"]),
         )
-        a = {**a, **x}
+        h, hmeta = _cached(
+            folder,
+            "halves",
+            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings())]},
+            scene,
+            lambda spp=spp, seed=seed: _halves_unit(scene, obj, mats, edited, series, spp, seed),
+        )
+        a = {**a, **x, **h}
         out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
+        out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
+        for m in ("none", "regression", "selected"):
+            k = m if m == "selected" else m + "_h"
+            pair = [
+                relative_rmse(h[k], ref, a["emitter_free"].bool()),
+                relative_rmse(h[k + "_e"], ref_e, a["emitter_free"].bool()),
+            ]
+            out.setdefault("same_samples", {}).setdefault(m, {})[str(spp)] = pair
         out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
-        meta["denoise_s"] = {**meta["denoise_s"], **xmeta["denoise_s"]}
+        meta["denoise_s"] = {**meta["denoise_s"], **xmeta["denoise_s"], "selected": hmeta["denoise_s"]["selected"]}
         key = str(spp)
         mask = a["emitter_free"].bool()
         out["precompute_s"][key] = meta["precompute_s"]
@@ -306,10 +368,14 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             at_mid, mid_meta = a, meta
             out["record_mb"] = meta["record_mb"]
             out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
+            out["frozen_mb"]["selected"] = hmeta["frozen_mb"]["selected"]
             out["regression_settings"] = xmeta["settings_regression"]
+            out["selected_settings"] = hmeta["settings_selected"]
+            out["selected_pick_s"] = hmeta["pick_s"]
             out["frame_s_before"] = meta["frame_s"]["none"]
             for m in METHODS:
-                fs = xmeta["frame_s"] if m in EXTRA else meta["frame_s"]  # ratio to the same run's noisy frame
+                fs = {**dict.fromkeys(EXTRA, xmeta), **dict.fromkeys(HALVES, hmeta)}.get(m, meta)["frame_s"]
+                # ratio to the same run's noisy frame
                 out["frame_s_after"][m] = fs[m]
                 out["frame_ratio"][m] = fs[m] / fs["none"]
                 out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
@@ -324,7 +390,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
                 if int(v.sum())
             }
             if figure:
-                _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], ref)
+                _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], a["selected"], ref)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
     top = str(hi_spp)
     a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
@@ -341,6 +407,8 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     second, _ = _cached(folder, "reference_check", {"ref_spp": cfg["ref_spp"], "b": bounces}, scene, check)
     g, gl = guide_buffers(scene), mid_meta["glossy"]
     filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
+    pilots = (at_mid["half_a"].permute(2, 0, 1), at_mid["half_b"].permute(2, 0, 1))
+    filters["selected"] = SelectedRegressionFilter(g, [pilots], glossy=gl)  # the mid unit's pick, rebuilt
     out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
     return out
 
@@ -384,7 +452,7 @@ def _budget(hi, at_mid, ref, ref_e, second_ref, regions, mask, filters) -> dict:
 def _goals(out: dict, mid: str, top: str) -> dict:
     """The issue's goals per denoising method at the middle spp, each with its figures."""
     goals = {}
-    for m in ("linear", "oidn_basis", "regression"):
+    for m in ("linear", "oidn_basis", "regression", "selected"):
         e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]
         n, n_e = out["rel_rmse"]["none"][top], out["rel_rmse_edited"]["none"][top]
         goals[m] = {
@@ -396,11 +464,12 @@ def _goals(out: dict, mid: str, top: str) -> dict:
     return goals
 
 
-def _figure(path: str, noisy, linear, oidn, regression, ref) -> None:
-    """noisy | linear | oidn_basis | regression | reference side by side (exposure from the reference)."""
+def _figure(path: str, noisy, linear, oidn, regression, selected, ref) -> None:
+    """noisy | linear | oidn_basis | regression | selected | reference side by side (exposure
+    from the reference)."""
     from torch_brdf.io.png import write_png
 
-    strip = torch.cat([noisy, linear, oidn, regression, ref], 1)
+    strip = torch.cat([noisy, linear, oidn, regression, selected, ref], 1)
     exposure = -float(np.log2(max(float(ref.quantile(0.99)), 1e-6)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_png(path, strip, exposure=exposure, tonemap="clip")
@@ -415,7 +484,9 @@ def main() -> None:
     ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of the last spp)")
     ap.add_argument("--ref-spp", type=int, default=4096, help="Mitsuba reference spp")
     ap.add_argument(
-        "--figure", default=None, help="PNG: noisy | linear | oidn_basis | regression | reference (Cornell, middle spp)"
+        "--figure",
+        default=None,
+        help="PNG: noisy | linear | oidn_basis | regression | selected | reference (Cornell, middle spp)",
     )
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")

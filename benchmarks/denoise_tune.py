@@ -10,6 +10,13 @@ grid cheap:
 each setting is chosen on the lowest-spp run with the default material (seed 0) and reported
 at the middle spp (another seed) on the default and the edited material, which it never saw.
 Run ``denoise.py`` first (same options); prints one JSON object.
+
+``--bound`` adds ``selection_bound``: how low *any* per-pixel choice among the local
+regressions of :class:`SelectionSettings` (and the identity) could take the middle-spp error.
+Each pixel takes the candidate whose squared error against the hi-spp mean (four runs at the
+largest spp, the same ones ``denoise.py`` averages), box-smoothed over ``smooth`` pixels, is
+lowest: an oracle no real selection (which sees only the noisy frame) can beat by much. Reported
+beside each candidate's own error and the hi-spp undenoised error (the goal).
 """
 
 from __future__ import annotations
@@ -22,6 +29,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+import torch
+import torch.nn.functional as F
 from denoise import SCENES, _cached, _load
 
 from torch_brdf.data import cache_path
@@ -30,6 +39,7 @@ from torch_brdf.denoise import (
     EdgeAwareFilter,
     RegressionFilter,
     RegressionSettings,
+    SelectionSettings,
     guide_buffers,
 )
 from torch_brdf.metrics import relative_rmse
@@ -59,7 +69,39 @@ def _apply(A, img):
     return A(img.permute(2, 0, 1)).permute(1, 2, 0)
 
 
-def tune(name: str, cfg: dict, folder: Path, filters: list[str]) -> dict:
+def _hi_mean(folder: Path, cfg: dict, scene, obj: str, edited: dict, missing) -> tuple:
+    """The hi-spp means (default, edited) of ``denoise.py``: every run at the largest spp."""
+    spps, runs = cfg["spp"], []
+    for k in range(cfg["hi_spp"] // spps[-1]):
+        seed = len(spps) - 1 if k == 0 else len(spps) + k - 1
+        settings = {"series": cfg["series"], "spp": spps[-1], "seed": seed, "edited": edited, "obj": obj}
+        runs.append(_cached(folder, "unit", {**settings, "full": k == 0}, scene, missing)[0])
+    return tuple(torch.stack([r[k] for r in runs]).mean(0) for k in ("none", "none_e"))
+
+
+def selection_bound(g, gl, noisy: dict, refs: dict, means: tuple, mask, smooth=(2, 4)) -> dict:
+    """The oracle per-pixel choice among the candidates of :class:`SelectionSettings` (see the
+    module docstring): ``{material: {"candidates": {name: err}, "oracle_smooth{s}": err}}``."""
+    s = SelectionSettings()
+    cands = {"identity": None} | {
+        f"r{r}o{o}": RegressionFilter(g, s.regression(r, o), glossy=gl) for r, o in s.candidates
+    }
+    out = {}
+    for suf, ref, m in (("", refs["ref"], means[0]), ("_e", refs["ref_e"], means[1])):
+        y = noisy["none" + suf]
+        outs = torch.stack([y if A is None else _apply(A, y) for A in cands.values()])  # (K, H, W, 3)
+        row = {"candidates": {k: relative_rmse(o, ref, mask) for k, o in zip(cands, outs, strict=True)}}
+        err = ((outs - m) ** 2).sum(-1)[:, None]  # (K, 1, H, W)
+        for r in smooth:
+            e = F.avg_pool2d(err, 2 * r + 1, 1, r, count_include_pad=False)[:, 0]
+            best = torch.gather(outs, 0, e.argmin(0)[None, ..., None].expand(1, *e.shape[1:], 3))[0]
+            row[f"oracle_smooth{r}"] = relative_rmse(best, ref, mask)
+        row["none_hi"] = relative_rmse(m, ref, mask)
+        out["default" if not suf else "edited"] = row
+    return out
+
+
+def tune(name: str, cfg: dict, folder: Path, filters: list[str], bound: bool = False) -> dict:
     build, obj, edited = SCENES[name]
     scene = build(cfg["res"])
     bounces = len(cfg["series"].split(","))
@@ -108,6 +150,10 @@ def tune(name: str, cfg: dict, folder: Path, filters: list[str]) -> dict:
             "best": min(rows, key=lambda r: r["choose"]),
             "grid": rows,
         }
+    if bound:
+        means = _hi_mean(folder, cfg, scene, obj, edited, missing)
+        out["selection_bound"] = selection_bound(g, gl, units[mid], refs, means, mask)
+        print(name, "selection_bound", out["selection_bound"], flush=True)
     out["load"] = _load()
     return out
 
@@ -117,16 +163,20 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--series", default="64,1,1,1")
     ap.add_argument("--spp", default="16,64,256")
+    ap.add_argument("--hi-spp", type=int, default=1024)
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--cache", default=None)
-    ap.add_argument("--filters", default=",".join(GRIDS), help="comma-separated subset of " + ",".join(GRIDS))
+    ap.add_argument(
+        "--filters", default=",".join(GRIDS), help="comma-separated subset of " + ",".join(GRIDS) + " or none"
+    )
+    ap.add_argument("--bound", action="store_true", help="also the oracle bound of per-pixel window selection")
     args, _ = ap.parse_known_args()
     spps = [int(s) for s in args.spp.split(",")]
-    cfg = {"res": args.res, "series": args.series, "spp": spps, "ref_spp": args.ref_spp}
+    cfg = {"res": args.res, "series": args.series, "spp": spps, "ref_spp": args.ref_spp, "hi_spp": args.hi_spp}
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
-    filters = args.filters.split(",")
-    print(json.dumps({name: tune(name, cfg, folder, filters) for name in args.scenes.split(",")}))
+    filters = [f for f in args.filters.split(",") if f != "none"]
+    print(json.dumps({name: tune(name, cfg, folder, filters, args.bound) for name in args.scenes.split(",")}))
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/manifold.py [--quick] [--cache PATH] [--no-peer]
         [--fits-only | --heldout-only] [--no-seed-config] [--max-iter N] [--tol T --tol-window W]
         [--negatives penalise|free] [--negative-weight L] [--max-columns C] [--peer-seconds S]
+        [--splits N] [--budget-map B1,B2,...]
 
 Data: the 100 NBRDF fits of the MERL materials (an APPROXIMATION of MERL, shared data)
 tabulated on the default grid (theta_h / theta_d every 3rd index, phi_d every 6th; valid bins
@@ -45,7 +46,10 @@ Prints progress lines, then one JSON object as the LAST line:
   training material in the same log mapping; ``heldout_seed_logrmse_mean``: the seed's
   configuration; ``heldout_negative_mean`` / ``pca_heldout_negative_mean``: fraction of
   negative values in the reconstructions; ``family_heldout``: each family held out whole
-  (names containing ``metallic-paint``, ``phenolic``, ``fabric``; q = 2, 3, 5; NBRDF data only).
+  (names containing ``metallic-paint``, ``phenolic``, ``fabric``; q = 2, 3, 5; NBRDF data only),
+  with ``on_training_latent`` (share placed where the predictive variance is < 1e-6) and the
+  blending weights' mean negative sum / minimum (``weights_negative_sum``, ``weights_min``): why
+  negative values appear. ``--splits 0``: the family hold-outs only.
 * ``continuity_max``: max over the training materials of the relative max difference between
   the rows at x_i + 1e-6 and at x_i (q = 2 fit on all materials, the default configuration);
   ``continuity_max_seed`` the same for the seed's interpolant; ``repro_rel_err_smooth_q2``: the
@@ -53,8 +57,10 @@ Prints progress lines, then one JSON object as the LAST line:
 * ``lbfgs_wolfe_loglik_q2``, ``lbfgs_wolfe_s_q2``: ``torch.optim.LBFGS`` with the strong-Wolfe
   line search on :func:`log_likelihood` (autograd), same data, mu, PCA start and iteration budget
   (``max_iter`` iterations, torch's default of 1.25 evaluations per iteration), one thread like
-  ours. Our fit includes its mu warm-up (the first 20 % of the budget at mu = 1e-6, see
+  ours. Our fit includes its mu warm-up (the first 20 % of the budget at mu = 3e-6, see
   :func:`fit_gplvm`); ``loglik_q2_no_warmup`` / ``fit_s_q2_no_warmup``: ours without it.
+  ``--budget-map 60,100,...``: ``lbfgs_wolfe_budget_map_q2`` ({budget: {"ours", "torch"}}, our
+  default fit and that peer at each budget) and ``budgets_ours_at_least_wolfe_q2``.
 * ``gpytorch_*``: GPyTorch ExactGP with the latents as parameters (their MAP GPLVM), q = 2, same
   normalised data, noise = mu, PCA start, ``torch.optim.LBFGS`` (strong Wolfe) in chunks of 10
   iterations until it reaches our final L (``gpytorch_s_to_our_loglik_q2``; None = not reached),
@@ -101,7 +107,7 @@ from torch_brdf.manifold.data import (
     read_split,
     split_names,
 )
-from torch_brdf.manifold.evaluate import NEGATIVES, heldout_reconstruction
+from torch_brdf.manifold.evaluate import NEGATIVE_WEIGHT, NEGATIVES, heldout_reconstruction
 from torch_brdf.manifold.gplvm import (
     GPLVM,
     fit_gplvm,
@@ -339,6 +345,17 @@ def wolfe_peer(obs: Observations, q: int, iters: int) -> dict:
     return {"loglik": float(log_likelihood(x.detach(), s, d, 1.0, MU)), "seconds": seconds}
 
 
+def budget_map(obs: Observations, q: int, budgets: tuple[int, ...]) -> dict:
+    """Our default fit and torch's strong-Wolfe L-BFGS at each iteration budget (same data, mu, start)."""
+    s, d = gram(obs.z, obs.cosine_weights())
+    out = {}
+    for b in budgets:
+        ours = fit_gplvm(s, d, q, max_iter=b, mu=MU, generator=torch.Generator().manual_seed(0)).final_loglik
+        out[b] = {"ours": ours, "torch": wolfe_peer(obs, q, b)["loglik"]}
+        _log(f"budget {b}, q={q}: ours {ours:.6g}, strong-Wolfe L-BFGS {out[b]['torch']:.6g}")
+    return out
+
+
 def heldout_study(
     obs: Observations, max_iter: int, splits: int = 5, with_seed: bool = True, qs: tuple = (2, 3, 5), **kwargs
 ) -> dict:
@@ -347,7 +364,7 @@ def heldout_study(
     res: dict = {}
     keys = ("gplvm", "pca", "nearest", "neg", "pca_neg", "cont", "cos", "pca_cos", "proj_cos", "pca_proj_cos")
     per: dict = {k: {q: [] for q in qs} for k in keys}
-    for seed in range(splits):
+    for seed in range(splits):  # splits = 0: the family hold-outs only
         perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_test = len(names) // 5
         test = sorted(names[i] for i in perm[:n_test])
@@ -380,20 +397,21 @@ def heldout_study(
         t = {q: torch.tensor(v, dtype=torch.float64) for q, v in per[key].items()}
         return {q: round(float(v.mean()), 4) for q, v in t.items()}, {q: round(float(v.std()), 4) for q, v in t.items()}
 
-    for key, name in (
-        ("gplvm", "heldout_logrmse"),
-        ("pca", "pca_heldout_logrmse"),
-        ("nearest", "nearest_heldout_logrmse"),
-    ):
-        res[f"{name}_mean"], res[f"{name}_std"] = stats(key)
-    if with_seed:
-        res["heldout_seed_logrmse_mean"] = stats("cont")[0]
-    res["heldout_negative_mean"], _ = stats("neg")
-    res["pca_heldout_negative_mean"], _ = stats("pca_neg")
-    res["heldout_cosrmse_mean"], _ = stats("cos")
-    res["pca_heldout_cosrmse_mean"], _ = stats("pca_cos")
-    res["heldout_projected_cosrmse_mean"], _ = stats("proj_cos")
-    res["pca_heldout_projected_cosrmse_mean"], _ = stats("pca_proj_cos")
+    if splits:
+        for key, name in (
+            ("gplvm", "heldout_logrmse"),
+            ("pca", "pca_heldout_logrmse"),
+            ("nearest", "nearest_heldout_logrmse"),
+        ):
+            res[f"{name}_mean"], res[f"{name}_std"] = stats(key)
+        if with_seed:
+            res["heldout_seed_logrmse_mean"] = stats("cont")[0]
+        res["heldout_negative_mean"], _ = stats("neg")
+        res["pca_heldout_negative_mean"], _ = stats("pca_neg")
+        res["heldout_cosrmse_mean"], _ = stats("cos")
+        res["pca_heldout_cosrmse_mean"], _ = stats("pca_cos")
+        res["heldout_projected_cosrmse_mean"], _ = stats("proj_cos")
+        res["pca_heldout_projected_cosrmse_mean"], _ = stats("pca_proj_cos")
     if obs.source == "nbrdf":
         fam = {}
         for family in ("metallic-paint", "phenolic", "fabric"):
@@ -404,7 +422,14 @@ def heldout_study(
                     obs, train, test, q, max_iter=max_iter, mu=MU, continuous=True,
                     generator=torch.Generator().manual_seed(0), **kwargs,
                 )  # fmt: skip
+                # why negatives: a placement on a training latent (variance ~0), where the smooth
+                # mean's weights are e_j - mu K^-1 e_j, with large entries of both signs
+                model = GPLVM(h.fit, obs.rows(train).double(), continuous=True)
+                w = model.weights(h.latents)
                 fam[f"{family}_q{q}"] = {
+                    "on_training_latent": round(float((h.variance < 1e-6).double().mean()), 4),
+                    "weights_negative_sum": round(float(w.clamp_max(0).sum(1).mean()), 4),
+                    "weights_min": round(float(w.min()), 4),
                     "n": len(test),
                     "gplvm": round(float(h.gplvm_logrmse.mean()), 4),
                     "pca": round(float(h.pca_logrmse.mean()), 4),
@@ -561,10 +586,14 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--fits-only", action="store_true", help="fits, continuity and the optimiser comparison only")
     ap.add_argument("--heldout-only", action="store_true", help="fits, continuity, optimisers, held-out study only")
+    ap.add_argument("--splits", type=int, default=5, help="random 80/20 splits (0 = the family hold-outs only)")
+    ap.add_argument("--budget-map", default="", help="budgets (e.g. 60,100,200) of the ours-vs-torch L-BFGS map, q = 2")
     ap.add_argument("--qs", default="2,3,5", help="latent dimensions of the held-out study (e.g. one per process)")
     ap.add_argument("--skip-fits", action="store_true", help="no fits / continuity / optimisers (with --heldout-only)")
     ap.add_argument("--no-seed-config", action="store_true", help="held-out study without the seed's configuration")
-    ap.add_argument("--negative-weight", type=float, default=1.0, help="placement: factor on negative values")
+    ap.add_argument(
+        "--negative-weight", type=float, default=NEGATIVE_WEIGHT, help="placement: factor on negative values"
+    )
     ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
     args = ap.parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
@@ -579,12 +608,17 @@ def main(argv=None) -> dict:
     out["n_materials"], out["d"] = obs.z.shape
     if not args.skip_fits:
         ours_q2 = _fit_section(obs, max_iter, stop, out)
+    if args.budget_map:
+        bm = budget_map(obs, 2, tuple(int(v) for v in args.budget_map.split(",")))
+        out["lbfgs_wolfe_budget_map_q2"] = bm
+        out["budgets_ours_at_least_wolfe_q2"] = [b for b, v in bm.items() if v["ours"] >= v["torch"]]
     if args.fits_only:
         out["load_end"] = os.getloadavg()[0]
         print(json.dumps(out))
         return out
     qs = tuple(int(v) for v in args.qs.split(","))
-    out.update(heldout_study(obs, max_iter, with_seed=not args.no_seed_config, qs=qs, **stop, **place))
+    study = heldout_study(obs, max_iter, args.splits, with_seed=not args.no_seed_config, qs=qs, **stop, **place)
+    out.update(study)
     if args.heldout_only or args.skip_fits:
         out["load_end"] = os.getloadavg()[0]
         print(json.dumps(out))

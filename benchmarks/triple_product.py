@@ -1,6 +1,6 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
-    python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline]
+    python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline] [--rounds N]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
@@ -12,14 +12,25 @@ moved around the bunny. Every figure compares methods run in this process on the
 culled vertices. Prints progress, then one JSON object as the last line:
 
 * ``vertices`` (all), ``shaded_vertices`` (per frame, after culling), ``precompute_s`` (the
-  visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s`` (embree alone
-  on as many rays, the physical limit; chunks run in one forked process per core unless the
-  machine is busy, with ``--baseline`` whatever the load); with
-  ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays on
-  the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
-  bit); ``visibility_bytes_per_vertex``
-  (varint stream) beside ``dense_bytes_per_vertex`` (one bit per texel) and the seed's
-  ~1 KB goal; ``lighting_s`` (a lighting update); ``cull_s`` (primary rays + culling).
+  visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s``, embree alone on
+  the very rays it casts (one per texel centre above each vertex's horizon, built beforehand,
+  untimed), with as many forked processes (``--processes``, default the usable cores) over
+  the same chunks of 512 vertices, pool start included as in the precompute: the faster of
+  ``(n, 3)`` arrays in calls of 16384 rays (``embree``) and one call per vertex with a
+  zero-stride origin, as the precompute calls it (``embree_fans``). ``--rounds`` interleaved
+  rounds (each of the three goes first in turn; ``rounds`` lists every time and the load);
+  the figures are medians, ``precompute_over_rays`` the median of the per-round ratios,
+  ``precompute_over_rays_cpu`` the same of CPU seconds (all processes; less load-dependent);
+  ``same_rays``: the record's visible texels equal embree's escaping rays. With ``--quick``
+  embree casts every ray; else the first ``--embree-chunks`` chunks (16), scaled by the rays.
+  ``--split``: ``split_cpu_s``, CPU seconds per stage over all chunks in one process (horizon
+  test, gather of the directions, embree, scatter into maps, flips from packed bits), and
+  ``split_overhead_over_embree`` (all but embree, over embree: CPU time, barely load-dependent).
+  With ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays
+  on the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
+  bit); ``visibility_bytes_per_vertex`` (varint stream) beside ``dense_bytes_per_vertex``
+  (one bit per texel) and the seed's ~1 KB goal; ``lighting_s`` (a lighting update);
+  ``cull_s`` (primary rays + culling).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
   texel sum; visibility expanded beforehand, as a standard-basis system stores it),
   ``haar_frame_s`` (Ng et al.'s product on 1% of the lighting and BRDF wavelet coefficients;
@@ -39,21 +50,28 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import multiprocessing
 import os
+import resource
+import statistics
 import time
+from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import torch
 from _timing import best_of
 
-from torch_brdf._threads import usable_cores
+from torch_brdf._threads import single_thread, usable_cores
 from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
+from torch_brdf.scene.parallel import CHUNK
 from torch_brdf.sphere.cubemap import CubemapBlocks
-from torch_brdf.transport.visibility import HORIZON_EPS, precompute_visibility
+from torch_brdf.transport.executor import single_process
+from torch_brdf.transport.visibility import HORIZON_EPS, _chunk_entries, precompute_visibility, scene_vertices
 
 
 def _display(img: torch.Tensor, exposure: float) -> torch.Tensor:
@@ -77,6 +95,76 @@ def _orbit(cam: Camera, angle: float) -> Camera:
     )
 
 
+def _chunk_rays(scene, geom, verts, chunk: int, limit: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The rays the precompute casts, per chunk of ``chunk`` vertices (the first ``limit``
+    chunks): (n, 3) float32 origins and directions, one per texel centre above each vertex's
+    horizon, built the plain way (torch, one (n, 3) array each), and (m,) rays per vertex."""
+    dirs = geom.supersampled_directions(1).reshape(-1, 3)
+    out = []
+    for s in range(0, min(len(verts), limit * chunk), chunk):
+        pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
+        up = (nrm @ dirs.T) > HORIZON_EPS
+        vi, ti = up.nonzero(as_tuple=True)
+        o = (pos + scene.ray_epsilon * nrm).float()[vi]
+        o, d = (np.ascontiguousarray(x.numpy()) for x in (o, dirs[ti].float()))
+        out.append((o, d, up.sum(1).numpy()))
+    return out
+
+
+def _ray_count(geom, verts) -> int:
+    """Texels above the horizon summed over all vertices."""
+    dirs = geom.directions.reshape(-1, 3)
+    return sum(int(((n @ dirs.T) > HORIZON_EPS).sum()) for n in verts.normals.split(4096))
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its finished children."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+_RAYS: tuple | None = None  # (embree scene, rays): set before forking, inherited
+
+
+def _embree_chunk(i: int) -> int:
+    """Occluded rays of chunk ``i``: embreex's ``run`` on the prepared arrays, CHUNK rays a
+    call; or (fans) one call per vertex with its origin as a zero-stride view, as the precompute
+    calls it."""
+    embree, rays, fans = _RAYS
+    o, d, counts = rays[i]
+    if not fans:
+        return sum(int((embree.run(o[a : a + CHUNK], d[a : a + CHUNK], query="OCCLUDED") != -1).sum())
+                   for a in range(0, len(o), CHUNK))  # fmt: skip
+    hits, a = 0, 0
+    for n in counts.tolist():
+        origin = np.lib.stride_tricks.as_strided(o[a], (n, 3), (0, 4), writeable=False)
+        hits += int((embree.run(origin, d[a : a + n], query="OCCLUDED") != -1).sum())
+        a += n
+    return hits
+
+
+def _embree_alone(scene, rays, processes: int, fans: bool = False) -> int:
+    """Embree alone on ``rays`` (per chunk), chunks in ``processes`` forked processes as the
+    precompute's tiles (pool start included, as there); returns the occluded count."""
+    global _RAYS
+    embree = scene.tracer._kernel.scene  # the committed embreex scene the precompute traces
+    embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # BVH built before forking
+    _RAYS = (embree, rays, fans)
+    try:
+        if processes == 1:
+            return sum(_embree_chunk(i) for i in range(len(rays)))
+        with ProcessPoolExecutor(processes, multiprocessing.get_context("fork")) as pool:
+            return sum(pool.map(_embree_chunk, range(len(rays))))
+    finally:
+        _RAYS = None
+
+
+def _visible_texels(vis) -> int:
+    """Visible texels of a binary record, from its flips: +1 at texel i adds 256 - i, -1 subtracts."""
+    b = vis.blocks
+    return int((b.values(torch.float64) * (256 - b.index.double())).sum())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene and image")
@@ -86,6 +174,12 @@ def main() -> None:
         "--baseline", action="store_true", help="also time the visibility with its chunks in one process (processes=1)"
     )
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per frame (best is kept)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved precompute / embree-alone pairs (median)")
+    ap.add_argument(
+        "--embree-chunks", type=int, default=None, help="chunks embree alone casts (default: all with --quick, else 16)"
+    )
+    ap.add_argument("--split", action="store_true", help="also the CPU seconds per stage of the chunks")
+    ap.add_argument("--processes", type=int, default=None, help="processes for both (default: usable cores)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     args = ap.parse_args()
     torch.manual_seed(0)
@@ -98,14 +192,68 @@ def main() -> None:
     res = 64
     print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
 
-    t = time.perf_counter()
-    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
-    vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=512, **forked)
-    precompute_s = time.perf_counter() - t
+    # the visibility precompute against embree alone on the very rays it casts, with as many
+    # processes over the same chunks of vertices, interleaved (embree's own time varies most)
+    procs = args.processes or usable_cores()
+    chunk = 512
+    verts, geom = scene_vertices(scene), CubemapBlocks(res)
+    # the rays, built once (24 B a ray: the full scene's 544 M would not fit, it times the
+    # first --embree-chunks chunks and scales by the ray count)
+    n_chunks = -(-len(verts) // chunk)
+    limit = n_chunks if args.quick and args.embree_chunks is None else min(n_chunks, args.embree_chunks or 16)
+    rays = _chunk_rays(scene, geom, verts, chunk, limit)
+    n_rays = sum(len(o) for o, _, _ in rays)
+    all_rays = n_rays if limit == n_chunks else _ray_count(geom, verts)
+    vis, runs = None, []
+    for r in range(args.rounds):
+        pair = {}
+        order = ("precompute", "embree", "embree_fans")
+        for what in order[r % 3 :] + order[: r % 3]:  # each goes first in turn
+            t, c = time.perf_counter(), _cpu_seconds()
+            if what == "precompute":
+                vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
+            else:
+                occluded = _embree_alone(scene, rays, procs, fans=what == "embree_fans")
+            pair[what] = time.perf_counter() - t
+            pair[f"{what}_cpu"] = _cpu_seconds() - c
+        for k in ("embree", "embree_fans", "embree_cpu", "embree_fans_cpu"):
+            pair[k] *= all_rays / n_rays
+        pair["ratio"] = pair["precompute"] / min(pair["embree"], pair["embree_fans"])
+        pair["cpu_ratio"] = pair["precompute_cpu"] / min(pair["embree_cpu"], pair["embree_fans_cpu"])
+        pair["load_avg"] = list(os.getloadavg())
+        runs.append(pair)
+        print(f"round {r}: precompute {pair['precompute']:.2f} s, embree {pair['embree']:.2f} s "
+              f"(fans {pair['embree_fans']:.2f} s), ratio {pair['ratio']:.3f} (CPU time {pair['cpu_ratio']:.3f}), "
+              f"load {pair['load_avg'][0]:.1f}",
+              flush=True)  # fmt: skip
+    del rays
+    precompute_s = statistics.median(p["precompute"] for p in runs)
+    rays_s = statistics.median(min(p["embree"], p["embree_fans"]) for p in runs)
+    figures = {
+        "processes": procs,
+        "rounds": runs,
+        "precompute_s": precompute_s,
+        "rays": all_rays,
+        "rays_s": rays_s,
+        "embree_timed_rays": n_rays,
+        "precompute_over_rays": statistics.median(p["ratio"] for p in runs),
+        "precompute_over_rays_cpu": statistics.median(p["cpu_ratio"] for p in runs),
+        # the record's visible texels = embree's escaping rays (when embree cast them all)
+        "same_rays": _visible_texels(vis) == n_rays - occluded if n_rays == all_rays else None,
+    }
+    if args.split:  # CPU seconds per stage, every chunk in this process (load barely changes CPU time)
+        one, split = single_process(scene), {}
+        dirs = geom.supersampled_directions(1).reshape(-1, 1, 3).float()
+        with single_thread():
+            for s in range(0, len(verts), chunk):
+                pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
+                _chunk_entries(one, geom, pos, nrm, dirs, 0, split=split)
+        figures["split_cpu_s"] = split
+        figures["split_overhead_over_embree"] = (sum(split.values()) - split["embree"]) / split["embree"]
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
         t = time.perf_counter()
-        vis1 = precompute_visibility(scene, res, chunk=512, processes=1)
+        vis1 = precompute_visibility(scene, res, chunk=chunk, processes=1)
         baseline["one_process_s"] = time.perf_counter() - t
         baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
         a, b = vis1.blocks, vis.blocks
@@ -114,33 +262,8 @@ def main() -> None:
             (a.delta is None and b.delta is None) or torch.equal(a.delta, b.delta)
         )
         del vis1
-    # the physical limit: embree alone on the same number of rays (one ray per texel above
-    # each vertex's horizon), timed on the rays of the first 512 vertices and scaled
-    geom = vis.geometry
-    up = (vis.vertices.normals @ geom.directions.reshape(-1, 3).T) > HORIZON_EPS
-    rays = int(up.sum())
-    vi, ti = up[:512].nonzero(as_tuple=True)
-    o = (vis.vertices.positions[vi] + scene.ray_epsilon * vis.vertices.normals[vi]).float()
-    d = geom.directions.reshape(-1, 3)[ti].float()
-    t = time.perf_counter()
-    scene.occluded(o, d, float("inf"))
-    rays_s = (time.perf_counter() - t) * rays / len(vi)
-    del up
     if args.precompute_only:
-        load = list(os.getloadavg())
-        print(
-            json.dumps(
-                {
-                    "vertices": len(vis.vertices),
-                    "precompute_s": precompute_s,
-                    "rays": rays,
-                    "rays_s": rays_s,
-                    "precompute_over_rays": precompute_s / rays_s,
-                    **baseline,
-                    "load_avg": load,
-                }
-            )
-        )
+        print(json.dumps({"vertices": len(vis.vertices), **figures, **baseline, "load_avg": list(os.getloadavg())}))
         return
     r = TripleProductRenderer(scene, vis)
     env = r.envmap
@@ -158,10 +281,7 @@ def main() -> None:
         "cubemap": f"{res}x{res}x6",
         "blocks_per_vertex": vis.geometry.block_count,
         "envmap": str(sun.name) if sun is not None else "procedural sky",
-        "precompute_s": precompute_s,
-        "rays": rays,
-        "rays_s": rays_s,
-        "precompute_over_rays": precompute_s / rays_s,
+        **figures,
         **baseline,
         "visibility_bytes_per_vertex": vis.bytes_per_vertex,
         "dense_bytes_per_vertex": CubemapBlocks(res).texel_count / 8,

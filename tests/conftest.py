@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 import shutil
 import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -12,6 +13,11 @@ import pytest
 import torch
 
 from torch_brdf.data import REGISTRY, data_path, data_root
+
+# Data fetched into the default folder ($TORCH_BRDF_CACHE/data) is found through the cache folder,
+# which some tests point elsewhere: the folder found at the start holds for the whole session.
+if data_root() is not None:
+    os.environ.setdefault("TORCH_BRDF_DATA", str(data_root()))
 
 #: per-dtype tolerances (relative) for comparisons against float64 oracles
 RTOL = {torch.float32: 1e-4, torch.float64: 1e-10}

@@ -80,6 +80,8 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert bad.exit_code == 2 and "--bases left: unknown key(s) ['j']; known keys: ['J'," in bad.output
     bad = runner.invoke(app, [*args, "--bases", '{"left": {"fresnel": "yes"}}'])  # was taken as true
     assert bad.exit_code == 2 and "--bases left.fresnel must be true or false" in bad.output
+    bad = runner.invoke(app, [*args, "--bases", '{"left": {"second": 2}}'])  # one check: CLI and planner agree
+    assert bad.exit_code == 2 and "--bases left: unknown key(s) ['second']" in bad.output
     bad = runner.invoke(app, [*args[:-2], "--out", str(out), "--series", "1,4"])
     assert bad.exit_code == 2
 
@@ -340,3 +342,20 @@ def test_relight_without_an_environment_map_says_so_before_reading_the_record(tm
     toml.write_text(RELIGHT_TOML.split("[[lights]]")[0])
     res = runner.invoke(app, ["relight", str(toml), "--visibility", str(tmp_path / "none.npz")])
     assert res.exit_code == 2 and "relight needs an environment map" in res.output  # not "array file not found"
+
+
+def test_material_keys_come_from_one_helper(monkeypatch):
+    # `edit --set OBJECT.type=` and the scene description both ask brdf.base.model_parameters
+    # which keys a model takes (they read the constructor's signature each on their own)
+    import torch_brdf.brdf.base as base
+    from torch_brdf.cli import _retyped
+    from torch_brdf.errors import SceneError
+    from torch_brdf.scene.description import _material
+
+    phong = {"type": "phong", "kd": [0.5, 0.5, 0.5], "ks": [0.2, 0.2, 0.2], "exponent": 50.0}
+    assert _retyped(phong, "blinn_phong") == {**phong, "type": "blinn_phong"}
+    assert set(_retyped(phong, "lambert")) == {"type"} | set(phong) & set(base.model_parameters("lambert"))
+    monkeypatch.setattr(base, "model_parameters", lambda name: [] if name == "phong" else None)
+    assert _retyped({**phong, "type": "lambert"}, "phong") == {"type": "phong"}
+    with pytest.raises(SceneError, match=r"unknown key\(s\) \['exponent', 'kd', 'ks'\].*known keys: \['type'\]"):
+        _material(phong, "materials.m")

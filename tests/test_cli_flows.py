@@ -420,3 +420,21 @@ def test_render_quick_mesh_and_envmap(tmp_path, monkeypatch):
     assert res.exit_code == 2 and "not both" in res.output
     res = runner.invoke(app, ["render", "--mesh", "nothing.ply"])
     assert res.exit_code == 2 and "--mesh" in res.output
+
+
+@pytest.mark.parametrize("progress", ["1", "0"])
+def test_loading_torch_is_announced(progress):
+    """Importing torch takes seconds on a busy machine: with progress on, a command says so on
+    stderr before it starts (and not with progress off, nor for --help)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(README.parent), "TORCH_BRDF_PROGRESS": progress}
+    cmd = [sys.executable, "-m", "torch_brdf.cli", "info", "cornell_box"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert json.loads(res.stdout)["name"] == "cornell_box"
+    assert ("torch-brdf info: loading torch ..." in res.stderr) == (progress == "1"), res.stderr
+    res = subprocess.run([*cmd, "--help"], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0 and "loading torch" not in res.stderr + res.stdout

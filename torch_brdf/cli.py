@@ -20,6 +20,7 @@ import functools
 import hashlib
 import json
 import re
+import sys
 import time
 import traceback
 from collections.abc import Callable
@@ -50,7 +51,7 @@ MAX_SAMPLES = 1 << 20
 #: surface vertices per path accepted on the command line
 MAX_BOUNCES = 64
 
-_STATE = {"debug": False}
+_STATE = {"debug": False, "progress": False}
 
 #: ``--progress/--no-progress`` of the long commands (default: on when attached to a terminal).
 PROGRESS = typer.Option(None, "--progress/--no-progress", help="Progress bars (default: on in a terminal).")
@@ -79,6 +80,18 @@ def main(
 ):
     """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
+    from .data import progress_default
+
+    try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
+        progress = progress_default()
+    except ValueRangeError as exc:
+        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2) from None
+    _STATE["progress"] = progress
+
+
+#: commands that never import torch (no "loading torch" line)
+_NO_TORCH = frozenset({"fetch_data_cmd"})
 
 
 _OS_ERRORS = {
@@ -114,6 +127,11 @@ def _cli(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
+        on = kwargs.get("progress")
+        on = _STATE["progress"] if on is None else on
+        if on and fn.__name__ not in _NO_TORCH and "torch" not in sys.modules:
+            # importing torch takes 1-2 s on a quiet machine and 5-10 s on a busy one: say so
+            typer.echo(f"torch-brdf {fn.__name__.removesuffix('_cmd').replace('_', '-')}: loading torch ...", err=True)
         try:
             return fn(*args, **kwargs)
         except typer.Exit:
@@ -327,29 +345,16 @@ def precompute(
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
-    from dataclasses import fields
-
     from .records.cache import remove_cache
-    from .records.polynomial import ObjectBasis
     from .transport.polynomial import Series, precompute_polynomial
+    from .transport.polynomial.plan import check_basis_overrides
 
     # every option is checked before the scene is loaded and the precompute starts
     parsed = Series.parse(series)
     check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
     if storage not in _STORAGES:
         raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
-    overrides = _json_object(bases, "--bases")
-    for name, spec in (overrides or {}).items():
-        if not isinstance(spec, dict):
-            raise ValueRangeError(f"--bases: the value for {name!r} must be a JSON object; got {spec!r}")
-        known = [f.name for f in fields(ObjectBasis)]
-        unknown = sorted(set(spec) - set(known))
-        if unknown:
-            raise ValueRangeError(f"--bases {name}: unknown key(s) {unknown}; known keys: {known}")
-        if "J" in spec:
-            check_int(spec["J"], f"--bases {name}.J", 1, MAX_BANDS)
-        if not isinstance(spec.get("fresnel", False), bool):
-            raise ValueRangeError(f"--bases {name}.fresnel must be true or false; got {spec['fresnel']!r}")
+    overrides = check_basis_overrides(_json_object(bases, "--bases"), "--bases")
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
@@ -400,14 +405,12 @@ def _tensors_scene(T, scene: str | None, resolution: int):
 
 def _retyped(material: dict, kind) -> dict:
     """``--set OBJECT.type=KIND``: a ``kind`` material keeping the parameters that model takes."""
-    import inspect
+    from .brdf.base import model_parameters
 
-    from .brdf.base import model_class
-
-    params = inspect.signature(model_class(str(kind)).__init__).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+    params = model_parameters(str(kind))
+    if params is None:
         return {**material, "type": kind}
-    return {"type": kind, **{k: v for k, v in material.items() if k in params and k != "self"}}
+    return {"type": kind, **{k: v for k, v in material.items() if k in params}}
 
 
 def _parse_set(item: str) -> tuple[str, str, object]:

@@ -15,11 +15,13 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import DataNotFoundError
+from .errors import DataNotFoundError, ValueRangeError
 
 ENV_VAR = "TORCH_BRDF_DATA"
 CACHE_ENV_VAR = "TORCH_BRDF_CACHE"
 PROGRESS_ENV_VAR = "TORCH_BRDF_PROGRESS"
+#: the values ``$TORCH_BRDF_PROGRESS`` accepts (case-insensitive) and what they mean
+_PROGRESS_VALUES = dict.fromkeys(("1", "true", "yes", "on"), True) | dict.fromkeys(("0", "false", "no", "off"), False)
 
 
 def cache_dir() -> Path:
@@ -49,13 +51,22 @@ def _in_kernel() -> bool:
 
 def progress_default(progress: bool | None = None) -> bool:
     """Whether to show progress bars: ``progress`` when given; else ``$TORCH_BRDF_PROGRESS``
-    (``1``/``0``) when set; else True when stderr is a terminal or the code runs in a
-    Jupyter kernel."""
+    (``1``/``0``, or true/false, yes/no, on/off) when set; else True when stderr is a terminal or the code runs in a
+    Jupyter kernel.
+
+    Raises:
+        ValueRangeError: ``$TORCH_BRDF_PROGRESS`` is set to anything else.
+    """
     if progress is not None:
         return bool(progress)
     env = os.environ.get(PROGRESS_ENV_VAR, "").strip().lower()
     if env:
-        return env not in ("0", "false", "no", "off")
+        if env not in _PROGRESS_VALUES:
+            raise ValueRangeError(
+                f"${PROGRESS_ENV_VAR}={os.environ[PROGRESS_ENV_VAR]!r} is not a switch: use 1, true, yes, on "
+                "(bars on) or 0, false, no, off (bars off), or unset it (on in a terminal or notebook)"
+            )
+        return _PROGRESS_VALUES[env]
     if "ipykernel" in sys.modules and _in_kernel():
         return True
     try:
@@ -64,21 +75,22 @@ def progress_default(progress: bool | None = None) -> bool:
         return False
 
 
-def data_root() -> Path | None:
-    """The shared data folder, or ``None`` when it cannot be found.
-
-    ``$TORCH_BRDF_DATA`` if set; otherwise ``../shared/data`` relative to the current
-    directory, then relative to the repository that holds this package.
-    """
+def data_search_path() -> list[Path]:
+    """Where :func:`data_root` looks, in order: ``$TORCH_BRDF_DATA`` alone if set; otherwise
+    ``../shared/data`` relative to the current directory, then to the repository that holds
+    this package, then ``data`` in :func:`cache_dir` (where ``torch-brdf fetch-data`` puts the
+    files by default)."""
     env = os.environ.get(ENV_VAR)
     if env:
-        p = Path(env).expanduser()
-        return p if p.is_dir() else None
-    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
-        p = (base / ".." / "shared" / "data").resolve()
-        if p.is_dir():
-            return p
-    return None
+        return [Path(env).expanduser()]
+    shared = [(base / ".." / "shared" / "data").resolve() for base in (Path.cwd(), Path(__file__).resolve().parents[1])]
+    return [*shared, cache_dir() / "data"]
+
+
+def data_root() -> Path | None:
+    """The shared data folder (the first folder of :func:`data_search_path` that exists), or
+    ``None`` when there is none."""
+    return next((p for p in data_search_path() if p.is_dir()), None)
 
 
 def data_path(*parts: str, required: bool = True) -> Path | None:
@@ -91,8 +103,11 @@ def data_path(*parts: str, required: bool = True) -> Path | None:
     p = None if root is None else root.joinpath(*parts)
     if p is None or not p.exists():
         if required:
-            where = f"${ENV_VAR}" if os.environ.get(ENV_VAR) else "../shared/data"
-            raise DataNotFoundError(f"shared data file {'/'.join(parts)!r} not found (looked in {where})")
+            where = ", ".join(str(p) for p in data_search_path())
+            raise DataNotFoundError(
+                f"shared data file {'/'.join(parts)!r} not found (looked in {where}; "
+                f"`torch-brdf fetch-data` downloads it, `{ENV_VAR}=FOLDER` points elsewhere)"
+            )
         return None
     return p
 
@@ -136,7 +151,8 @@ def fetch_data(
     checksum differs is deleted and refused.
 
     Args:
-        dest: the data folder (default ``$TORCH_BRDF_DATA``, else ``~/.cache/torch_brdf/data``).
+        dest: the data folder (default ``$TORCH_BRDF_DATA``, else ``data`` in :func:`cache_dir`,
+            where :func:`data_root` finds it without setting ``$TORCH_BRDF_DATA``).
         base_url: mirror of the folder (default ``$TORCH_BRDF_DATA_URL``).
         files: paths relative to the folder (default every file of :data:`REGISTRY`).
         progress: a bar per file (None: on in a terminal or notebook).

@@ -17,9 +17,12 @@ from torch_brdf.denoise import (
     OIDNBasis,
     RegressionFilter,
     RegressionSettings,
+    SelectedRegressionFilter,
+    SelectionSettings,
     denoise,
     denoise_tensors,
     guide_buffers,
+    mean_tensors,
     oidn_available,
     oidn_frame,
 )
@@ -155,15 +158,31 @@ def _glossy(tensors):
     return [m for m, b in enumerate(tensors.bases) if b is not None and b.J > 1]
 
 
-LINEAR_FILTERS = [EdgeAwareFilter, RegressionFilter]
+@pytest.fixture(scope="module")
+def halves(setup):
+    """Two independent 2-spp records of the setup's scene and their frames (C, H, W)."""
+    sc, _, mats, _ = setup
+    recs = [precompute_polynomial(sc, "8,1,1", spp=2, seed=s, progress=False) for s in (3, 4)]
+    frames = [PolynomialRenderer(r, mats, dtype=torch.float64).evaluate().permute(2, 0, 1) for r in recs]
+    return recs, frames
+
+
+LINEAR_FILTERS = ["atrous", "regression", "selected"]
+
+
+def _linear_filter(name, setup, halves):
+    g, gl = setup[3], _glossy(setup[1])
+    if name == "selected":  # the pick comes from fixed data (two half buffers), then is frozen
+        return SelectedRegressionFilter(g, [tuple(halves[1])], glossy=gl)
+    return {"atrous": EdgeAwareFilter, "regression": RegressionFilter}[name](g, glossy=gl)
 
 
 @pytest.mark.parametrize("cls", LINEAR_FILTERS)
-def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, gen, cls):
+def test_denoised_tensors_evaluate_to_the_filtered_frame(setup, halves, gen, cls):
     """(a) linearity: the denoised record at random (c, d) equals the filter applied to the
     noisy record's frame at the same (c, d) (minus the emission, which is not filtered)."""
-    _, tensors, mats, g = setup
-    A = cls(g, glossy=_glossy(tensors))
+    _, tensors, mats, _ = setup
+    A = _linear_filter(cls, setup, halves)
     den = denoise_tensors(tensors, A)
     assert den.meta["denoised"] == A.description
     R = PolynomialRenderer(tensors, mats, dtype=torch.float64)
@@ -198,9 +217,9 @@ def _frozen_frames(tensors, mats, obj, gen, n=3, den=None):
 
 @pytest.mark.parametrize("cls", LINEAR_FILTERS)
 @pytest.mark.parametrize("obj", ["back", "left"])
-def test_freeze_after_denoise_equals_denoise_after_freeze(setup, obj, cls):
-    _, tensors, mats, g = setup
-    A = cls(g, glossy=_glossy(tensors))
+def test_freeze_after_denoise_equals_denoise_after_freeze(setup, halves, obj, cls):
+    _, tensors, mats, _ = setup
+    A = _linear_filter(cls, setup, halves)
     after, _ = _frozen_frames(denoise_tensors(tensors, A), mats, obj, torch.Generator().manual_seed(5))
     before, R = _frozen_frames(tensors, mats, obj, torch.Generator().manual_seed(5), den=A)
     for a, b in zip(after, before, strict=True):
@@ -345,3 +364,78 @@ def test_regression_filter_reproduces_polynomials_and_is_linear(gen):
         RegressionFilter(g, AtrousSettings())
     with pytest.raises(ShapeError):
         A(torch.zeros(3, 5, 5))
+
+
+def test_mean_tensors_render_the_mean_frame(setup, halves, gen):
+    """The mean record of independent runs renders the mean of their frames, full and frozen."""
+    mats = setup[2]
+    recs, _ = halves
+    mean = mean_tensors(recs)
+    assert mean.meta["spp"] == 4 and mean.meta["mean_of"] == 2
+    frames = []
+    for t in (*recs, mean):
+        state = gen.get_state()
+        R = PolynomialRenderer(t, mats, dtype=torch.float64)
+        _random_edit(R, t, gen)
+        gen.set_state(state)
+        full = R.evaluate()
+        R.freeze("back")
+        frames.append((full, R()))
+    for k in range(2):
+        expected = (frames[0][k] + frames[1][k]) / 2
+        assert _rel(frames[2][k], expected) < 1e-6
+    other = precompute_polynomial(setup[0], "4,1,1", spp=1, seed=1, progress=False)
+    with pytest.raises(ValueRangeError):
+        mean_tensors([recs[0], other])
+    with pytest.raises(ValueRangeError):
+        mean_tensors([])
+
+
+def _step_scene(size, gen):
+    """Guides of a Cornell box, a clean image with a shadow edge the guides do not see and
+    smooth shading elsewhere, and two independent noisy halves of it: (guides, clean, a, b)."""
+    g = guide_buffers(cornell_box(size))
+    yy, xx = torch.meshgrid(
+        torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij"
+    )
+    clean = (1.0 + 0.01 * yy) * torch.where(xx + 0.3 * yy < 0.55 * size, 1.0, 0.25)
+    clean = torch.where(g.object_id >= 0, clean, 0.0).expand(3, size, size)
+    a, b = (clean + 0.15 * torch.randn(3, size, size, generator=gen, dtype=torch.float64) for _ in range(2))
+    return g, clean, a, b
+
+
+def test_selected_regression_beats_the_fixed_window_on_a_hidden_edge(gen):
+    """Known clean image with a sharp shadow edge the guides cannot see: picking the window
+    per pixel from the two halves keeps the edge and still smooths the flat parts, so its
+    error on the full buffer (a + b) / 2 is well below the fixed 11-pixel regression's; the
+    pick is frozen (linear), never crosses object ids, and keeps silhouettes."""
+    size = 64
+    g, clean, a, b = _step_scene(size, gen)
+    y = (a + b) / 2
+    old = RegressionFilter(g)
+    new = SelectedRegressionFilter(g, [(a, b)])
+    inner = old.interior
+
+    def mse(img):
+        return float((img - clean)[:, inner].square().mean())
+
+    assert mse(new(y)) < 0.7 * mse(old(y)), (mse(new(y)), mse(old(y)), mse(y))
+    assert mse(new(y)) < 0.4 * mse(y)  # and it denoises
+    # small windows next to the edge, large ones away from it
+    names = new.names
+    near = inner & (((torch.arange(size)[None] + 0.3 * torch.arange(size)[:, None]) - 0.55 * size).abs() < 1.5)
+    radius = torch.tensor([0 if n == "identity" else int(n[1 : n.index("o")]) for n in names])[new.pick]
+    assert float(radius[near].double().mean()) < float(radius[inner & ~near].double().mean()) - 2
+    x, z = torch.rand(2, 3, size, size, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(new(0.7 * x - 1.3 * z), 0.7 * new(x) - 1.3 * new(z), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(new(x)[:, ~inner], x[:, ~inner])
+    floor = inner & (g.object_id == cornell_box(size).object_id("floor"))
+    assert float(new(floor.double())[~floor].abs().max()) == 0.0
+    with pytest.raises(ShapeError):
+        SelectedRegressionFilter(g, [(a, b[:, :-1])])
+    with pytest.raises(ValueRangeError):
+        SelectedRegressionFilter(g, [])
+    with pytest.raises(ValueRangeError):
+        SelectedRegressionFilter(g, [(a, b)], RegressionSettings())
+    with pytest.raises(ValueRangeError):
+        SelectionSettings(candidates=())

@@ -404,7 +404,7 @@ def test_perceptual_placement_options():
     z = obs.rows(names[12:13]).double()[0]
     full = project_perceptual(m, z_tr, z, cos, max_columns=None)
     torch.testing.assert_close(project_perceptual(m, z_tr, z, cos, max_columns=z_tr.shape[1]), full, rtol=0, atol=0)
-    for negatives, weight in (("penalise", 1.0), ("penalise", 10.0), ("free", 1.0)):
+    for negatives, weight in (("penalise", 1.0), ("penalise", 10.0), ("penalise", 100.0), ("free", 1.0)):
         for cols in (None, 97):
             x = project_perceptual(m, z_tr, z, cos, negatives=negatives, negative_weight=weight, max_columns=cols)
             err = float(((_logmap(m.predict(x), cos) - _logmap(z, cos)) ** 2).mean())

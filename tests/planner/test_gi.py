@@ -73,6 +73,13 @@ def test_plan_needs_a_budget_and_two_pilots():
         precompute_polynomial(sc, plan="manual", error=0.1, progress=False)
 
 
+def test_plan_shows_progress_by_default(monkeypatch, capsys):
+    # the pilots are the planner's long step: a bar per pilot like any precompute (was silent)
+    monkeypatch.setenv("TORCH_BRDF_PROGRESS", "1")
+    plan_polynomial(cornell_box_glossy(8), error=0.3, pilot_spp=1, pilot_bounces=2, max_light_samples=1)
+    assert capsys.readouterr().err.count("precompute cornell_box_glossy") >= 4
+
+
 @pytest.fixture(scope="module")
 def planned():
     """Plan the 24-px glossy Cornell box for 0.2, carry it out, and converge the same model:

@@ -31,6 +31,20 @@ def _equal(a, b):
         assert a.dtype == b.dtype and torch.equal(a, b)
 
 
+def _refused_on_load(record, path, array: str, entry: int, value: int, words: str) -> None:
+    """``record`` saved with ``array[entry] = value``, rewritten with a valid checksum (so only a
+    faulty writer makes it), is refused at load with a FileFormatError containing ``words``."""
+    from torch_brdf.io import load_arrays, save_arrays
+
+    cls = type(record)
+    arrays, meta = load_arrays(record.save(path))
+    arrays[array] = arrays[array].copy()
+    arrays[array][entry] = value
+    save_arrays(path, arrays, cls.kind, meta, kind_version=cls.version)
+    with pytest.raises(FileFormatError, match=re.escape(words)):
+        cls.load(path)
+
+
 class TestBasisImage(RecordContract):
     def make(self, gen):
         images = torch.rand(3, 4, 5, 3, generator=gen)
@@ -73,16 +87,7 @@ class TestPolynomialTensors(RecordContract):
         ],
     )
     def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
-        # checksummed, so only a faulty writer makes these: refused at load, naming the array
-        from torch_brdf.io import load_arrays, save_arrays
-
-        path = self.make(gen).save(tmp_path / "t.npz")
-        arrays, meta = load_arrays(path)
-        arrays[array] = arrays[array].copy()
-        arrays[array][entry] = value
-        save_arrays(path, arrays, PolynomialTensors.kind, meta, kind_version=PolynomialTensors.version)
-        with pytest.raises(FileFormatError, match=re.escape(words)):
-            PolynomialTensors.load(path)
+        _refused_on_load(self.make(gen), tmp_path / "t.npz", array, entry, value, words)
 
     def assert_same(self, a, b):
         assert (a.height, a.width, a.series, a.object_names, a.bases, a.meta) == (
@@ -134,6 +139,18 @@ class TestVertexVisibility(RecordContract):
             torch.tensor([0, 2, 4]),
         )
         return VertexVisibility(CubemapBlocks(16, 16), verts, _blocks(gen))
+
+    @pytest.mark.parametrize(
+        ("array", "entry", "value", "words"),
+        [
+            ("object_ids", 3, 7, "object_ids: vertex 3 has object 7, its offsets say 1 (objects 0..1)"),
+            ("object_ids", 0, -1, "object_ids: vertex 0 has object -1"),
+            ("object_offsets", 1, 9, "object_offsets [0, 9, 4]: expected (O + 1,) rising from 0 to the 4 vertices"),
+            ("object_offsets", 2, 3, "rising from 0 to the 4 vertices"),  # the last vertex in no object
+        ],
+    )
+    def test_indices_out_of_range_are_refused(self, gen, tmp_path, array, entry, value, words):
+        _refused_on_load(self.make(gen), tmp_path / "v.npz", array, entry, value, words)
 
     def assert_same(self, a, b):
         assert a.settings() == b.settings()

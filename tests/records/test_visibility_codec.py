@@ -18,6 +18,7 @@ from torch_brdf.records.visibility_codec import (
     UNOCCLUDED,
     decode_varints,
     encode_varints,
+    packed_entries,
     zigzag_decode,
     zigzag_encode,
 )
@@ -409,3 +410,47 @@ def test_random_corruption_raises_only_file_format_errors(gen):
             dec = rec.decode()
             assert bool(((dec >= 0) & (dec <= 1)).all())
         assert rejected > 50
+
+
+# -- packed binary encoding -------------------------------------------------------------------
+def _entries(rec: BlockVisibility) -> tuple:
+    return tuple(getattr(rec, n) for n in ("counts", "offsets", "index", "states"))
+
+
+def test_packed_encoding_equals_the_texel_by_texel_one(gen):
+    # bool maps take the packed path; 0/1 floats the texel-by-texel one (the previous code)
+    spans = random_spans(40, 12, gen)
+    noise = torch.rand(6, 12, 256, generator=gen) < 0.5  # many flips, some in every byte
+    edges = torch.zeros(6, 12, 256, dtype=torch.bool)
+    edges[0, 0] = True  # unoccluded block: one entry at 0
+    edges[1, :, 0] = True  # the first texel only (a flip at 0 and at 1)
+    edges[2, :, 255] = True  # the last texel only (no closing flip)
+    edges[3, :, 0::2] = True  # 256 flips: at every texel
+    edges[4, :, 7:9] = True  # a span across a byte boundary
+    edges[5, :, 8:16] = True  # a whole byte
+    for V in (spans, noise, edges):
+        packed = BlockVisibility.encode(V)
+        for a, b in zip(_entries(packed), _entries(BlockVisibility.encode(V.float())), strict=True):
+            assert torch.equal(a, b)
+        assert torch.equal(packed.decode().bool(), V)
+    assert int(BlockVisibility.encode(edges).counts[3].max()) == 256
+
+
+def test_packed_entries_and_from_entries(gen):
+    V = random_spans(9, 6, gen)
+    counts, index = packed_entries(np.packbits(V.numpy(), axis=-1))
+    ref = BlockVisibility.encode(V.float())
+    assert counts.dtype == np.int16 and index.dtype == np.uint8
+    assert np.array_equal(counts, ref.counts.numpy()) and np.array_equal(index, ref.index.numpy())
+    # records of consecutive vertices: entries concatenated = concat of the records
+    a, b = (np.packbits(x.numpy(), axis=-1) for x in (V[:4], V[4:]))
+    (ca, ia), (cb, ib) = packed_entries(a), packed_entries(b)
+    joined = BlockVisibility.from_entries(6, 0, np.concatenate([ca, cb]), np.concatenate([ia, ib]))
+    for x, y in zip(_entries(joined), _entries(ref), strict=True):
+        assert torch.equal(x, y)
+    with pytest.raises(ShapeError, match="add up"):
+        BlockVisibility.from_entries(6, 0, counts, index[:-1])
+    with pytest.raises(ShapeError, match="packed visibility"):
+        packed_entries(np.zeros((2, 3, 31), np.uint8))
+    with pytest.raises(ShapeError, match="packed visibility"):
+        packed_entries(np.zeros((2, 3, 32), np.int8))

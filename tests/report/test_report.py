@@ -187,3 +187,15 @@ def test_cli_report_from_saved_results(tmp_path):
     (results / "bad.json").write_text("{not json")
     with pytest.raises(FileFormatError):
         load_results(results)
+
+
+@pytest.mark.parametrize("text", ['{"cells": "none"}', '{"failed": 0}', '{"cells": [{"row": "nan"}]}', "[1]"])
+def test_cli_report_refuses_a_malformed_extremes_file(tmp_path, text):
+    results = tmp_path / "r"
+    results.mkdir()
+    (results / "extremes.json").write_text(text)
+    res = CliRunner().invoke(app, ["report", "--results", str(results), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    (line,) = res.output.strip().splitlines()  # one line, no traceback
+    assert line.startswith("error: ") and "extremes.json" in line
+    assert not (tmp_path / "o" / "report.html").exists()

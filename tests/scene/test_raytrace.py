@@ -172,3 +172,33 @@ def test_non_finite_or_half_precision_rays_and_bounds_are_refused():
         scene.spawn(o, d, d * float("inf"))
     with pytest.raises(ValueRangeError, match="raster x"):
         scene.camera.rays_through(torch.tensor([float("nan")]), torch.tensor([1.0]))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_occluded_fans_equal_occluded(workers):
+    # fans of rays from shared origins (e.g. a vertex's cubemap texels), some sharing their
+    # directions, one empty; enough rays for the two-process pool with workers=2
+    box = cornell_box(8)
+    scene = RayTracer([o.mesh for o in box.objects], [o.smooth for o in box.objects], workers=workers)
+    rng = np.random.default_rng(3)
+    lo, hi = (x.numpy() for x in scene.bbox)
+    origins = (lo + (0.1 + 0.8 * rng.random((7, 3))) * (hi - lo)).astype(np.float32)
+    d = rng.normal(size=(9000, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    fans = np.array([[0, 9000], [100, 0], [0, 9000], [4000, 5000], [17, 1], [0, 3000], [2000, 7000]])
+    got = scene.occluded_fans(origins, fans, d[:, None, :].repeat(2, 1)[:, 0])  # a strided (D, 3) view
+    rays = np.concatenate([np.arange(a, a + n) for a, n in fans])
+    o = torch.from_numpy(np.repeat(origins, fans[:, 1], axis=0))
+    ref = scene.occluded(o, torch.from_numpy(d[rays]), float("inf")).numpy()
+    assert got.shape == (int(fans[:, 1].sum()),) and np.array_equal(got, ref)
+    assert scene._parallel(len(got)) == (workers == 2)  # the pool path with two workers
+    assert 0 < got.mean() < 1
+    with pytest.raises(ValueRangeError, match="within"):
+        scene.occluded_fans(origins, fans + [[0, 1]], d)
+    with pytest.raises(ShapeError, match="float32"):
+        scene.occluded_fans(origins, fans, d.astype(np.float64))
+    with pytest.raises(ShapeError, match=r"fans \(m, 2\)"):
+        scene.occluded_fans(origins, fans[:3], d)
+    d[5] = np.nan
+    with pytest.raises(ValueRangeError, match="finite"):
+        scene.occluded_fans(origins, fans, d)

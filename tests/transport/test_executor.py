@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -22,7 +23,8 @@ from tests.transport._ray import init_local, private_ray_env
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.records.cache import TileCache
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.executor import TileError, run_tiles
+from torch_brdf.transport import executor
+from torch_brdf.transport.executor import TileError, run_tiles, tile_tick
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 4, "progress": False}
@@ -115,6 +117,47 @@ def test_forked_tiles_in_order_and_errors_raised_here():
         run_tiles(_tile_or_fail, 3, 5, cache, progress=False, processes=2)
     with pytest.raises(TileError, match="tile 2 stopped: KeyboardInterrupt"):  # a worker's Ctrl-C
         run_tiles(_tile_or_fail, -2, 5, cache, progress=False, processes=2)
+
+
+def _ticking_tile(ctx, k):
+    for _ in range(ctx):  # one more tick than the tile's units when ctx = 4: capped
+        tile_tick()
+    return {"x": np.full(2, k)}, {}
+
+
+class _Bar:
+    """Records what a tqdm bar is given."""
+
+    made: ClassVar[list] = []
+
+    def __init__(self, total, initial, **kw):
+        self.total, self.updates = total, [initial]
+        _Bar.made.append(self)
+
+    def update(self, n):
+        self.updates.append(n)
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_bar_moves_within_tiles(monkeypatch, processes):
+    """Tiles report their pass groups through ``tile_tick`` (also from forked processes): the
+    bar moves by single units, never by a whole tile at its end; extra ticks are capped."""
+    monkeypatch.setattr(executor, "tqdm", _Bar)
+    _Bar.made.clear()
+    cache = TileCache(None, "t", "k")
+    for ticks in (3, 4):
+        run_tiles(_ticking_tile, ticks, 4, cache, processes=processes, steps_per_tile=[3] * 4)
+        bar = _Bar.made[-1]
+        assert bar.total == 12 and sum(bar.updates) == 12
+        assert max(bar.updates) <= 1, bar.updates  # a whole tile at once would be a 3
+    run_tiles(_ticking_tile, 0, 4, cache, processes=processes, steps_per_tile=[3] * 4)  # no ticks
+    assert sum(_Bar.made[-1].updates) == 12 and max(_Bar.made[-1].updates) == 3
+    with pytest.raises(ValueRangeError, match="steps_per_tile"):
+        run_tiles(_ticking_tile, 0, 4, cache, steps_per_tile=[3] * 3)
+    tile_tick()  # outside run_tiles: nothing to move, no error
 
 
 def test_executor_arguments(scene):

@@ -216,10 +216,12 @@ def test_plan_follows_materials():
         poly.plan_bases(sc, Series.parse("64,1"), {"nope": {"J": 2}})
     with pytest.raises(SceneError):
         poly.plan_bases(sc, Series.parse("64,1"), {"short_box": {"J": 2}})
-    with pytest.raises(SceneError, match="unknown keys \\['zzz'\\]"):  # was a bare TypeError
+    with pytest.raises(SceneError, match="unknown key\\(s\\) \\['zzz'\\]"):  # was a bare TypeError
         poly.plan_bases(sc, Series.parse("64,1"), {"left": {"zzz": 1}})
     with pytest.raises(SceneError, match="must be a table"):
         poly.plan_bases(sc, Series.parse("64,1"), {"left": 8})
+    with pytest.raises(ValueRangeError, match=r"basis override left\.J must be <= 4096"):  # as --bases
+        poly.plan_bases(sc, Series.parse("64,1"), {"left": {"J": 10**9}})
     with pytest.raises(ValueRangeError):
         ObjectBasis(J=8, variable="theta_i")
 

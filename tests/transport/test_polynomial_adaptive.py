@@ -1,10 +1,11 @@
 """Adaptive sampling in the multibounce precomputation: a per-pixel spp map, and light
 splitting at the eye vertex (issue #17).
 
-The pixels of each spp level are traced in tiles of their own; a tile of an adaptive run must
-be, entry for entry, the same tile of a uniform run at that tile's spp (same random numbers),
-so each pixel is the plain average over its own paths (unbiased) and the tensors stay exact
-polynomials."""
+Tiles are row bands whatever the map; pass s of a tile traces the pixels with more than s
+paths. A tile whose pixels all take s paths must be, entry for entry, the same tile of a
+uniform run at s (same random numbers); in a tile of mixed spp each pixel is the plain average
+over its own paths (unbiased, its variance over its own paths) and the tensors stay exact
+polynomials (the oracle re-evaluates every path)."""
 
 from __future__ import annotations
 
@@ -91,6 +92,47 @@ def test_levels_scattered_over_the_image_trace_each_pixel_at_its_spp():
     assert torch.equal(spp_map_of(T), spp)
 
 
+def _checkerboard(size: int, low: int, high: int) -> torch.Tensor:
+    return torch.where((torch.arange(size)[:, None] + torch.arange(size)) % 2 == 0, low, high)
+
+
+def test_mixed_spp_tiles_are_exact_on_the_same_paths(gen):
+    """Tiles of mixed spp (a checkerboard of 1 and 3 paths, three row bands) with two light
+    samples per eye vertex: the tensors equal the explicit path tracer on the same paths, each
+    pixel divided by its own paths."""
+    sc = teatray(10)
+    spp = _checkerboard(10, 1, 3)
+    paths: dict = {}
+    T = precompute_polynomial(sc, "8,1,1", spp=spp, seed=2, light_samples=2, tile_rows=4, progress=False, paths=paths)
+    assert torch.equal(spp_map_of(T), spp)
+    R, coef, d = _renderer_at_random_coefficients(T, gen)
+    with torch.no_grad():
+        want = _oracle(sc, T, paths, coef, {}, d, spp.reshape(-1, 1).double())
+        got = R.evaluate()
+    assert float(want.sum()) > 0
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6 * float(want.abs().max()))
+    # the oracle can fail: dividing every pixel by the mean spp differs
+    wrong = _oracle(sc, T, paths, coef, {}, d, float(spp.double().mean()))
+    assert not torch.allclose(got, wrong, rtol=1e-2, atol=0)
+
+
+def test_mixed_spp_tiles_take_each_pixels_own_variance():
+    """A pixel of one path has variance 0 exactly (its one path is its mean); its neighbours
+    of 4 paths in the same tile do not, and the closest-hit rays are one per path."""
+    sc = cornell_box_glossy(8)
+    spp = _checkerboard(8, 1, 4)
+    T = precompute_polynomial(sc, "4,1", spp=spp, seed=0, tile_rows=4, progress=False, guides=False)
+    one = spp.reshape(-1) == 1
+    seen = torch.zeros(64, dtype=torch.bool)
+    for b in T.blocks:
+        _, _, p = b.coordinates()
+        pix = b.pixels[p]
+        assert not bool(b.variance[:, one[pix]].any())
+        seen[pix[~one[pix]][b.variance[:, ~one[pix]].amax(0) > 0]] = True
+    assert int(seen.sum()) > 16  # many pixels of 4 paths have a variance
+    assert T.meta["rays"]["closest"] >= int(spp.sum())
+
+
 def test_resume_key_includes_the_map(tmp_path):
     sc = cornell_box_glossy(SIZE)
     a, b = _band_map([2, 3, 2]), _band_map([3, 2, 2])
@@ -100,6 +142,17 @@ def test_resume_key_includes_the_map(tmp_path):
     assert torch.equal(again.emission, first.emission)
     other = precompute_polynomial(sc, spp=b, checkpoint=tmp_path, keep_checkpoint=True, **KW)
     assert other.meta["tiles_cached"] == 0
+    # tiles of mixed spp resume bit for bit: one of three tiles lost, two loaded
+    mixed, folder = _checkerboard(SIZE, 2, 3), tmp_path / "mixed"
+    full = precompute_polynomial(sc, spp=mixed, checkpoint=folder, keep_checkpoint=True, **KW)
+    tiles = sorted(folder.glob("tile*.npz"))
+    assert len(tiles) == 3
+    tiles[1].unlink()
+    again = precompute_polynomial(sc, spp=mixed, checkpoint=folder, **KW)
+    assert again.meta["tiles_cached"] == 2
+    assert torch.equal(again.emission, full.emission) and len(again.blocks) == len(full.blocks)
+    for x, y in zip(full.blocks, again.blocks, strict=True):
+        assert torch.equal(x.values, y.values) and torch.equal(x.variance, y.variance)
 
 
 def test_bad_maps_are_refused():

@@ -10,12 +10,14 @@ import torch
 
 from tests.conftest import corrupted_copy
 from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
+from torch_brdf.records.visibility_codec import BlockVisibility
 from torch_brdf.scene.builtin import grid_plane
 from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.mesh import mesh_from_arrays
 from torch_brdf.scene.scene import Scene, SceneObject
 from torch_brdf.sphere.cubemap import CubemapBlocks
+from torch_brdf.transport import visibility
 from torch_brdf.transport.visibility import HORIZON_EPS, VertexVisibility, precompute_visibility, scene_vertices
 
 
@@ -150,3 +152,38 @@ def test_bad_settings_raise(scene):
 def test_binary_storage_is_compact(record):
     # the seed's figure is about 1 KB per vertex at 64^2 x 6; at 32^2 x 6 (24 blocks) far less
     assert record.bytes_per_vertex < 24 * 12
+
+
+def previous_pipeline(scene: Scene, resolution: int, supersample: int = 1, bits: int = 0):
+    """The precompute as it was before the ray fans (its code kept here as the oracle): the
+    horizon by one float64 matmul, every ray's origin and direction gathered into (n, 3) arrays
+    for ``Scene.occluded``, the escaping fraction scattered into dense maps, encoded texel by
+    texel (0/1 floats)."""
+    geom = CubemapBlocks(resolution)
+    v = scene_vertices(scene)
+    dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
+    centres = geom.directions.reshape(-1, 3)
+    T, k2 = centres.shape[0], dirs.shape[1]
+    up = (v.normals.to(torch.float64) @ centres.T) > HORIZON_EPS
+    vi, ti = up.nonzero(as_tuple=True)
+    o = (v.positions + scene.ray_epsilon * v.normals).float()[vi]
+    o = o[:, None, :].expand(-1, k2, -1).reshape(-1, 3)
+    occ = scene.occluded(o, dirs[ti].reshape(-1, 3), float("inf")).view(-1, k2)
+    V = torch.zeros(len(v), T, dtype=torch.float32)
+    V[vi, ti] = (~occ).float().mean(1)
+    V = V.view(len(v), geom.block_count, geom.block_size)
+    return BlockVisibility.encode((V > 0.5).float() if k2 == 1 else V, bits=bits)
+
+
+@pytest.mark.parametrize(
+    ("supersample", "bits", "chunk", "group"), [(1, 0, 16, 64), (1, 0, 1000, 64), (1, 0, 1000, 5), (2, 2, 7, 3)]
+)
+def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk, group, monkeypatch):
+    # the box's vertices have their own normals, the floor's share one (one horizon test for all);
+    # groups of cast vertices smaller than a chunk, the last one partial
+    monkeypatch.setattr(visibility, "GROUP", group)
+    got = precompute_visibility(scene, 32, supersample=supersample, bits=bits, chunk=chunk, progress=False)
+    ref = previous_pipeline(scene, 32, supersample, bits)
+    assert ref.num_entries > 0 and bool((ref.states == 2).any())  # real shadows, partial blocks
+    for a, b in zip(got.blocks.to_bytes(), ref.to_bytes(), strict=True):
+        assert np.array_equal(a, b)

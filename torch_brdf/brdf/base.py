@@ -94,6 +94,22 @@ def model_class(name: str) -> type[BRDF]:
     return _REGISTRY[name]
 
 
+def model_parameters(name: str) -> list[str] | None:
+    """The keyword parameters of model ``name``'s constructor (without ``self``), or None when
+    it takes any keyword (``**kwargs``): what a material table of that type may hold besides
+    ``type`` (the scene description's check and ``torch-brdf edit --set OBJECT.type=``).
+
+    Raises:
+        ValueRangeError: an unknown model.
+    """
+    import inspect
+
+    params = inspect.signature(model_class(name).__init__).parameters.values()
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return None
+    return [p.name for p in params if p.name != "self" and p.kind is not p.VAR_POSITIONAL]
+
+
 def create(spec: str | dict[str, Any], **params: Any) -> BRDF:
     """A BRDF from a registry name and parameters, or from a material dict
     ``{"type": name, **params}`` (the scene description's material tables)."""

@@ -3,6 +3,8 @@
 * :mod:`.guides`: per-pixel guide buffers from the camera's pixel-centre rays;
 * :mod:`.atrous`: a linear edge-aware à-trous filter with weights from the guides only;
 * :mod:`.regression`: a linear local polynomial regression (NFOR-style) with the same weights;
+* :mod:`.selection`: per pixel the regression window of lowest error, picked once from two
+  half-sample buffers (NFOR's selection; linear once picked);
 * :mod:`.oidn`: Intel Open Image Denoise per grouped basis image and per frame (optional
   extra ``denoise``);
 * :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor.
@@ -14,7 +16,8 @@ from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, 
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
-from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser
+from .selection import SelectedRegressionFilter, SelectionSettings
+from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser, mean_tensors
 
 __all__ = [
     "AtrousSettings",
@@ -25,6 +28,8 @@ __all__ = [
     "OIDNBasis",
     "RegressionFilter",
     "RegressionSettings",
+    "SelectedRegressionFilter",
+    "SelectionSettings",
     "denoise",
     "denoise_frozen",
     "denoise_planes",
@@ -32,6 +37,7 @@ __all__ = [
     "glossy_objects",
     "guide_buffers",
     "make_denoiser",
+    "mean_tensors",
     "oidn_available",
     "oidn_frame",
     "oidn_image",

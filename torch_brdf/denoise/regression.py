@@ -145,17 +145,35 @@ class RegressionFilter(GuideFilter):
     def description(self) -> str:
         return f"linear regression {self.settings}, glossy objects {list(self.glossy)}"
 
+    @property
+    def radius(self) -> int:
+        """The window half-width (the largest tap offset)."""
+        return self.settings.radius
+
     def __call__(self, images: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
         """Filter images (..., H, W) (e.g. (B, 3, H, W) basis images) -> the same shape.
         ``groups`` is ignored (a linear filter treats every image alike)."""
-        lead = images.shape[:-2]
-        x = self._planes(images)
-        h, w = self.shape
-        pad = self.settings.radius
-        with tuned("denoise.regression", x.numel() * len(self.offsets)):
-            xp = F.pad(x, (pad, pad, pad, pad))
-            out = torch.zeros_like(x)
-            hat = self.weights.to(x.dtype)
-            for k, (dy, dx) in enumerate(self.offsets):
-                out += hat[k] * xp[:, pad + dy : pad + dy + h, pad + dx : pad + dx + w]
-        return out.reshape(*lead, h, w)
+        return apply_hat(self, images)
+
+
+def apply_hat(filt: GuideFilter, images: torch.Tensor) -> torch.Tensor:
+    """``out[p] = sum_k weights[k, p] images[p + offsets[k]]`` for a filter with hat
+    ``weights`` (T, H, W), ``offsets`` (T (dy, dx) pairs) and ``radius`` (the largest offset).
+
+    Args:
+        filt: the filter (:class:`RegressionFilter` or one that shares its hat-weight form).
+        images: (..., H, W).
+    Returns:
+        (..., H, W) in the images' dtype.
+    """
+    lead = images.shape[:-2]
+    x = filt._planes(images)
+    h, w = filt.shape
+    pad = filt.radius
+    with tuned("denoise.regression", x.numel() * len(filt.offsets)):
+        xp = F.pad(x, (pad, pad, pad, pad))
+        out = torch.zeros_like(x)
+        hat = filt.weights.to(x.dtype)
+        for k, (dy, dx) in enumerate(filt.offsets):
+            out += hat[k] * xp[:, pad + dy : pad + dy + h, pad + dx : pad + dx + w]
+    return out.reshape(*lead, h, w)

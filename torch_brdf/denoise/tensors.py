@@ -30,7 +30,7 @@ from typing import Any
 import torch
 
 from ..errors import ShapeError, ValueRangeError
-from ..records.polynomial import PolynomialTensors, TensorBlock
+from ..records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from .atrous import glossy_objects
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -175,6 +175,58 @@ def denoise_tensors(
         blocks.append(TensorBlock(m, n, new_pix, terms, J, index[order], out[:, bi, pi][:, order].contiguous()))
     meta = {**tensors.meta, "denoised": getattr(den, "description", type(den).__name__)}
     return dataclasses.replace(tensors, blocks=blocks, meta=meta)
+
+
+def mean_tensors(records: list[PolynomialTensors]) -> PolynomialTensors:
+    """The record of all the samples of independent precomputations of one view and series
+    (e.g. the two half-spp runs whose frames pick a :class:`~.selection.SelectedRegressionFilter`):
+    every block of each record with its values divided by their number (variances by its
+    square) and its term rows renumbered into the union of the records' term tables, so
+    every frame (full, frozen) is the mean of the records' frames. Blocks of different
+    records may share pixels: the renderer adds them. The guides are the first record's.
+
+    Args:
+        records: precomputed tensors of the same view, series and bases.
+    Returns:
+        the mean record; ``meta["spp"]`` is the sum of the records' spp when they all say it.
+    Raises:
+        ValueRangeError: no records, or records of different views, series or bases.
+    """
+    if not records:
+        raise ValueRangeError("need at least one record")
+    first, n = records[0], len(records)
+    for r in records[1:]:
+        if (r.height, r.width, r.series, r.object_names, r.bases) != (
+            first.height,
+            first.width,
+            first.series,
+            first.object_names,
+            first.bases,
+        ) or r.terms.keys() != first.terms.keys():
+            raise ValueRangeError("the records differ in view, series or bases; they cannot be averaged")
+    terms, remap = {}, [{} for _ in records]  # remap[record][bounce]: old row -> new row
+    for k in first.terms:
+        rows = [torch.cat([r.terms[k].w[:, None], r.terms[k].counts.to(r.terms[k].w.dtype)], 1) for r in records]
+        union, inverse = torch.unique(torch.cat(rows), dim=0, return_inverse=True)
+        terms[k] = TermTable(union[:, 0].contiguous(), union[:, 1:].to(first.terms[k].counts.dtype).contiguous())
+        for i, part in enumerate(torch.split(inverse, [x.shape[0] for x in rows])):
+            remap[i][k] = part
+    blocks = [
+        dataclasses.replace(
+            b,
+            terms=remap[i][b.bounce][b.terms],
+            values=b.values / n,
+            variance=None if b.variance is None else b.variance / n**2,
+        )
+        for i, r in enumerate(records)
+        for b in r.blocks
+    ]
+    emission = sum(r.emission for r in records) / n
+    meta = {**first.meta, "mean_of": n}
+    spps = [r.meta.get("spp") for r in records]
+    if all(isinstance(x, int) for x in spps):
+        meta["spp"] = sum(spps)
+    return dataclasses.replace(first, terms=terms, blocks=blocks, emission=emission, meta=meta)
 
 
 def memory_bytes(tensors: PolynomialTensors) -> int:

@@ -14,7 +14,7 @@ never has to be in memory at once.
 Two optimisers, both monotone (the log-likelihood never decreases over the recorded
 iterations):
 
-* ``"lbfgs"`` (default): L-BFGS (two-loop recursion, memory 20) on the exact gradient — closed
+* ``"lbfgs"`` (default): L-BFGS (memory 20, compact inverse-Hessian product) on the exact gradient — closed
   form :func:`log_likelihood_and_grad`, or autograd through the float64 Cholesky with
   ``autograd=True`` (equal, tested) — with our strong-Wolfe line search (:mod:`.linesearch`, c1 = 1e-4,
   c2 = 0.9) and, where it ends on a point that does not raise ``L``, a backtracking Armijo
@@ -42,6 +42,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
+from scipy.linalg import lapack
 from tqdm.auto import tqdm
 
 from .._threads import single_thread
@@ -53,8 +54,11 @@ from .linesearch import strong_wolfe
 
 FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
-#: the default warm-up mu of :func:`fit_gplvm` (the seed's mu): fits at a smaller mu start there
-WARMUP_MU = 1e-6
+#: the default warm-up mu of :func:`fit_gplvm`: fits at a mu 100x smaller or less start there (chosen
+#: among 1e-6 ... 1e-4 on the MERL budget map of the README, "BRDF manifold": a selection, not a law)
+WARMUP_MU = 3e-6
+#: the warm-up runs only when the fit's mu is at most this fraction of ``warmup_mu``
+WARMUP_RATIO = 1e-2
 
 
 # -- Gram matrix ----------------------------------------------------------------------------------
@@ -240,13 +244,15 @@ def fit_gplvm(
         progress: tqdm bar over iterations.
         callback: called as ``callback(iteration, loglik)`` after every accepted iteration.
         warmup_mu, warmup_fraction: continuation in :math:`\mu` (L-BFGS only): when ``mu`` is
-            below ``warmup_mu``, the first ``warmup_fraction`` of ``max_iter`` iterations maximise
+            at most ``warmup_mu / 100``, the first ``warmup_fraction`` of ``max_iter`` iterations maximise
             L at ``warmup_mu`` (a better conditioned K), the rest at ``mu`` from there. The
             recorded ``loglik`` is that of the final ``mu`` only (non-decreasing);
             ``meta["warmup"]`` gives the warm-up's ``mu``, iterations and seconds (counted in
-            ``seconds``). None (or ``mu >= warmup_mu``) = no warm-up. At ``mu = 1e-10`` the PCA
+            ``seconds``). None (or ``mu > warmup_mu / 100``) = no warm-up. At ``mu = 1e-10`` the PCA
             start has a hugely negative L (near-coincident latents make K nearly singular) and
-            the warm-up reaches a higher final L with the same budget (README, "BRDF manifold").
+            the warm-up reached a higher final L than strong-Wolfe L-BFGS from the PCA start on the
+            MERL data at budgets of 150 to 1000 iterations, not at 60 or 100 (both need ~60
+            iterations to leave the start's region; README, "BRDF manifold").
     Returns:
         :class:`GPLVMFit`.
     Raises:
@@ -281,7 +287,7 @@ def fit_gplvm(
     window = {"window": tol_window} if method == "lbfgs" else {}
     meta = {}
     n_warm = round(warmup_fraction * max_iter)
-    if method == "lbfgs" and warmup_mu is not None and warmup_mu > mu and n_warm > 0:
+    if method == "lbfgs" and warmup_mu is not None and mu <= WARMUP_RATIO * warmup_mu and n_warm > 0:
         jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
         with small_matrix_mode(n):
             x0, hist_w, _, _ = _fit_lbfgs(x0, s, d, lengthscale, warmup_mu, jw, n_warm, tol, lr, progress, None,
@@ -348,57 +354,72 @@ def log_likelihood_and_grad(
 
     :math:`G = \partial L/\partial K = \tfrac12(K^{-1} S K^{-1} - d K^{-1})`; with
     :math:`A = G \odot K_{SE}`, :math:`\partial L/\partial x_i = -\frac{2}{\ell^2}\sum_j A_{ij}(x_i - x_j)`.
-    Equal to autograd through :func:`log_likelihood` (tested) at a fraction of the cost.
+    Equal to autograd through :func:`log_likelihood` (tested) at a fraction of the cost; computed
+    by :func:`_objective` in numpy (LAPACK ``potrf``/``potri`` and two N x N products, no torch
+    dispatch per operation: the fit's unit of work).
 
     Args:
         x: (N, Q). s: (N, N). d: columns of Z.
     Returns:
         (L, grad (N, Q) float64), or (-inf, None) where K is not positive definite.
     """
-    x = x.detach().to(torch.float64)
-    kse = se_kernel(x, x, lengthscale)
-    k = kse.clone()
-    k.diagonal().add_(mu)
-    chol, info = torch.linalg.cholesky_ex(k)
-    if int(info) != 0:
+    xn = np.ascontiguousarray(x.detach().to(torch.float64).numpy())
+    sn = np.ascontiguousarray(s.detach().to(torch.float64).numpy())
+    ll, g = _objective(xn, sn, d, lengthscale, mu)
+    return ll, None if g is None else torch.from_numpy(g)
+
+
+def _objective(x: np.ndarray, s: np.ndarray, d: int, ell: float, mu: float) -> tuple[float, np.ndarray | None]:
+    """:func:`log_likelihood_and_grad` on float64 numpy arrays: x (N, Q), s (N, N) -> (L, grad (N, Q))."""
+    n = x.shape[0]
+    sq = np.zeros((n, n))
+    for k in range(x.shape[1]):  # differences per latent axis: exact 0 on coincident points (as se_kernel)
+        diff = x[:, k, None] - x[None, :, k]
+        sq += diff * diff
+    kse = np.exp(sq * (-0.5 / ell**2))
+    k = kse.copy()
+    k.flat[:: n + 1] += mu
+    chol, info = lapack.dpotrf(k, lower=1, clean=1, overwrite_a=1)
+    if info != 0:
         return -math.inf, None
-    kinv = torch.cholesky_inverse(chol)
+    kinv, info = lapack.dpotri(chol, lower=1)
+    if info != 0:  # pragma: no cover - a successful potrf has a non-singular factor
+        return -math.inf, None
+    kinv = kinv + kinv.T  # potri fills the lower triangle; the upper one is 0 (clean potrf factor)
+    kinv.flat[:: n + 1] *= 0.5
     a = kinv @ s
-    ll = -d * float(torch.log(torch.diagonal(chol)).sum()) - 0.5 * float(torch.diagonal(a).sum())
-    g = 0.5 * (a @ kinv - d * kinv)
-    g = 0.5 * (g + g.T)
+    ll = -d * float(np.log(np.diagonal(chol)).sum()) - 0.5 * float(np.trace(a))
+    g = a @ kinv
+    g -= d * kinv
+    g = 0.25 * (g + g.T)
     w = g * kse
-    grad = -(2.0 / lengthscale**2) * (w.sum(1, keepdim=True) * x - w @ x)
-    return ll, grad
+    return ll, (-2.0 / ell**2) * (w.sum(1)[:, None] * x - w @ x)
 
 
-def _value_and_grad(x: torch.Tensor, s, d, ell, mu, autograd: bool = False) -> tuple[float, torch.Tensor | None]:
+def _value_and_grad(
+    x: np.ndarray, s: np.ndarray, d, ell, mu, autograd: bool = False
+) -> tuple[float, np.ndarray | None]:
+    """L and its gradient (N, Q) at latents ``x`` (N, Q) (numpy): the closed form, or autograd."""
     if not autograd:
-        return log_likelihood_and_grad(x, s, d, ell, mu)
-    xr = x.detach().clone().requires_grad_(True)
-    ll = log_likelihood(xr, s, d, ell, mu)
+        return _objective(x, s, d, ell, mu)
+    xr = torch.from_numpy(x).clone().requires_grad_(True)
+    ll = log_likelihood(xr, torch.from_numpy(s), d, ell, mu)
     if not bool(torch.isfinite(ll)):
         return -math.inf, None
     (g,) = torch.autograd.grad(ll, xr)
-    return float(ll.detach()), g
+    return float(ll.detach()), g.numpy()
 
 
-def _flat(t: torch.Tensor) -> np.ndarray:
-    """A flat float64 numpy view of a CPU tensor (copied only when not contiguous)."""
-    return t.detach().contiguous().view(-1).numpy()
-
-
-def _wolfe_step(x, p, f, slope, s, d, ell, mu, autograd) -> tuple[float, torch.Tensor | None, float]:
+def _wolfe_step(x, p, f, slope, s, d, ell, mu, autograd) -> tuple[float, np.ndarray | None, float]:
     """One strong-Wolfe line search (c1 = 1e-4, c2 = 0.9; :func:`.linesearch.strong_wolfe`) along
-    the ascent direction ``p`` (flat numpy) from ``x``: returns (L, grad, step) at the accepted point."""
+    the ascent direction ``p`` ((N, Q) numpy) from ``x``: returns (L, grad, step) at the accepted point."""
     scale = float(x.shape[0] * d)
-    pt = torch.from_numpy(p).view(x.shape)
 
     def phi(t):
-        fv, gv = _value_and_grad(x + t * pt, s, d, ell, mu, autograd)
+        fv, gv = _value_and_grad(x + t * p, s, d, ell, mu, autograd)
         if gv is None:  # K not positive definite: an infinitely bad value (the search shrinks the step)
             return math.inf, math.nan, None
-        return -fv / scale, -float(np.dot(_flat(gv), p)) / scale, gv
+        return -fv / scale, -float(np.vdot(gv, p)) / scale, gv
 
     res = strong_wolfe(phi, -f / scale, -slope / scale, 1.0)
     if res.payload is None or not res.step > 0:
@@ -407,65 +428,69 @@ def _wolfe_step(x, p, f, slope, s, d, ell, mu, autograd) -> tuple[float, torch.T
 
 
 def _two_loop(g: np.ndarray, pairs: list[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
-    """L-BFGS two-loop recursion (Nocedal and Wright, Alg. 7.4) on flat vectors: H g for the stored pairs.
+    """L-BFGS product H g for the stored pairs (flat vectors), oldest first; H0 = (s^T y / y^T y) I.
 
-    Plain numpy dot products: with N Q of a few hundred, torch's per-operation overhead made this
-    loop cost more than the objective (measured: 0.45 s of a 1.26 s, 1000-iteration fit).
+    The compact representation of Byrd, Nocedal and Schnabel (1994, Eq. 3.1; Nocedal and Wright,
+    Eq. 7.24): a few matrix products instead of the two-loop recursion (Alg. 7.4) it equals
+    (tested against the dense BFGS update): with N Q of a few hundred, the recursion's 4m
+    Python-level dot products cost as much as the objective. No pairs: a gradient step of at most
+    0.1 latent units per coordinate.
     """
-    qv = g.copy()
-    alphas = []
-    for sk, yk, rho in reversed(pairs):
-        a_k = rho * float(np.dot(sk, qv))
-        alphas.append(a_k)
-        qv -= a_k * yk
-    if pairs:
-        sk, yk, _ = pairs[-1]
-        qv *= float(np.dot(sk, yk)) / float(np.dot(yk, yk))
-    else:
-        qv *= 0.1 / max(float(np.abs(g).max()), 1e-300)  # first step: at most 0.1 latent units
-    for (sk, yk, rho), a_k in zip(pairs, reversed(alphas), strict=True):
-        qv += (a_k - rho * float(np.dot(yk, qv))) * sk
-    return qv
+    if not pairs:
+        return g * (0.1 / max(float(np.abs(g).max()), 1e-300))
+    sm = np.stack([p[0] for p in pairs])  # (m, n)
+    ym = np.stack([p[1] for p in pairs])
+    sy = sm @ ym.T  # sy[i, j] = s_i . y_j
+    yy = ym @ ym.T
+    gamma = float(sy[-1, -1]) / float(yy[-1, -1])
+    r = np.triu(sy)
+    a, b = sm @ g, gamma * (ym @ g)
+    w, _ = lapack.dtrtrs(r, a, lower=0)
+    u, _ = lapack.dtrtrs(r, np.diagonal(sy) * w + gamma * (yy @ w) - b, lower=0, trans=1)
+    return gamma * g + sm.T @ u - gamma * (ym.T @ w)
 
 
 def _fit_lbfgs(
     x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=False, memory=20, window=1
 ):
-    """L-BFGS ascent (two-loop recursion), strong-Wolfe line search with Armijo backtracking as fallback.
+    """L-BFGS ascent (compact inverse-Hessian product), strong-Wolfe line search with Armijo backtracking
+    as fallback, on numpy arrays (one torch round trip per fit, not per evaluation).
 
     Monotone by construction: a step is taken only if it raises L by at least
     ``1e-4 * t * g.p``; when no step length passes, the curvature memory is dropped and a
     gradient step is tried; when that fails too, the fit stops (a local optimum to
     numerical precision). Stops when L rose by less than ``tol * |L|`` over ``window`` iterations.
     """
-    x = x0.clone()
+    x = np.array(x0.detach().to(torch.float64).numpy(), copy=True)
+    s = np.ascontiguousarray(s.detach().to(torch.float64).numpy())
     f, g = _value_and_grad(x, s, d, ell, mu + jitter, autograd)
     if g is None:  # pragma: no cover - the initial jitter makes K positive definite
         raise NumericalError("GPLVM K is not positive definite at the start")
-    gf = _flat(g)
     hist = [f]
     pairs: list[tuple[np.ndarray, np.ndarray, float]] = []
     rejected = 0
-    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not progress_default(progress))
+    show = progress_default(progress)
+    bar = tqdm(range(max_iter), desc="GPLVM L-BFGS", disable=not show)
     for it in bar:
+        gf = g.reshape(-1)
         p = _two_loop(gf, pairs)  # ascent direction of L (descent of -L)
         slope = float(np.dot(gf, p))
         if not slope > 0:  # not an ascent direction: fall back to the gradient
             pairs.clear()
-            p = gf * (0.1 / max(float(np.abs(gf).max()), 1e-300))
+            p = _two_loop(gf, pairs)
             slope = float(np.dot(gf, p))
             if not slope > 0:  # the gradient vanishes: a stationary point, nothing to search along
                 break
-        pt = torch.from_numpy(p).view(x.shape)
+        p = p.reshape(x.shape)
         t = 1.0
         accepted = False
         # strong-Wolfe line search (ours, on -L / (N d)); the Armijo backtracking below is the
         # fallback when it ends on a non-finite or non-increasing point
         fn, gn, t_sw = _wolfe_step(x, p, f, slope, s, d, ell, mu + jitter, autograd)
         if gn is not None and math.isfinite(fn) and fn >= f + 1e-4 * t_sw * slope and t_sw > 0:
-            xn, accepted = x + t_sw * pt, True
+            xn, accepted = x + t_sw * p, True
         for _ in range(0 if accepted else 60):
-            xn = x + t * pt
+            xn = x + t * p
             fn, gn = _value_and_grad(xn, s, d, ell, mu + jitter, autograd)
             if gn is not None and fn >= f + 1e-4 * t * slope:
                 accepted = True
@@ -477,22 +502,22 @@ def _fit_lbfgs(
                 pairs.clear()
                 continue
             break
-        gnf = _flat(gn)
-        sk, yk = _flat(xn - x), gf - gnf  # curvature of -L
+        sk, yk = (xn - x).reshape(-1), gf - gn.reshape(-1)  # curvature of -L
         sy = float(np.dot(sk, yk))
         if sy > 1e-12 * float(np.linalg.norm(yk)) * float(np.linalg.norm(sk)):
             pairs.append((sk, yk, 1.0 / sy))
             if len(pairs) > memory:
                 pairs.pop(0)
-        x, f, gf = xn, fn, gnf
+        x, f, g = xn, fn, gn
         hist.append(f)
         done = len(hist) > window and _converged(hist[-1 - window], f, tol)
         if callback is not None:
             callback(it, f)
-        bar.set_postfix(loglik=f"{f:.6g}", refresh=False)
+        if show:
+            bar.set_postfix(loglik=f"{f:.6g}", refresh=False)
         if done:
             break
-    return x, hist, rejected, jitter
+    return torch.from_numpy(x), hist, rejected, jitter
 
 
 def _fit_adam(x0, s, d, ell, mu, jitter, max_iter, tol, lr, progress, callback, floor, cap, autograd=True):

@@ -91,7 +91,7 @@ MAX_BANDS = 128
 #: counted pixels and DEFENSIVE x the image's mean is added (a pilot pixel has few paths and a
 #: heavy-tailed variance: allocating from the raw estimate gives too few paths where it came out
 #: low, and the achieved noise then exceeds the prediction); spp levels are MIN_SPP * 2^(k/2)
-#: (few levels, few tiles; rounding up to the next level costs ~1% against exact spp)
+#: (few levels: a steadier allocation; rounding up to the next level costs ~1% against exact spp)
 SMOOTH = 7
 DEFENSIVE = 0.1
 MIN_SPP = 4
@@ -269,7 +269,8 @@ def pilot_images(
 
 def spp_levels(x: torch.Tensor) -> torch.Tensor:
     """``x`` (any shape, >= 0) rounded up to the adaptive spp grid ``MIN_SPP * 2^(k / LEVELS_PER_OCTAVE)`` (made
-    integers), as int64: few distinct levels, so few tiles (each level is traced in its own)."""
+    integers), as int64: few distinct levels (the precompute traces them in one pass sequence
+    per tile, whatever the levels)."""
     k = torch.ceil(LEVELS_PER_OCTAVE * torch.log2(x.double().clamp_min(MIN_SPP) / MIN_SPP) - 1e-9)
     return torch.ceil(MIN_SPP * 2 ** (k / LEVELS_PER_OCTAVE) - 1e-9).long()
 

@@ -72,6 +72,37 @@ def scene_vertices(scene: Scene) -> SceneVertices:
     return SceneVertices(torch.cat(pos), torch.cat(nrm), torch.cat(oid), torch.tensor(off, dtype=torch.int64))
 
 
+def _check_vertices(v: SceneVertices) -> None:
+    """Shapes and indices of loaded vertices within their ranges, as the polynomial record's
+    (a checksummed file can still come from a faulty writer: an object id past the last object
+    failed later as an IndexError, offsets that skip vertices shaded them with another material).
+
+    Raises:
+        FileFormatError: the first inconsistency, naming the array.
+    """
+    p = v.positions.shape[0]
+    for what, x, shape in (
+        ("positions", v.positions, (p, 3)),
+        ("normals", v.normals, (p, 3)),
+        ("object_ids", v.object_ids, (p,)),
+    ):
+        if tuple(x.shape) != shape:
+            raise FileFormatError(f"vertex {what} {tuple(x.shape)}: expected {shape}")
+    off = v.offsets
+    if off.ndim != 1 or off.numel() < 2 or int(off[0]) != 0 or int(off[-1]) != p or bool((off.diff() < 0).any()):
+        raise FileFormatError(
+            f"object_offsets {off.tolist() if off.numel() <= 8 else tuple(off.shape)}: expected (O + 1,) "
+            f"rising from 0 to the {p} vertices"
+        )
+    owner = torch.repeat_interleave(torch.arange(off.numel() - 1), off.diff())
+    if not torch.equal(v.object_ids.long(), owner):
+        bad = int((v.object_ids.long() != owner).nonzero()[0])
+        raise FileFormatError(
+            f"object_ids: vertex {bad} has object {int(v.object_ids[bad])}, its offsets say {int(owner[bad])} "
+            f"(objects 0..{off.numel() - 2})"
+        )
+
+
 @dataclass(frozen=True)
 class VertexVisibility(Record):
     """Differential visibility of every scene vertex.
@@ -152,6 +183,7 @@ class VertexVisibility(Record):
         blocks = BlockVisibility.from_bytes(
             arrays["stream"], arrays["vertex_offsets"], geom.block_count, int(meta["bits"])
         )
+        _check_vertices(verts)
         if len(verts) != int(meta["vertices"]) or blocks.counts.shape[0] != len(verts):
             raise FileFormatError(f"{blocks.counts.shape[0]} maps for {len(verts)} vertices")
         if verts.fingerprint != meta["fingerprint"]:

@@ -257,6 +257,40 @@ def _raise_bad_visibility(x: np.ndarray, bad: np.ndarray, first_pair: int, nb: i
     raise ValueRangeError(f"visibility must lie in [0, 1]; {where} ({int(bad.sum())} such values in this chunk)")
 
 
+def packed_entries(packed) -> tuple[np.ndarray, np.ndarray]:
+    r"""The flips of binary block visibility packed 8 texels a byte (Eq. 5 for binary maps).
+
+    A flip at texel ``t`` of a block is bit ``t`` of ``x ^ (x >> 1)`` along the block's 256
+    bits (texel ``-1`` reads 0); whole bytes are shifted and compared, and only the few non-zero
+    bytes are unpacked, so the cost is about that of the 32-byte rows themselves.
+
+    Args:
+        packed: ``(P, NB, 32)`` uint8, ``np.packbits`` of ``(P, NB, 256)`` bool along the last
+            axis (big-endian bits: texel ``8 j`` is the top bit of byte ``j``).
+
+    Returns:
+        ``counts``: ``(P, NB)`` int16 flips per pair; ``index``: ``(F,)`` uint8 their texel
+        positions, pair by pair, increasing: the entries of :meth:`BlockVisibility.encode`.
+
+    Raises:
+        ShapeError: not ``(P, NB, 32)`` uint8.
+    """
+    x = np.asarray(packed)
+    width = BLOCK_TEXELS // 8
+    if x.ndim != 3 or x.shape[-1] != width or x.shape[1] < 1 or x.dtype != np.uint8:
+        raise ShapeError(f"Expected packed visibility of shape (P, NB, {width}) uint8; got {x.dtype} {x.shape}")
+    p, nb, _ = x.shape
+    x = np.ascontiguousarray(x).reshape(p * nb, width)
+    prev = x >> 1  # each texel's predecessor, moved onto its bit
+    prev[:, 1:] |= x[:, :-1] << 7  # the last texel of the byte before
+    change = x ^ prev  # one bit per flip
+    counts = np.bitwise_count(change.view(np.uint64)).sum(1, dtype=np.int16)
+    at = np.flatnonzero(change)  # row-major: pair by pair, bytes increasing
+    row, col = np.nonzero(np.unpackbits(change.reshape(-1)[at][:, None], axis=1))  # (n, 8), big-endian
+    index = ((at[row] & (width - 1)) * 8 + col).astype(np.uint8)
+    return counts.reshape(p, nb), index
+
+
 # --------------------------------------------------------------------------------------------
 # the record
 # --------------------------------------------------------------------------------------------
@@ -373,6 +407,8 @@ class BlockVisibility(Record):
             raise ValueRangeError(f"visibility must be real; got {v.dtype}")
         p, nb, _ = v.shape
         flat = v.detach().reshape(p * nb, BLOCK_TEXELS)
+        if flat.dtype == torch.bool and bits == 0:  # packed: 8 texels a byte, same entries
+            return cls.encode_packed(np.packbits(flat.cpu().numpy(), axis=1).reshape(p, nb, BLOCK_TEXELS // 8), meta)
         levels = _levels(bits)
         counts, index, delta = [], [], []
         for start in range(0, p * nb, _CHUNK_PAIRS):  # chunks of pairs bound the temporaries
@@ -407,6 +443,50 @@ class BlockVisibility(Record):
         delta_t = torch.from_numpy(np.concatenate(delta) if delta else np.zeros(0, np.int16)) if bits else None
         meta = dict(meta or {})
         return cls._from_entries(nb, bits, counts_t, index_t, delta_t, meta)
+
+    @classmethod
+    def encode_packed(cls, packed, meta: dict[str, Any] | None = None) -> BlockVisibility:
+        r"""Differential encoding of binary block visibility packed 8 texels a byte.
+
+        The same record as :meth:`encode` of the unpacked maps with ``bits=0``, from
+        :func:`packed_entries`.
+
+        Args:
+            packed: ``(P, NB, 32)`` uint8, ``np.packbits`` of ``(P, NB, 256)`` bool along the
+                last axis (big-endian bits: texel ``8 j`` is the top bit of byte ``j``).
+            meta: provenance kept with the record.
+
+        Returns:
+            The binary record (``bits == 0``).
+
+        Raises:
+            ShapeError: not ``(P, NB, 32)`` uint8.
+        """
+        counts, index = packed_entries(packed)
+        return cls._from_entries(counts.shape[1], 0, torch.from_numpy(counts), torch.from_numpy(index), None, meta)
+
+    @classmethod
+    def from_entries(
+        cls, block_count: int, bits: int, counts, index, delta=None, meta: dict[str, Any] | None = None
+    ) -> BlockVisibility:
+        """The record of given entries (e.g. those of :func:`packed_entries`, or of several
+        records' ``counts`` / ``index`` / ``delta`` concatenated); trusted as :meth:`encode`'s.
+
+        Args:
+            block_count: ``NB``. bits: 0 (binary) or the quantisation bits.
+            counts: ``(P, NB)`` int16 entries per pair. index: ``(F,)`` uint8 texel positions,
+                increasing within each pair. delta: ``(F,)`` int16 (graded maps) or None.
+            meta: provenance kept with the record.
+
+        Raises:
+            ShapeError: shapes or dtypes, or counts that do not add up to ``F``.
+        """
+        counts, index = torch.as_tensor(counts), torch.as_tensor(index)
+        delta = None if delta is None else torch.as_tensor(delta)
+        total = int(counts.numpy().sum(dtype=np.int64)) if counts.dtype == torch.int16 else None
+        if total is not None and total != index.numel():
+            raise ShapeError(f"counts add up to {total} entries; got {index.numel()}")
+        return cls._from_entries(block_count, _check_bits(bits), counts, index, delta, meta)
 
     @classmethod
     def concat(cls, records: Sequence[BlockVisibility]) -> BlockVisibility:

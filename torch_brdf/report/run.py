@@ -160,7 +160,8 @@ def load_results(folder: str | os.PathLike) -> dict[str, dict[str, Any]]:
     benchmark JSON object) or ``<name>.out`` (a benchmark's stdout; its last line is the object).
 
     Raises:
-        FileFormatError: the folder does not exist, or a ``.json`` file is not JSON.
+        FileFormatError: the folder does not exist, a ``.json`` file is not JSON, or
+            ``extremes.json`` is not the extremes benchmark's object.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -179,5 +180,26 @@ def load_results(folder: str | os.PathLike) -> dict[str, dict[str, Any]]:
             raise FileFormatError(f"{path}: expected a JSON object; got {type(obj).__name__}")
         if obj.get("format") != FORMAT:
             obj = {"name": path.stem, "result": obj, "error": None, "command": f"(read from {path.name})"}
+        if path.stem == "extremes" and not obj.get("error"):
+            _check_extremes(obj.get("result"), path)
         recs[path.stem] = obj
     return recs
+
+
+def _check_extremes(result: Any, path: Path) -> None:
+    """Refuse an ``extremes`` result that is not ``benchmarks/extremes.py``'s object (a list
+    ``cells`` of objects with ``row``, ``column`` and ``ok``): the report would otherwise show
+    "not measured" for a file that was given on purpose.
+
+    Raises:
+        FileFormatError: naming the file and what is missing.
+    """
+    cells = result.get("cells") if isinstance(result, dict) else None
+    if not isinstance(cells, list) or not cells:
+        raise FileFormatError(
+            f"{path}: not benchmarks/extremes.py output (expected an object with a non-empty list 'cells')"
+        )
+    for i, cell in enumerate(cells):
+        missing = [k for k in ("row", "column", "ok") if not isinstance(cell, dict) or k not in cell]
+        if missing:
+            raise FileFormatError(f"{path}: cells[{i}] lacks {', '.join(missing)} (not benchmarks/extremes.py output)")

@@ -12,7 +12,6 @@ came and, for unknown keys, which keys are known.
 
 from __future__ import annotations
 
-import inspect
 import math
 import os
 from collections.abc import Callable
@@ -188,16 +187,16 @@ def _array_of_tables(v, key: str) -> list:
 
 
 def _material(v, key: str) -> dict[str, Any]:
-    from ..brdf.base import available, model_class
+    from ..brdf.base import available, model_parameters
 
     if not isinstance(v, dict):
         raise _fail(key, "a table with a 'type' (a BRDF model name) and its parameters", v)
     kind = v.get("type")
     if kind not in available():
         raise _fail(f"{key}.type", f"one of the BRDF models {available()}", kind)
-    params = inspect.signature(model_class(kind).__init__).parameters
-    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        known = sorted(["type", *(k for k in params if k != "self")])
+    params = model_parameters(kind)
+    if params is not None:
+        known = sorted(["type", *params])
         unknown = sorted(str(k) for k in v if k not in known)
         if unknown:
             raise SceneError(f"{key}: unknown key(s) {unknown} for a {kind!r} material; known keys: {known}")

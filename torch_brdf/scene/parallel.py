@@ -140,6 +140,26 @@ class TraceKernel:
             b = a + CHUNK
             out[a:b] = self.scene.run(o[a:b], d[a:b], dists=t_max[a:b], query="OCCLUDED") != -1
 
+    def occluded_fans(self, o: np.ndarray, fans: np.ndarray, d: np.ndarray, out: np.ndarray) -> None:
+        """Unbounded occlusion of fans of rays that share their origin, one embree call per fan.
+
+        The fan's origin goes to embree as a zero-stride view (no per-ray copy), its directions
+        as a slice of ``d`` (fans may share one); each ray's result is the same as by
+        :meth:`occluded` with ``t_max`` = ``1e37``.
+
+        Args:
+            o: (m, 3) float32 origins.
+            fans: (m, 2) int64 ``(start, count)``: fan ``i`` casts ``d[start : start + count]``.
+            d: (D, 3) float32 directions (any row stride).
+            out: (sum of counts,) bool, filled in fan after fan.
+        """
+        s = 0
+        for i, (a, n) in enumerate(fans.tolist()):
+            if n:
+                origin = np.lib.stride_tricks.as_strided(o[i], (n, 3), (0, o.strides[1]), writeable=False)
+                out[s : s + n] = self.scene.run(origin, d[a : a + n], query="OCCLUDED") != -1
+                s += n
+
     def _embree(self, o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
         # rays start with tfar = inf, which embree leaves on a miss (embreex returns, and
         # may overwrite, the ``dists`` array: it is a fresh one)

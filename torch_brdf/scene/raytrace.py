@@ -221,6 +221,45 @@ class RayTracer:
         self.seconds += time.perf_counter() - t0
         return torch.from_numpy(out)
 
+    def occluded_fans(self, origins: np.ndarray, fans: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Unbounded occlusion of fans of rays with a shared origin (e.g. a vertex's cubemap
+        texels), on numpy arrays: the same per ray as :meth:`occluded` with ``t_max = inf``,
+        without an (P, 3) origin array or tensor conversions.
+
+        Args:
+            origins: (m, 3) fan origins (float32, or converted).
+            fans: (m, 2) integer ``(start, count)``: fan ``i`` casts ``directions[start : start + count]``
+                from ``origins[i]`` (fans may share directions).
+            directions: (D, 3) float32 numpy array (rows may be strided, e.g. a view of (D, 4)).
+        Returns:
+            (P,) bool numpy array, P = the sum of the counts, fan after fan.
+        Raises:
+            ShapeError: shapes or dtypes; ValueRangeError: a fan outside ``directions``, NaN/Inf rays.
+        """
+        t0 = time.perf_counter()
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        f = np.asarray(fans)
+        d = directions
+        if o.ndim != 2 or o.shape[1] != 3 or f.shape != (len(o), 2) or f.dtype.kind not in "iu":
+            raise ShapeError(f"Expected origins (m, 3) and integer fans (m, 2); got {o.shape} and {f.dtype} {f.shape}")
+        if not isinstance(d, np.ndarray) or d.dtype != np.float32 or d.ndim != 2 or d.shape[1] != 3:
+            raise ShapeError(f"Expected directions as a (D, 3) float32 numpy array; got {type(d).__name__}")
+        f = f.astype(np.int64)
+        if len(f) and (f.min() < 0 or int((f[:, 0] + f[:, 1]).max()) > len(d)):
+            raise ValueRangeError(f"fans must be (start >= 0, count >= 0) within the {len(d)} directions")
+        if not (np.isfinite(o).all() and np.isfinite(d).all()):
+            raise ValueRangeError("fan origins and directions must be finite")
+        out = np.empty(int(f[:, 1].sum()), bool)
+        if self._parallel(len(out)):  # the pool traces chunks of full ray arrays
+            rays = np.concatenate([np.arange(a, a + n) for a, n in f.tolist()]) if len(f) else np.zeros(0, np.int64)
+            o_all = np.ascontiguousarray(np.repeat(o, f[:, 1], axis=0))
+            d_all = np.ascontiguousarray(d[rays])
+            self._pool.occluded(o_all, d_all, np.full(len(out), _EMBREE_FAR, np.float32), out)
+        else:
+            self._kernel.occluded_fans(o, f, d, out)
+        self.seconds += time.perf_counter() - t0
+        return out
+
     def spawn(self, position, geometric_normal, directions) -> torch.Tensor:
         """Ray origins pushed off a surface to the side ``directions`` leave towards.
 

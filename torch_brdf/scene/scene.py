@@ -191,6 +191,10 @@ class Scene:
         """(P,) bool: anything within ``(0, t_max)`` along each ray (:meth:`RayTracer.occluded`)."""
         return self.tracer.occluded(origins, directions, t_max)
 
+    def occluded_fans(self, origins, fans, directions):
+        """(P,) bool numpy: occlusion of fans of rays from shared origins (:meth:`RayTracer.occluded_fans`)."""
+        return self.tracer.occluded_fans(origins, fans, directions)
+
     def spawn(self, position, geometric_normal, directions) -> torch.Tensor:
         """Origins offset off the surface for rays leaving along ``directions``."""
         return self._tracer.spawn(position, geometric_normal, directions)

@@ -36,7 +36,7 @@ import time
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,7 @@ from .._threads import configure_worker, prepare_fork, single_thread, tile_proce
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
-__all__ = ["EXECUTORS", "TileError", "TileWork", "connect_ray", "run_tiles", "single_process"]
+__all__ = ["EXECUTORS", "TileError", "TileWork", "connect_ray", "run_tiles", "single_process", "tile_tick"]
 
 EXECUTORS = ("local", "ray")
 
@@ -70,6 +70,18 @@ class Tiles(list):
 
 class TileError(TorchBRDFError, RuntimeError):
     """A tile could not be computed (its worker died more often than the retries allow)."""
+
+
+# what :func:`tile_tick` calls while a tile runs here or in a forked tile process (None elsewhere)
+_TICK: Callable[[int], None] | None = None
+
+
+def tile_tick(steps: int = 1) -> None:
+    """Report that the running tile finished ``steps`` of its ``steps_per_tile`` (e.g. a pass
+    group): moves :func:`run_tiles`' bar within a tile. A no-op outside :func:`run_tiles` and on
+    Ray (whose bar moves per finished tile)."""
+    if _TICK is not None:
+        _TICK(steps)
 
 
 # per-worker-process cache of fetched contexts (key -> context); a worker keeps one.
@@ -162,6 +174,7 @@ def run_tiles(
     consume: Callable[[int, dict[str, np.ndarray], dict[str, Any]], None] | None = None,
     max_new: int | None = None,
     processes: int | None = None,
+    steps_per_tile: Sequence[int] | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -187,6 +200,9 @@ def run_tiles(
             ``ray_context`` as for Ray); None: :func:`~torch_brdf._threads.tile_processes` (one
             per usable core, 1 on a busy machine); 1: all in this process (needed when ``fn``
             fills something of ``context``'s, e.g. an oracle).
+        steps_per_tile: the bar's units per tile (``num_tiles`` counts, e.g. pass groups), which
+            ``fn`` reports as it goes with :func:`tile_tick` (locally, forked processes
+            included); None: one unit per tile.
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -207,8 +223,22 @@ def run_tiles(
             out[k] = (done[0], {**done[1], "cached": True})
     if max_new is not None:
         todo = todo[: max(0, max_new)]
-    bar = tqdm(total=num_tiles, initial=sum(x is not None for x in out), desc=desc, disable=not progress)
+    steps = [1] * num_tiles if steps_per_tile is None else [max(1, int(n)) for n in steps_per_tile]
+    if len(steps) != num_tiles:
+        raise ValueRangeError(f"steps_per_tile has {len(steps)} counts for {num_tiles} tiles")
+    ticked = [0] * num_tiles  # units of each tile already shown
+    bar = tqdm(
+        total=sum(steps),
+        initial=sum(n for n, x in zip(steps, out, strict=True) if x is not None),
+        desc=desc,
+        disable=not progress,
+    )
     nxt = [0]  # the next tile to consume
+
+    def advance(k: int, n: int) -> None:
+        n = max(0, min(n, steps[k] - ticked[k]))  # never past the tile's own units
+        ticked[k] += n
+        bar.update(n)
 
     def drain() -> None:
         if consume is None:
@@ -227,7 +257,7 @@ def run_tiles(
             cache.save_encoded(k, encoded)
         out.write_seconds += time.perf_counter() - t0
         out[k] = (res[0], {**res[1], "cached": False})
-        bar.update(1)
+        advance(k, steps[k])
         drain()
 
     try:
@@ -237,11 +267,11 @@ def run_tiles(
         nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
         if executor == "local" and nproc > 1:
-            _run_forked(fn, ray_context, todo, finish, nproc, cache, meta or {})
+            _run_forked(fn, ray_context, todo, finish, advance, nproc, cache, meta or {})
         elif executor == "local":
             with single_thread():
                 for k in todo:
-                    finish(k, fn(context, k))
+                    finish(k, _ticking(lambda n, k=k: advance(k, n), fn, context, k))
         elif todo:
             _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {})
     finally:
@@ -249,8 +279,19 @@ def run_tiles(
     return out
 
 
-# what forked tile processes run: set before forking, inherited by the children
-_FORKED: tuple[TileFn, Any, TileCache, dict] | None = None
+def _ticking(report: Callable[[int], None], fn: TileFn, context: Any, k: int) -> TileResult:
+    """``fn(context, k)`` with :func:`tile_tick` calling ``report``."""
+    global _TICK
+    _TICK = report
+    try:
+        return fn(context, k)
+    finally:
+        _TICK = None
+
+
+# what forked tile processes run: set before forking, inherited by the children (the last item:
+# the queue on which they report (tile, units) for :func:`tile_tick`)
+_FORKED: tuple[TileFn, Any, TileCache, dict, Any] | None = None
 
 
 def _forked_init() -> None:
@@ -261,31 +302,43 @@ def _forked_init() -> None:
 def _forked_tile(k: int) -> tuple[TileResult, bytes | None]:
     """Tile ``k`` in a forked process, and the bytes of its checkpoint file (encoded here, as a
     Ray task does, so the driver only writes them; None without a checkpoint folder)."""
-    fn, ctx, cache, meta = _FORKED
+    fn, ctx, cache, meta, ticks = _FORKED
     try:
-        arrays, tile_meta = fn(ctx, k)
+        arrays, tile_meta = _ticking(lambda n: ticks.put((k, n)), fn, ctx, k)
     except (KeyboardInterrupt, SystemExit) as exc:  # would kill the worker: report it as the tile's error
         raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
     return (arrays, tile_meta), cache.encode(arrays, {**meta, **tile_meta})
 
 
-def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes: int, cache, meta) -> None:
+def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, advance, processes: int, cache, meta) -> None:
     """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
-    here as each tile arrives (any order; it assembles in tile order). A tile's exception is
-    raised here; a process that dies (killed, out of memory) raises ``BrokenProcessPool``;
-    either way, and on Ctrl-C, the other processes are stopped."""
+    here as each tile arrives (any order; it assembles in tile order), ``advance(k, n)`` as the
+    processes report progress within tile ``k``. A tile's exception is raised here; a process
+    that dies (killed, out of memory) raises ``BrokenProcessPool``; either way, and on Ctrl-C,
+    the other processes are stopped."""
     global _FORKED
     prepare_fork()
-    _FORKED = (fn, context, cache, meta)
+    mp = multiprocessing.get_context("fork")
+    ticks = mp.SimpleQueue()
+
+    def report() -> None:
+        while not ticks.empty():
+            advance(*ticks.get())
+
+    _FORKED = (fn, context, cache, meta, ticks)
     with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
         warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
-        pool = ProcessPoolExecutor(processes, multiprocessing.get_context("fork"), initializer=_forked_init)
+        pool = ProcessPoolExecutor(processes, mp, initializer=_forked_init)
         try:
             with single_thread():
                 futures = {pool.submit(_forked_tile, k): k for k in todo}
-                for f in as_completed(futures):
-                    res, encoded = f.result()
-                    finish(futures[f], res, encoded)
+                pending = set(futures)
+                while pending:
+                    done, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
+                    report()
+                    for f in done:
+                        res, encoded = f.result()
+                        finish(futures[f], res, encoded)
         except BaseException:
             for proc in list((getattr(pool, "_processes", None) or {}).values()):
                 proc.terminate()  # running tiles are not waited for
@@ -293,6 +346,7 @@ def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, processes
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             _FORKED = None
+            ticks.close()
 
 
 def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta) -> None:

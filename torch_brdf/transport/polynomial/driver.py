@@ -50,11 +50,33 @@ def _default_processes(tile_paths: int) -> int:
     return n
 
 
-def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tick=None, native=None):
-    """Trace a tile and reduce its entries to (sum, sum of per-path squares) per key;
-    ``tick()`` (if given) after each pass group. ``native``: the compiled reduction kernel
-    (None: :func:`~torch_brdf.transport._native.library`, which is None without a compiler; False: the torch path);
-    the sums are the same bit for bit."""
+def _pass_groups(counts: torch.Tensor, group: int | None) -> list[tuple[int, int]]:
+    """Pass ranges [s0, s1) traced together in a tile whose pixels take ``counts`` paths each:
+    ``group`` passes at a time, or (None) as many passes as make >= 64k rays (at least one)."""
+    passes = int(counts.max())
+    if group is not None:
+        return [(s0, min(passes, s0 + group)) for s0 in range(0, passes, group)]
+    # pixels in pass s: those with counts > s
+    live = counts.numel() - torch.searchsorted(torch.sort(counts).values, torch.arange(passes), right=True)
+    out, s0, rays = [], 0, 0
+    for s, n in enumerate(live.tolist()):
+        rays += n
+        if rays >= 65536 or s == passes - 1:
+            out.append((s0, s + 1))
+            s0, rays = s + 1, 0
+    return out
+
+
+def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, tick=None, native=None):
+    """Trace a tile whose pixel ``i`` takes ``counts[i]`` paths and reduce its entries to (sum,
+    sum of per-path squares) per key; ``tick()`` (if given) after each pass group.
+
+    Pass ``s`` traces one path from every pixel with ``counts > s`` (in raster order), and the
+    passes of a group are one batch: with equal counts this is the uniform run's batch, ray
+    for ray and random number for random number (so an adaptive tile whose pixels all take
+    ``s`` paths equals the uniform run's tile at ``s`` entry for entry). ``native``: the compiled
+    entry kernel (None: :func:`~torch_brdf.transport._native.library`, None without a compiler;
+    False: the torch path); the sums are the same bit for bit."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
@@ -64,22 +86,28 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
         "j": max([1] + [b.size for b in tracer.bases if b is not None]),
         "w": max(1, sum(b.second_size for b in tracer.bases if b is not None) if tracer.series.two_level else 1),
     }
+    groups = _pass_groups(counts, group)
     lib = (library() if native is None else native) or None
-    bits = native_bits({**sizes, "path": min(group, spp)}, tracer.num_objects, tracer.series.bounces) if lib else None
+    most = max(s1 - s0 for s0, s1 in groups)
+    bits = native_bits({**sizes, "path": most}, tracer.num_objects, tracer.series.bounces) if lib else None
     lib = lib if bits else None  # keys too wide for the kernel: the torch path
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
-    for gi, g0 in enumerate(range(0, spp, group)):
-        ng = min(group, spp - g0)
+    for gi, (s0, s1) in enumerate(groups):
         with clock("sampling"):
+            # the (pass, pixel record) of each ray, pass-major: pass s0 + a, then its records
+            pas, rec = torch.nonzero(counts[None, :] > torch.arange(s0, s1)[:, None], as_tuple=True)
             gen = seeded_generator(seed, tile, gi)
-            off = torch.rand(ng * p, 2, generator=gen, dtype=torch.float64)
-            ray = torch.arange(ng * p)
-            rec = ray % p
+            off = torch.rand(rec.numel(), 2, generator=gen, dtype=torch.float64)
+            ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
         ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
-        e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray index as "path"
+        n_rows = len(paths.get("rows", ())) if paths is not None else 0
+        e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
+        if paths is not None:  # the oracle's rows: ray id -> flat pixel index
+            for r in paths.get("rows", [])[n_rows:]:
+                r["rec"] = pixels[r["rec"] % p]
         with clock("bookkeeping"):
             emis.index_add_(0, rec, e.double())
             if tick is not None:
@@ -92,7 +120,7 @@ def _tile_entries(tracer, scene, pixels, tile, spp, group, seed, paths=None, tic
                 continue
             ray_id = dd.pop("path")
             dd["rec"], dd["path"] = ray_id % p, ray_id // p
-            reduced.append(_reduce(dd, {**sizes, "path": ng}, by_path=True))
+            reduced.append(_reduce(dd, {**sizes, "path": s1 - s0}, by_path=True))
     reduced = [r for r in reduced if r]
     if not reduced:
         return emis, {}
@@ -110,9 +138,9 @@ class _TileWork:
     Pickles without its tracer (rebuilt lazily where it runs) and without ``paths``.
     """
 
-    def __init__(self, scene, plan, series, mixture, lights, tiles, spp, group, seed, paths=None, light_samples=1):
+    def __init__(self, scene, plan, series, mixture, lights, tiles, counts, group, seed, paths=None, light_samples=1):
         self.scene, self.plan, self.series, self.mixture, self.lights = scene, plan, series, mixture, lights
-        self.tiles, self.spp, self.group, self.seed, self.paths = tiles, spp, group, seed, paths
+        self.tiles, self.counts, self.group, self.seed, self.paths = tiles, counts, group, seed, paths
         self.light_samples = light_samples
         self._tracer = None
 
@@ -130,25 +158,26 @@ class _TileWork:
         return self.tiles[k]
 
 
-def _tiles(spp_map: torch.Tensor, tile_pixels: int) -> tuple[list[torch.Tensor], list[int]]:
-    """The work units of a per-pixel spp map: the pixels of each spp level in raster order,
-    cut into pieces of at most ``tile_pixels``, ordered by their first pixel.
+def _tiles(spp_map: torch.Tensor, tile_pixels: int) -> tuple[list[torch.Tensor], list[torch.Tensor | int]]:
+    """The work units of a per-pixel spp map: bands of ``tile_pixels`` pixels in raster order
+    (``tile_pixels / width`` rows), each with its pixels' spp (an int where they are equal).
 
-    A uniform map gives the row bands of ``tile_pixels / width`` rows (the tiles of a run with
-    one spp), so the tile ``k`` of an adaptive run and of a uniform run at that tile's spp
-    cover the same pixels and draw the same random numbers whenever the levels follow the bands.
+    Every tile holds whole rows whatever the map, so an adaptive run does the same work per
+    tile and per batch as a uniform run (:func:`_tile_entries` traces a tile's spp levels in
+    one pass sequence), and its tile ``k`` equals a uniform run's tile ``k`` wherever that
+    tile's pixels all take the uniform run's spp.
 
     Args:
         spp_map: (H*W,) int64, >= 1.
     Returns:
-        (pixels per tile, spp per tile).
+        (pixels per tile, paths per pixel per tile: (P,) int64, or an int when uniform).
     """
-    pieces = []
-    for level in torch.unique(spp_map).tolist():
-        pix = torch.nonzero(spp_map == level).squeeze(1)
-        pieces += [(int(c[0]), c, int(level)) for c in torch.split(pix, tile_pixels)]
-    pieces.sort(key=lambda t: t[0])
-    return [c for _, c, _ in pieces], [lv for _, _, lv in pieces]
+    tiles = list(torch.split(torch.arange(spp_map.numel()), tile_pixels))
+    counts: list[torch.Tensor | int] = []
+    for t in tiles:
+        c = spp_map[t]
+        counts.append(int(c[0]) if bool((c == c[0]).all()) else c)
+    return tiles, counts
 
 
 def _run_lengths(x: torch.Tensor) -> list[list[int]]:
@@ -176,10 +205,11 @@ def _polynomial_tile(work: _TileWork, k: int):
     tracer = work.tracer
     rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
     pix = work.pixels(k)
-    spp, group = work.spp[k], work.group[k]
-    emis, red = _tile_entries(tracer, work.scene, pix, k, spp, group, work.seed, work.paths)
-    with tracer.clock("blocks"):
-        local = _local_blocks(red, work.plan, spp)
+    spp, group = work.counts[k], work.group[k]
+    counts = torch.full((pix.numel(),), spp) if isinstance(spp, int) else spp
+    emis, red = _tile_entries(tracer, work.scene, pix, counts, k, group, work.seed, work.paths)
+    with tracer.clock("blocks"):  # an adaptive tile: each entry is the mean over its pixel's paths
+        local = _local_blocks(red, work.plan, spp if isinstance(spp, int) else spp[red["rec"]][:, None] if red else 1)
     arrays = {"emission": emis.numpy()}
     arrays |= {f"b{g}_{n}": b[n].numpy() for g, b in enumerate(local) for n in _BLOCK_ARRAYS}
     rays = {n: tracer.rays[n] - rays0[n] for n in rays0}
@@ -244,8 +274,9 @@ def precompute_polynomial(
         scene: the scene; objects with ``editable=False`` are fixed.
         series: the BRDF series, e.g. ``"64,1,1,1"``; its length is the number of bounces.
         spp: paths per pixel, or an (H, W) integer map of them (adaptive sampling: each pixel
-            is the average over its own paths, so every pixel stays unbiased; the pixels of
-            each spp level are traced together in tiles of their own, see :func:`_tiles`).
+            is the average over its own paths, so every pixel stays unbiased; tiles are row
+            bands whatever the map, pass ``s`` tracing the pixels with more than ``s`` paths,
+            see :func:`_tiles`).
         seed: the result is a deterministic function of (scene, settings, seed).
         bases: per-object :class:`ObjectBasis` list, or overrides for :func:`plan_bases`.
         mixture: direction sampling (default 70% cosine, 30% Blinn 200).
@@ -342,12 +373,11 @@ def precompute_polynomial(
     tile_rows = tile_rows or max(1, min(h, 16384 // w))
     tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
     uniform = bool((spp_map == spp_map.flatten()[0]).all())
-    # passes traced together: >= 64k rays per batch; a uniform run counts tile_rows x width
-    # pixels per tile (as it always did), an adaptive run its tile's own pixels (a level may
-    # hold few, and small batches cost far more per ray)
+    # passes traced together: >= 64k rays per batch; a tile of equal spp counts tile_rows x
+    # width pixels per pass (as a uniform run always did), a tile of several spp its passes'
+    # own rays (None, see _pass_groups)
     group_of = [
-        group or max(1, min(s, math.ceil(65536 / max(1, tile_rows * w if uniform else t.numel()))))
-        for s, t in zip(tile_spp, tiles, strict=True)
+        group or (max(1, min(s, math.ceil(65536 / (tile_rows * w)))) if isinstance(s, int) else None) for s in tile_spp
     ]
     num_tiles = len(tiles)
     light_samples = check_count(light_samples, "light_samples", 1024)
@@ -367,13 +397,16 @@ def precompute_polynomial(
     }
     if not uniform:  # a uniform run keeps the key it always had; a map enters it as run lengths
         settings["spp_map"] = _run_lengths(spp_map.reshape(-1))
+        settings["adaptive_tiles"] = "rows"  # row bands of mixed spp (before: a tile per spp level)
     if light_samples != 1:  # likewise
         settings["light_samples"] = light_samples
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
     if processes is None:  # paths of the largest tile (k light samples: k x the eye entries)
-        processes = _default_processes(max(t.numel() * n for t, n in zip(tiles, tile_spp, strict=True)) * light_samples)
+        pairs = zip(tiles, tile_spp, strict=True)
+        tile_paths = max(t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in pairs)
+        processes = _default_processes(tile_paths * light_samples)
     # Ray tasks and forked tile processes trace in their own process (one per CPU)
     ray_work = _TileWork(
         single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
@@ -400,7 +433,8 @@ def precompute_polynomial(
         else:
             for k, v in meta.get("split", {}).items():
                 split[k] = split.get(k, 0.0) + float(v)
-        emission[:, pix] = (emis / tile_spp[ti]).float().T
+        n = tile_spp[ti]
+        emission[:, pix] = (emis / (n if isinstance(n, int) else n[:, None])).float().T
         blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
@@ -453,7 +487,7 @@ def plan_polynomial(
     pilot_bounces: int = 8,
     seed: int = 0,
     env_point_lights: int | None = None,
-    progress: bool = False,
+    progress: bool | None = None,
     pilot_runs: int = 4,
     adaptive: bool = True,
     max_light_samples: int = 16,
@@ -474,6 +508,7 @@ def plan_polynomial(
         pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
+        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
         pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
         adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
         max_light_samples: the most light samples per eye vertex the plan may choose; above 1,

@@ -8,11 +8,46 @@ from __future__ import annotations
 
 from typing import Any
 
-from ...errors import SceneError
+from ..._checks import MAX_BANDS, check_int
+from ...errors import SceneError, ValueRangeError
 from ...records.polynomial import ObjectBasis, Series
 from ...scene.scene import Scene
 
-__all__ = ["ObjectBasis", "Series", "plan_bases"]
+__all__ = ["OVERRIDE_KEYS", "ObjectBasis", "Series", "check_basis_overrides", "plan_bases"]
+
+#: the :class:`ObjectBasis` fields a basis override may set (``second`` follows the series)
+OVERRIDE_KEYS = ("J", "spacing", "quotient", "fresnel", "variable")
+
+
+def check_basis_overrides(overrides: Any, where: str = "basis override") -> dict[str, dict[str, Any]]:
+    """Check the form of per-object basis overrides, before any scene is loaded (the one check
+    :func:`plan_bases` and ``torch-brdf precompute --bases`` share): a table per object name,
+    keys among :data:`OVERRIDE_KEYS`, ``J`` an integer in [1, MAX_BANDS], ``fresnel`` a bool.
+
+    Args:
+        overrides: ``{object name: {key: value}}`` or None.
+        where: how messages name the overrides (``--bases`` on the command line).
+    Returns:
+        ``overrides`` as a dict (empty for None).
+    Raises:
+        SceneError: not a table of tables, or an unknown key.
+        ValueRangeError: ``J`` or ``fresnel`` of the wrong type or range.
+    """
+    if overrides is None:
+        return {}
+    if not isinstance(overrides, dict):
+        raise SceneError(f"{where} must be a table (JSON object) of object names; got {overrides!r}")
+    for name, spec in overrides.items():
+        if not isinstance(spec, dict):
+            raise SceneError(f"{where} {name!r} must be a table (JSON object) of {list(OVERRIDE_KEYS)}; got {spec!r}")
+        bad = sorted(set(spec) - set(OVERRIDE_KEYS))
+        if bad:
+            raise SceneError(f"{where} {name}: unknown key(s) {bad}; known keys: {list(OVERRIDE_KEYS)}")
+        if "J" in spec:
+            check_int(spec["J"], f"{where} {name}.J", 1, MAX_BANDS)
+        if not isinstance(spec.get("fresnel", False), bool):
+            raise ValueRangeError(f"{where} {name}.fresnel must be true or false; got {spec['fresnel']!r}")
+    return dict(overrides)
 
 
 def plan_bases(
@@ -28,19 +63,13 @@ def plan_bases(
     * anything else: ``series.eye`` bands of theta_h with MERL's ``sqrt`` spacing.
 
     ``overrides`` maps object names to :class:`ObjectBasis` fields (``J``, ``spacing``,
-    ``quotient``, ``fresnel``, ``variable``), e.g. to make a diffuse wall glossy-editable.
+    ``quotient``, ``fresnel``, ``variable``), e.g. to make a diffuse wall glossy-editable
+    (checked by :func:`check_basis_overrides`).
     """
-    overrides = dict(overrides or {})
+    overrides = check_basis_overrides(overrides)
     unknown = sorted(set(overrides) - {o.name for o in scene.objects})
     if unknown:
         raise SceneError(f"basis overrides name unknown objects: {unknown}")
-    fields = ("J", "spacing", "quotient", "fresnel", "variable")
-    for name, spec in overrides.items():
-        if not isinstance(spec, dict):
-            raise SceneError(f"basis override of {name!r} must be a table of {list(fields)}; got {spec!r}")
-        bad = sorted(set(spec) - set(fields))
-        if bad:
-            raise SceneError(f"basis override of {name!r}: unknown keys {bad} (known: {list(fields)})")
     out: list[ObjectBasis | None] = []
     for obj in scene.objects:
         if not obj.editable:

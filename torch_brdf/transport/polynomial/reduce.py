@@ -141,7 +141,7 @@ def _reduce_groups(lib, groups: list[dict[str, torch.Tensor]], num_objects: int,
     return _exported(acc)
 
 
-def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int) -> list[dict[str, torch.Tensor]]:
+def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) -> list[dict[str, torch.Tensor]]:
     """The part of the block assembly that needs only the tile (it runs where the tile ran):
     per (eye object, bounce) the pixels and terms that occur, numbered locally, and the
     entries sorted by their local flat index.
@@ -149,13 +149,15 @@ def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int) -> list[dict[st
     Returns one dict per block: ``head`` (3,) [object, bounce, J]; ``upix`` (P,) tile-local
     pixel records; ``tw`` (Z,) and ``tc`` (Z, M) the terms (second-bounce slot, multiset) in
     local order; ``key`` (E,) ascending ``(j * Z + z) * P + p`` with local z and p; ``vals``
-    and ``var`` (C, E) float32 mean and Monte Carlo variance.
+    and ``var`` (C, E) float32 mean and Monte Carlo variance. ``spp``: the paths per pixel,
+    or (U, 1) those of each entry's pixel (a tile of mixed spp).
     """
     if not red:
         return []
     out = []
     mean = red["sum"] / spp
-    var = ((red["sq"] / spp - mean * mean) / max(spp - 1, 1)).clamp_min(0)
+    dof = max(spp - 1, 1) if isinstance(spp, int) else (spp - 1).clamp_min(1)
+    var = ((red["sq"] / spp - mean * mean) / dof).clamp_min(0)
     group = red["obj"] * 1000 + red["bounce"]
     for gkey in group.unique().tolist():
         m = group == gkey

@@ -1,0 +1,179 @@
+r"""A linear denoiser that picks, per pixel, the local regression whose error is lowest,
+with the error estimated from two independent half-sample buffers (NFOR's selection,
+Bitterli et al., "Nonlinearly weighted first-order regression for denoising Monte Carlo
+renderings", EGSR 2016, Sec. 5, with cross-validated instead of SURE errors).
+
+The candidates are :class:`~.regression.RegressionFilter` s of several window radii and
+degrees (and the identity), all with the guide-only weights of :class:`~.atrous.GuideWeights`.
+Given two independent estimates :math:`a, b` of the same pilot image (e.g. the frame of two
+half-spp precomputations at the freeze-time material), the mean-squared error of candidate
+:math:`A_k` applied to the full buffer :math:`y = (a + b)/2` at pixel :math:`p` is, up to a
+term common to all candidates,
+
+.. math:: \hat R_k(p) = \tfrac12\big[(A_k a - b)_p^2 + (A_k b - a)_p^2\big]
+          - \tfrac14 (A_k a - A_k b)_p^2,
+
+because :math:`E(A_k a - b)^2 = \mathrm{bias}_k^2 + \mathrm{Var}(A_k a) + \mathrm{Var}\,b`,
+:math:`E(A_k a - A_k b)^2 = 2\,\mathrm{Var}(A_k a)` and the full buffer has half the variance
+of a half buffer (for the identity :math:`\hat R` is :math:`\tfrac34 (a - b)^2`, i.e.
+:math:`\mathrm{Var}\,y + \mathrm{Var}\,b`). :math:`\hat R_k` is summed over channels and
+pilot pairs, smoothed by a box of radius ``smooth`` inside each object, and every pixel takes
+the candidate of lowest :math:`\hat R_k`: small windows at soft shadows, contact and
+reflections the guides do not see, large ones on flat shading.
+
+The pick is computed **once from fixed data** (the halves) and then frozen: the filter is
+one fixed set of hat weights, applied alike to every basis image, so it is linear and
+every BRDF edit stays exact, as with the other linear filters. It never crosses object ids
+(each candidate's weights do not) and leaves silhouette pixels as they are. What it cannot
+do: choose for a material it never saw (the pick follows the pilots; an edit that makes a
+reflection sharper than the pilot's keeps the pilot's windows) and remove structure no
+candidate keeps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .._threads import tuned
+from ..errors import ShapeError, ValueRangeError
+from .atrous import GuideFilter, GuideSigmas
+from .guides import GuideBuffers
+from .regression import RegressionFilter, RegressionSettings, apply_hat
+
+
+@dataclass(frozen=True)
+class SelectionSettings(GuideSigmas):
+    """What decides the selecting filter (hashable; benchmarks report it).
+
+    Attributes:
+        candidates: (radius, degree) of each candidate regression (radius >= 1, degree 0-2).
+        identity: also offer the unfiltered pixel.
+        smooth: radius of the box that smooths the error estimates (0: per pixel).
+        ridge: the candidates' ridge (:class:`~.regression.RegressionSettings`).
+    """
+
+    sigma_half: float = 0.02
+    candidates: tuple[tuple[int, int], ...] = ((1, 1), (2, 2), (3, 2), (5, 2), (8, 1), (8, 2))
+    identity: bool = True
+    smooth: int = 12
+    ridge: float = 1e-3
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.candidates or self.smooth < 0:
+            raise ValueRangeError(f"need at least one candidate and smooth >= 0; got {self}")
+
+    def regression(self, radius: int, order: int) -> RegressionSettings:
+        """The :class:`RegressionSettings` of one candidate (same guide tolerances)."""
+        return RegressionSettings(
+            sigma_normal=self.sigma_normal,
+            sigma_plane=self.sigma_plane,
+            sigma_albedo=self.sigma_albedo,
+            sigma_mirror=self.sigma_mirror,
+            sigma_half=self.sigma_half,
+            radius=radius,
+            order=order,
+            ridge=self.ridge,
+        )
+
+
+def _box_within(x: torch.Tensor, label: torch.Tensor, r: int) -> torch.Tensor:
+    """Mean of ``x`` (K, H, W) over the (2r + 1)² box of each pixel, over pixels of the same ``label``."""
+    if r == 0:
+        return x
+    out = torch.zeros_like(x)
+    count = torch.zeros_like(x[0])
+    h, w = label.shape
+    lp = F.pad(label[None, None].double(), (r, r, r, r), value=-7.0)[0, 0]
+    xp = F.pad(x, (r, r, r, r))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            same = (lp[r + dy : r + dy + h, r + dx : r + dx + w] == label).to(x.dtype)
+            out += same * xp[:, r + dy : r + dy + h, r + dx : r + dx + w]
+            count += same
+    return out / count.clamp_min(1)
+
+
+class SelectedRegressionFilter(GuideFilter):
+    """Per-pixel choice among guide-weighted local regressions, picked once from half buffers.
+
+    Args:
+        guides: the view's :class:`GuideBuffers`.
+        halves: pairs ``(a, b)`` of independent estimates of pilot images, each (..., H, W)
+            (e.g. the frames of two half-spp precomputations, permuted to (C, H, W)).
+        settings: :class:`SelectionSettings`.
+        glossy: object ids where the half-vector guide applies.
+
+    Calling it on images (..., H, W) returns the filtered images; it is linear.
+
+    Attributes:
+        pick: (H, W) int64 index of each pixel's candidate in :attr:`names`.
+        names: the candidates, ``"identity"`` or ``"r{radius}o{degree}"``.
+        weights: ((2R + 1)², H, W) float32 hat weights (R the largest candidate radius).
+    """
+
+    def __init__(
+        self,
+        guides: GuideBuffers,
+        halves: Sequence[tuple[torch.Tensor, torch.Tensor]],
+        settings: SelectionSettings | None = None,
+        glossy=(),
+    ):
+        self.guides = guides
+        self.settings = settings or SelectionSettings()
+        if not isinstance(self.settings, SelectionSettings):
+            raise ValueRangeError(f"expected SelectionSettings; got {type(self.settings).__name__}")
+        self.glossy = tuple(sorted(int(o) for o in glossy))
+        self.shape = (guides.height, guides.width)
+        pairs = []
+        for a, b in halves:
+            a, b = torch.as_tensor(a), torch.as_tensor(b)
+            if a.shape != b.shape:
+                raise ShapeError(f"the halves of a pair differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
+            pairs.append((self._planes(a).double(), self._planes(b).double()))
+        if not pairs:
+            raise ValueRangeError("need at least one pair of half buffers")
+        # many small elementwise ops (the box over the error maps): pick the thread count
+        with tuned("denoise.selection", guides.height * guides.width * (2 * self.settings.smooth + 1) ** 2):
+            self._build(pairs)
+
+    def _build(self, pairs) -> None:
+        s = self.settings
+        cands = [RegressionFilter(self.guides, s.regression(r, o), glossy=self.glossy) for r, o in s.candidates]
+        self.names = (["identity"] if s.identity else []) + [f"r{r}o{o}" for r, o in s.candidates]
+        risks = []
+        for A in [None] * s.identity + cands:
+            risk = torch.zeros(self.shape, dtype=torch.float64)
+            for a, b in pairs:
+                fa, fb = (a, b) if A is None else (A(a), A(b))
+                risk += (0.5 * ((fa - b) ** 2 + (fb - a) ** 2) - 0.25 * (fa - fb) ** 2).sum(0)
+            risks.append(risk)
+        label = torch.where(cands[0].interior, self.guides.object_id, -1)
+        self.pick = _box_within(torch.stack(risks), label, s.smooth).argmin(0)
+        self.radius = max(r for r, _ in s.candidates)
+        big = self.radius
+        self.offsets = [(dy, dx) for dy in range(-big, big + 1) for dx in range(-big, big + 1)]
+        where = {o: k for k, o in enumerate(self.offsets)}
+        hat = torch.zeros(len(self.offsets), *self.shape)
+        hat[where[(0, 0)]] = 1.0  # the identity (and silhouette pixels)
+        first = 1 if s.identity else 0
+        for k, A in enumerate(cands):
+            mine = self.pick == k + first
+            rows = torch.tensor([where[o] for o in A.offsets])
+            hat[:, mine] = 0.0
+            hat[rows] = torch.where(mine, A.weights, hat[rows])
+        self.weights = hat
+
+    @property
+    def description(self) -> str:
+        counts = torch.bincount(self.pick.flatten(), minlength=len(self.names)).tolist()
+        picks = dict(zip(self.names, counts, strict=True))
+        return f"selected regression {self.settings}, glossy objects {list(self.glossy)}, picks {picks}"
+
+    def __call__(self, images: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
+        """Filter images (..., H, W) -> the same shape. ``groups`` is ignored (linear)."""
+        return apply_hat(self, images)
