@@ -160,6 +160,18 @@ def test_bar_moves_within_tiles(monkeypatch, processes):
     tile_tick()  # outside run_tiles: nothing to move, no error
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_precompute_bar_counts_pass_groups(scene, monkeypatch, processes):
+    """The precompute's bar moves once per pass group of each tile (16² in tiles of 4 rows at
+    4 spp, one pass per group: 4 tiles x 4 groups), forked tiles included."""
+    monkeypatch.setattr(executor, "tqdm", _Bar)
+    _Bar.made.clear()
+    T = precompute_polynomial(scene, **{**SETTINGS, "progress": True}, group=1, processes=processes)
+    bar = _Bar.made[-1]
+    assert bar.total == 16 and sum(bar.updates) == 16 and max(bar.updates) == 1, bar.updates
+    assert T.meta["processes"] == processes
+
+
 def test_executor_arguments(scene):
     with pytest.raises(ValueRangeError):
         precompute_polynomial(scene, **SETTINGS, executor="dask")

@@ -22,7 +22,7 @@ from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import library
-from ..executor import run_tiles, single_process
+from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
@@ -157,6 +157,15 @@ class _TileWork:
         """(P,) flat pixel indices of tile ``k`` (ascending)."""
         return self.tiles[k]
 
+    def path_counts(self, k: int) -> torch.Tensor:
+        """(P,) int64 paths per pixel of tile ``k``."""
+        spp = self.counts[k]
+        return torch.full((self.tiles[k].numel(),), spp) if isinstance(spp, int) else spp
+
+    def steps(self, k: int) -> int:
+        """Pass groups of tile ``k`` (what its progress bar counts)."""
+        return len(_pass_groups(self.path_counts(k), self.group[k]))
+
 
 def _tiles(spp_map: torch.Tensor, tile_pixels: int) -> tuple[list[torch.Tensor], list[torch.Tensor | int]]:
     """The work units of a per-pixel spp map: bands of ``tile_pixels`` pixels in raster order
@@ -206,8 +215,8 @@ def _polynomial_tile(work: _TileWork, k: int):
     rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
     pix = work.pixels(k)
     spp, group = work.counts[k], work.group[k]
-    counts = torch.full((pix.numel(),), spp) if isinstance(spp, int) else spp
-    emis, red = _tile_entries(tracer, work.scene, pix, counts, k, group, work.seed, work.paths)
+    counts = work.path_counts(k)
+    emis, red = _tile_entries(tracer, work.scene, pix, counts, k, group, work.seed, work.paths, tick=tile_tick)
     with tracer.clock("blocks"):  # an adaptive tile: each entry is the mean over its pixel's paths
         local = _local_blocks(red, work.plan, spp if isinstance(spp, int) else spp[red["rec"]][:, None] if red else 1)
     arrays = {"emission": emis.numpy()}
@@ -455,6 +464,7 @@ def precompute_polynomial(
         meta={"settings": settings},
         consume=consume,
         processes=1 if paths is not None else processes,
+        steps_per_tile=[work.steps(k) for k in range(num_tiles)],
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
