@@ -1,6 +1,6 @@
 """BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
 
-    python benchmarks/polynomial.py [--quick] [--precompute-only] [--baseline]
+    python benchmarks/polynomial.py [--quick] [--precompute-only] [--baseline] [--torch-path]
 
 Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
 coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
@@ -15,6 +15,14 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   per core unless the machine is busy; with ``--baseline`` one per core whatever the load),
   and with ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
   #14's parallel tiles), ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
+* ``native``: whether the compiled entry kernel (``transport/_native.c``) ran;
+  ``native_build_s``: seconds this process spent compiling it on first use (0 when the cached
+  build was loaded), ``native_load_s`` building or loading it, both before and outside
+  ``precompute_s``. With ``--torch-path`` also ``torch_path_s`` (the same precompute with the
+  kernel off, ``TORCH_BRDF_NATIVE=0``), ``native_again_s`` (the kernel once more, after it),
+  ``kernel_speedup`` (``torch_path_s / native_again_s``: both warm), ``kernel_cpu_speedup``
+  (the same in CPU seconds of this process and its finished tile processes, ``*_cpu_s``: less
+  sensitive to the load than wall time) and ``equals_torch_path`` (bit for bit).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
   calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
   direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
@@ -48,6 +56,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import time
 
 import numpy as np
@@ -57,6 +66,7 @@ from torch_brdf._threads import usable_cores
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport import _native
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
@@ -112,6 +122,13 @@ def _embree_seconds(scene, log, totals) -> float:
     return secs
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and its finished children (forked tiles; the
+    scene's trace process, which lives on, is not counted: ray casting is outside)."""
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
 def _mitsuba(scene, spp, max_bounces, quiet=False):
     try:
         from torch_brdf.transport import mitsuba as tm
@@ -131,9 +148,15 @@ def main() -> None:
     ap.add_argument(
         "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
     )
+    ap.add_argument(
+        "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
+    )
     args = ap.parse_args()
     q = args.quick
     out: dict = {"quick": q}
+    t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
+    out["native"] = _native.library() is not None
+    out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()
 
     # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
     res, spp = (64, 8) if q else (256, 64)
@@ -143,15 +166,38 @@ def main() -> None:
     T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
+
+    def again(**kw):
+        """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        T_ = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **kw)
+        cpu[0] = _cpu_seconds() - c0
+        return T_, time.perf_counter() - t0
+
+    cpu = [0.0]
+
+    def same(one, other) -> bool:
+        a, b = one.to_arrays()[0], other.to_arrays()[0]
+        return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
     if args.baseline:  # the same precompute with its tiles in this process, one after another
-        t0 = time.perf_counter()
-        T1 = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, processes=1)
-        out["one_process_s"] = time.perf_counter() - t0
+        T1, out["one_process_s"] = again(processes=1)
         out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
-        a, b = T.to_arrays()[0], T1.to_arrays()[0]
-        out["equals_one_process"] = sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+        out["equals_one_process"] = same(T, T1)
         out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
         del T1
+    if args.torch_path:  # the same precompute with the kernel off, same processes
+        os.environ[_native.ENV_VAR] = "0"
+        T2, out["torch_path_s"] = again(**forked)
+        out["torch_path_cpu_s"] = cpu[0]
+        del os.environ[_native.ENV_VAR]
+        _, out["native_again_s"] = again(**forked)  # the kernel once more: both warm
+        out["native_again_cpu_s"] = cpu[0]
+        out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
+        out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
+        out["equals_torch_path"] = same(T, T2)
+        out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
+        del T2
     # embree alone: the rays of a run in this process (tiles may run in forked processes),
     # recorded after the timed run (which stays the first call in the process)
     rec_spp = max(1, spp // 8)

@@ -39,6 +39,7 @@ from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
 from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
+from ._native import area_light_sample
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
 
@@ -119,9 +120,14 @@ def sample_light(scene: Scene, light, pos, ng, ns, gen):
         cosine at the shading normal (n,), how many shadow rays were cast, and the rows (long)
         that see the light.
     """
-    ls = light.sample(pos, gen)
-    cos = (ls.direction * ns).sum(-1)
-    k = torch.nonzero((cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)).squeeze(1)
+    fast = area_light_sample(light, pos, ng, ns, gen)  # the same bits in the compiled kernel
+    if fast is not None:
+        ls, cos, ok = fast
+    else:
+        ls = light.sample(pos, gen)
+        cos = (ls.direction * ns).sum(-1)
+        ok = (cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)
+    k = torch.nonzero(ok).squeeze(1)
     if k.numel() == 0:
         return ls, cos, 0, k
     return ls, cos, k.numel(), k[scene.visible(pos[k], ng[k], ls.direction[k], ls.distance[k])]

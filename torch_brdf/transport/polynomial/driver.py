@@ -21,11 +21,12 @@ from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
+from .._native import library
 from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
-from .reduce import _blocks_from_local, _local_blocks, _reduce, _term_tables
+from .reduce import NativeEntries, _blocks_from_local, _local_blocks, _reduce, _reduce_groups, _term_tables, native_bits
 from .sampler import Mixture
 from .tracer import _Tracer
 
@@ -66,14 +67,16 @@ def _pass_groups(counts: torch.Tensor, group: int | None) -> list[tuple[int, int
     return out
 
 
-def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, tick=None):
+def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, tick=None, native=None):
     """Trace a tile whose pixel ``i`` takes ``counts[i]`` paths and reduce its entries to (sum,
     sum of per-path squares) per key; ``tick()`` (if given) after each pass group.
 
     Pass ``s`` traces one path from every pixel with ``counts > s`` (in raster order), and the
     passes of a group are one batch: with equal counts this is the uniform run's batch, ray
     for ray and random number for random number (so an adaptive tile whose pixels all take
-    ``s`` paths equals the uniform run's tile at ``s`` entry for entry)."""
+    ``s`` paths equals the uniform run's tile at ``s`` entry for entry). ``native``: the compiled
+    entry kernel (None: :func:`~torch_brdf.transport._native.library`, None without a compiler;
+    False: the torch path); the sums are the same bit for bit."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
@@ -83,9 +86,14 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
         "j": max([1] + [b.size for b in tracer.bases if b is not None]),
         "w": max(1, sum(b.second_size for b in tracer.bases if b is not None) if tracer.series.two_level else 1),
     }
+    groups = _pass_groups(counts, group)
+    lib = (library() if native is None else native) or None
+    most = max(s1 - s0 for s0, s1 in groups)
+    bits = native_bits({**sizes, "path": most}, tracer.num_objects, tracer.series.bounces) if lib else None
+    lib = lib if bits else None  # keys too wide for the kernel: the torch path
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
-    for gi, (s0, s1) in enumerate(_pass_groups(counts, group)):
+    for gi, (s0, s1) in enumerate(groups):
         with clock("sampling"):
             # the (pass, pixel record) of each ray, pass-major: pass s0 + a, then its records
             pas, rec = torch.nonzero(counts[None, :] > torch.arange(s0, s1)[:, None], as_tuple=True)
@@ -94,8 +102,9 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
+        ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
-        e, ent = tracer.run(o, d, ray, gen, paths)  # entries carry the ray id as "path"
+        e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
             for r in paths.get("rows", [])[n_rows:]:
                 r["rec"] = pixels[r["rec"] % p]
@@ -103,6 +112,9 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             emis.index_add_(0, rec, e.double())
             if tick is not None:
                 tick()
+            if lib:
+                reduced.append(ent.reduce())
+                continue
             dd = ent.cat()
             if not dd:
                 continue
@@ -113,6 +125,8 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     if not reduced:
         return emis, {}
     with clock("bookkeeping"):
+        if lib:
+            return emis, _reduce_groups(lib, reduced, tracer.num_objects, bits)
         cat = {k: torch.cat([r[k] for r in reduced]) for k in reduced[0]}
         cat["weight"] = cat.pop("sum")
         return emis, _reduce(cat, sizes, by_path=False)
@@ -433,6 +447,8 @@ def precompute_polynomial(
         blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
+    if executor == "local":
+        library()  # build (or load) the compiled kernel once, before tiles fork
     t0 = time.perf_counter()
     results = run_tiles(
         _polynomial_tile,

@@ -14,6 +14,7 @@ import torch
 
 from ...errors import ValueRangeError
 from ...records.polynomial import TensorBlock, TermTable
+from .._native import Accumulator, key_bits
 
 
 def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
@@ -27,12 +28,18 @@ def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
     return key
 
 
+def _code_fits(m: int, max_count: int) -> bool:
+    """Whether :func:`_multiset_ids` numbers multisets of ``m`` objects by one int64 code
+    (base ``max_count + 1``, the last object most significant) rather than row by row."""
+    return m * math.log2(max(max_count + 1, 2)) < 62
+
+
 def _multiset_ids(counts: torch.Tensor) -> tuple[torch.Tensor, int]:
     """Dense ids of the distinct rows of ``counts`` (n, M) int8: one exact int64 code per row
     (base = max count + 1) when it fits in 62 bits, else ``unique(dim=0)``."""
     m = counts.shape[1]
     base = int(counts.max()) + 1 if counts.numel() else 1
-    if m * math.log2(max(base, 2)) < 62:
+    if _code_fits(m, base - 1):
         powers = base ** torch.arange(m, dtype=torch.long)
         code = (counts.long() * powers).sum(-1)
         uniq, zid = torch.unique(code, return_inverse=True)
@@ -74,6 +81,64 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
         out["sum"] = s
         out["sq"] = torch.zeros(u, 3, dtype=torch.float64).index_add_(0, inv, d["sq"])
     return out
+
+
+class NativeEntries:
+    """The entries of one pass group, made and summed per (key, path) in the compiled kernel
+    (:class:`~torch_brdf.transport._native.Accumulator`): the twin of the tracer's ``_Entries`` followed by
+    ``_reduce(..., sizes, by_path=True)``, without a torch op per layer combination or copy.
+
+    Args:
+        lib: the kernel (:func:`~torch_brdf.transport._native.library`).
+        num_objects: M.
+        pixels: p, the tile's records: an entry's ray id ``r`` is record ``r % p``, path ``r // p``.
+        bits: :func:`native_bits` of the tile (not None).
+    """
+
+    native = True  # the tracer calls :meth:`emit` instead of building entries in torch
+
+    def __init__(self, lib, num_objects: int, pixels: int, bits: list[int]):
+        self.acc, self.p = Accumulator(lib, num_objects, 3, bits), pixels
+
+    def emit(self, v, kk, st, lw, rec, ob, ed, f, scale, x, x_rows, y, y_rows):
+        """The entries of light samples ``kk`` at vertex ``v`` of the path state ``st``
+        (:meth:`~._native.Accumulator.emit`)."""
+        raw = st.raw if v > 1 else None  # the eye vertex's weights are the layer factors times the light's
+        self.acc.emit(v, self.p, kk, raw, st.idx, rec, st.m1, st.counts, ob, ed, lw, f, scale, x, x_rows, y, y_rows)
+
+    def reduce(self) -> dict[str, torch.Tensor]:
+        """``_reduce(entries, sizes, by_path=True)`` of the entries made."""
+        return _exported(self.acc)
+
+
+def native_bits(sizes: dict[str, int], num_objects: int, bounces: int) -> list[int] | None:
+    """The packed key widths of a tile's per-path keys (None: too wide for the kernel)."""
+    return key_bits(sizes, num_objects, bounces, by_path=True)
+
+
+def _exported(acc: Accumulator) -> dict[str, torch.Tensor]:
+    """An accumulator's sums as :func:`_reduce` returns them (same keys, order and dtypes)."""
+    if len(acc) == 0:
+        return {}
+    keys, vals = acc.reduce(forward=not _code_fits(acc.M, acc.max_count()))
+    out = {k: keys[:, c].contiguous() for c, k in enumerate(("rec", "obj", "bounce", "j", "w"))}
+    out["counts"] = keys[:, 5:].to(torch.int8)
+    if acc.V == 3:
+        out["sum"], out["sq"] = vals, vals * vals
+    else:
+        out["sum"], out["sq"] = vals[:, :3].contiguous(), vals[:, 3:].contiguous()
+    return out
+
+
+def _reduce_groups(lib, groups: list[dict[str, torch.Tensor]], num_objects: int, bits: list[int]):
+    """``_reduce(cat(groups), sizes, by_path=False)`` in the compiled kernel: the per-path sums
+    of a tile's pass groups summed per key in the same order (group by group). ``bits``: the
+    groups' :func:`native_bits` (its path field is dropped)."""
+    acc = Accumulator(lib, num_objects, 6, bits[:-1] + [0])
+    for g in groups:
+        vals = torch.cat([g["sum"], g["sq"]], 1)
+        acc.add_sums(g["rec"], g["obj"], g["bounce"], g["j"], g["w"], g["counts"], vals)
+    return _exported(acc)
 
 
 def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) -> list[dict[str, torch.Tensor]]:

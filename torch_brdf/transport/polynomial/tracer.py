@@ -231,6 +231,9 @@ class _Tracer:
                 off += b.second_size
         self.level2 = _Layers(bases, self.brdfs, 2, offs, self.clock) if series.two_level else None
         self.rays = {"closest": 0, "shadow": 0}
+        # pi^-k by the number k of earlier diffuse-equivalent vertices (one table for both the
+        # torch and the compiled entries, so they agree bit for bit)
+        self.pi_powers = math.pi ** -(torch.arange(series.bounces + 2).double()).float()
 
     def _trace(self, o, d):
         self.rays["closest"] += o.shape[0]
@@ -247,16 +250,18 @@ class _Tracer:
             return out
 
     @torch.no_grad()
-    def run(self, origins, directions, rec, gen, paths: dict | None = None):
+    def run(self, origins, directions, rec, gen, paths: dict | None = None, ent=None):
         """Trace one path per ray. ``rec`` (n,) is the path's pixel record id.
 
-        Returns the emission seen directly (n, 3) and the :class:`_Entries`. With ``paths``
+        Returns the emission seen directly (n, 3) and the entries: ``ent`` (anything with
+        :meth:`_Entries.add`, e.g. the compiled :class:`~.reduce.NativeEntries`) or a new
+        :class:`_Entries`. With ``paths``
         (a dict), also records for every entry the raw weight without editable factors and
         the local directions and objects needed to re-evaluate it with explicit BRDFs (the
         exactness oracle of the tests).
         """
         scene, nb, clock = self.scene, self.series.bounces, self.clock
-        ent = _Entries()
+        ent = _Entries() if ent is None else ent
         hits = self._trace(origins, directions)
         with clock("bookkeeping"):
             emis = emission_seen(scene, directions, hits)
@@ -322,6 +327,12 @@ class _Tracer:
 
     def _emit(self, ent: _Entries, st: PathState, v: int, hit: LightHit, paths: dict | None, rec: torch.Tensor):
         """Add the entries of the light samples ``hit`` at vertex ``v`` of the paths ``st``."""
+        if getattr(ent, "native", False):
+            self._emit_native(ent, st, v, hit, rec)
+            if paths is not None:
+                extra = None if v == 1 or self._banded(v) else torch.where(hit.ed, hit.ob, -1)
+                self._record(paths, st, v, hit, rec, extra)
+            return
         kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
         n = kk.numel()
         cnt = st.counts[kk]
@@ -341,10 +352,10 @@ class _Tracer:
             ]
             extra = None
         else:
-            f = torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))  # D = cos/pi
+            f = self._diffuse_f(ob, ed, wl, wo)
+            scale = self.pi_powers[cnt.sum(-1)]  # 1/pi of earlier D vertices
             cnt = cnt.clone()
             cnt[ed, ob[ed]] += 1
-            scale = math.pi ** -(cnt.sum(-1).double() - ed.double()).float()  # 1/pi of earlier D vertices
             base = st.raw[kk] * lw * f * scale[:, None]
             combos = [
                 (st.A_i[kk, a], st.B_i[kk, b], base * st.A_w[kk, a] * st.B_w[kk, b])
@@ -357,6 +368,30 @@ class _Tracer:
             ent.add(rec[st.idx[kk]], st.m1[kk], bounce, j, w, cnt, wt)
         if paths is not None:
             self._record(paths, st, v, hit, rec, extra)
+
+    def _banded(self, v: int) -> bool:
+        """Vertex ``v`` > 1 uses the second-bounce band basis (else a diffuse equivalent)."""
+        return v == 2 and self.level2 is not None
+
+    def _diffuse_f(self, ob, ed, wl, wo) -> torch.Tensor:
+        """(n, 3) factor of a diffuse-equivalent vertex: D = cos/pi for editable objects (the
+        cosine is in the light weight), the full BRDF of fixed ones."""
+        return torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))
+
+    def _emit_native(self, ent, st: PathState, v: int, hit: LightHit, rec: torch.Tensor):
+        """:meth:`_emit` in the compiled kernel (:class:`~.reduce.NativeEntries`): the same
+        entries in the same order, made without torch ops per layer combination."""
+        kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
+        common = (v, kk, st, lw, rec)
+        if v == 1:
+            j, q = self.level1(ob, wl, wo)
+            ent.emit(*common, ob, None, None, None, (j, q), False, None, False)
+        elif self._banded(v):
+            k2, q2 = self.level2(ob, wl, wo)
+            ent.emit(*common, ob, None, None, None, (st.A_i, st.A_w), True, (k2, q2), False)
+        else:
+            f = self._diffuse_f(ob, ed, wl, wo)
+            ent.emit(*common, ob, ed, f, self.pi_powers, (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)
 
     def _record(self, paths: dict, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, extra):
         """Raw path data for the exactness oracle (tests)."""

@@ -1,0 +1,205 @@
+"""The compiled entry kernel (transport/_native.c) against the torch path: exact equality."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from torch_brdf.scene.builtin import cornell_box_glossy
+from torch_brdf.transport import _native
+from torch_brdf.transport.polynomial import Mixture, precompute_polynomial
+from torch_brdf.transport.polynomial.reduce import NativeEntries, _code_fits, _reduce, _reduce_groups, native_bits
+from torch_brdf.transport.polynomial.tracer import LightHit, PathState, _Entries, _Tracer
+
+LIB = _native.library()
+needs_cc = pytest.mark.skipif(LIB is None, reason="no C compiler here: only the torch path runs")
+
+
+def _equal(a: dict, b: dict) -> None:
+    assert sorted(a) == sorted(b)
+    for k in a:
+        assert a[k].dtype == b[k].dtype, k
+        assert torch.equal(a[k], b[k]), k
+
+
+def _sums(g: torch.Generator, n: int, m: int, count_max: int, sizes: dict) -> dict[str, torch.Tensor]:
+    """Random per-path sums of one pass group, as ``_reduce(by_path=True)`` returns them, with
+    repeated keys (few records) and float64 values of mixed magnitude."""
+    d = {k: torch.randint(0, sizes[k], (n,), generator=g) for k in ("rec", "obj", "bounce", "j")}
+    d["w"] = torch.randint(-1, sizes["w"], (n,), generator=g)
+    pool = torch.randint(0, count_max + 1, (6, m), generator=g).to(torch.int8)  # a few multisets
+    pool[0, -1] = count_max
+    d["counts"] = pool[torch.randint(0, 6, (n,), generator=g)]
+    s = torch.randn(n, 3, generator=g, dtype=torch.float64) * 10.0 ** torch.randint(-6, 6, (n, 1), generator=g)
+    d["sum"], d["sq"] = s, s * s
+    return d
+
+
+@needs_cc
+@pytest.mark.parametrize(
+    ("m", "count_max", "rec"),
+    [(7, 3, 50), (20, 4, 300), (40, 3, 20)],  # 64-bit keys; 128-bit keys; unique(dim=0) multiset order
+)
+def test_tile_reduction_equals_torch(m, count_max, rec):
+    g = torch.Generator().manual_seed(m)
+    sizes = {"rec": rec, "obj": 3, "bounce": 5, "j": 4, "w": 2, "path": 1}
+    bits = native_bits(sizes, m, count_max)
+    assert bits is not None
+    groups = [_sums(g, 4000, m, count_max, sizes) for _ in range(3)]
+    cat = {k: torch.cat([x[k] for x in groups]) for k in groups[0]}
+    cat["weight"] = cat.pop("sum")
+    want = _reduce(cat, sizes, by_path=False)
+    got = _reduce_groups(LIB, groups, m, bits)
+    assert len(got["rec"]) < 12000  # keys repeat: sums over several rows in their order
+    assert _code_fits(m, count_max) == (m != 40)
+    _equal(want, got)
+
+
+def _state(g, tracer: _Tracer, n: int, sizes: dict) -> PathState:
+    """A random path state: slots and weights at both banded levels (zeros, a NaN and huge
+    values among them), counts of earlier diffuse-equivalent vertices, throughputs."""
+    m = tracer.num_objects
+    st = PathState.start(torch.randperm(3 * n, generator=g)[:n], torch.randint(0, m, (n,), generator=g), m, False)
+    st.raw = torch.rand(n, 3, generator=g) * 4
+    st.A_i = torch.randint(0, sizes["j"], (n, 2), generator=g)
+    st.A_w = torch.randn(n, 2, 3, generator=g) * (torch.rand(n, 2, 1, generator=g) > 0.2)
+    st.A_w[3, 0, 1] = float("nan")
+    two_level = tracer.level2 is not None
+    st.B_i = torch.randint(0, sizes["w"], (n, 2), generator=g) if two_level else torch.full((n, 1), -1)
+    st.B_w = torch.randn(n, st.B_i.shape[1], 3, generator=g).abs() * 1e3
+    st.counts = torch.zeros(n, m, dtype=torch.int8)  # up to two earlier diffuse-equivalent vertices
+    for _ in range(2):
+        st.counts[torch.arange(n), torch.randint(0, m, (n,), generator=g)] += torch.randint(0, 2, (n,), generator=g).to(
+            torch.int8
+        )
+    return st
+
+
+def _hit(g, tracer: _Tracer, n: int, k: int) -> LightHit:
+    kk = torch.sort(torch.randperm(n, generator=g)[:k]).values
+    wl = torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1)
+    wo = torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1)
+    wl[:, 2], wo[:, 2] = wl[:, 2].abs(), wo[:, 2].abs()
+    ob = torch.randint(0, tracer.num_objects, (k,), generator=g)
+    lw = torch.rand(k, 3, generator=g) * (torch.rand(k, 1, generator=g) > 0.1)
+    return LightHit(kk, wl, wo, ob, tracer.editable[ob], lw)
+
+
+@needs_cc
+@pytest.mark.parametrize("series", ["64,1,1,1", "16,8,1,1"])
+def test_entries_equal_torch(series):
+    """The tracer's entries at every kind of vertex (eye, banded second bounce, diffuse
+    equivalents with fixed objects), made in the kernel and in torch, reduce to the same sums."""
+    sc = cornell_box_glossy(8)
+    sc.objects[sc.object_id("short_box")].editable = False  # a fixed object: its full BRDF
+    T = precompute_polynomial(sc, series, spp=1, progress=False, processes=1, guides=False)
+    tracer = _Tracer(sc, T.bases, T.series, Mixture(), list(sc.lights))
+    g = torch.Generator().manual_seed(7)
+    n, p = 300, 200
+    rec = torch.arange(3 * n)  # ray ids: record r % p, path r // p
+    banded = [b for b in T.bases if b is not None]
+    sizes = {
+        "rec": p,
+        "obj": tracer.num_objects,
+        "bounce": T.series.bounces + 1,
+        "j": max(b.size for b in banded),
+        "w": sum(b.second_size for b in banded) if T.series.two_level else 1,
+        "path": 3 * n // p + 1,
+    }
+    st = _state(g, tracer, n, sizes)
+    bits = native_bits(sizes, tracer.num_objects, T.series.bounces)
+    torch_ent, native_ent = _Entries(), NativeEntries(LIB, tracer.num_objects, p, bits)
+    for v in (1, 2, 3, 4, 3):
+        hit = _hit(g, tracer, n, 250)
+        for ent in (torch_ent, native_ent):
+            tracer._emit(ent, st, v, hit, None, rec)
+    d = torch_ent.cat()
+    ray = d.pop("path")
+    d["rec"], d["path"] = ray % p, ray // p
+    want = _reduce(d, sizes, by_path=True)
+    got = native_ent.reduce()
+    assert len(got["rec"]) > 500
+    _equal(want, got)
+
+
+@needs_cc
+@pytest.mark.parametrize(("series", "group"), [("64,1,1,1", 2), ("16,8,1,1", None)])
+def test_precompute_equals_torch_path(series, group, monkeypatch):
+    """The whole precomputation (several pass groups and tiles) gives the same arrays."""
+    sc = cornell_box_glossy(16)
+    kw = {"spp": 6, "seed": 5, "progress": False, "processes": 1, "guides": False, "tile_rows": 8, "group": group}
+    native = precompute_polynomial(sc, series, **kw).to_arrays()[0]
+    monkeypatch.setenv(_native.ENV_VAR, "0")
+    plain = precompute_polynomial(sc, series, **kw).to_arrays()[0]
+    assert sorted(native) == sorted(plain)
+    for k in native:
+        assert native[k].dtype == plain[k].dtype and (native[k] == plain[k]).all(), k
+
+
+def test_missing_compiler_falls_back_with_one_warning(monkeypatch, tmp_path):
+    monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path))
+    monkeypatch.setattr(_native, "_state", {"lib": None, "tried": False, "build_s": 0.0})
+    monkeypatch.setattr(_native, "_compiler", lambda: None)
+    with pytest.warns(UserWarning, match="torch path") as rec:
+        assert _native.library() is None
+        assert _native.library() is None
+    assert len(rec) == 1
+    T = precompute_polynomial(cornell_box_glossy(8), spp=2, progress=False, processes=1, guides=False)
+    assert T.num_entries > 0
+    assert not (tmp_path / "native").exists() or not list((tmp_path / "native").glob("*.so"))
+
+
+@needs_cc
+def test_build_is_cached_by_source_hash(monkeypatch, tmp_path):
+    monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path))
+    for _ in range(2):
+        monkeypatch.setattr(_native, "_state", {"lib": None, "tried": False, "build_s": 0.0})
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert _native.library() is not None
+        builds = list((tmp_path / "native").glob("polynomial_*.so"))
+        assert len(builds) == 1
+    assert _native.build_seconds() == 0.0  # the second process state loaded the cached build
+    # another source (or compiler) gets another file: the name is the hash of both
+    monkeypatch.setattr(_native, "_state", {"lib": None, "tried": False, "build_s": 0.0})
+    monkeypatch.setattr(_native, "_FLAGS", [*_native._FLAGS, "-DTB_VARIANT=1"])
+    assert _native.library() is not None
+    assert len(list((tmp_path / "native").glob("polynomial_*.so"))) == 2
+    assert math.isfinite(_native.build_seconds()) and _native.build_seconds() > 0
+
+
+@needs_cc
+def test_area_light_samples_equal_torch(monkeypatch):
+    """Next-event samples of the area light (points on both sides of it, on its plane, far
+    away; normals facing anywhere): the same uniforms give the same bits in the kernel."""
+    from torch_brdf.transport.pathtrace import sample_light
+
+    sc = cornell_box_glossy(8)
+    light = sc.lights[0]
+    g = torch.Generator().manual_seed(3)
+    n = 5000
+    lo, hi = light.triangles.reshape(-1, 3).amin(0), light.triangles.reshape(-1, 3).amax(0)
+    pos = (lo + hi) / 2 + (hi - lo).amax() * torch.randn(n, 3, generator=g)  # around and across the light
+    pos[:100, 1] = light.triangles[0, 0, 1]  # on the light's plane
+    pos[100:200] *= 50
+    ng = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    ns = torch.where(torch.rand(n, 1, generator=g) < 0.5, ng, torch.nn.functional.normalize(ng + 0.3, dim=-1))
+    fast = _native.area_light_sample(light, pos, ng, ns, torch.Generator().manual_seed(9))
+    assert fast is not None
+    ls, cos, ok = fast
+    want = light.sample(pos, torch.Generator().manual_seed(9))
+    for k in ("direction", "distance", "weight", "pdf"):
+        assert torch.equal(getattr(ls, k), getattr(want, k)), k
+    want_cos = (want.direction * ns).sum(-1)
+    assert torch.equal(cos, want_cos)
+    assert torch.equal(ok, (want_cos > 0) & ((want.direction * ng).sum(-1) > 0) & (want.pdf > 0))
+    assert 0 < int(ok.sum()) < n
+    # sample_light takes the kernel and draws the same random numbers as the torch path
+    a = sample_light(sc, light, pos, ng, ns, torch.Generator().manual_seed(4))
+    monkeypatch.setenv(_native.ENV_VAR, "0")
+    b = sample_light(sc, light, pos, ng, ns, torch.Generator().manual_seed(4))
+    assert torch.equal(a[1], b[1]) and torch.equal(a[3], b[3]) and a[2] == b[2]
+    assert _native.area_light_sample(light, pos.double(), ng.double(), ns.double(), g) is None  # float64: torch

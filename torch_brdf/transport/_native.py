@@ -1,0 +1,267 @@
+"""The compiled kernel of the GI precompute (``_native.c``: the entries and their per-key sums,
+area-light next-event samples): built on first use, cached, optional.
+
+:func:`library` compiles ``_native.c`` with the system C compiler (``$CC``, else Python's
+own compiler, else ``cc``) into ``$TORCH_BRDF_CACHE/native/`` under a name keyed by the
+hash of the source and the compiler command, once per machine (later processes load the
+cached file in milliseconds), and loads it with :mod:`ctypes`: no Python or torch headers,
+no build step beyond ``pip install``. Without a working compiler (or with
+``TORCH_BRDF_NATIVE=0``) it returns None after one warning and the precomputation keeps
+its torch path; both give the same tensors bit for bit (``tests/transport/test_native.py``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shlex
+import shutil
+import subprocess
+import sysconfig
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+from ..data import cache_dir
+from ..errors import ValueRangeError
+from ..scene.lights import AreaLight, LightSample
+
+__all__ = ["ENV_VAR", "Accumulator", "area_light_sample", "build_seconds", "key_bits", "library"]
+
+#: ``TORCH_BRDF_NATIVE=0`` keeps the torch path (no compiler call)
+ENV_VAR = "TORCH_BRDF_NATIVE"
+_SOURCE = Path(__file__).with_name("_native.c")
+_FLAGS = ["-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math"]
+_state: dict = {"lib": None, "tried": False, "build_s": 0.0}
+
+
+def _compiler() -> list[str] | None:
+    cc = os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc"
+    cmd = shlex.split(cc)
+    if not cmd or shutil.which(cmd[0]) is None:
+        cmd = ["cc"]
+    return cmd if shutil.which(cmd[0]) is not None else None
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.tb_new.restype, lib.tb_new.argtypes = p, [i32, i32, p]
+    lib.tb_free.restype, lib.tb_free.argtypes = None, [p]
+    lib.tb_size.restype, lib.tb_size.argtypes = i64, [p]
+    lib.tb_max_count.restype, lib.tb_max_count.argtypes = i32, [p]
+    lib.tb_add_sums.restype, lib.tb_add_sums.argtypes = i32, [p, i64, p, p, p, p, p, p, p]
+    lib.tb_emit.restype = i32
+    lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
+    lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
+    lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
+    lib.tb_area_finish.restype = None
+    lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
+    return lib
+
+
+def _build() -> ctypes.CDLL:
+    cc = _compiler()
+    if cc is None:
+        raise OSError("no C compiler found ($CC, Python's CC or cc)")
+    src = _SOURCE.read_bytes()
+    tag = hashlib.sha256(src + " ".join(cc + _FLAGS).encode()).hexdigest()[:16]
+    out = cache_dir() / "native" / f"polynomial_{tag}.so"
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
+            part = Path(tmp) / out.name
+            res = subprocess.run(
+                [*cc, *_FLAGS, "-o", str(part), str(_SOURCE)], capture_output=True, text=True, timeout=300
+            )
+            if res.returncode != 0:
+                raise OSError(f"{cc[0]} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
+            os.replace(part, out)  # atomic: concurrent builders leave one complete file
+        _state["build_s"] = time.perf_counter() - t0
+    return _declare(ctypes.CDLL(str(out)))
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernel, building it on first use; None (after one warning) without a compiler
+    or with ``TORCH_BRDF_NATIVE=0``."""
+    if os.environ.get(ENV_VAR, "1") == "0":
+        return None
+    if not _state["tried"]:
+        _state["tried"] = True
+        try:
+            _state["lib"] = _build()
+        except (OSError, subprocess.SubprocessError) as e:
+            warnings.warn(
+                f"torch_brdf: the compiled reduction kernel could not be built ({e}); "
+                "the precomputation uses its torch path (same tensors, slower)",
+                stacklevel=2,
+            )
+    return _state["lib"]
+
+
+def build_seconds() -> float:
+    """Seconds this process spent compiling the kernel (0 when it loaded a cached build)."""
+    return _state["build_s"]
+
+
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+def _c(t: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:
+    return None if t is None else t.to(dtype).contiguous()
+
+
+def _bits(largest: int) -> int:
+    return max(1, int(largest).bit_length())
+
+
+def key_bits(sizes: dict[str, int], num_objects: int, max_count: int, by_path: bool) -> list[int] | None:
+    """Bit widths of the packed key fields (record, object, bounce, j, w + 1, one count digit,
+    path or 0), or None when a key would not fit in the kernel's 127 bits.
+
+    Args:
+        sizes: as for :func:`~.reduce._reduce`: ``rec``, ``obj``, ``bounce``, ``j`` (values
+            below), ``w`` (w + 1 at most), ``path`` (values below).
+        max_count: the largest count an entry can hold (the bounces).
+    """
+    out = [_bits(sizes[k] - 1) for k in ("rec", "obj", "bounce", "j")] + [_bits(sizes["w"]), _bits(max_count)]
+    out.append(_bits(sizes["path"] - 1) if by_path else 0)
+    return out if sum(out[:5]) + num_objects * out[5] + out[6] <= 127 else None
+
+
+class Accumulator:
+    """Entries keyed by (rec, obj, bounce, j, w, counts[, path]) and their float64 sums per
+    key: the compiled twin of the tracer's entries and :func:`~.reduce._reduce` (same entries,
+    same sums in the same order, same key order).
+
+    Args:
+        lib: :func:`library`'s kernel.
+        num_objects: M, the count digits per key.
+        values: V, float64 values per entry (3 for entries, 6 for sums and squares).
+        bits: :func:`key_bits` (not None).
+    """
+
+    def __init__(self, lib: ctypes.CDLL, num_objects: int, values: int, bits: list[int]):
+        self.lib, self.M, self.V = lib, num_objects, values
+        b = torch.tensor(bits, dtype=torch.int32)
+        self._h = lib.tb_new(num_objects, values, b.data_ptr())
+        if not self._h:
+            raise MemoryError("the reduction kernel could not allocate its table")
+
+    def __del__(self):
+        if getattr(self, "_h", None):
+            self.lib.tb_free(self._h)
+            self._h = None
+
+    @staticmethod
+    def _check(rc: int) -> None:
+        if rc == -2:
+            raise ValueRangeError("an entry key exceeds the widths the reduction kernel was given")
+        if rc:
+            raise MemoryError("the reduction kernel ran out of memory")
+
+    def add_sums(self, rec, obj, bounce, j, w, counts, values) -> None:
+        """Add rows of sums: (n,) int64 keys, (n, M) int8 counts, (n, V) float64 values."""
+        n = int(rec.shape[0])
+        if n:
+            cols = [_c(x, torch.int64) for x in (rec, obj, bounce, j, w)]
+            cnt, vals = _c(counts, torch.int8), _c(values, torch.float64)
+            self._check(self.lib.tb_add_sums(self._h, n, *map(_ptr, cols), _ptr(cnt), _ptr(vals)))
+
+    def emit(self, bounce: int, p: int, kk, raw, idx, rec, m1, counts, ob, ed, lw, f, scale, x, x_rows, y, y_rows):
+        """The entries of light samples ``kk`` at vertex ``bounce`` (see ``tb_emit`` in
+        ``_native.c``): weight ``((raw[kk] * lw [* f] [* scale[sum(counts[kk])]]) * xw[a]) * yw[b]``
+        per layer combination (a major), rows with a NaN or all-zero weight dropped.
+
+        Args:
+            p: the tile's records (rec = ray % p, path = ray // p).
+            kk: (n,) rows of the path state. raw: (N, 3) float32 or None (a factor 1).
+            idx, m1: (N,) int64.
+            rec: (rays,) int64 ray ids (ray of row r: ``rec[idx[r]]``). counts: (N, M) int8.
+            ob: (n,) objects; ed: (n,) bool, add one to the count of ``ob`` (or None).
+            lw: (n, 3) float32; f: (n, 3) float32 or None; scale: (E,) float32 by the sum of
+                counts, or None.
+            x: (xi (., La) int64 slots j, xw (., La, 3) float32); rows of the state when ``x_rows``
+                else of the samples. y: likewise (yi: slots w) or None (w = -1, factor 1).
+        """
+        n = int(kk.numel())
+        if n == 0:
+            return
+        xi, xw = _c(x[0], torch.int64), _c(x[1], torch.float32)
+        yi, yw = (None, None) if y is None else (_c(y[0], torch.int64), _c(y[1], torch.float32))
+        args = [_c(t, torch.int64) for t in (kk,)] + [_c(raw, torch.float32)]
+        args += [_c(t, torch.int64) for t in (idx, rec, m1)] + [_c(counts, torch.int8), _c(ob, torch.int64)]
+        args += [_c(ed, torch.uint8), _c(lw, torch.float32), _c(f, torch.float32)]
+        sc = _c(scale, torch.float32)
+        rc = self.lib.tb_emit(
+            self._h,
+            n,
+            bounce,
+            p,
+            *map(_ptr, args),
+            _ptr(sc),
+            0 if sc is None else sc.numel(),
+            xi.shape[1],
+            _ptr(xi),
+            _ptr(xw),
+            int(x_rows),
+            1 if yi is None else yi.shape[1],
+            _ptr(yi),
+            _ptr(yw),
+            int(y_rows),
+        )
+        self._check(rc)
+
+    def __len__(self) -> int:
+        return int(self.lib.tb_size(self._h))
+
+    def max_count(self) -> int:
+        return int(self.lib.tb_max_count(self._h))
+
+    def reduce(self, forward: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> fields (U, 5 + M) int64 (rec, obj, bounce, j, w, counts) and sums (U, V) float64
+        per distinct key, in ascending key order (counts compared first object first when
+        ``forward``, else last object first)."""
+        n = len(self)
+        keys = torch.empty(n, 5 + self.M, dtype=torch.int64)
+        vals = torch.empty(n, self.V, dtype=torch.float64)
+        u = ctypes.c_int64(0)
+        self._check(self.lib.tb_reduce(self._h, int(forward), keys.data_ptr(), vals.data_ptr(), ctypes.byref(u)))
+        return keys[: u.value], vals[: u.value]
+
+
+def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor, gen):
+    """Next-event samples of an :class:`~torch_brdf.scene.lights.AreaLight` in the kernel: the
+    same uniforms (one ``torch.rand``), the same float64/float32 arithmetic in the same order
+    as ``AreaLight.sample`` and the cosines of ``sample_light``, so the same bits.
+
+    Args:
+        pos, ng, ns: (n, 3) float32 points, geometric and shading normals.
+    Returns:
+        (:class:`LightSample`, cos (n,) at the shading normal, ok (n,) bool: cos > 0, the light
+        in front of ``ng`` and pdf > 0), or None (another light, another dtype, no kernel): use
+        the torch path.
+    """
+    lib = library()
+    if lib is None or type(light) is not AreaLight or pos.dtype != torch.float32:
+        return None
+    n = pos.shape[0]
+    u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
+    sq = u[:, 1].sqrt()  # square roots in torch: its vectorised sqrt decides the last bit
+    tri, nrm = light.triangles.contiguous(), light.normals.contiguous()
+    cdf, rad = light.cdf.contiguous(), light.radiance.to(torch.float32).contiguous()
+    pos, ng, ns = (_c(x, torch.float32) for x in (pos, ng, ns))
+    f32 = {"dtype": torch.float32}
+    d, d2, idx = torch.empty(n, 3, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.int64)
+    lib.tb_area_points(n, *map(_ptr, (u, sq, cdf)), cdf.numel(), *map(_ptr, (tri, pos, d, d2, idx)))
+    dist = d2.sqrt()
+    w, wt = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32)
+    pdf, cos, ok = torch.empty(n, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.bool)
+    area = ctypes.c_float(light.total_area)
+    lib.tb_area_finish(n, *map(_ptr, (d, d2, dist, idx, nrm, rad)), area, *map(_ptr, (ng, ns, w, wt, pdf, cos, ok)))
+    return LightSample(direction=w, distance=dist, weight=wt, pdf=pdf), cos, ok
