@@ -123,7 +123,13 @@ class EditorServer:
         env.setdefault("PYTHONUNBUFFERED", "1")
         self._log = open(self.log_path, "w")  # closed in stop()
         self.proc = subprocess.Popen(
-            cmd, cwd=self.workdir, stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            cmd,
+            cwd=self.workdir,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
         )
         deadline = time.monotonic() + self.timeout
         while time.monotonic() < deadline:
@@ -188,6 +194,15 @@ class EditorServer:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _die_with_parent() -> None:
+    """In Voilà's process before exec (Linux): SIGTERM when the process that started it dies, so a
+    killed ``torch-brdf editor`` (SIGKILL, out of memory) leaves no server behind (its own
+    session keeps it out of the terminal's Ctrl-C, which :meth:`EditorServer.stop` handles)."""
+    import ctypes
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
 
 
 def serve(config: dict[str, Any], port: int | None = None, echo=print) -> None:
