@@ -171,6 +171,16 @@ class GuideFilter:
             raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")
         return cls(tensors.guides, settings, glossy=glossy_objects(tensors))
 
+    def _setup(self, guides: GuideBuffers, settings, kind: type, glossy) -> None:
+        """The fields every guide filter keeps: ``guides``, ``settings`` (``kind()`` when None;
+        another type is refused), ``glossy`` (sorted object ids) and ``shape`` (H, W)."""
+        self.guides = guides
+        self.settings = kind() if settings is None else settings
+        if not isinstance(self.settings, kind):
+            raise ValueRangeError(f"expected {kind.__name__}; got {type(self.settings).__name__}")
+        self.glossy = tuple(sorted(int(o) for o in glossy))
+        self.shape = (guides.height, guides.width)
+
     def _planes(self, images: torch.Tensor) -> torch.Tensor:
         """images (..., H, W) -> planes (N, H, W), after checking the shape."""
         if images.ndim < 2 or tuple(images.shape[-2:]) != self.shape:

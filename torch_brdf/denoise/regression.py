@@ -98,12 +98,7 @@ class RegressionFilter(GuideFilter):
     """
 
     def __init__(self, guides: GuideBuffers, settings: RegressionSettings | None = None, glossy=()):
-        self.guides = guides
-        self.settings = settings or RegressionSettings()
-        if not isinstance(self.settings, RegressionSettings):
-            raise ValueRangeError(f"expected RegressionSettings; got {type(self.settings).__name__}")
-        self.glossy = tuple(sorted(int(o) for o in glossy))
-        self.shape = (guides.height, guides.width)
+        self._setup(guides, settings, RegressionSettings, glossy)
         r = self.settings.radius
         with tuned("denoise.regression_weights", guides.height * guides.width * (2 * r + 1) ** 2):
             self._build()

@@ -123,12 +123,7 @@ class SelectedRegressionFilter(GuideFilter):
         settings: SelectionSettings | None = None,
         glossy=(),
     ):
-        self.guides = guides
-        self.settings = settings or SelectionSettings()
-        if not isinstance(self.settings, SelectionSettings):
-            raise ValueRangeError(f"expected SelectionSettings; got {type(self.settings).__name__}")
-        self.glossy = tuple(sorted(int(o) for o in glossy))
-        self.shape = (guides.height, guides.width)
+        self._setup(guides, settings, SelectionSettings, glossy)
         pairs = []
         for a, b in halves:
             a, b = torch.as_tensor(a), torch.as_tensor(b)
