@@ -336,3 +336,272 @@ void tb_area_finish(int64_t n, const float *d, const float *d2, const float *dis
         ok[i] = cs > 0 && cg > 0 && p > 0;
     }
 }
+
+/* ---- The per-vertex steps of the GI tracer (tracer.py _Tracer.run; #14, session 6) ----------
+ * One call per step and wavefront instead of ~40 torch ops: the shading frame, an area light's
+ * next-event sample with its shadow ray, the light samples' local directions, the band slots
+ * and quotients of the editable objects (_Layers), the direction mixture (sampler.py Mixture)
+ * and the path's advance (throughput, counts, world direction, the next ray). Same formulas
+ * and operation order as the torch code, in float32 (float64 where it uses float64), but libm's
+ * scalar sqrtf/atan2f/powf/expm1f/logf/cosf/sinf instead of torch's vectorised ones: results
+ * may differ from the torch path in the last ulp (and a path that then lands on a band edge or
+ * grazes an edge of the geometry may take the other side), so the tests compare them with
+ * tolerances and the exactness oracles re-evaluate the paths this code traced. */
+
+static float dot3(const float *a, const float *b) { return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]; }
+static float sqrt0f(float x) { return x > 0 ? sqrtf(x) : 0.0f; }
+
+/* frame.py Frame.to_local with the (n, 9) rows s, t, n */
+static void to_local(const float *fr, const float *v, float *out) {
+    out[0] = dot3(v, fr), out[1] = dot3(v, fr + 3), out[2] = dot3(v, fr + 6);
+}
+
+/* pathtrace.py shading_frame: flipped normals (in place), the frame (n, 9: s, t, n) from the
+ * shading normal (frame.py orthonormal_basis, Duff et al. 2017) and wo = to_local(-d_in). */
+void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, float *wo) {
+    for (int64_t i = 0; i < n; i++) {
+        float *g = ng + 3 * i, *s = ns + 3 * i, *fr = frame + 9 * i;
+        const float *d = d_in + 3 * i;
+        float flip = dot3(d, g) > 0 ? -1.0f : 1.0f;
+        for (int c = 0; c < 3; c++) g[c] *= flip, s[c] *= flip;
+        if (!(dot3(s, g) > 0))
+            for (int c = 0; c < 3; c++) s[c] = g[c];
+        float x = s[0], y = s[1], z = s[2];
+        float sign = z >= 0 ? 1.0f : -1.0f, a = -1.0f / (sign + z), b = x * y * a;
+        fr[0] = 1.0f + sign * x * x * a, fr[1] = sign * b, fr[2] = -sign * x;
+        fr[3] = b, fr[4] = sign + y * y * a, fr[5] = -y;
+        fr[6] = x, fr[7] = y, fr[8] = z;
+        float md[3] = {-d[0], -d[1], -d[2]};
+        to_local(fr, md, wo + 3 * i);
+    }
+}
+
+/* An area light's next-event samples from every vertex (lights.py AreaLight.sample_points and
+ * sample, pathtrace.py sample_light and Scene.visible's shadow ray): u (n, 3) float64 uniforms
+ * (drawn by torch, as the torch path draws them); cdf (T,) float64, tri (T, 3, 3), nrm (T, 3),
+ * radiance (3,) float32; pos, ng, ns (n, 3). Out per vertex: dir (n, 3), weight (n, 3), cos (n,);
+ * the candidates (cos > 0, light in front of ng, pdf > 0) compacted: rows k (m,), shadow-ray
+ * origins so (m, 3) (spawned off the surface by eps) and t_max (m,) = dist - 2 eps.
+ * Returns m. */
+int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
+                       const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
+                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *tmax) {
+    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        double u0 = u[3 * i], sq = sqrt(u[3 * i + 1]), b1 = 1 - sq, b2 = u[3 * i + 2] * sq;
+        int64_t a = 0, b = T;
+        while (a < b) {
+            int64_t mid = (a + b) / 2;
+            if (cdf[mid] <= u0)
+                a = mid + 1;
+            else
+                b = mid;
+        }
+        int64_t tk = a < T - 1 ? a : T - 1;
+        const float *t = tri + 9 * tk, *p = pos + 3 * i, *nl = nrm + 3 * tk;
+        float d[3];
+        for (int c = 0; c < 3; c++) {
+            double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
+            d[c] = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[c];
+        }
+        float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
+        float *w = dir + 3 * i;
+        for (int c = 0; c < 3; c++) w[c] = d[c] / den;
+        float cl = -dot3(w, nl);
+        int valid = cl > 0 && r > 0;
+        float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
+        for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
+        const float *g = ng + 3 * i;
+        float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
+        cosv[i] = cs;
+        if (cs > 0 && cg > 0 && pdf > 0) {
+            float side = cg >= 0 ? eps : -eps;
+            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c];
+            tmax[m] = r - 2 * eps;
+            k[m++] = i;
+        }
+    }
+    return m;
+}
+
+/* The light samples kk (m,) that reached their vertex, in the frame there: wl = to_local(dir),
+ * wo, object and lw = (weight * cos) / reps (tracer.py LightHit). */
+void tb_light_gather(int64_t m, const int64_t *kk, const float *dir, const float *weight, const float *cosv, float reps,
+                     const float *frame, const float *wo, const int64_t *oid, float *wl, float *wo_k, int64_t *ob,
+                     float *lw) {
+    for (int64_t i = 0; i < m; i++) {
+        int64_t r = kk[i];
+        to_local(frame + 9 * r, dir + 3 * r, wl + 3 * i);
+        for (int c = 0; c < 3; c++) wo_k[3 * i + c] = wo[3 * r + c], lw[3 * i + c] = (weight[3 * r + c] * cosv[r]) / reps;
+        ob[i] = oid[r];
+    }
+}
+
+/* frame.py half_terms: h, cos_d and sin_d of a pair (float32) */
+static void half_terms(const float *wi, const float *wo, float *h, float *cos_d, float *sin_d) {
+    float s[3] = {wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]};
+    float len = sqrt0f((s[0] * s[0] + s[1] * s[1]) + s[2] * s[2]);
+    const float e = 1.1920929e-07f;
+    if (len > e)
+        for (int c = 0; c < 3; c++) h[c] = s[c] / len;
+    else
+        h[0] = 0, h[1] = 0, h[2] = 1;
+    float d[3] = {wi[0] - wo[0], wi[1] - wo[1], wi[2] - wo[2]};
+    float q = ((d[0] * d[0] + d[1] * d[1]) + d[2] * d[2]) * 0.25f;
+    q = q < 0 ? 0 : (q > 1 ? 1 : q);
+    *cos_d = 0.5f * len, *sin_d = sqrt0f(q);
+}
+
+enum { Q_ONE, Q_DISTRIBUTION, Q_MICROFACET, Q_COOK_TORRANCE, Q_ASHIKHMIN_SHIRLEY, Q_SCHLICK = 8 };
+
+/* bands/quotients.py: the value of quotient code q (Q_SCHLICK + base: the Fresnel layer) */
+static float quotient(int q, const float *wi, const float *wo, const float *h, float cos_d) {
+    const float e = 1.1920929e-07f;
+    float ci = wi[2] < e ? e : wi[2], co = wo[2] < e ? e : wo[2], v;
+    switch (q & 7) {
+    case Q_DISTRIBUTION: v = 1.0f / ((ci + co) - ci * co); break;
+    case Q_MICROFACET: v = 0.25f / (ci * co); break;
+    case Q_COOK_TORRANCE: {
+        float ch = h[2] > 0 ? h[2] : 0.0f, cd = cos_d < e ? e : cos_d, mn = ci < co ? ci : co;
+        float g = 2 * ch * mn / cd;
+        g = g < 1.0f ? g : 1.0f;
+        v = 0.25f * g / (ci * co);
+        break;
+    }
+    case Q_ASHIKHMIN_SHIRLEY: {
+        float cd = cos_d < e ? e : cos_d, mx = wi[2] > wo[2] ? wi[2] : wo[2];
+        v = 1.0f / (cd * (mx < e ? e : mx));
+        break;
+    }
+    default: v = 1.0f;
+    }
+    if (q & Q_SCHLICK) {
+        float x = 1 - (cos_d < 0 ? 0 : (cos_d > 1 ? 1 : cos_d));
+        v = v * powf(x, 5.0f);
+    }
+    return v;
+}
+
+/* tracer.py _Layers for the objects the kernel knows (spec row mode 1): per object o, spec[8 * o]
+ * = mode (0: torch fills the row), variable (0 theta_h, 1 theta_d), J, slot offset, layers,
+ * quotient code of layer 0 and 1, first inner edge in `edges` (float32, J - 1 per object). Out:
+ * idx (n, L) int64 (off + layer J + band; `fill` beyond the object's layers and for mode 0) and
+ * w (n, L, 3) float32 (quotient where both directions are above the horizon, else 0). */
+void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float *edges, const int64_t *oid,
+               const float *wi, const float *wo, int64_t *idx, float *w) {
+    for (int64_t i = 0; i < n; i++) {
+        const int32_t *sp = spec + 8 * oid[i];
+        const float *a = wi + 3 * i, *b = wo + 3 * i;
+        int64_t *ir = idx + (int64_t)L * i;
+        float *wr = w + (int64_t)3 * L * i;
+        for (int l = 0; l < L; l++) ir[l] = fill, wr[3 * l] = wr[3 * l + 1] = wr[3 * l + 2] = 0.0f;
+        if (sp[0] != 1) continue;
+        float h[3], cos_d, sin_d;
+        half_terms(a, b, h, &cos_d, &sin_d);
+        float gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
+        const float *in = edges + sp[7];
+        int lo = 0, hi = sp[2] - 1; /* bucketize(right=True): the number of inner edges <= gamma */
+        while (lo < hi) {
+            int mid = (lo + hi) / 2;
+            if (in[mid] <= gamma)
+                lo = mid + 1;
+            else
+                hi = mid;
+        }
+        float up = (a[2] > 0 && b[2] > 0) ? 1.0f : 0.0f;
+        for (int l = 0; l < sp[4] && l < L; l++) {
+            float q = quotient(sp[5 + l], a, b, h, cos_d) * up;
+            ir[l] = sp[3] + (int64_t)l * sp[2] + lo;
+            wr[3 * l] = wr[3 * l + 1] = wr[3 * l + 2] = q;
+        }
+    }
+}
+
+/* sampler.py Mixture.sample and .pdf, then the tracer's ok and cos / pdf: u (n, 3) float32,
+ * wo (n, 3) local -> wi (n, 3), pdf (n,), cosw (n,) and ok (n,) uint8. The constants as torch
+ * rounds them: diffuse, gloss = 1 - diffuse, exponent n and norm = (n + 1) / (2 pi) in float64,
+ * then float32. */
+void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float gloss, float exponent, float norm,
+                float *wi, float *pdf, float *cosw, uint8_t *ok) {
+    const double PI = 3.14159265358979323846;
+    const float tiny = 1.17549435e-38f, e = 1.1920929e-07f, q1 = (float)(PI / 4), q2 = (float)(PI / 2);
+    const float two_pi = (float)(2 * PI), inv_pi = (float)(1 / PI);
+    for (int64_t i = 0; i < n; i++) {
+        const float *ui = u + 3 * i, *o = wo + 3 * i;
+        float *w = wi + 3 * i;
+        if (ui[0] < diffuse) { /* Malley: the concentric disk lifted to the hemisphere */
+            float a = 2 * ui[1] - 1, b = 2 * ui[2] - 1;
+            int first = fabsf(a) > fabsf(b);
+            float r = first ? a : b, safe = r == 0 ? 1.0f : r;
+            float phi = first ? q1 * (b / safe) : q2 - q1 * (a / safe);
+            w[0] = r * cosf(phi), w[1] = r * sinf(phi);
+            float z = 1 - (w[0] * w[0] + w[1] * w[1]);
+            w[2] = sqrtf(z > 0 ? z : 0.0f);
+        } else { /* a cos^n half vector about the normal, wo mirrored about it */
+            float om = 1.0f - ui[1];
+            float lu = logf(om < tiny ? tiny : (om > 1 ? 1.0f : om));
+            float s2 = -expm1f(2.0f * lu / (exponent + 1.0f));
+            s2 = s2 < 0 ? 0.0f : (s2 > 1 ? 1.0f : s2);
+            float st = sqrtf(s2), phi = two_pi * ui[2];
+            float h[3] = {st * cosf(phi), st * sinf(phi), sqrtf(1.0f - s2)};
+            float k = 2 * dot3(o, h);
+            for (int c = 0; c < 3; c++) w[c] = k * h[c] - o[c];
+        }
+        float s[3] = {w[0] + o[0], w[1] + o[1], w[2] + o[2]}, h[3];
+        float len = sqrt0f((s[0] * s[0] + s[1] * s[1]) + s[2] * s[2]);
+        if (len > e)
+            for (int c = 0; c < 3; c++) h[c] = s[c] / len;
+        else
+            h[0] = 0, h[1] = 0, h[2] = 1;
+        float coh = fabsf(dot3(o, h));
+        coh = coh < 1e-12f ? 1e-12f : coh;
+        float ch = h[2] > 0 ? h[2] : 0.0f;
+        float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
+        float cz = w[2] > 0 ? w[2] : 0.0f;
+        float p = diffuse * (cz * inv_pi) + gloss * ph / (4 * coh);
+        p = w[2] > 0 ? p : 0.0f;
+        pdf[i] = p;
+        int good = p > 0 && w[2] > 0 && o[2] > 0;
+        ok[i] = (uint8_t)good;
+        cosw[i] = good ? w[2] / (p < 1e-30f ? 1e-30f : p) : 0.0f;
+    }
+}
+
+/* 1 when max(x[0..k)) > 0 with torch's amax (a NaN gives NaN: not > 0) */
+static int amax_pos(const float *x, int64_t k, int absval) {
+    int pos = 0;
+    for (int64_t c = 0; c < k; c++) {
+        float v = absval ? fabsf(x[c]) : x[c];
+        if (v != v) return 0;
+        if (v > 0) pos = 1;
+    }
+    return pos;
+}
+
+/* The path's advance after the mixture sample (tracer.py run): raw (n, 3) *= f (when f, rows of
+ * fixed objects) then *= cosw; with `count`, one more occurrence of each editable object;
+ * world direction; the paths that go on (ok, leaving the front of ng, raw, A_w and B_w not all
+ * zero) compacted into rows a (m,), origins so (m, 3) and directions sd (m, 3). Returns m. */
+int64_t tb_advance(int64_t n, const float *wi, const float *cosw, const uint8_t *ok, const float *f, int count,
+                   const int64_t *oid, const uint8_t *editable, int M, int8_t *counts, float *raw, const float *frame,
+                   const float *ng, const float *pos, int64_t La, const float *A_w, int64_t Lb, const float *B_w,
+                   float eps, int64_t *a, float *so, float *sd) {
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        float *r = raw + 3 * i;
+        for (int c = 0; c < 3; c++) r[c] = (f ? r[c] * f[3 * i + c] : r[c]) * cosw[i];
+        if (count && editable[oid[i]]) counts[i * M + oid[i]] += 1;
+        const float *fr = frame + 9 * i, *l = wi + 3 * i, *g = ng + 3 * i;
+        float d[3];
+        for (int c = 0; c < 3; c++) d[c] = (l[0] * fr[c] + l[1] * fr[3 + c]) + l[2] * fr[6 + c];
+        float cg = dot3(d, g);
+        if (!(ok[i] && cg > 0 && amax_pos(r, 3, 0) && amax_pos(A_w + 3 * La * i, 3 * La, 1) &&
+              amax_pos(B_w + 3 * Lb * i, 3 * Lb, 1)))
+            continue;
+        float side = cg >= 0 ? eps : -eps;
+        for (int c = 0; c < 3; c++) so[3 * m + c] = pos[3 * i + c] + side * g[c], sd[3 * m + c] = d[c];
+        a[m++] = i;
+    }
+    return m;
+}

@@ -23,8 +23,10 @@ from ...brdf.bands import BandBasis, Quotient
 from ...records.polynomial import ObjectBasis, Series
 from ...scene.lights import Light
 from ...scene.scene import Scene
+from .._native import library
 from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
 from .sampler import Mixture
+from .vertex import VertexKernel
 
 __all__ = ["Clock", "LightHit", "PathState"]
 
@@ -157,20 +159,25 @@ class _Layers:
         n, L = oid.numel(), self.max_layers
         idx = torch.full((n, L), -1 if self.level == 2 else 0, dtype=torch.long)
         wgt = torch.zeros(n, L, 3, dtype=wi.dtype)
-        up = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).to(wi.dtype)[:, None]
         for o, m in rows_by_object(oid):
-            spec = self.per_object[o]
-            wim, wom = wi[m], wo[m]
-            if spec is None:
-                wgt[m, 0] = self.brdfs[o].eval_local(wim, wom).to(wi.dtype)
-                continue
-            basis, quotients, J, off = spec
-            band = basis.index(basis.gamma(wim, wom))
-            for layer, q in enumerate(quotients):
-                qv = q(wim, wom).to(wi.dtype)
-                qv = qv[:, None].expand(-1, 3) if qv.ndim == 1 else qv
-                idx[m, layer] = off + layer * J + band
-                wgt[m, layer] = qv * up[m]
+            idx[m], wgt[m] = self.rows(o, wi[m], wo[m], idx[m], wgt[m])
+        return idx, wgt
+
+    def rows(self, o: int, wi: torch.Tensor, wo: torch.Tensor, idx: torch.Tensor, wgt: torch.Tensor):
+        """The slots (m, L) and weights (m, L, 3) of object ``o``'s pairs ``wi``, ``wo`` (m, 3),
+        written into ``idx`` and ``wgt`` (which hold the defaults) and returned."""
+        spec = self.per_object[o]
+        if spec is None:
+            wgt[:, 0] = self.brdfs[o].eval_local(wi, wo).to(wi.dtype)
+            return idx, wgt
+        up = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).to(wi.dtype)[:, None]
+        basis, quotients, J, off = spec
+        band = basis.index(basis.gamma(wi, wo))
+        for layer, q in enumerate(quotients):
+            qv = q(wi, wo).to(wi.dtype)
+            qv = qv[:, None].expand(-1, 3) if qv.ndim == 1 else qv
+            idx[:, layer] = off + layer * J + band
+            wgt[:, layer] = qv * up
         return idx, wgt
 
 
@@ -222,6 +229,7 @@ class _Tracer:
         self.bases = bases
         self.num_objects = len(scene.objects)
         self.editable = torch.tensor([b is not None for b in bases])
+        self.all_editable = bool(self.editable.all())
         self.clock = Clock(scene.tracer)
         self.level1 = _Layers(bases, self.brdfs, 1, [0] * len(bases), self.clock)
         offs, off = [], 0
@@ -231,6 +239,7 @@ class _Tracer:
                 off += b.second_size
         self.level2 = _Layers(bases, self.brdfs, 2, offs, self.clock) if series.two_level else None
         self.rays = {"closest": 0, "shadow": 0}
+        self._vk = None  # the compiled per-vertex steps, made on first use
         # pi^-k by the number k of earlier diffuse-equivalent vertices (one table for both the
         # torch and the compiled entries, so they agree bit for bit)
         self.pi_powers = math.pi ** -(torch.arange(series.bounces + 2).double()).float()
@@ -244,6 +253,8 @@ class _Tracer:
         """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""
         with self.clock("brdf"):
             out = torch.ones(oid.numel(), 3, dtype=wi.dtype)
+            if self.all_editable:
+                return out
             for o, m in rows_by_object(oid):
                 if not self.editable[o]:
                     out[m] = self.brdfs[o].eval_local(wi[m], wo[m]).to(wi.dtype)
@@ -262,6 +273,9 @@ class _Tracer:
         """
         scene, nb, clock = self.scene, self.series.bounces, self.clock
         ent = _Entries() if ent is None else ent
+        vk = self._vertex_kernel()
+        if vk is not None:
+            return self._run_fused(vk, origins, directions, rec, gen, paths, ent)
         hits = self._trace(origins, directions)
         with clock("bookkeeping"):
             emis = emission_seen(scene, directions, hits)
@@ -325,10 +339,82 @@ class _Tracer:
                 pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
         return emis, ent
 
-    def _emit(self, ent: _Entries, st: PathState, v: int, hit: LightHit, paths: dict | None, rec: torch.Tensor):
-        """Add the entries of the light samples ``hit`` at vertex ``v`` of the paths ``st``."""
+    def _vertex_kernel(self):
+        """The compiled per-vertex steps (:class:`~.vertex.VertexKernel`), or None: the torch steps
+        (no compiler, ``TORCH_BRDF_NATIVE=0``, float64 rays)."""
+        if library() is None:
+            return None
+        if self._vk is None:
+            self._vk = VertexKernel.make(self) or False
+        return self._vk or None
+
+    def _run_fused(self, vk, origins, directions, rec, gen, paths, ent):
+        """:meth:`run` with the per-vertex steps in the compiled kernel: the same steps in the
+        same order, drawing the same random numbers (see :mod:`.vertex`)."""
+        scene, nb, clock = self.scene, self.series.bounces, self.clock
+        hits = self._trace(origins, directions)
+        with clock("bookkeeping"):
+            emis = emission_seen(scene, directions, hits)
+            idx = torch.nonzero(hits.hit).squeeze(1)
+            d_in, pos = directions[idx].float(), hits.position[idx].float()
+            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+            st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        for v in range(1, nb + 1):
+            if st.idx.numel() == 0:
+                break
+            with clock("sampling"):
+                ng, ns, fr, wo = vk.frame(d_in, ng, ns)
+                ed = self.editable[oid]
+            reps = self.eye_light_samples if v == 1 else 1
+            for light in [li for li in self.lights for _ in range(reps)]:
+                with clock("sampling"):
+                    d, w, cos, cast, kk = vk.light(light, pos, ng, ns, gen)
+                    self.rays["shadow"] += cast
+                    if kk.numel() == 0:
+                        continue
+                    wl, wok, ob, lw = vk.gather(kk, d, w, cos, reps, fr, wo, oid)
+                    hit = LightHit(kk, wl, wok, ob, self.editable[ob], lw)
+                with clock("bookkeeping"):
+                    self._emit(ent, st, v, hit, paths, rec, vk)
+            if v == nb:
+                break
+            with clock("sampling"):
+                u = torch.rand(st.idx.numel(), 3, generator=gen)
+                wi, _, cosw, ok = vk.mixture(u, wo)
+            rec_p = st.oracle
+            with clock("bookkeeping"):
+                f = None
+                if v == 1:
+                    st.A_i, st.A_w = vk.layers(1, oid, wi, wo)
+                    if rec_p is not None:
+                        rec_p["wi1"], rec_p["wo1"] = wi.clone(), wo.clone()
+                elif self._banded(v):
+                    st.B_i, st.B_w = vk.layers(2, oid, wi, wo)
+                    if rec_p is not None:
+                        rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
+                else:
+                    f = self._fixed_f(oid, wi, wo) if vk.fixed else None
+                    if rec_p is not None:
+                        rec_p["objs"].append(torch.where(ed, oid, -1))
+            with clock("sampling"):
+                counted = v > 1 and not self._banded(v)
+                a, so, sd = vk.advance(st, wi, cosw, ok, f, counted, oid, fr, ng, pos)
+            sub = self._trace(so, sd)
+            with clock("bookkeeping"):
+                h = sub.hit
+                st, d_in = st.keep(a[h]), sd[h]
+                pos, ng, ns, oid = (x[h] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
+        return emis, ent
+
+    def _emit(
+        self, ent: _Entries, st: PathState, v: int, hit: LightHit, paths: dict | None, rec: torch.Tensor, vk=None
+    ):
+        """Add the entries of the light samples ``hit`` at vertex ``v`` of the paths ``st``
+        (with ``vk``, a :class:`~.vertex.VertexKernel`, its band slots and quotients)."""
+        lv1 = self.level1 if vk is None else lambda *a: vk.layers(1, *a)
+        lv2 = self.level2 if vk is None else lambda *a: vk.layers(2, *a)
         if getattr(ent, "native", False):
-            self._emit_native(ent, st, v, hit, rec)
+            self._emit_native(ent, st, v, hit, rec, lv1, lv2)
             if paths is not None:
                 extra = None if v == 1 or self._banded(v) else torch.where(hit.ed, hit.ob, -1)
                 self._record(paths, st, v, hit, rec, extra)
@@ -337,13 +423,13 @@ class _Tracer:
         n = kk.numel()
         cnt = st.counts[kk]
         if v == 1:
-            j, q = self.level1(ob, wl, wo)  # (n, L1), (n, L1, 3)
+            j, q = lv1(ob, wl, wo)  # (n, L1), (n, L1, 3)
             w = torch.full_like(j, -1)
             wts = q * lw[:, None, :]
             combos = [(j[:, a], w[:, a], wts[:, a]) for a in range(j.shape[1])]
             extra = None
         elif v == 2 and self.level2 is not None:
-            k2, q2 = self.level2(ob, wl, wo)
+            k2, q2 = lv2(ob, wl, wo)
             base = st.raw[kk] * lw
             combos = [
                 (st.A_i[kk, a], k2[:, b], base * st.A_w[kk, a] * q2[:, b])
@@ -378,16 +464,16 @@ class _Tracer:
         cosine is in the light weight), the full BRDF of fixed ones."""
         return torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))
 
-    def _emit_native(self, ent, st: PathState, v: int, hit: LightHit, rec: torch.Tensor):
+    def _emit_native(self, ent, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, lv1=None, lv2=None):
         """:meth:`_emit` in the compiled kernel (:class:`~.reduce.NativeEntries`): the same
         entries in the same order, made without torch ops per layer combination."""
         kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
         common = (v, kk, st, lw, rec)
         if v == 1:
-            j, q = self.level1(ob, wl, wo)
+            j, q = (lv1 or self.level1)(ob, wl, wo)
             ent.emit(*common, ob, None, None, None, (j, q), False, None, False)
         elif self._banded(v):
-            k2, q2 = self.level2(ob, wl, wo)
+            k2, q2 = (lv2 or self.level2)(ob, wl, wo)
             ent.emit(*common, ob, None, None, None, (st.A_i, st.A_w), True, (k2, q2), False)
         else:
             f = self._diffuse_f(ob, ed, wl, wo)
