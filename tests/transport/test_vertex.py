@@ -30,10 +30,14 @@ def _unit(g, n):
     return torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
 
 
-def _tracer(series="16,4,1,1", fresnel_back=True, fixed="short_box", quotient="cook_torrance"):
+def _tracer(series="16,4,1,1", fresnel_back=True, quotient="cook_torrance"):
+    """A glossy box with a fixed Lambertian object (in the kernel) and a fixed Blinn-Phong one
+    (its BRDF from torch), theta_h and theta_d bands, a Fresnel layer."""
     sc = cornell_box_glossy(8)
-    if fixed:
-        sc.objects[sc.object_id(fixed)].editable = False
+    sc.materials["fixed_gloss"] = {"type": "blinn_phong", "kd": 0.3, "ks": 0.4, "exponent": 20.0}
+    for name in ("short_box", "tall_box"):
+        sc.objects[sc.object_id(name)].editable = False
+    sc.objects[sc.object_id("tall_box")].material = "fixed_gloss"
     s = Series.parse(series)
     bases = []
     for o in sc.objects:
@@ -122,8 +126,10 @@ def test_band_slots_and_quotients_equal_torch(quotient):
         assert int(near.sum()) < n // 100
         assert torch.equal(idx[~near], want_idx[~near])
         torch.testing.assert_close(w, want_w, rtol=RTOL[torch.float32], atol=1e-6 * float(want_w.abs().max()))
-        fixed = oid == sc.object_id("short_box")
-        assert bool((w[fixed, 0] != 0).any())  # the fixed object's BRDF, from torch
+        for name in ("short_box", "tall_box"):  # fixed objects' BRDFs: Lambert in the kernel, Blinn-Phong by torch
+            assert bool((w[oid == sc.object_id(name), 0] != 0).any())
+    with torch.no_grad():
+        torch.testing.assert_close(vk.fixed_f(oid, wi, wo), tr._fixed_f(oid, wi, wo), **TOL)
 
 
 @needs_cc

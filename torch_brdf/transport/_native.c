@@ -483,19 +483,25 @@ static float quotient(int q, const float *wi, const float *wo, const float *h, f
     return v;
 }
 
-/* tracer.py _Layers for the objects the kernel knows (spec row mode 1): per object o, spec[8 * o]
+/* tracer.py _Layers for the objects the kernel knows (spec row mode 1: banded; 2: fixed
+ * Lambertian of reflectance lambert[o] (O, 3)): per object o, spec[8 * o]
  * = mode (0: torch fills the row), variable (0 theta_h, 1 theta_d), J, slot offset, layers,
  * quotient code of layer 0 and 1, first inner edge in `edges` (float32, J - 1 per object). Out:
  * idx (n, L) int64 (off + layer J + band; `fill` beyond the object's layers and for mode 0) and
  * w (n, L, 3) float32 (quotient where both directions are above the horizon, else 0). */
-void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float *edges, const int64_t *oid,
-               const float *wi, const float *wo, int64_t *idx, float *w) {
+void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float *edges, const float *lambert,
+               const int64_t *oid, const float *wi, const float *wo, int64_t *idx, float *w) {
     for (int64_t i = 0; i < n; i++) {
         const int32_t *sp = spec + 8 * oid[i];
         const float *a = wi + 3 * i, *b = wo + 3 * i;
         int64_t *ir = idx + (int64_t)L * i;
         float *wr = w + (int64_t)3 * L * i;
         for (int l = 0; l < L; l++) ir[l] = fill, wr[3 * l] = wr[3 * l + 1] = wr[3 * l + 2] = 0.0f;
+        if (sp[0] == 2) { /* a fixed Lambertian object: rho / pi above both horizons (brdf/base.py) */
+            const float *rho = lambert + 3 * oid[i];
+            int up = a[2] > 0 && b[2] > 0;
+            for (int c = 0; c < 3; c++) wr[c] = up ? rho[c] / (float)3.14159265358979323846 : 0.0f;
+        }
         if (sp[0] != 1) continue;
         float h[3], cos_d, sin_d;
         half_terms(a, b, h, &cos_d, &sin_d);
@@ -604,4 +610,17 @@ int64_t tb_advance(int64_t n, const float *wi, const float *cosw, const uint8_t 
         a[m++] = i;
     }
     return m;
+}
+
+/* tracer.py _fixed_f: (n, 3) the full BRDF of fixed objects, 1 for editable ones; mode[o]: 0
+ * editable, 1 fixed Lambertian (lambert (O, 3) reflectance), 2 another BRDF (left 1: torch fills
+ * those rows). */
+void tb_fixed_f(int64_t n, const int32_t *mode, const float *lambert, const int64_t *oid, const float *wi,
+                const float *wo, float *f) {
+    for (int64_t i = 0; i < n; i++) {
+        int64_t o = oid[i];
+        int up = wi[3 * i + 2] > 0 && wo[3 * i + 2] > 0;
+        for (int c = 0; c < 3; c++)
+            f[3 * i + c] = mode[o] == 1 ? (up ? lambert[3 * o + c] / (float)3.14159265358979323846 : 0.0f) : 1.0f;
+    }
 }

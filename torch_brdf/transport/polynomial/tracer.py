@@ -393,7 +393,7 @@ class _Tracer:
                     if rec_p is not None:
                         rec_p["wi2"], rec_p["wo2"], rec_p["m2"] = wi.clone(), wo.clone(), oid.clone()
                 else:
-                    f = self._fixed_f(oid, wi, wo) if vk.fixed else None
+                    f = None if self.all_editable else vk.fixed_f(oid, wi, wo)
                     if rec_p is not None:
                         rec_p["objs"].append(torch.where(ed, oid, -1))
             with clock("sampling"):
@@ -401,7 +401,7 @@ class _Tracer:
                 a, so, sd = vk.advance(st, wi, cosw, ok, f, counted, oid, fr, ng, pos)
             sub = self._trace(so, sd)
             with clock("bookkeeping"):
-                h = sub.hit
+                h = torch.nonzero(sub.hit).squeeze(1)  # one index for every gather (not a mask each)
                 st, d_in = st.keep(a[h]), sd[h]
                 pos, ng, ns, oid = (x[h] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
         return emis, ent
@@ -413,8 +413,9 @@ class _Tracer:
         (with ``vk``, a :class:`~.vertex.VertexKernel`, its band slots and quotients)."""
         lv1 = self.level1 if vk is None else lambda *a: vk.layers(1, *a)
         lv2 = self.level2 if vk is None else lambda *a: vk.layers(2, *a)
+        fixed = self._fixed_f if vk is None else vk.fixed_f
         if getattr(ent, "native", False):
-            self._emit_native(ent, st, v, hit, rec, lv1, lv2)
+            self._emit_native(ent, st, v, hit, rec, lv1, lv2, fixed)
             if paths is not None:
                 extra = None if v == 1 or self._banded(v) else torch.where(hit.ed, hit.ob, -1)
                 self._record(paths, st, v, hit, rec, extra)
@@ -438,7 +439,7 @@ class _Tracer:
             ]
             extra = None
         else:
-            f = self._diffuse_f(ob, ed, wl, wo)
+            f = self._diffuse_f(ob, ed, wl, wo, fixed)
             scale = self.pi_powers[cnt.sum(-1)]  # 1/pi of earlier D vertices
             cnt = cnt.clone()
             cnt[ed, ob[ed]] += 1
@@ -459,12 +460,15 @@ class _Tracer:
         """Vertex ``v`` > 1 uses the second-bounce band basis (else a diffuse equivalent)."""
         return v == 2 and self.level2 is not None
 
-    def _diffuse_f(self, ob, ed, wl, wo) -> torch.Tensor:
+    def _diffuse_f(self, ob, ed, wl, wo, fixed=None) -> torch.Tensor:
         """(n, 3) factor of a diffuse-equivalent vertex: D = cos/pi for editable objects (the
-        cosine is in the light weight), the full BRDF of fixed ones."""
-        return torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), self._fixed_f(ob, wl, wo))
+        cosine is in the light weight), the full BRDF of fixed ones (``fixed``: its function,
+        default :meth:`_fixed_f`)."""
+        return torch.where(ed[:, None], torch.full((1, 3), 1.0 / math.pi), (fixed or self._fixed_f)(ob, wl, wo))
 
-    def _emit_native(self, ent, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, lv1=None, lv2=None):
+    def _emit_native(
+        self, ent, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, lv1=None, lv2=None, fixed=None
+    ):
         """:meth:`_emit` in the compiled kernel (:class:`~.reduce.NativeEntries`): the same
         entries in the same order, made without torch ops per layer combination."""
         kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
@@ -476,7 +480,7 @@ class _Tracer:
             k2, q2 = (lv2 or self.level2)(ob, wl, wo)
             ent.emit(*common, ob, None, None, None, (st.A_i, st.A_w), True, (k2, q2), False)
         else:
-            f = self._diffuse_f(ob, ed, wl, wo)
+            f = self._diffuse_f(ob, ed, wl, wo, fixed)
             ent.emit(*common, ob, ed, f, self.pi_powers, (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)
 
     def _record(self, paths: dict, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, extra):

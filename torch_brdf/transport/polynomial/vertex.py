@@ -23,6 +23,7 @@ import math
 import torch
 
 from ...brdf.bands import quotients as _q
+from ...brdf.base import Lambert
 from ...scene.lights import AreaLight
 from .._native import library
 from ..pathtrace import rows_by_object, sample_light
@@ -55,17 +56,27 @@ def _i(t: torch.Tensor) -> torch.Tensor:
     return t if t.dtype == torch.int64 and t.is_contiguous() else t.to(torch.int64).contiguous()
 
 
+def _lambert(brdfs) -> tuple[torch.Tensor, list[bool]]:
+    """(O, 3) float32 reflectance of each Lambertian BRDF (zeros for others) and which are."""
+    is_l = [type(b) is Lambert for b in brdfs]
+    rho = [b.reflectance.detach().float().reshape(3) if k else torch.zeros(3) for b, k in zip(brdfs, is_l, strict=True)]
+    return torch.stack(rho).contiguous(), is_l
+
+
 class _LayerSpec:
     """One level of :class:`~.tracer._Layers` as the kernel's table: ``spec`` (O, 8) int32 rows
     (mode, variable, J, offset, layers, two quotient codes, first edge), ``edges`` float32, and
-    the objects whose rows torch fills (``torch_objects``: fixed ones and unknown quotients)."""
+    the objects whose rows torch fills (``torch_objects``: fixed ones other than Lambertian and
+    unknown quotients)."""
 
     def __init__(self, layers):
         rows, edges, self.torch_objects = [], [], set()
+        _, is_l = _lambert(layers.brdfs)
         for o, spec in enumerate(layers.per_object):
             if spec is None:
-                rows.append([0] * 8)
-                self.torch_objects.add(o)
+                rows.append([2 if is_l[o] else 0] + [0] * 7)
+                if not is_l[o]:
+                    self.torch_objects.add(o)
                 continue
             basis, quotients, J, off = spec
             codes = [quotient_code(q) for q in quotients]
@@ -96,7 +107,11 @@ class VertexKernel:
         if tracer.level2 is not None:
             self.levels[2] = _LayerSpec(tracer.level2)
         self.editable = tracer.editable.to(torch.uint8).contiguous()
-        self.fixed = not bool(tracer.editable.all())
+        self.lambert, is_l = _lambert(tracer.brdfs)
+        # per object: 0 editable, 1 fixed Lambertian, 2 another fixed BRDF (torch)
+        mode = [0 if e else (1 if lam else 2) for e, lam in zip(tracer.editable.tolist(), is_l, strict=True)]
+        self.fixed_mode = torch.tensor(mode, dtype=torch.int32)
+        self.torch_fixed = {o for o, k in enumerate(mode) if k == 2}
         m = tracer.mixture
         n = float(m.exponent)
         self.mix = [m.diffuse, 1 - m.diffuse, n, (n + 1.0) / (2 * math.pi)]
@@ -172,12 +187,29 @@ class VertexKernel:
             idx, w = torch.empty(n, L, **_I64), torch.empty(n, L, 3, **_F32)
             oid, wi, wo = _i(oid), _f(wi), _f(wo)
             fill = -1 if level == 2 else 0
-            self.lib.tb_layers(n, L, fill, _p(spec.spec), _p(spec.edges), _p(oid), _p(wi), _p(wo), _p(idx), _p(w))
+            self.lib.tb_layers(
+                n, L, fill, _p(spec.spec), _p(spec.edges), _p(self.lambert), _p(oid), _p(wi), _p(wo), _p(idx), _p(w)
+            )
             if spec.torch_objects:
                 for o, m in rows_by_object(oid):
                     if o in spec.torch_objects:
                         idx[m], w[m] = layers.rows(o, wi[m], wo[m], idx[m], w[m])
             return idx, w
+
+    def fixed_f(self, oid, wi, wo):
+        """:meth:`~.tracer._Tracer._fixed_f`: (n, 3) the full BRDF of fixed objects, 1 for
+        editable ones (Lambertian ones in the kernel, others by torch)."""
+        tracer = self.tracer
+        with tracer.clock("brdf"):
+            n = oid.numel()
+            out = torch.empty(n, 3, **_F32)
+            oid, wi, wo = _i(oid), _f(wi), _f(wo)
+            self.lib.tb_fixed_f(n, _p(self.fixed_mode), _p(self.lambert), _p(oid), _p(wi), _p(wo), _p(out))
+            if self.torch_fixed:
+                for o, m in rows_by_object(oid):
+                    if o in self.torch_fixed:
+                        out[m] = tracer.brdfs[o].eval_local(wi[m], wo[m]).to(torch.float32)
+            return out
 
     def mixture(self, u, wo):
         """:meth:`~.sampler.Mixture.sample` and the tracer's ok, cos / pdf: wi, pdf, cosw, ok."""
