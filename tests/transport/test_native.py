@@ -12,7 +12,15 @@ import torch
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
 from torch_brdf.transport.polynomial import Mixture, driver, precompute_polynomial
-from torch_brdf.transport.polynomial.reduce import NativeEntries, _code_fits, _reduce, _reduce_groups, native_bits
+from torch_brdf.transport.polynomial.reduce import (
+    NativeEntries,
+    _code_fits,
+    _exported,
+    _reduce,
+    _reduce_groups,
+    native_bits,
+    tile_accumulator,
+)
 from torch_brdf.transport.polynomial.tracer import LightHit, PathState, _Entries, _Tracer
 
 LIB = _native.library()
@@ -124,6 +132,11 @@ def test_entries_equal_torch(series):
     got = native_ent.reduce()
     assert len(got["rec"]) > 500
     _equal(want, got)
+    # a tile's sums: the groups' sums added in the kernel equal _reduce_groups of their exports
+    tile = tile_accumulator(LIB, tracer.num_objects, bits)
+    for _ in range(2):
+        native_ent.reduce_into(tile)
+    _equal(_reduce_groups(LIB, [got, got], tracer.num_objects, bits), _exported(tile))
 
 
 @needs_cc

@@ -215,8 +215,9 @@ static u128 forward_key(const tb_acc *a, u128 k) {
  * object first, or first object first when forward) into fields_out (n, 5 + M) int64 (rec,
  * obj, bounce, j, w, counts) and sums_out (n, V) float64 (first *u rows; room for n). Each
  * sum adds its entries in arrival order, starting from 0.0. Returns 0 or -1 (out of memory). */
-int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
+static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
     int64_t n = a->n, o = 0;
+    if (into && (into->V != 2 * a->V || reserve(into, n))) return -1;
     int small = a->total <= 64;
     size_t isz = small ? sizeof(item64) : sizeof(item);
     void *xv = malloc(isz * (n ? n : 1)), *yv = malloc(isz * (n ? n : 1));
@@ -249,7 +250,11 @@ int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_ou
         int64_t si = small ? ss[i].s : sw[i].s;
         if (i + 16 < n) __builtin_prefetch(a->val + (small ? ss[i + 16].s : sw[i + 16].s) * V);
         int fresh = i == 0 || (small ? ss[i].k != ss[i - 1].k : sw[i].k != sw[i - 1].k);
-        if (fresh) {
+        if (fresh && into) { /* the key without its path field, sums then squares */
+            into->key[into->n + o] = (forward ? a->key[si] : (small ? (u128)ss[i].k : sw[i].k)) >> a->bp;
+            memset(into->val + (into->n + o) * 2 * V, 0, sizeof(double) * V);
+            o++;
+        } else if (fresh) {
             u128 k = (forward ? a->key[si] : (small ? (u128)ss[i].k : sw[i].k)) >> a->bp;
             int64_t *row = fields_out + o * K;
             if (narrow) { /* the fields in one 64-bit word: fixed shifts */
@@ -266,13 +271,33 @@ int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_ou
             memset(sums_out + o * V, 0, sizeof(double) * V);
             o++;
         }
-        double *s = sums_out + (o - 1) * V;
+        double *s = into ? into->val + (into->n + o - 1) * 2 * V : sums_out + (o - 1) * V;
         const double *v = a->val + si * V;
         for (int c = 0; c < V; c++) s[c] += v[c];
+    }
+    if (into) {
+        for (int64_t r = into->n; r < into->n + o; r++)
+            for (int c = 0; c < V; c++) into->val[r * 2 * V + V + c] = into->val[r * 2 * V + c] * into->val[r * 2 * V + c];
+        into->n += o;
+        if (a->max_count > into->max_count) into->max_count = a->max_count;
     }
     *u = o;
     free(xv), free(yv), free(cnt);
     return 0;
+}
+
+int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
+    return reduce_impl(a, forward, fields_out, sums_out, u, NULL);
+}
+
+/* tb_reduce's per-key sums s of `a` (V values) appended to `into` (2 V values: s, then s * s)
+ * under their key without the path field (into's fields are a's without path), in ascending
+ * key order: what tb_add_sums of tb_reduce's output adds, without unpacking the keys. The
+ * caller checks that `into` was made with a's widths (path 0). Returns 0 or -1. */
+int tb_reduce_into(const tb_acc *a, int forward, tb_acc *into) {
+    int64_t u = 0;
+    if (into->M != a->M || into->bp != 0 || into->total != a->total - a->bp) return -1;
+    return reduce_impl(a, forward, NULL, NULL, &u, into);
 }
 
 /* Next-event samples of an area light from float32 points (scene/lights.py AreaLight.sample_points

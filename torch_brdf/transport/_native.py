@@ -57,6 +57,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_emit.restype = i32
     lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
     lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
+    lib.tb_reduce_into.restype, lib.tb_reduce_into.argtypes = i32, [p, i32, p]
     lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
     lib.tb_area_finish.restype = None
     lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
@@ -227,6 +228,12 @@ class Accumulator:
             int(y_rows),
         )
         self._check(rc)
+
+    def reduce_into(self, forward: bool, into: Accumulator) -> None:
+        """Append this accumulator's per-key sums ``s`` (ascending key order, as :meth:`reduce`)
+        to ``into`` as values ``(s, s * s)`` under the keys without their path field (``into``:
+        twice the values, the same widths with no path field), without unpacking the keys."""
+        self._check(self.lib.tb_reduce_into(self._h, int(forward), into._h))
 
     def __len__(self) -> int:
         return int(self.lib.tb_size(self._h))

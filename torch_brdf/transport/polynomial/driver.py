@@ -26,7 +26,16 @@ from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
-from .reduce import NativeEntries, _blocks_from_local, _local_blocks, _reduce, _reduce_groups, _term_tables, native_bits
+from .reduce import (
+    NativeEntries,
+    _blocks_from_local,
+    _exported,
+    _local_blocks,
+    _reduce,
+    _term_tables,
+    native_bits,
+    tile_accumulator,
+)
 from .sampler import Mixture
 from .tracer import _Tracer
 
@@ -93,6 +102,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     lib = lib if bits else None  # keys too wide for the kernel: the torch path
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
+    tile_acc = tile_accumulator(lib, tracer.num_objects, bits) if lib else None  # the pass groups' sums
     for gi, (s0, s1) in enumerate(groups):
         with clock("sampling"):
             # the (pass, pixel record) of each ray, pass-major: pass s0 + a, then its records
@@ -113,7 +123,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             if tick is not None:
                 tick()
             if lib:
-                reduced.append(ent.reduce())
+                ent.reduce_into(tile_acc)
                 continue
             dd = ent.cat()
             if not dd:
@@ -121,12 +131,13 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray_id = dd.pop("path")
             dd["rec"], dd["path"] = ray_id % p, ray_id // p
             reduced.append(_reduce(dd, {**sizes, "path": s1 - s0}, by_path=True))
+    if lib:
+        with clock("bookkeeping"):
+            return emis, _exported(tile_acc)
     reduced = [r for r in reduced if r]
     if not reduced:
         return emis, {}
     with clock("bookkeeping"):
-        if lib:
-            return emis, _reduce_groups(lib, reduced, tracer.num_objects, bits)
         cat = {k: torch.cat([r[k] for r in reduced]) for k in reduced[0]}
         cat["weight"] = cat.pop("sum")
         return emis, _reduce(cat, sizes, by_path=False)

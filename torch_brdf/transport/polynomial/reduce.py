@@ -110,6 +110,18 @@ class NativeEntries:
         """``_reduce(entries, sizes, by_path=True)`` of the entries made."""
         return _exported(self.acc)
 
+    def reduce_into(self, tile) -> None:
+        """Add :meth:`reduce`'s sums (and squares) to a :func:`tile_accumulator` without leaving
+        the kernel: the tile's :func:`_exported` then equals ``_reduce_groups`` of the groups'
+        :meth:`reduce` outputs bit for bit (same sums, same order)."""
+        self.acc.reduce_into(not _code_fits(self.acc.M, self.acc.max_count()), tile)
+
+
+def tile_accumulator(lib, num_objects: int, bits: list[int]) -> Accumulator:
+    """The accumulator of a tile's per-path sums and squares (keys without the path field),
+    for :meth:`NativeEntries.reduce_into`; ``bits``: the pass groups' :func:`native_bits`."""
+    return Accumulator(lib, num_objects, 6, bits[:-1] + [0])
+
 
 def native_bits(sizes: dict[str, int], num_objects: int, bounces: int) -> list[int] | None:
     """The packed key widths of a tile's per-path keys (None: too wide for the kernel)."""
@@ -134,7 +146,7 @@ def _reduce_groups(lib, groups: list[dict[str, torch.Tensor]], num_objects: int,
     """``_reduce(cat(groups), sizes, by_path=False)`` in the compiled kernel: the per-path sums
     of a tile's pass groups summed per key in the same order (group by group). ``bits``: the
     groups' :func:`native_bits` (its path field is dropped)."""
-    acc = Accumulator(lib, num_objects, 6, bits[:-1] + [0])
+    acc = tile_accumulator(lib, num_objects, bits)
     for g in groups:
         vals = torch.cat([g["sum"], g["sq"]], 1)
         acc.add_sums(g["rec"], g["obj"], g["bounce"], g["j"], g["w"], g["counts"], vals)
