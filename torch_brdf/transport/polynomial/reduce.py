@@ -171,8 +171,10 @@ def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) 
     dof = max(spp - 1, 1) if isinstance(spp, int) else (spp - 1).clamp_min(1)
     var = ((red["sq"] / spp - mean * mean) / dof).clamp_min(0)
     group = red["obj"] * 1000 + red["bounce"]
-    for gkey in group.unique().tolist():
-        m = group == gkey
+    # each block's rows in their order, by one stable sort (not a full-size mask per block)
+    order = torch.argsort(group, stable=True)
+    gkeys, sizes = torch.unique_consecutive(group[order], return_counts=True)
+    for gkey, m in zip(gkeys.tolist(), torch.split(order, sizes.tolist()), strict=True):
         obj, bounce = divmod(int(gkey), 1000)
         upix, prow = torch.unique(red["rec"][m], return_inverse=True)
         tw, tc = red["w"][m], red["counts"][m]
