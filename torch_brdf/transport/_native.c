@@ -649,3 +649,19 @@ void tb_fixed_f(int64_t n, const int32_t *mode, const float *lambert, const int6
             f[3 * i + c] = mode[o] == 1 ? (up ? lambert[3 * o + c] / (float)3.14159265358979323846 : 0.0f) : 1.0f;
     }
 }
+
+/* Rows `rows` (m,) of k row-major arrays: dst[a] row i = src[a] row rows[i], rowbytes[a] bytes
+ * per row (the path state's and the hits' gathers after a trace, tracer.py PathState.keep). */
+void tb_gather(int64_t m, const int64_t *rows, int k, char *const *src, char *const *dst, const int64_t *rowbytes) {
+    for (int a = 0; a < k; a++) {
+        const char *s = src[a];
+        char *d = dst[a];
+        int64_t b = rowbytes[a];
+        if (b == 8)
+            for (int64_t i = 0; i < m; i++) memcpy(d + 8 * i, s + 8 * rows[i], 8);
+        else if (b == 12)
+            for (int64_t i = 0; i < m; i++) memcpy(d + 12 * i, s + 12 * rows[i], 12);
+        else
+            for (int64_t i = 0; i < m; i++) memcpy(d + b * i, s + b * rows[i], (size_t)b);
+    }
+}

@@ -69,6 +69,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p]
     lib.tb_layers.restype, lib.tb_layers.argtypes = None, [i64, i32, i64, p, p, p, p, p, p, p, p]
     lib.tb_fixed_f.restype, lib.tb_fixed_f.argtypes = None, [i64, p, p, p, p, p, p]
+    lib.tb_gather.restype, lib.tb_gather.argtypes = None, [i64, p, i32, p, p, p]
     lib.tb_mixture.restype, lib.tb_mixture.argtypes = None, [i64, p, p, f32, f32, f32, f32, p, p, p, p]
     lib.tb_advance.restype = i64
     lib.tb_advance.argtypes = [i64, p, p, p, p, i32, p, p, i32, p, p, p, p, p, i64, p, i64, p, f32, p, p, p]

@@ -401,9 +401,9 @@ class _Tracer:
                 a, so, sd = vk.advance(st, wi, cosw, ok, f, counted, oid, fr, ng, pos)
             sub = self._trace(so, sd)
             with clock("bookkeeping"):
-                h = torch.nonzero(sub.hit).squeeze(1)  # one index for every gather (not a mask each)
-                st, d_in = st.keep(a[h]), sd[h]
-                pos, ng, ns, oid = (x[h] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
+                h = torch.nonzero(sub.hit).squeeze(1)
+                st = vk.keep(st, a[h])
+                d_in, pos, ng, ns, oid = vk.take(h, sd, sub.position, sub.geometric_normal, sub.normal, sub.object_id)
         return emis, ent
 
     def _emit(

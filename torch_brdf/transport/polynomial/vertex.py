@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+from dataclasses import fields
 
 import torch
 
@@ -210,6 +211,25 @@ class VertexKernel:
                     if o in self.torch_fixed:
                         out[m] = tracer.brdfs[o].eval_local(wi[m], wo[m]).to(torch.float32)
             return out
+
+    def take(self, rows, *xs: torch.Tensor) -> list[torch.Tensor]:
+        """``[x[rows] for x in xs]`` (contiguous tensors, any dtype) in one kernel call."""
+        rows = _i(rows)
+        m, xs = rows.numel(), [x.contiguous() for x in xs]
+        out = [torch.empty((m, *x.shape[1:]), dtype=x.dtype) for x in xs]
+        ptrs = ctypes.c_void_p * len(xs)
+        rb = torch.tensor([x[0].numel() * x.element_size() if x.shape[0] else 0 for x in xs], dtype=torch.int64)
+        self.lib.tb_gather(
+            m, _p(rows), len(xs), ptrs(*[x.data_ptr() for x in xs]), ptrs(*[o.data_ptr() for o in out]), _p(rb)
+        )
+        return out
+
+    def keep(self, st, rows):
+        """``st.keep(rows)`` (the oracle's records, if any, by torch)."""
+        if st.oracle is not None:
+            return st.keep(rows)
+        names = [f.name for f in fields(st) if f.name != "oracle"]
+        return type(st)(**dict(zip(names, self.take(rows, *(getattr(st, k) for k in names)), strict=True)))
 
     def mixture(self, u, wo):
         """:meth:`~.sampler.Mixture.sample` and the tracer's ok, cos / pdf: wi, pdf, cosw, ok."""
