@@ -309,28 +309,34 @@ int tb_reduce_into(const tb_acc *a, int forward, tb_acc *into) {
  * tb_area_points: u (n, 3) float64 uniforms and s = sqrt(u[:, 1]) (n,) float64 (both from torch);
  * cdf (T,) float64; tri (T, 3, 3) float32; points (n, 3) float32 -> d (n, 3) = y - points and
  * d2 (n,) = |d|^2 float32, idx (n,) int64 the triangle. */
+/* The triangle (searchsorted(cdf, u0, right=True), clamped) and the point on it at barycentrics
+ * (b1, b2) in float64, rounded to float32, less p: into d (3,). Returns the triangle. */
+static int64_t area_point(double u0, double b1, double b2, const double *cdf, int64_t T, const float *tri,
+                          const float *p, float *d) {
+    int64_t a = 0, b = T;
+    while (a < b) {
+        int64_t m = (a + b) / 2;
+        if (cdf[m] <= u0)
+            a = m + 1;
+        else
+            b = m;
+    }
+    int64_t k = a < T - 1 ? a : T - 1;
+    const float *t = tri + 9 * k;
+    for (int c = 0; c < 3; c++) {
+        double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
+        float y = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0));
+        d[c] = y - p[c];
+    }
+    return k;
+}
+
 void tb_area_points(int64_t n, const double *u, const double *s, const double *cdf, int64_t T, const float *tri,
                     const float *points, float *d, float *d2, int64_t *idx) {
     for (int64_t i = 0; i < n; i++) {
-        double u0 = u[3 * i], b1 = 1 - s[i], b2 = u[3 * i + 2] * s[i];
-        int64_t a = 0, b = T; /* searchsorted(right=True): the first cdf entry > u0 */
-        while (a < b) {
-            int64_t m = (a + b) / 2;
-            if (cdf[m] <= u0)
-                a = m + 1;
-            else
-                b = m;
-        }
-        int64_t k = a < T - 1 ? a : T - 1;
-        const float *t = tri + 9 * k;
         float *di = d + 3 * i;
-        for (int c = 0; c < 3; c++) {
-            double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
-            float y = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0));
-            di[c] = y - points[3 * i + c];
-        }
+        idx[i] = area_point(u[3 * i], 1 - s[i], u[3 * i + 2] * s[i], cdf, T, tri, points + 3 * i, di);
         d2[i] = (di[0] * di[0] + di[1] * di[1]) + di[2] * di[2];
-        idx[i] = k;
     }
 }
 
@@ -414,22 +420,10 @@ int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T,
     const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) {
-        double u0 = u[3 * i], sq = sqrt(u[3 * i + 1]), b1 = 1 - sq, b2 = u[3 * i + 2] * sq;
-        int64_t a = 0, b = T;
-        while (a < b) {
-            int64_t mid = (a + b) / 2;
-            if (cdf[mid] <= u0)
-                a = mid + 1;
-            else
-                b = mid;
-        }
-        int64_t tk = a < T - 1 ? a : T - 1;
-        const float *t = tri + 9 * tk, *p = pos + 3 * i, *nl = nrm + 3 * tk;
+        double sq = sqrt(u[3 * i + 1]);
+        const float *p = pos + 3 * i;
         float d[3];
-        for (int c = 0; c < 3; c++) {
-            double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
-            d[c] = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[c];
-        }
+        const float *nl = nrm + 3 * area_point(u[3 * i], 1 - sq, u[3 * i + 2] * sq, cdf, T, tri, p, d);
         float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
         float *w = dir + 3 * i;
         for (int c = 0; c < 3; c++) w[c] = d[c] / den;

@@ -273,16 +273,10 @@ class _Tracer:
         """
         scene, nb, clock = self.scene, self.series.bounces, self.clock
         ent = _Entries() if ent is None else ent
-        vk = self._vertex_kernel()
+        vk = self._vertex_kernel() if directions.dtype == torch.float32 else None
         if vk is not None:
             return self._run_fused(vk, origins, directions, rec, gen, paths, ent)
-        hits = self._trace(origins, directions)
-        with clock("bookkeeping"):
-            emis = emission_seen(scene, directions, hits)
-            idx = torch.nonzero(hits.hit).squeeze(1)
-            d_in, pos = directions[idx], hits.position[idx]
-            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
-            st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths)
         for v in range(1, nb + 1):
             if st.idx.numel() == 0:
                 break
@@ -339,9 +333,21 @@ class _Tracer:
                 pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
         return emis, ent
 
+    def _start(self, origins, directions, paths):
+        """The eye rays traced: (emission seen (n, 3), the :class:`PathState` of the rays that hit,
+        their arriving directions, positions, both normals and objects)."""
+        hits = self._trace(origins, directions)
+        with self.clock("bookkeeping"):
+            emis = emission_seen(self.scene, directions, hits)
+            idx = torch.nonzero(hits.hit).squeeze(1)
+            d_in, pos = directions[idx], hits.position[idx]
+            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+            st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        return emis, st, d_in, pos, ng, ns, oid
+
     def _vertex_kernel(self):
         """The compiled per-vertex steps (:class:`~.vertex.VertexKernel`), or None: the torch steps
-        (no compiler, ``TORCH_BRDF_NATIVE=0``, float64 rays)."""
+        (no compiler, ``TORCH_BRDF_NATIVE=0``; :meth:`run` also keeps them for float64 rays)."""
         if library() is None:
             return None
         if self._vk is None:
@@ -351,14 +357,8 @@ class _Tracer:
     def _run_fused(self, vk, origins, directions, rec, gen, paths, ent):
         """:meth:`run` with the per-vertex steps in the compiled kernel: the same steps in the
         same order, drawing the same random numbers (see :mod:`.vertex`)."""
-        scene, nb, clock = self.scene, self.series.bounces, self.clock
-        hits = self._trace(origins, directions)
-        with clock("bookkeeping"):
-            emis = emission_seen(scene, directions, hits)
-            idx = torch.nonzero(hits.hit).squeeze(1)
-            d_in, pos = directions[idx].float(), hits.position[idx].float()
-            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
-            st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
+        nb, clock = self.series.bounces, self.clock
+        emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths)
         for v in range(1, nb + 1):
             if st.idx.numel() == 0:
                 break
