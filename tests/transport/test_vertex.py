@@ -22,7 +22,9 @@ from torch_brdf.transport.polynomial.tracer import _Tracer
 from torch_brdf.transport.polynomial.vertex import VertexKernel, quotient_code
 
 LIB = _native.library()
-needs_cc = pytest.mark.skipif(LIB is None, reason="no C compiler here: only the torch path runs")
+needs_cc = pytest.mark.skipif(
+    LIB is None, reason="no compiled kernel (no C compiler, or TORCH_BRDF_NATIVE=0): only the torch path runs"
+)
 TOL = {"rtol": RTOL[torch.float32], "atol": 1e-6}
 
 
