@@ -1,5 +1,6 @@
 """The compiled kernel of the GI precompute (``_native.c``: the entries and their per-key sums,
-area-light next-event samples): built on first use, cached, optional.
+area-light next-event samples, the tracer's per-vertex steps of
+:mod:`torch_brdf.transport.polynomial.vertex`): built on first use, cached, optional.
 
 :func:`library` compiles ``_native.c`` with the system C compiler (``$CC``, else Python's
 own compiler, else ``cc``) into ``$TORCH_BRDF_CACHE/native/`` under a name keyed by the
@@ -7,7 +8,10 @@ hash of the source and the compiler command, once per machine (later processes l
 cached file in milliseconds), and loads it with :mod:`ctypes`: no Python or torch headers,
 no build step beyond ``pip install``. Without a working compiler (or with
 ``TORCH_BRDF_NATIVE=0``) it returns None after one warning and the precomputation keeps
-its torch path; both give the same tensors bit for bit (``tests/transport/test_native.py``).
+its torch path. The entries and sums equal the torch path's bit for bit on the same paths
+(``tests/transport/test_native.py``); the per-vertex steps use libm's scalar math where torch
+uses its vectorised math, so whole precomputations agree to float32 rounding, not bit for bit
+(``tests/transport/test_vertex.py``).
 """
 
 from __future__ import annotations

@@ -85,7 +85,8 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     for ray and random number for random number (so an adaptive tile whose pixels all take
     ``s`` paths equals the uniform run's tile at ``s`` entry for entry). ``native``: the compiled
     entry kernel (None: :func:`~torch_brdf.transport._native.library`, None without a compiler;
-    False: the torch path); the sums are the same bit for bit."""
+    False: the torch entries); the sums are the same bit for bit on the same paths (the paths
+    themselves come from the tracer's compiled per-vertex steps whenever the kernel exists)."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
