@@ -9,7 +9,8 @@ are precomputed at each ``--spp`` (with the view's guides, which the precomputat
 frozen on the edited object and rendered by four methods:
 
 * ``none``: the precomputed frame as is (also at ``--hi-spp`` as the mean of independent runs'
-  frames at the largest spp, which is the higher-spp estimate: frames are linear in the tensors);
+  frames at ``--hi-step`` spp, default the middle one, which is the higher-spp estimate: frames
+  are linear in the tensors);
 * ``linear``: the guide-only à-trous filter applied once to every basis image of the frozen
   tensor (``PolynomialRenderer.freeze(obj, denoiser="linear")``);
 * ``oidn_basis``: Open Image Denoise once per grouped basis image (``denoiser="oidn"``);
@@ -43,6 +44,11 @@ the hi-spp noise, the bias left at hi spp, the reference's own noise and each me
 over that bias; see :func:`_budget`), ``load`` (1-min load average at the
 start and end of each part). Edited material: exponent 1000 and another colour, a material
 the denoisers never saw (they see only guides and basis images).
+
+Order: the middle spp's parts first, then the hi-spp runs, then the other spps from the smallest
+up (``--skip-spp`` leaves some out), so a run cut short has cached what the goals need.
+``--only-hi`` computes just the hi-spp runs, from the last: started beside a full run with the
+same options, it shares that work (each skips the parts the other has cached).
 
 Resumable: each part (a reference, a precompute at one spp and seed with its denoised frames)
 is saved atomically under ``--cache`` (default ``$TORCH_BRDF_CACHE/benchmarks/denoise``), keyed
@@ -162,9 +168,12 @@ def _interleaved_frame_times(renderers: dict, obj: str, repeat: int = 7) -> dict
     return best
 
 
-def _unit(scene, obj, mats, edited, series, spp, seed, full: bool):
-    """One precompute at (spp, seed): its frames per method (only ``none`` unless ``full``)."""
+def _unit(scene, obj, mats, edited, series, spp, seed, full: bool, keep: dict | None = None):
+    """One precompute at (spp, seed): its frames per method (only ``none`` unless ``full``);
+    a full unit's record is left in ``keep["T"]`` for the extra part of the same run."""
     T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    if full and keep is not None:
+        keep["T"] = T
     R = PolynomialRenderer(T, mats)
     _, freeze_s = _secs(lambda: R.freeze(obj))
     arrays = dict(zip(("none", "none_e"), _frames(R, obj, mats, edited), strict=True))
@@ -194,11 +203,15 @@ def _unit(scene, obj, mats, edited, series, spp, seed, full: bool):
     return arrays, meta
 
 
-def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy):
-    """The ``EXTRA`` methods of one full unit: the same precompute (seed) again, its frozen
-    tensor denoised by each, frames, denoise seconds and frame seconds timed in turns with the
-    noisy frozen frame of this run (the ratio's baseline)."""
-    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy, T=None):
+    """The ``EXTRA`` methods of one full unit: its record ``T`` when the unit was computed in
+    this run, else the same precompute (seed) again; its frozen tensor denoised by each,
+    frames, denoise seconds and frame seconds timed in turns with the noisy frozen frame of
+    this run (the ratio's baseline)."""
+    if T is None:
+        T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    else:
+        pre_s = 0.0  # reused: same_as_cached_unit is then 0 by construction
     R = PolynomialRenderer(T, mats)
     _, freeze_s = _secs(lambda: R.freeze(obj))
     frame = _frames(R, obj, mats, edited)[0]
@@ -307,23 +320,43 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out[k] = {m: {} for m in METHODS}
     for k in ("precompute_s", "frame_s_after", "frame_ratio", "mean_ratio", "frozen_mb"):
         out[k] = {}
+    step = cfg["hi_step"]
     runs = [(spp, k) for k, spp in enumerate(spps)]
-    runs += [(spps[-1], len(spps) + k) for k in range(hi_spp // spps[-1] - 1)]  # seeds for the hi-spp mean
+    runs += [(step, len(spps) + k) for k in range(hi_spp // step - 1)]  # seeds for the hi-spp mean
+    # what the goals need first (the middle spp's full unit, then the hi-spp runs), then the
+    # other full units from the smallest spp up, so a run cut short leaves the parts that
+    # matter cached; the seeds stay the positions in the full list (cached parts are reused)
+    runs.sort(key=lambda r: (0 if str(r[0]) == mid and r[1] < len(spps) else 1 if r[1] >= len(spps) else 2, r[0]))
+    runs = [r for r in runs if r[0] not in cfg["skip"]]
+    if cfg["only_hi"]:  # a second process beside a full run: the hi-spp runs from the last
+        for spp, seed in reversed([r for r in runs if r[1] >= len(spps)]):
+            print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
+            settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": False}
+            _cached(
+                folder,
+                "unit",
+                settings,
+                scene,
+                lambda s=spp, k=seed: _unit(scene, obj, mats, edited, series, s, k, False),
+            )
+        return out
     hi = {"none": [], "none_e": []}
     mask = None
+    keep: dict = {}
     for spp, seed in runs:
         full = seed < len(spps)
         print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
         settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": full}
+        keep.clear()
         a, meta = _cached(
             folder,
             "unit",
             settings,
             scene,
-            lambda spp=spp, seed=seed, full=full: _unit(scene, obj, mats, edited, series, spp, seed, full),
+            lambda spp=spp, seed=seed, full=full: _unit(scene, obj, mats, edited, series, spp, seed, full, keep),
         )
         out["load"][f"{spp}_{seed}"] = meta["load"]
-        if spp == spps[-1]:
+        if spp == step:
             hi["none"].append(a["none"])
             hi["none_e"].append(a["none_e"])
         if not full:
@@ -333,8 +366,11 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             "extra",
             {**settings, "methods": [RegressionFilter.__name__, repr(RegressionSettings())]},
             scene,
-            lambda spp=spp, seed=seed, a=a: _extra_unit(scene, obj, mats, edited, series, spp, seed, a["none"]),
+            lambda spp=spp, seed=seed, a=a: _extra_unit(
+                scene, obj, mats, edited, series, spp, seed, a["none"], keep.pop("T", None)
+            ),
         )
+        keep.clear()
         h, hmeta = _cached(
             folder,
             "halves",
@@ -392,6 +428,9 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             if figure:
                 _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], a["selected"], ref)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
+    for k in ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s", "same_samples"):
+        out[k] = {m: dict(sorted(d.items(), key=lambda kv: int(kv[0]))) for m, d in out.get(k, {}).items()}
+    out["precompute_s"] = dict(sorted(out["precompute_s"].items(), key=lambda kv: int(kv[0])))
     top = str(hi_spp)
     a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
     out["rel_rmse"]["none"][top] = relative_rmse(a, ref, mask)
@@ -475,18 +514,48 @@ def _figure(path: str, noisy, linear, oidn, regression, selected, ref) -> None:
     write_png(path, strip, exposure=exposure, tonemap="clip")
 
 
+def _scene_names(arg: str) -> list[str]:
+    """The ``--scenes`` list with each entry a scene name or a unique prefix of one
+    (``cornell`` -> ``cornell_box_glossy``)."""
+    names = []
+    for part in arg.split(","):
+        hits = [n for n in SCENES if n == part] or [n for n in SCENES if n.startswith(part)]
+        if len(hits) != 1:
+            raise SystemExit(f"--scenes: {part!r} names none or several of {', '.join(SCENES)}")
+        names.append(hits[0])
+    return names
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a smoke run: 48x48, series 16,1,1, spp 4,16, hi 64")
     ap.add_argument("--res", type=int, default=256, help="image width and height")
     ap.add_argument("--series", default="64,1,1,1", help="BRDF series (its length: bounces)")
     ap.add_argument("--spp", default="16,64,256", help="precomputation spp (the middle one: goals, figure)")
-    ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of the last spp)")
+    ap.add_argument("--hi-spp", type=int, default=1024, help="undenoised comparison (a multiple of --hi-step)")
+    ap.add_argument(
+        "--hi-step",
+        type=int,
+        default=None,
+        help="spp of the independent runs whose mean is the --hi-spp frame (one of --spp; default the middle: "
+        "sixteen 64-spp runs keep the peak memory of a 64-spp precompute)",
+    )
     ap.add_argument("--ref-spp", type=int, default=4096, help="Mitsuba reference spp")
     ap.add_argument(
         "--figure",
         default=None,
         help="PNG: noisy | linear | oidn_basis | regression | selected | reference (Cornell, middle spp)",
+    )
+    ap.add_argument(
+        "--skip-spp",
+        default="",
+        help="comma-separated spps of --spp whose parts are not computed (not the middle or --hi-step; "
+        "the seeds of the others stay, so cached parts are reused)",
+    )
+    ap.add_argument(
+        "--only-hi",
+        action="store_true",
+        help="compute only the hi-spp runs, from the last (a second process beside a full run; no JSON)",
     )
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
@@ -494,11 +563,21 @@ def main() -> None:
     if args.quick:
         args.res, args.series, args.spp, args.hi_spp, args.ref_spp = 48, "16,1,1", "4,16", 64, 512
     spps = [int(s) for s in args.spp.split(",")]
+    mid = spps[len(spps) // 2] if len(spps) > 2 else spps[-1]
+    step = mid if args.hi_step is None else args.hi_step
+    if step not in spps or args.hi_spp % step or args.hi_spp <= step:
+        raise SystemExit(f"--hi-step: {step} must be one of --spp and divide --hi-spp ({args.hi_spp}) at least twice")
+    skip = [int(x) for x in args.skip_spp.split(",") if x]
+    if not set(skip) <= set(spps) - {mid, step}:
+        raise SystemExit(f"--skip-spp: {skip} must be spps of --spp other than the middle ({mid}) and --hi-step")
     cfg = {
+        "skip": skip,
+        "only_hi": args.only_hi,
+        "hi_step": step,
         "res": args.res,
         "series": args.series,
         "spp": spps,
-        "mid": spps[len(spps) // 2] if len(spps) > 2 else spps[-1],
+        "mid": mid,
         "hi_spp": args.hi_spp,
         "ref_spp": args.ref_spp,
         "ref_spp_ours": max(64, args.ref_spp // 8),
@@ -506,8 +585,10 @@ def main() -> None:
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
     result: dict = {"quick": args.quick, "settings": cfg, "load_start": _load(), "scenes": {}}
     t0 = time.perf_counter()
-    for name in args.scenes.split(","):
+    for name in _scene_names(args.scenes):
         result["scenes"][name] = run_scene(name, cfg, folder, args.figure if name == "cornell_box_glossy" else None)
+    if args.only_hi:
+        return
     result["load_end"], result["seconds"] = _load(), time.perf_counter() - t0
     first = result["scenes"].get("cornell_box_glossy") or next(iter(result["scenes"].values()))
     result.update({k: v for k, v in first.items() if k not in ("edited_material",)})

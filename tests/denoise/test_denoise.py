@@ -14,6 +14,7 @@ from torch_brdf.denoise import (
     AtrousSettings,
     EdgeAwareFilter,
     GuideBuffers,
+    GuideWeights,
     OIDNBasis,
     RegressionFilter,
     RegressionSettings,
@@ -364,6 +365,42 @@ def test_regression_filter_reproduces_polynomials_and_is_linear(gen):
         RegressionFilter(g, AtrousSettings())
     with pytest.raises(ShapeError):
         A(torch.zeros(3, 5, 5))
+
+
+def test_regression_hat_weights_are_the_per_pixel_weighted_least_squares(gen):
+    """Oracle for the batched normal equations: at sample pixels the hat weights equal a
+    per-pixel weighted least-squares fit solved on its own (features 1, u, v, u², v², uv,
+    ridge on the non-constant ones); filters that share a GuideWeights keeping its taps (as
+    the selection's candidates do) get the same weights as filters built alone."""
+    size = 32
+    g = guide_buffers(cornell_box(size))
+    s = RegressionSettings(radius=3, order=2, sigma_space=2.5, ridge=1e-2)
+    A = RegressionFilter(g, s)
+    gw = GuideWeights(g)
+    offsets = [(dy, dx) for dy in range(-3, 4) for dx in range(-3, 4)]
+    assert A.offsets == offsets
+    w_all = torch.stack(
+        [
+            gw.weight(dy, dx, s) * torch.exp(torch.tensor(-(dy * dy + dx * dx) / (2 * 2.5**2))).double()
+            for dy, dx in offsets
+        ]
+    )
+    pixels = torch.nonzero(A.interior)
+    picks = pixels[torch.randperm(pixels.shape[0], generator=gen)[:12]]
+    for y, x in picks.tolist():
+        w = w_all[:, y, x]
+        X = torch.tensor(
+            [[1, dy / 3, dx / 3, (dy / 3) ** 2, (dx / 3) ** 2, dy * dx / 9] for dy, dx in offsets], dtype=torch.float64
+        )
+        M = X.T @ (w[:, None] * X) + torch.diag(torch.tensor([0.0, 1, 1, 1, 1, 1])) * s.ridge * float(w.sum())
+        hat = w * (X @ torch.linalg.solve(M, torch.eye(6, dtype=torch.float64)[0]))
+        torch.testing.assert_close(A.weights[:, y, x].double(), hat, rtol=1e-5, atol=1e-6)
+    kept = GuideWeights(g, keep=True)
+    for r, o in ((1, 1), (3, 2), (2, 0)):
+        rs = RegressionSettings(radius=r, order=o)
+        assert torch.equal(RegressionFilter(g, rs, guide_weights=kept).weights, RegressionFilter(g, rs).weights)
+    with pytest.raises(ValueRangeError):
+        RegressionFilter(g, s, glossy=[1], guide_weights=kept)
 
 
 def test_mean_tensors_render_the_mean_frame(setup, halves, gen):

@@ -113,14 +113,19 @@ class GuideWeights:
     Args:
         guides: the view's :class:`GuideBuffers`.
         glossy: object ids where the half-vector guide applies.
+        keep: remember every weight computed (per offset and tolerances), so filters that share
+            this object (the candidates of :class:`~.selection.SelectedRegressionFilter`) compute
+            each tap once (memory: one (H, W) float64 plane per offset kept).
 
     Attributes:
         interior: (H, W) bool pixels whose 3 x 3 neighbourhood sees one object (the only
             pixels filtered and used as taps).
     """
 
-    def __init__(self, guides: GuideBuffers, glossy=()):
+    def __init__(self, guides: GuideBuffers, glossy=(), keep: bool = False):
         g = guides
+        self.guides, self.glossy = guides, tuple(sorted(int(o) for o in glossy))
+        self._kept: dict | None = {} if keep else None
         self.oid = g.object_id.double()
         self.n = g.normal.double().permute(2, 0, 1)  # (3, H, W)
         self.x = g.position.double().permute(2, 0, 1)
@@ -138,6 +143,14 @@ class GuideWeights:
         """(H, W) float64 weight of the tap at offset (dy, dx); 0 across object ids, mirror
         ids, and from silhouette taps. ``s`` carries ``sigma_normal``, ``sigma_plane``,
         ``sigma_albedo``, ``sigma_mirror`` and ``sigma_half`` (:class:`AtrousSettings`)."""
+        if self._kept is None:
+            return self._weight(dy, dx, s)
+        key = (dy, dx, s.sigma_normal, s.sigma_plane, s.sigma_albedo, s.sigma_mirror, s.sigma_half)
+        if key not in self._kept:
+            self._kept[key] = self._weight(dy, dx, s)
+        return self._kept[key]
+
+    def _weight(self, dy: int, dx: int, s) -> torch.Tensor:
         oid, n, x, a, ml, ch = self.oid, self.n, self.x, self.a, self.ml, self.ch
         o_q = _shift(oid, dy, dx, fill=-2.0)  # -2: outside the image
         inner_q = _shift(self.interior.double(), dy, dx) > 0

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 
 from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
-from .atrous import GuideFilter, GuideSigmas
+from .atrous import GuideFilter, GuideSigmas, GuideWeights
 from .guides import GuideBuffers
 from .regression import RegressionFilter, RegressionSettings, apply_hat
 
@@ -138,7 +138,9 @@ class SelectedRegressionFilter(GuideFilter):
 
     def _build(self, pairs) -> None:
         s = self.settings
-        cands = [RegressionFilter(self.guides, s.regression(r, o), glossy=self.glossy) for r, o in s.candidates]
+        gw = GuideWeights(self.guides, self.glossy, keep=True)  # each tap's weight once for all candidates
+        cands = [RegressionFilter(self.guides, s.regression(r, o), self.glossy, gw) for r, o in s.candidates]
+        del gw
         self.names = (["identity"] if s.identity else []) + [f"r{r}o{o}" for r, o in s.candidates]
         risks = []
         for A in [None] * s.identity + cands:
