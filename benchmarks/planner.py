@@ -2,7 +2,7 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50]
+        [--psnr 50] [--families 7,11] [--orders 8]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -45,7 +45,8 @@ cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
 Manifold (``manifold``; not in the default list): q and the training materials for a median
 held-out log-RMSE of 0.01 on the analytic family (120 materials, 9 x 9 x 18 grid: 40 pool, 80
-held out; family seeds 7 and 11, ``--quick`` 7 only), for pool orders 0-7 (quick 0-1): per plan
+held out; family seeds 7 and 11, ``--quick`` 7 only, or ``--families``), for pool orders 0-7
+(quick 0-1, or ``--orders N``): per plan
 (``orders``) its q, n, predicted and achieved error (median over the 80 held-out materials of
 the plan carried out) and their ratio, CPU seconds of the fit + 80 placements; ``planned`` is the
 first; ``defaults``: the seed's q = 2 and 5 trained on the whole pool, measured alike;
@@ -469,6 +470,8 @@ def main() -> None:
         "--capabilities", default="gi,inverse,relight", help="comma-separated: gi, inverse, relight, manifold"
     )
     ap.add_argument("--psnr", type=float, default=None, help="relighting target in dB (default 50; quick 45)")
+    ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11; quick 7)")
+    ap.add_argument("--orders", type=int, default=None, help="manifold: pool orders 0..N-1 (default 8; quick 2)")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
     args = ap.parse_args()
@@ -486,8 +489,8 @@ def main() -> None:
     if "relight" in caps:
         out["relight"] = run_relight(args.psnr or (45.0 if q else 50.0), q)
     if "manifold" in caps:
-        orders = tuple(range(2 if q else 8))
-        out["manifold"] = run_manifold(0.01, (7,) if q else (7, 11), orders)
+        families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11)
+        out["manifold"] = run_manifold(0.01, families, tuple(range(args.orders or (2 if q else 8))))
     out["load_end"] = os.getloadavg()[0]
     others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
     if not out["scenes"]:
