@@ -30,7 +30,8 @@ pool (never the held-out ones):
   faster than its first two points say. ``validate_folds=k`` makes only k of the fits (18 scores
   for k = 3, the former default) and corrects their statistic by the same materials' scores at
   |R|/2 (a regression estimator, :func:`_regression_estimate`); that gave 1.86x on one order
-  after a rounding-level change of the GPLVM fit (issue #20), where the 40 scores give 1.39x.
+  after a rounding-level change of the GPLVM fit (issue #20), where the 40 scores give 1.29x
+  (1.39x with single-threaded fits: the thread count alone moves a fit's path).
   On 16 cases (8 pool orders x q 2, 3; 40 pool and 80 held-out analytic materials, fits
   single-threaded) the achieved median at |R| was 0.75-1.57x the k-fold estimate (standard
   deviation of the log ratio 0.22; the 3-fold regression estimate: 0.66-1.86x, 0.27). That
