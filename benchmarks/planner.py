@@ -1,7 +1,8 @@
-"""The error-budget planners against fixed defaults (issue #17): GI editing, inverse design, relighting.
+"""The error-budget planners against fixed defaults (issue #17): GI editing, inverse design, relighting,
+the BRDF manifold.
 
-    python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight]
-        [--psnr 50]
+    python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
+        [--psnr 50] [--families 7,11] [--orders 8]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -42,6 +43,16 @@ rule, and both at 32x32x6) carried out on the whole scene: achieved error and PS
 and frame seconds, ``cost_s`` = precompute + 100 frames; ``planner_cost_ratio`` over the
 cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
+Manifold (``manifold``; not in the default list): q and the training materials for a median
+held-out log-RMSE of 0.01 on the analytic family (120 materials, 9 x 9 x 18 grid: 40 pool, 80
+held out; family seeds 7 and 11, ``--quick`` 7 only, or ``--families``), for pool orders 0-7
+(quick 0-1, or ``--orders N``): per plan
+(``orders``) its q, n, predicted and achieved error (median over the 80 held-out materials of
+the plan carried out) and their ratio, CPU seconds of the fit + 80 placements; ``planned`` is the
+first; ``defaults``: the seed's q = 2 and 5 trained on the whole pool, measured alike;
+``prediction_ratio`` (worst over the plans), ``achieved_over_predicted`` (range),
+``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches the error).
+
 Top level (one JSON object, the last line): ``prediction_ratio`` (worst over scenes and
 capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` and the same against the
 sqrt-2 grid, ``planner_cost_ratio_fine_spp`` / ``planner_cost_ratio_rays_fine_spp`` (worst over the GI scenes),
@@ -69,9 +80,12 @@ from torch_brdf.inverse import (
     paint,
     transfer_functions,
 )
+from torch_brdf.manifold import analytic_observations, heldout_reconstruction
+from torch_brdf.manifold.data import MERLGrid
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.planner.gi import with_fixed
 from torch_brdf.planner.inverse import _basis, design_image, plan_inverse
+from torch_brdf.planner.manifold import plan_manifold
 from torch_brdf.records.polynomial import Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.render.relight_plan import DEFAULT_RULE, make_rule, plan_relighting, shade_vertices
@@ -371,13 +385,93 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
     return out
 
 
+#: the manifold's fixed defaults: the seed's q (2 for "smaller and more consistent sets", 5 for the
+#: whole MERL set; Soler et al. 2017, Sec. 3.1), trained on the whole pool
+MANIFOLD_DEFAULTS = (2, 5)
+#: the manifold plans' fit settings (those of tests/planner/test_manifold.py)
+MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
+
+
+def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...]) -> dict:
+    """Plan q and the training materials of the GPLVM for a median held-out log-RMSE ``error``
+    on the analytic family (120 materials on the 9 x 9 x 18 strided grid per ``families`` seed:
+    the last 40 are the pool, the first 80 the held-out set), once per pool order (``orders``);
+    each plan is carried out (fit on its training names, the 80 held-out materials placed) and
+    scored by the median of their log-RMSE; so are the fixed defaults (``MANIFOLD_DEFAULTS``,
+    trained on the whole pool). Cost = CPU seconds of the fit + the 80 placements."""
+
+    def carry_out(obs, train, test, q):
+        t0 = time.process_time()
+        h = heldout_reconstruction(
+            obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT
+        )
+        return float(h.gplvm_logrmse.median()), time.process_time() - t0
+
+    runs, defaults = [], []
+    for fam in families:
+        obs, _ = analytic_observations(120, MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam))
+        names = list(obs.names)
+        test, pool = names[:80], names[80:]
+        for q in MANIFOLD_DEFAULTS:
+            a, secs = carry_out(obs, pool, test, q)
+            defaults.append({"family": fam, "q": q, "n": len(pool), "achieved_error": a, "cpu_s": secs})
+        for order in orders:
+            t0 = time.process_time()
+            plan = plan_manifold(obs, pool, error=error, generator=torch.Generator().manual_seed(order), **MANIFOLD_FIT)
+            plan_s = time.process_time() - t0
+            s = plan.settings
+            a, secs = carry_out(obs, s["train"], test, s["q"])
+            r = a / plan.predicted_error
+            runs.append(
+                {
+                    "family": fam,
+                    "order": order,
+                    "q": s["q"],
+                    "n": s["n"],
+                    "predicted_error": plan.predicted_error,
+                    "achieved_error": a,
+                    "ratio": r,
+                    "cpu_s": secs,
+                    "plan_cpu_s": plan_s,
+                    "metric": plan.metric,
+                }
+            )
+            print(
+                f"manifold family {fam} order {order}: q {s['q']}, n {s['n']}, achieved / predicted {r:.3f}", flush=True
+            )
+    first = runs[0]
+    out = {
+        "data": f"analytic family ({len(families)} draws): 40 pool, 80 held-out materials; 9 x 9 x 18 grid",
+        "error": error,
+        "families": list(families),
+        "orders": runs,
+        "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error")} | {"seconds": first["cpu_s"]},
+        "defaults": defaults,
+        "prediction_ratio": max(max(o["ratio"], 1 / o["ratio"]) for o in runs),
+        "achieved_over_predicted": [min(o["ratio"] for o in runs), max(o["ratio"] for o in runs)],
+        "reached": sum(o["achieved_error"] <= error for o in runs) / len(runs),
+    }
+    ratios = []
+    for o in runs:
+        ok = [d for d in defaults if d["family"] == o["family"] and d["achieved_error"] <= error]
+        if ok:
+            ratios.append(o["cpu_s"] / min(d["cpu_s"] for d in ok))
+    if ratios:
+        out["planner_cost_ratio"] = max(ratios)  # worst over the plans, against the cheapest default that reaches
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="24 px, error 0.2, reference 256 spp")
     ap.add_argument("--error", type=float, default=None, help="requested relative RMSE (default 0.1; quick 0.2)")
     ap.add_argument("--resolution", type=int, default=None, help="image size (default 32; quick 24)")
-    ap.add_argument("--capabilities", default="gi,inverse,relight", help="comma-separated: gi, inverse, relight")
+    ap.add_argument(
+        "--capabilities", default="gi,inverse,relight", help="comma-separated: gi, inverse, relight, manifold"
+    )
     ap.add_argument("--psnr", type=float, default=None, help="relighting target in dB (default 50; quick 45)")
+    ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11; quick 7)")
+    ap.add_argument("--orders", type=int, default=None, help="manifold: pool orders 0..N-1 (default 8; quick 2)")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
     args = ap.parse_args()
@@ -394,8 +488,11 @@ def main() -> None:
         out["inverse"] = run_inverse(0.06 if q else 0.05, (40, 30) if q else (64, 48), 2048 if q else 4096)
     if "relight" in caps:
         out["relight"] = run_relight(args.psnr or (45.0 if q else 50.0), q)
+    if "manifold" in caps:
+        families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11)
+        out["manifold"] = run_manifold(0.01, families, tuple(range(args.orders or (2 if q else 8))))
     out["load_end"] = os.getloadavg()[0]
-    others = [out[k]["prediction_ratio"] for k in ("inverse", "relight") if k in out]
+    others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
     if not out["scenes"]:
         if others:
             out["prediction_ratio"] = max(others)

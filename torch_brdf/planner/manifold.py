@@ -18,19 +18,28 @@ pool (never the held-out ones):
   :math:`e = a n^{-p}` through the two measured sizes (:func:`~torch_brdf.planner.table.power_law`,
   with :math:`p \ge 0`: more materials never predict more error);
 * an extrapolated size is never the plan's last word: when the cheapest option within the
-  budget is :math:`n = |R|` (beyond every pilot), it is *measured* before it is chosen, with
-  ``validate_folds`` fits of that size (the plan's own model, trained on R, scores V; each
-  other fold trains on V and R less a chunk of |V| ladder materials of its second half and
-  scores the chunk: 3 x 6 = 18 scores by default); the median of 18 heavy-tailed scores
-  scatters by ~1.4x with the materials drawn, so it is corrected by the same materials' scores
-  at |R|/2, whose median over all the pool is known (a regression estimator,
-  :func:`_regression_estimate`: the slope of a material's log error at |R| on its log error
-  at |R|/2 was 0.07-0.86); the choice is then made again (a measured option that misses the
-  budget gives way to the next). The power law had predicted 0.0071 where 0.0037 was reached
-  (0.52x) on one order of the test pool: a learning curve can fall faster than its first two
-  points say. On 12 cases (6 pool orders x q 2, 3; 40 pool and 80 held-out analytic
-  materials) the achieved median at |R| was 0.88-1.46x this estimate (0.68-1.87x the plain
-  median of the 18 scores); it leans optimistic (~1.2x on average);
+  budget is :math:`n = |R|` (beyond every pilot), it is *measured* before it is chosen, by k-fold
+  cross-fitting on the pool itself (:func:`_crossfit_whole_pool`): the plan's own model (trained
+  on R) scores V, and :math:`\lceil |R|/|V| \rceil` more fits of the same size each hold out a
+  chunk of |V| ladder materials and train on the other |R| pool materials (V included), so every
+  pool material has a held-out score from a model of size |R| (7 fits, 40 scores for a pool of
+  40; the fits cost little next to the placements). The prediction is their statistic, printed
+  with its 90% bootstrap interval over the materials; the choice is then made again (a measured
+  option that misses the budget gives way to the next). The power law had predicted 0.0071
+  where 0.0037 was reached (0.52x) on one order of the test pool: a learning curve can fall
+  faster than its first two points say. ``validate_folds=k`` makes only k of the fits (18 scores
+  for k = 3, the former default) and corrects their statistic by the same materials' scores at
+  |R|/2 (a regression estimator, :func:`_regression_estimate`); that gave 1.86x on one order
+  after a rounding-level change of the GPLVM fit (issue #20), where the 40 scores give 1.29x
+  (1.39x with single-threaded fits: the thread count alone moves a fit's path).
+  On 16 cases (8 pool orders x q 2, 3; 40 pool and 80 held-out analytic materials, fits
+  single-threaded) the achieved median at |R| was 0.75-1.57x the k-fold estimate (standard
+  deviation of the log ratio 0.22; the 3-fold regression estimate: 0.66-1.86x, 0.27). That
+  scatter is the materials': a median of 40 heavy-tailed scores moves by ~1.25x (bootstrap
+  standard deviation of its log 0.11-0.33) with the materials drawn and the achieved median of
+  80 by ~1.15x, so 1.5x is ~1.6-2 of their joint standard deviations: a pool of 40 makes the
+  1.5x likely for an order, not certain (the level at |R|/2 from 40 scores scatters alike:
+  0.57-1.63x on the same 16 cases);
 * cost: the fit + projection seconds, predicted as :math:`\kappa\,u(q, n)` with the operation
   count :math:`u = (n^2 + q n) D + n^3` (D columns: the kernel products and the Cholesky of one
   likelihood evaluation) and one rate :math:`\kappa` fitted to the pilots' measured seconds. The
@@ -66,32 +75,50 @@ from .table import Option, Plan, choose, power_law
 __all__ = ["plan_manifold"]
 
 
-def _validate(
-    obs, val: list[str], ladder: list[str], half: int, q: int, folds: int, fit_kwargs
-) -> tuple[list[str], torch.Tensor]:
-    """Held-out scores of fits of size |R| = ``len(ladder)`` on materials that the pilots of
-    size ``half`` scored too: the plan's own model (trained on ``ladder``) scores ``val``; fold
-    i >= 1 trains on ``val`` and the ladder less its i-th chunk of |V| materials from the end
-    (while the chunk stays beyond ``half``: the pilots trained on the rest), and scores that chunk.
+def _crossfit_whole_pool(
+    obs, val: list[str], ladder: list[str], q: int, folds: int | None, eligible: set[str], fit_kwargs
+) -> tuple[list[str], torch.Tensor, int]:
+    """Held-out scores of fits of size |R| = ``len(ladder)`` (k-fold cross-fitting on the pool).
+
+    Fold 0 is the plan's own model (trained on ``ladder``), which scores ``val``; fold i >= 1
+    holds out the i-th chunk of |V| ladder materials (from the end of the ladder) and trains on
+    the other pool materials, |R| of them (the validation set and the rest of the ladder, cut to
+    |R| where a short last chunk leaves more). With ``folds=None`` the chunks cover the whole
+    ladder, so every pool material is scored by a model of the plan's size that never saw it;
+    otherwise only ``folds`` fits are made, their chunks taken from ``eligible`` materials.
 
     Returns:
-        (the scored names, (S,) their scores).
+        (the scored names, (S,) their scores, the number of fits).
     """
-    v = len(val)
+    v, pool = len(val), val + ladder
+    rest = ladder[::-1] if folds is None else [m for m in reversed(ladder) if m in eligible]
+    chunks = [val] + [rest[i : i + v] for i in range(0, len(rest), v)]
+    chunks = chunks if folds is None else chunks[:folds]
     names, scores = [], []
-    for i in range(folds):
-        if i == 0:
-            train, held = ladder, val
-        else:
-            lo = len(ladder) - i * v
-            if lo < half:
-                break
-            held = ladder[lo : lo + v]
-            train = val + ladder[:lo] + ladder[lo + v :]
+    for held in chunks:
+        train = ladder if held is val else [m for m in pool if m not in held][: len(ladder)]
         h = heldout_reconstruction(obs, train, held, q, generator=torch.Generator().manual_seed(q), **fit_kwargs)
         names += held
         scores.append(h.gplvm_logrmse)
-    return names, torch.cat(scores)
+    return names, torch.cat(scores), len(chunks)
+
+
+def _bootstrap_interval(
+    scores: torch.Tensor, stat, coverage: float = 0.9, resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``stat`` over the materials (resampled with replacement).
+
+    Args:
+        scores: (S,) per-material errors.
+    Returns:
+        (low, high) with ``coverage`` of the resampled statistics between them.
+    """
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(scores.numel(), (resamples, scores.numel()), generator=g)
+    s = scores[idx]
+    b = s.median(1).values if stat is torch.median else s.mean(1)
+    lo, hi = torch.quantile(b.double(), torch.tensor([(1 - coverage) / 2, (1 + coverage) / 2], dtype=torch.float64))
+    return float(lo), float(hi)
 
 
 def _regression_estimate(big: torch.Tensor, small: torch.Tensor, level: float, stat) -> tuple[float, float]:
@@ -124,15 +151,15 @@ def plan_manifold(
     generator: torch.Generator | None = None,
     statistic: str = "median",
     crossfit: bool = True,
-    validate_folds: int = 3,
+    validate_folds: int | None = None,
     **fit_kwargs,
 ) -> Plan:
-    """Plan q and the training materials for a mean held-out log-RMSE ``error`` (see the module).
+    """Plan q and the training materials for a held-out log-RMSE ``error`` (its median; see the module).
 
     Args:
         obs: observations holding every name of ``train``.
         train: the materials the manifold may be trained on.
-        error: budget on the mean held-out log-RMSE; seconds: budget on fit + projection.
+        error: budget on the held-out log-RMSE (its ``statistic``); seconds: budget on fit + projection.
         qs: candidate latent dimensions.
         validation: materials of ``train`` set aside (never trained on by any plan).
         generator: seeds the order of the pool (and the fits).
@@ -142,8 +169,10 @@ def plan_manifold(
             median does not (see the module).
         crossfit: also fit the second half of the ladder at n = |R|/2 and score the first half
             with it (2-fold), so that the level at |R|/2 comes from every pool material.
-        validate_folds: fits that measure an extrapolated choice (n = |R|) before it is taken
-            (see the module); 0: keep the extrapolation.
+        validate_folds: how an extrapolated choice (n = |R|) is measured before it is taken (see
+            the module): None (default) k-fold fits of that size until every pool material is
+            scored; k > 0: only k of them, corrected by regression on n = |R|/2; 0: keep the
+            extrapolation.
         fit_kwargs: passed to :func:`~torch_brdf.manifold.heldout_reconstruction` (e.g. ``max_iter``).
     Returns:
         :class:`~torch_brdf.planner.table.Plan` with settings ``q``, ``n`` and ``train`` (the
@@ -151,6 +180,8 @@ def plan_manifold(
     """
     if statistic not in ("median", "mean"):
         raise ValueRangeError(f"statistic must be 'median' or 'mean'; got {statistic!r}")
+    if validate_folds is not None and validate_folds < 0:
+        raise ValueRangeError(f"validate_folds must be None or >= 0; got {validate_folds}")
     g = generator if generator is not None else torch.Generator().manual_seed(0)
     names = list(train)
     if len(names) < validation + 8:
@@ -178,7 +209,7 @@ def plan_manifold(
             )
             measured[q, n] = (float(stat(h.gplvm_logrmse)), time.perf_counter() - t0)
             scores[q, n] = h.gplvm_logrmse
-    level = {}
+    level, small = {}, {q: dict(zip(scored, scores[q, half].tolist(), strict=True)) for q in qs}
     if crossfit and len(ladder) - half >= max(qs) + 2:
         # 2-fold at n = |R|/2: a fit on the other half scores the first half, so every pool material
         # has a score from a model of that size that never saw it (|V| + |R| scores, not |V| + |R|/2)
@@ -188,6 +219,7 @@ def plan_manifold(
                 obs, other, ladder[:half], q, generator=torch.Generator().manual_seed(q), **fit_kwargs
             )
             level[q] = float(stat(torch.cat((scores[q, half], h.gplvm_logrmse))))
+            small[q].update(zip(ladder[:half], h.gplvm_logrmse.tolist(), strict=True))
     # one rate for the whole table (least squares through the origin): seconds per operation
     kappa = sum(t * units(q, n) for (q, n), (_, t) in measured.items()) / sum(units(q, n) ** 2 for q, n in measured)
     options = []
@@ -202,18 +234,25 @@ def plan_manifold(
     metric = f"{statistic} held-out log-RMSE, from {len(scored) + (half if level else 0)} pool materials' scores"
     chosen = choose(options, error, seconds)
     validated: set[int] = set()
-    while validate_folds > 0 and dict(chosen.settings)["n"] == len(ladder) and id(chosen) not in validated:
+    while validate_folds != 0 and dict(chosen.settings)["n"] == len(ladder) and id(chosen) not in validated:
         q = dict(chosen.settings)["q"]
-        held, big = _validate(obs, val, ladder, half, q, validate_folds, fit_kwargs)
-        small = scores[q, half][torch.tensor([scored.index(n) for n in held])]
-        e, beta = _regression_estimate(big, small, level.get(q, measured[q, half][0]), stat)
+        held, big, fits = _crossfit_whole_pool(obs, val, ladder, q, validate_folds, set(small[q]), fit_kwargs)
+        if len(held) == len(order):
+            # every pool material scored at n = |R|: the statistic itself, no correction needed
+            e = float(stat(big))
+            lo, hi = _bootstrap_interval(big, stat)
+            how = f"all {len(held)} pool materials by {fits} fits of that size, k-fold; 90% interval {lo:.3g}-{hi:.3g}"
+        else:
+            e, beta = _regression_estimate(
+                big, torch.tensor([small[q][m] for m in held]), level.get(q, measured[q, half][0]), stat
+            )
+            how = f"{len(held)} of them by {fits} fits of that size, regression on n = {half}: beta {beta:.2f}"
         i = options.index(chosen)
         options[i] = dataclasses.replace(chosen, predicted_error=e)
         validated.add(id(options[i]))
         metric = (
             f"{statistic} held-out log-RMSE, from {len(scored) + (half if level else 0)} pool materials'"
-            f" scores; n = {len(ladder)} measured on {big.numel()} of them ({validate_folds} folds,"
-            f" regression on n = {half}: beta {beta:.2f})"
+            f" scores; n = {len(ladder)} measured on {how}"
         )
         chosen = choose(options, error, seconds)
     return Plan(
