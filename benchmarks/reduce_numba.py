@@ -1,6 +1,6 @@
 """Is a numba kernel faster than torch for the GI precompute's per-tile reduction? (issue #14)
 
-    python benchmarks/reduce_numba.py [--n 2000000]
+    python benchmarks/reduce_numba.py [--quick] [--n 2000000]
 
 The reduction of :func:`torch_brdf.transport.polynomial.reduce._reduce`: int64 keys (n,) and
 float64 weights (n, 3) -> sorted unique keys, each row's group, each group's first row and
@@ -9,7 +9,8 @@ thread) against two fused numba kernels: a stable merge sort and an LSD radix so
 digits), each followed by one pass. numba is not a dependency of torch_brdf (this script
 prints ``"numba": null`` without it). Prints one JSON object: ``first_call_s`` (JIT compile,
 or loading the on-disk cache on later runs), best-of-3 seconds per method, whether each
-kernel equals torch bit for bit, and the load average.
+kernel equals torch bit for bit, and the load average. ``--quick``: 200,000 entries (what the
+report runs).
 """
 
 from __future__ import annotations
@@ -87,13 +88,14 @@ def _torch(key, w):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=2_000_000, help="entries (a 16k-pixel tile at 64 spp has ~4 M)")
+    ap.add_argument("--quick", action="store_true", help="200,000 entries")
     args = ap.parse_args()
     torch.set_num_threads(1)
     g = torch.Generator().manual_seed(0)
-    n = args.n
+    n = 200_000 if args.quick else args.n
     key = torch.randint(0, 1 << 40, (n // 4,), generator=g)[torch.randint(0, n // 4, (n,), generator=g)]
     w = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    out: dict = {"n": n, "unique": None}
+    out: dict = {"n": n, "quick": args.quick, "unique": None}
     try:
         import numba
     except ImportError:
