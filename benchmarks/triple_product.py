@@ -1,6 +1,7 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
     python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline] [--rounds N]
+        [--split] [--compare-numpy] [--embree-chunks N] [--processes N]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
@@ -15,17 +16,24 @@ culled vertices. Prints progress, then one JSON object as the last line:
   visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s``, embree alone on
   the very rays it casts (one per texel centre above each vertex's horizon, built beforehand,
   untimed), with as many forked processes (``--processes``, default the usable cores) over
-  the same chunks of 512 vertices, pool start included as in the precompute: the faster of
-  ``(n, 3)`` arrays in calls of 16384 rays (``embree``) and one call per vertex with a
-  zero-stride origin, as the precompute calls it (``embree_fans``). ``--rounds`` interleaved
-  rounds (each of the three goes first in turn; ``rounds`` lists every time and the load);
-  the figures are medians, ``precompute_over_rays`` the median of the per-round ratios,
-  ``precompute_over_rays_cpu`` the same of CPU seconds (all processes; less load-dependent);
-  ``same_rays``: the record's visible texels equal embree's escaping rays. With ``--quick``
-  embree casts every ray; else the first ``--embree-chunks`` chunks (16), scaled by the rays.
-  ``--split``: ``split_cpu_s``, CPU seconds per stage over all chunks in one process (horizon
-  test, gather of the directions, embree, scatter into maps, flips from packed bits), and
-  ``split_overhead_over_embree`` (all but embree, over embree: CPU time, barely load-dependent).
+  the same chunks of 512 vertices, pool start included as in the precompute: the fastest of
+  ``(n, 3)`` arrays through embreex in calls of 16384 rays (``embree``), one embreex call per
+  vertex with a zero-stride origin (``embree_fans``) and, with the compiled kernel, a C loop
+  calling embree's ``rtcOccluded1`` per ray on the same scene, each ray's origin per vertex and
+  its direction by texel index (``embree_c``: the same query the precompute's kernel makes,
+  without embreex's per-call arrays; the fastest, so the strictest baseline). ``--rounds``
+  interleaved rounds (each variant goes first in turn; ``rounds`` lists every time and the
+  load); the figures are medians (``embree_alone`` per variant), ``precompute_over_rays`` the
+  median of the per-round ratios to the fastest, ``precompute_over_rays_cpu`` the same of CPU
+  seconds (all processes; less load-dependent); ``same_rays``: the record's visible texels
+  equal embree's escaping rays (``embree_c`` casts every ray). The embreex variants cast every
+  ray with ``--quick``, else the first ``--embree-chunks`` chunks (16; 0: none), scaled by the
+  rays. ``--compare-numpy``: also the precompute without the compiled loop
+  (``TORCH_BRDF_NATIVE=0``) in every round: ``numpy_path_s``, ``numpy_path_over_rays(_cpu)``.
+  ``--split``: ``split_cpu_s``, CPU seconds over all chunks in one process (``kernel`` for the
+  compiled loop; else horizon test, gather of the directions, embree, scatter into maps, flips
+  from packed bits), ``split_embree_alone_cpu_s`` (``embree_c`` on the same rays in this
+  process) and ``split_overhead_over_embree`` (the chunks' CPU time over embree alone's, less 1).
   With ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays
   on the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
   bit); ``visibility_bytes_per_vertex`` (varint stream) beside ``dense_bytes_per_vertex``

@@ -22,6 +22,14 @@ the same record. The chunks are the tiles of :func:`~torch_brdf.transport.execut
 they run in this process (``executor="local"``) or as Ray tasks (``"ray"``). Ray casting is
 deterministic, so the record does not depend on the chunking, the executor or on the number
 of ray-casting processes.
+
+Where a chunk's rays are cast in its own process (forked tiles, Ray tasks, ``workers=1``) and
+the compiled kernel builds (:mod:`~torch_brdf.transport._native`), one C loop per chunk does
+all of it: the horizon block by block (four corner texels decide most blocks), each ray
+straight into embree's ``rtcOccluded1`` on the tracer's own scene (the same query
+``EmbreeScene.run`` makes, in the same order), and the flips as the rays come back. Otherwise
+(no compiler, ``TORCH_BRDF_NATIVE=0``, or a tracer that spreads rays over its forked workers)
+the numpy path below casts one embreex call per vertex. Both give the same record bit for bit.
 """
 
 from __future__ import annotations
