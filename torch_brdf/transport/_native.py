@@ -311,8 +311,8 @@ def visibility_fans(
         float32, the fraction of each texel's rays that escape (0 below the horizon).
     """
     m, T, k2 = len(origins), centres.shape[1], dirs.shape[1]
-    if T % (side * side) or len(dirs) != T:
-        raise ValueRangeError(f"{T} texels are not blocks of {side} x {side}, or {len(dirs)} ray sets")
+    if T % (side * side) or len(dirs) != T or (k2 == 1 and side * side > 256):
+        raise ValueRangeError(f"{T} texels, blocks of {side} x {side} (<= 256 for flips), {len(dirs)} ray sets")
     o, n, c, d = _np(origins, np.float32), _np(normals, np.float64), _np(centres, np.float64), _np(dirs, np.float32)
     args = [*entry, m, o.ctypes.data, n.ctypes.data, T, c.ctypes.data, d.ctypes.data, k2, float(eps), side]
     if k2 > 1:

@@ -46,7 +46,7 @@ from ..data import progress_default
 from ..errors import ValueRangeError
 from ..records.cache import TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
-from ..records.visibility_codec import BlockVisibility, packed_entries
+from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from . import _native
@@ -196,7 +196,7 @@ def _chunk_entries(
         rec = BlockVisibility.encode(_fraction(scene, geom, pos, nrm, dirs), bits=bits)
         return {"counts": rec.counts.numpy(), "index": rec.index.numpy(), "delta": rec.delta.numpy()}
     native = _native_rays(scene)
-    if native is not None:
+    if native is not None and geom.block_size == BLOCK_TEXELS:  # flips as uint8 texel positions
         t = time.process_time()
         counts, index = _native.visibility_fans(
             *native, *_fan_inputs(scene, geom, pos, nrm), dirs.numpy(), HORIZON_EPS, geom.block
