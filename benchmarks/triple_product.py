@@ -1,6 +1,7 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
     python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline] [--rounds N]
+        [--split] [--compare-numpy] [--embree-chunks N] [--processes N]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
@@ -15,17 +16,24 @@ culled vertices. Prints progress, then one JSON object as the last line:
   visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s``, embree alone on
   the very rays it casts (one per texel centre above each vertex's horizon, built beforehand,
   untimed), with as many forked processes (``--processes``, default the usable cores) over
-  the same chunks of 512 vertices, pool start included as in the precompute: the faster of
-  ``(n, 3)`` arrays in calls of 16384 rays (``embree``) and one call per vertex with a
-  zero-stride origin, as the precompute calls it (``embree_fans``). ``--rounds`` interleaved
-  rounds (each of the three goes first in turn; ``rounds`` lists every time and the load);
-  the figures are medians, ``precompute_over_rays`` the median of the per-round ratios,
-  ``precompute_over_rays_cpu`` the same of CPU seconds (all processes; less load-dependent);
-  ``same_rays``: the record's visible texels equal embree's escaping rays. With ``--quick``
-  embree casts every ray; else the first ``--embree-chunks`` chunks (16), scaled by the rays.
-  ``--split``: ``split_cpu_s``, CPU seconds per stage over all chunks in one process (horizon
-  test, gather of the directions, embree, scatter into maps, flips from packed bits), and
-  ``split_overhead_over_embree`` (all but embree, over embree: CPU time, barely load-dependent).
+  the same chunks of 512 vertices, pool start included as in the precompute: the fastest of
+  ``(n, 3)`` arrays through embreex in calls of 16384 rays (``embree``), one embreex call per
+  vertex with a zero-stride origin (``embree_fans``) and, with the compiled kernel, a C loop
+  calling embree's ``rtcOccluded1`` per ray on the same scene, each ray's origin per vertex and
+  its direction by texel index (``embree_c``: the same query the precompute's kernel makes,
+  without embreex's per-call arrays; the fastest, so the strictest baseline). ``--rounds``
+  interleaved rounds (each variant goes first in turn; ``rounds`` lists every time and the
+  load); the figures are medians (``embree_alone`` per variant), ``precompute_over_rays`` the
+  median of the per-round ratios to the fastest, ``precompute_over_rays_cpu`` the same of CPU
+  seconds (all processes; less load-dependent); ``same_rays``: the record's visible texels
+  equal embree's escaping rays (``embree_c`` casts every ray). The embreex variants cast every
+  ray with ``--quick``, else the first ``--embree-chunks`` chunks (16; 0: none), scaled by the
+  rays. ``--compare-numpy``: also the precompute without the compiled loop
+  (``TORCH_BRDF_NATIVE=0``) in every round: ``numpy_path_s``, ``numpy_path_over_rays(_cpu)``.
+  ``--split``: ``split_cpu_s``, CPU seconds over all chunks in one process (``kernel`` for the
+  compiled loop; else horizon test, gather of the directions, embree, scatter into maps, flips
+  from packed bits), ``split_embree_alone_cpu_s`` (``embree_c`` on the same rays in this
+  process) and ``split_overhead_over_embree`` (the chunks' CPU time over embree alone's, less 1).
   With ``--baseline`` also ``one_process_s`` (chunks one after another in this process, rays
   on the scene's trace pool), ``speedup_over_one_process``, ``equals_one_process`` (bit for
   bit); ``visibility_bytes_per_vertex`` (varint stream) beside ``dense_bytes_per_vertex``
@@ -70,6 +78,7 @@ from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.parallel import CHUNK
 from torch_brdf.sphere.cubemap import CubemapBlocks
+from torch_brdf.transport import _native
 from torch_brdf.transport.executor import single_process
 from torch_brdf.transport.visibility import HORIZON_EPS, _chunk_entries, precompute_visibility, scene_vertices
 
@@ -111,6 +120,25 @@ def _chunk_rays(scene, geom, verts, chunk: int, limit: int) -> list[tuple[np.nda
     return out
 
 
+def _chunk_fans(scene, geom, verts, chunk: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The same rays for every chunk, compactly, for embree alone in the compiled loop: per
+    vertex the (m, 3) float32 origin and (m,) ray count, per ray the (n,) uint16 texel whose
+    direction (:func:`_texel_directions`) it takes, in the order of :func:`_chunk_rays`."""
+    dirs = geom.supersampled_directions(1).reshape(-1, 3)
+    out = []
+    for s in range(0, len(verts), chunk):
+        pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
+        up = (nrm @ dirs.T) > HORIZON_EPS
+        ti = up.nonzero(as_tuple=True)[1].numpy().astype(np.uint16)
+        out.append(((pos + scene.ray_epsilon * nrm).float().numpy(), up.sum(1).numpy(), ti))
+    return out
+
+
+def _texel_directions(geom) -> np.ndarray:
+    """(T, 3) float32 ray directions per texel: the precompute's and :func:`_chunk_rays`'s."""
+    return np.ascontiguousarray(geom.supersampled_directions(1).reshape(-1, 3).float().numpy())
+
+
 def _ray_count(geom, verts) -> int:
     """Texels above the horizon summed over all vertices."""
     dirs = geom.directions.reshape(-1, 3)
@@ -131,6 +159,10 @@ def _embree_chunk(i: int) -> int:
     call; or (fans) one call per vertex with its origin as a zero-stride view, as the precompute
     calls it."""
     embree, rays, fans = _RAYS
+    if fans == "c":  # the compiled loop, rtcOccluded1 per ray (embree, lib, entry, dirs)
+        _, lib, entry, dirs = embree
+        o, counts, texels = rays[i]
+        return _native.occluded_fans(lib, entry, o, counts, texels, dirs)
     o, d, counts = rays[i]
     if not fans:
         return sum(int((embree.run(o[a : a + CHUNK], d[a : a + CHUNK], query="OCCLUDED") != -1).sum())
@@ -143,12 +175,16 @@ def _embree_chunk(i: int) -> int:
     return hits
 
 
-def _embree_alone(scene, rays, processes: int, fans: bool = False) -> int:
+def _embree_alone(scene, rays, processes: int, fans: bool | str = False, dirs=None) -> int:
     """Embree alone on ``rays`` (per chunk), chunks in ``processes`` forked processes as the
-    precompute's tiles (pool start included, as there); returns the occluded count."""
+    precompute's tiles (pool start included, as there); returns the occluded count. ``fans``:
+    False, (n, 3) arrays through embreex; True, one embreex call per vertex; ``"c"``, the
+    compiled loop on :func:`_chunk_fans` rays (``dirs``: :func:`_texel_directions`)."""
     global _RAYS
     embree = scene.tracer._kernel.scene  # the committed embreex scene the precompute traces
     embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # BVH built before forking
+    if fans == "c":
+        embree = (embree, _native.library(), scene.tracer._kernel.native(), dirs)
     _RAYS = (embree, rays, fans)
     try:
         if processes == 1:
@@ -179,6 +215,9 @@ def main() -> None:
         "--embree-chunks", type=int, default=None, help="chunks embree alone casts (default: all with --quick, else 16)"
     )
     ap.add_argument("--split", action="store_true", help="also the CPU seconds per stage of the chunks")
+    ap.add_argument(
+        "--compare-numpy", action="store_true", help="also time the numpy path (no compiled loop) in the rounds"
+    )
     ap.add_argument("--processes", type=int, default=None, help="processes for both (default: usable cores)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     args = ap.parse_args()
@@ -197,50 +236,84 @@ def main() -> None:
     procs = args.processes or usable_cores()
     chunk = 512
     verts, geom = scene_vertices(scene), CubemapBlocks(res)
-    # the rays, built once (24 B a ray: the full scene's 544 M would not fit, it times the
-    # first --embree-chunks chunks and scales by the ray count)
+    # the rays as (n, 3) arrays, built once (24 B a ray: the full scene's 544 M would not fit, the
+    # embreex runs time the first --embree-chunks chunks and scale by the ray count); compactly
+    # (2 B a ray) for the compiled loop, every ray
     n_chunks = -(-len(verts) // chunk)
     limit = n_chunks if args.quick and args.embree_chunks is None else min(n_chunks, args.embree_chunks or 16)
+    if args.embree_chunks == 0:
+        limit = 0
     rays = _chunk_rays(scene, geom, verts, chunk, limit)
     n_rays = sum(len(o) for o, _, _ in rays)
     all_rays = n_rays if limit == n_chunks else _ray_count(geom, verts)
-    vis, runs = None, []
+    native = _native.library() is not None and scene.tracer._kernel.native() is not None
+    fans = _chunk_fans(scene, geom, verts, chunk) if native else None
+    texel_dirs = _texel_directions(geom)
+    vis, runs, occluded_c = None, [], None
+    order = ("precompute", "embree", "embree_fans", "embree_c", "precompute_numpy")
+    order = [w for w in order if (w != "embree_c" or native) and (w != "precompute_numpy" or args.compare_numpy)]
+    order = [w for w in order if limit or w not in ("embree", "embree_fans")]
+    alone = [w for w in order if w.startswith("embree")]
     for r in range(args.rounds):
         pair = {}
-        order = ("precompute", "embree", "embree_fans")
-        for what in order[r % 3 :] + order[: r % 3]:  # each goes first in turn
+        for what in order[r % len(order) :] + order[: r % len(order)]:  # each goes first in turn
             t, c = time.perf_counter(), _cpu_seconds()
             if what == "precompute":
                 vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
+            elif what == "precompute_numpy":  # the numpy path (before the compiled loop), same run
+                os.environ[_native.ENV_VAR] = "0"
+                try:
+                    precompute_visibility(scene, res, chunk=chunk, processes=procs)
+                finally:
+                    del os.environ[_native.ENV_VAR]
+            elif what == "embree_c":
+                occluded_c = _embree_alone(scene, fans, procs, fans="c", dirs=texel_dirs)
             else:
                 occluded = _embree_alone(scene, rays, procs, fans=what == "embree_fans")
             pair[what] = time.perf_counter() - t
             pair[f"{what}_cpu"] = _cpu_seconds() - c
-        for k in ("embree", "embree_fans", "embree_cpu", "embree_fans_cpu"):
-            pair[k] *= all_rays / n_rays
-        pair["ratio"] = pair["precompute"] / min(pair["embree"], pair["embree_fans"])
-        pair["cpu_ratio"] = pair["precompute_cpu"] / min(pair["embree_cpu"], pair["embree_fans_cpu"])
+        for k in ("embree", "embree_fans"):
+            if k in pair:
+                pair[k] *= all_rays / n_rays
+                pair[f"{k}_cpu"] *= all_rays / n_rays
+        pair["ratio"] = pair["precompute"] / min(pair[k] for k in alone)
+        pair["cpu_ratio"] = pair["precompute_cpu"] / min(pair[f"{k}_cpu"] for k in alone)
+        if "precompute_numpy" in pair:
+            pair["numpy_ratio"] = pair["precompute_numpy"] / min(pair[k] for k in alone)
+            pair["numpy_cpu_ratio"] = pair["precompute_numpy_cpu"] / min(pair[f"{k}_cpu"] for k in alone)
         pair["load_avg"] = list(os.getloadavg())
         runs.append(pair)
-        print(f"round {r}: precompute {pair['precompute']:.2f} s, embree {pair['embree']:.2f} s "
-              f"(fans {pair['embree_fans']:.2f} s), ratio {pair['ratio']:.3f} (CPU time {pair['cpu_ratio']:.3f}), "
-              f"load {pair['load_avg'][0]:.1f}",
-              flush=True)  # fmt: skip
+        times = ", ".join(f"{k} {pair[k]:.2f} s ({pair[k + '_cpu']:.2f} CPU-s)" for k in order)
+        print(f"round {r}: {times}; ratio {pair['ratio']:.3f} (CPU time {pair['cpu_ratio']:.3f}), "
+              f"load {pair['load_avg'][0]:.1f}", flush=True)  # fmt: skip
     del rays
     precompute_s = statistics.median(p["precompute"] for p in runs)
-    rays_s = statistics.median(min(p["embree"], p["embree_fans"]) for p in runs)
+    rays_s = statistics.median(min(p[k] for k in alone) for p in runs)
+    visible = _visible_texels(vis)
+    if native:
+        same_rays = visible == all_rays - occluded_c
+    else:
+        same_rays = visible == n_rays - occluded if n_rays == all_rays else None
     figures = {
         "processes": procs,
         "rounds": runs,
         "precompute_s": precompute_s,
+        "precompute_cpu_s": statistics.median(p["precompute_cpu"] for p in runs),
         "rays": all_rays,
         "rays_s": rays_s,
+        "rays_cpu_s": statistics.median(min(p[f"{k}_cpu"] for k in alone) for p in runs),
+        "embree_alone": {k: statistics.median(p[k] for p in runs) for k in alone},
         "embree_timed_rays": n_rays,
+        "native": native,
         "precompute_over_rays": statistics.median(p["ratio"] for p in runs),
         "precompute_over_rays_cpu": statistics.median(p["cpu_ratio"] for p in runs),
         # the record's visible texels = embree's escaping rays (when embree cast them all)
-        "same_rays": _visible_texels(vis) == n_rays - occluded if n_rays == all_rays else None,
+        "same_rays": same_rays,
     }
+    if args.compare_numpy:
+        figures["numpy_path_s"] = statistics.median(p["precompute_numpy"] for p in runs)
+        figures["numpy_path_over_rays"] = statistics.median(p["numpy_ratio"] for p in runs)
+        figures["numpy_path_over_rays_cpu"] = statistics.median(p["numpy_cpu_ratio"] for p in runs)
     if args.split:  # CPU seconds per stage, every chunk in this process (load barely changes CPU time)
         one, split = single_process(scene), {}
         dirs = geom.supersampled_directions(1).reshape(-1, 1, 3).float()
@@ -248,8 +321,15 @@ def main() -> None:
             for s in range(0, len(verts), chunk):
                 pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
                 _chunk_entries(one, geom, pos, nrm, dirs, 0, split=split)
-        figures["split_cpu_s"] = split
-        figures["split_overhead_over_embree"] = (sum(split.values()) - split["embree"]) / split["embree"]
+            figures["split_cpu_s"] = split
+            if native:  # embree alone in the compiled loop, this process, the same rays
+                c = time.process_time()
+                _embree_alone(scene, fans, 1, fans="c", dirs=texel_dirs)
+                split_alone = figures["split_embree_alone_cpu_s"] = time.process_time() - c
+            else:
+                split_alone = split["embree"]
+        figures["split_overhead_over_embree"] = (sum(split.values()) - split_alone) / split_alone
+    del fans
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
         t = time.perf_counter()

@@ -15,9 +15,10 @@ from torch_brdf.scene.builtin import grid_plane
 from torch_brdf.scene.camera import Camera
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.mesh import mesh_from_arrays
+from torch_brdf.scene.parallel import embree_entry
 from torch_brdf.scene.scene import Scene, SceneObject
 from torch_brdf.sphere.cubemap import CubemapBlocks
-from torch_brdf.transport import visibility
+from torch_brdf.transport import _native, visibility
 from torch_brdf.transport.visibility import HORIZON_EPS, VertexVisibility, precompute_visibility, scene_vertices
 
 
@@ -175,15 +176,47 @@ def previous_pipeline(scene: Scene, resolution: int, supersample: int = 1, bits:
     return BlockVisibility.encode((V > 0.5).float() if k2 == 1 else V, bits=bits)
 
 
+@pytest.mark.parametrize("path", ["compiled", "numpy"])
 @pytest.mark.parametrize(
     ("supersample", "bits", "chunk", "group"), [(1, 0, 16, 64), (1, 0, 1000, 64), (1, 0, 1000, 5), (2, 2, 7, 3)]
 )
-def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk, group, monkeypatch):
+def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk, group, path, monkeypatch):
     # the box's vertices have their own normals, the floor's share one (one horizon test for all);
-    # groups of cast vertices smaller than a chunk, the last one partial
+    # groups of cast vertices smaller than a chunk, the last one partial; the compiled loop
+    # (horizon by blocks, rays straight into embree, flips) and the numpy path without it
+    if path == "numpy":
+        monkeypatch.setenv(_native.ENV_VAR, "0")
+    elif _native.library() is None:
+        pytest.skip("no C compiler here: only the numpy path runs")
+    assert (visibility._native_rays(scene) is not None) == (path == "compiled")
     monkeypatch.setattr(visibility, "GROUP", group)
     got = precompute_visibility(scene, 32, supersample=supersample, bits=bits, chunk=chunk, progress=False)
     ref = previous_pipeline(scene, 32, supersample, bits)
     assert ref.num_entries > 0 and bool((ref.states == 2).any())  # real shadows, partial blocks
     for a, b in zip(got.blocks.to_bytes(), ref.to_bytes(), strict=True):
         assert np.array_equal(a, b)
+
+
+def test_compiled_loop_casts_the_tracer_rays(scene):
+    """The embree handle found behind embreex and the kernel's per-ray query give the occlusion
+    of ``Scene.occluded`` (unbounded) on random fans; a tracer with forked workers, or an object
+    that is not an embreex scene, gets no handle."""
+    lib, entry = _native.library(), scene.tracer.embree_entry()
+    if lib is None:
+        pytest.skip("no C compiler here: only the numpy path runs")
+    assert entry is not None and embree_entry(object()) is None
+    assert ball_on_plane(workers=2).tracer.embree_entry() is None
+    g = torch.Generator().manual_seed(3)
+    origins = (torch.rand(40, 3, generator=g, dtype=torch.float64) * 2 - 1) * torch.tensor([1.0, 0.5, 1.0])
+    origins[:, 1] += 0.5
+    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=-1).float()
+    counts = torch.randint(0, 20, (40,), generator=g)
+    texels = torch.randint(0, 300, (int(counts.sum()),), generator=g)
+    out = np.zeros(len(texels), np.uint8)
+    o32 = origins.float()
+    hits = _native.occluded_fans(
+        lib, entry, o32.numpy(), counts.numpy(), texels.numpy().astype(np.uint16), dirs.numpy(), out
+    )
+    want = scene.occluded(o32.repeat_interleave(counts, dim=0), dirs[texels], float("inf"))
+    assert torch.equal(torch.from_numpy(out).bool(), want) and hits == int(want.sum())
+    assert 0 < hits < len(texels)  # both kinds of rays

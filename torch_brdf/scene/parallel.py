@@ -19,6 +19,11 @@ stopped by :meth:`TracePool.close`, when it is garbage collected, or at interpre
 An exception or interrupt (Ctrl-C) in the parent during a call stops it too; the next call
 starts a fresh one. Children ignore SIGINT and exit when the parent goes away.
 
+Compiled loops (``transport/_native.c``) may call embree themselves: :func:`embree_entry`
+gives the committed scene's ``RTCScene`` handle and the address of ``rtcOccluded1`` from the
+very library instance embreex loaded (so the same BVH and the same per-ray query as
+``EmbreeScene.run``), or None where that cannot be checked.
+
 Forked children share the parent's memory copy-on-write: while they live, memory the
 parent frees is not returned to the system and pages it writes are copied once. Call
 ``close()`` on a tracer you are done with in a long-running process, or use ``workers=1``.
@@ -26,7 +31,9 @@ parent frees is not returned to the system and pages it writes are copied once. 
 
 from __future__ import annotations
 
+import ctypes
 import gc
+import glob
 import mmap
 import multiprocessing
 import os
@@ -37,6 +44,7 @@ import weakref
 from dataclasses import dataclass
 
 import numpy as np
+from embreex import rtcore, rtcore_scene
 
 from .._threads import configure_worker, prepare_fork, worker_count
 
@@ -160,6 +168,13 @@ class TraceKernel:
                 out[s : s + n] = self.scene.run(origin, d[a : a + n], query="OCCLUDED") != -1
                 s += n
 
+    def native(self) -> tuple[int, int] | None:
+        """:func:`embree_entry` of this kernel's scene (committed first), found once per kernel."""
+        if not hasattr(self, "_native"):
+            self.commit()
+            self._native = embree_entry(self.scene)
+        return self._native
+
     def _embree(self, o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
         # rays start with tfar = inf, which embree leaves on a miss (embreex returns, and
         # may overwrite, the ``dists`` array: it is a fresh one)
@@ -194,6 +209,65 @@ class TraceKernel:
         out.t[:] = r["tfar"]
         out.object_id[:] = geom
         out.prim_id[:] = prim
+
+
+def _embree_library() -> ctypes.CDLL | None:
+    """The libembree4 that embreex's extension loaded (by the path the process mapped, so
+    ``dlopen`` returns that very instance), or None when it is not found."""
+    paths = []
+    try:
+        with open("/proc/self/maps") as f:  # Linux: the exact file in use
+            paths = [line.split(None, 5)[-1].strip() for line in f if "libembree4" in line]
+    except OSError:
+        pass
+    if not paths:  # elsewhere: the copy bundled beside the wheel's extensions
+        here = os.path.dirname(rtcore_scene.__file__)
+        for pattern in ("../embreex.libs/libembree4*", ".dylibs/libembree4*", "libembree4*"):
+            paths += glob.glob(os.path.join(here, pattern))
+    for path in paths:
+        try:
+            return ctypes.CDLL(path)
+        except OSError:
+            continue
+    return None
+
+
+def embree_entry(scene) -> tuple[int, int] | None:
+    """``(RTCScene handle, address of rtcOccluded1)`` of a committed embreex ``EmbreeScene``,
+    for compiled loops that cast rays without the Python binding's per-call costs.
+
+    embreex does not expose the handle; it is the first field of the extension type's C struct
+    (``scene_i``, then ``is_committed``, then the ``EmbreeDevice``). That layout is checked before
+    the handle is used: the struct's size, ``is_committed`` read through the struct, the device
+    field being the ``EmbreeDevice`` the object holds, and embree's own ``rtcGetSceneDevice`` of
+    the handle being that device. Any mismatch (another embreex build, no loadable library) gives None, and callers keep
+    ``EmbreeScene.run``.
+    """
+    if type(scene) is not rtcore_scene.EmbreeScene or not scene.is_committed:
+        return None
+    base, word = id(scene), ctypes.sizeof(ctypes.c_void_p)
+    if word != 8 or type(scene).__basicsize__ != 5 * word or rtcore.EmbreeDevice.__basicsize__ != 3 * word:
+        return None
+    if ctypes.c_int.from_address(base + 3 * word).value != scene.is_committed:
+        return None
+    # the device field is the one object the struct holds (the type's gc traversal reports it)
+    held = [o for o in gc.get_referents(scene) if type(o) is rtcore.EmbreeDevice]
+    device = ctypes.c_void_p.from_address(base + 4 * word).value
+    if len(held) != 1 or device != id(held[0]):
+        return None
+    lib = _embree_library()
+    if lib is None:
+        return None
+    handle = ctypes.c_void_p.from_address(base + 2 * word).value
+    rtc_device = ctypes.c_void_p.from_address(device + 2 * word).value
+    lib.rtcGetSceneDevice.restype, lib.rtcGetSceneDevice.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
+    lib.rtcReleaseDevice.restype, lib.rtcReleaseDevice.argtypes = None, [ctypes.c_void_p]
+    got = lib.rtcGetSceneDevice(handle)  # takes a reference to the device
+    if got:
+        lib.rtcReleaseDevice(got)
+    if not handle or got != rtc_device:
+        return None
+    return handle, ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value
 
 
 class _Shared:

@@ -277,6 +277,14 @@ class RayTracer:
         side = torch.where((directions * geometric_normal).sum(-1, keepdim=True) >= 0, 1.0, -1.0)
         return position + (side * self.ray_epsilon).to(position.dtype) * geometric_normal
 
+    def embree_entry(self) -> tuple[int, int] | None:
+        """``(RTCScene handle, address of rtcOccluded1)`` for a compiled loop that casts this
+        scene's rays itself, in the calling process (:func:`~torch_brdf.scene.parallel.embree_entry`:
+        the same BVH and per-ray query as :meth:`occluded`). None when this tracer spreads large
+        batches over its forked workers (such a loop would use one core) or the handle cannot be
+        checked; callers then use :meth:`occluded_fans`."""
+        return None if self._pool is not None else self._kernel.native()
+
     def in_process(self) -> RayTracer:
         """A shallow copy that traces in the calling process only (no pool; shares the embree
         scene and tables): for a process that is itself one of several workers."""

@@ -1,6 +1,7 @@
 """The compiled kernel of the GI precompute (``_native.c``: the entries and their per-key sums,
 area-light next-event samples, the tracer's per-vertex steps of
-:mod:`torch_brdf.transport.polynomial.vertex`): built on first use, cached, optional.
+:mod:`torch_brdf.transport.polynomial.vertex`) and of the visibility cubemaps (ray fans cast
+straight into embree, flips per block): built on first use, cached, optional.
 
 :func:`library` compiles ``_native.c`` with the system C compiler (``$CC``, else Python's
 own compiler, else ``cc``) into ``$TORCH_BRDF_CACHE/native/`` under a name keyed by the
@@ -11,7 +12,8 @@ no build step beyond ``pip install``. Without a working compiler (or with
 its torch path. The entries and sums equal the torch path's bit for bit on the same paths
 (``tests/transport/test_native.py``); the per-vertex steps use libm's scalar math where torch
 uses its vectorised math, so whole precomputations agree to float32 rounding, not bit for bit
-(``tests/transport/test_vertex.py``).
+(``tests/transport/test_vertex.py``). The visibility fans give the same records bit for bit as
+the numpy path (``tests/transport/test_visibility.py``).
 """
 
 from __future__ import annotations
@@ -28,13 +30,23 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..data import cache_dir
 from ..errors import ValueRangeError
 from ..scene.lights import AreaLight, LightSample
 
-__all__ = ["ENV_VAR", "Accumulator", "area_light_sample", "build_seconds", "key_bits", "library"]
+__all__ = [
+    "ENV_VAR",
+    "Accumulator",
+    "area_light_sample",
+    "build_seconds",
+    "key_bits",
+    "library",
+    "occluded_fans",
+    "visibility_fans",
+]
 
 #: ``TORCH_BRDF_NATIVE=0`` keeps the torch path (no compiler call)
 ENV_VAR = "TORCH_BRDF_NATIVE"
@@ -77,6 +89,9 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_mixture.restype, lib.tb_mixture.argtypes = None, [i64, p, p, f32, f32, f32, f32, p, p, p, p]
     lib.tb_advance.restype = i64
     lib.tb_advance.argtypes = [i64, p, p, p, p, i32, p, p, i32, p, p, p, p, p, i64, p, i64, p, f32, p, p, p]
+    lib.tb_vis_fans.restype = i64
+    lib.tb_vis_fans.argtypes = [p, p, i64, p, p, i64, p, p, i64, ctypes.c_double, i64, p, p, p]
+    lib.tb_occluded_fans.restype, lib.tb_occluded_fans.argtypes = i64, [p, p, i64, p, p, p, p, p]
     return lib
 
 
@@ -288,3 +303,72 @@ def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tens
     area = ctypes.c_float(light.total_area)
     lib.tb_area_finish(n, *map(_ptr, (d, d2, dist, idx, nrm, rad)), area, *map(_ptr, (ng, ns, w, wt, pdf, cos, ok)))
     return LightSample(direction=w, distance=dist, weight=wt, pdf=pdf), cos, ok
+
+
+def _np(a: np.ndarray, dtype) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def visibility_fans(
+    lib: ctypes.CDLL,
+    entry: tuple[int, int],
+    origins: np.ndarray,
+    normals: np.ndarray,
+    centres: np.ndarray,
+    dirs: np.ndarray,
+    eps: float,
+    side: int,
+) -> tuple[np.ndarray, np.ndarray] | np.ndarray:
+    """The visibility of a few vertices, every ray cast by embree from the kernel (``tb_vis_fans``).
+
+    Args:
+        lib: :func:`library`'s kernel. entry: ``(RTCScene, rtcOccluded1)`` of
+            :func:`~torch_brdf.scene.parallel.embree_entry`.
+        origins: (m, 3) float32 ray origins; normals: (m, 3) float64 unit normals.
+        centres: (3, T) float64 texel-centre directions in block order (the horizon test
+            ``n . c > eps``), blocks of ``side x side`` texels row by row on one cube face.
+        dirs: (T, k^2, 3) float32 ray directions per texel.
+    Returns:
+        ``k = 1``: ``counts`` (m, NB) int16 and ``index`` (F,) uint8, the flips of each block
+        as :func:`~torch_brdf.records.visibility_codec.packed_entries` gives them; else (m, T)
+        float32, the fraction of each texel's rays that escape (0 below the horizon).
+    """
+    m, T, k2 = len(origins), centres.shape[1], dirs.shape[1]
+    if T % (side * side) or len(dirs) != T or (k2 == 1 and side * side > 256):
+        raise ValueRangeError(f"{T} texels, blocks of {side} x {side} (<= 256 for flips), {len(dirs)} ray sets")
+    o, n, c, d = _np(origins, np.float32), _np(normals, np.float64), _np(centres, np.float64), _np(dirs, np.float32)
+    args = [*entry, m, o.ctypes.data, n.ctypes.data, T, c.ctypes.data, d.ctypes.data, k2, float(eps), side]
+    if k2 > 1:
+        frac = np.empty((m, T), np.float32)
+        lib.tb_vis_fans(*args, None, None, frac.ctypes.data)
+        return frac
+    counts = np.empty((m, T // (side * side)), np.int16)
+    index = np.empty(m * T, np.uint8)  # the bound; only the pages written are touched
+    f = lib.tb_vis_fans(*args, counts.ctypes.data, index.ctypes.data, None)
+    return counts, index[:f].copy()
+
+
+def occluded_fans(
+    lib: ctypes.CDLL,
+    entry: tuple[int, int],
+    origins: np.ndarray,
+    counts: np.ndarray,
+    texels: np.ndarray,
+    dirs: np.ndarray,
+    out: np.ndarray | None = None,
+) -> int:
+    """Embree alone on fans of rays, from the kernel (``tb_occluded_fans``): fan ``v`` casts
+    ``counts[v]`` rays from ``origins[v]`` along ``dirs[texels[i]]`` (the same query per ray as
+    :func:`visibility_fans`). Returns the occluded rays; ``out`` ((sum counts,) uint8) gets
+    each ray's occlusion when given.
+
+    Args:
+        origins: (m, 3) float32; counts: (m,) int64; texels: (n,) uint16; dirs: (D, 3) float32.
+    """
+    o, k, t, d = _np(origins, np.float32), _np(counts, np.int64), _np(texels, np.uint16), _np(dirs, np.float32)
+    if int(k.sum()) != len(t) or (len(t) and int(t.max()) >= len(d)):
+        raise ValueRangeError(f"{int(k.sum())} rays in the fans, {len(t)} texels, {len(d)} directions")
+    if out is not None and (out.dtype != np.uint8 or out.shape != t.shape or not out.flags.c_contiguous):
+        raise ValueRangeError(f"out must be a contiguous ({len(t)},) uint8 array")
+    return int(lib.tb_occluded_fans(*entry, len(o), o.ctypes.data, k.ctypes.data, t.ctypes.data, d.ctypes.data,
+                                    None if out is None else out.ctypes.data))  # fmt: skip

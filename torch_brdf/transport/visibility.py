@@ -22,6 +22,14 @@ the same record. The chunks are the tiles of :func:`~torch_brdf.transport.execut
 they run in this process (``executor="local"``) or as Ray tasks (``"ray"``). Ray casting is
 deterministic, so the record does not depend on the chunking, the executor or on the number
 of ray-casting processes.
+
+Where a chunk's rays are cast in its own process (forked tiles, Ray tasks, ``workers=1``) and
+the compiled kernel builds (:mod:`~torch_brdf.transport._native`), one C loop per chunk does
+all of it: the horizon block by block (four corner texels decide most blocks), each ray
+straight into embree's ``rtcOccluded1`` on the tracer's own scene (the same query
+``EmbreeScene.run`` makes, in the same order), and the flips as the rays come back. Otherwise
+(no compiler, ``TORCH_BRDF_NATIVE=0``, or a tracer that spreads rays over its forked workers)
+the numpy path below casts one embreex call per vertex. Both give the same record bit for bit.
 """
 
 from __future__ import annotations
@@ -38,9 +46,10 @@ from ..data import progress_default
 from ..errors import ValueRangeError
 from ..records.cache import TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
-from ..records.visibility_codec import BlockVisibility, packed_entries
+from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
+from . import _native
 from .executor import TileWork, run_tiles
 
 __all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices", "visibility_fraction"]
@@ -74,6 +83,10 @@ def visibility_fraction(
 
 def _fraction(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor, dirs: torch.Tensor):
     """:func:`visibility_fraction` for precomputed (T, k^2, 3) ray directions."""
+    native = _native_rays(scene)
+    if native is not None and dirs.shape[1] > 1:
+        V = _native.visibility_fans(*native, *_fan_inputs(scene, geom, pos, nrm), dirs.numpy(), HORIZON_EPS, geom.block)
+        return torch.from_numpy(V).view(pos.shape[0], geom.block_count, geom.block_size)
     V = _visible(scene, geom, pos, nrm, dirs.numpy())
     if V.dtype == bool:
         V = V.astype(np.float32)
@@ -143,6 +156,23 @@ def _visible(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Te
     return out
 
 
+def _native_rays(scene: Scene):
+    """``(kernel, embree entry)`` when the compiled kernel casts the rays itself (the whole fan
+    loop: horizon, rays, flips, in one pass per vertex), else None: no compiler
+    (``TORCH_BRDF_NATIVE=0``), a tracer with forked trace workers (the numpy path spreads its
+    rays over them), or an embree handle that cannot be checked. Same record either way."""
+    lib = _native.library()
+    entry = None if lib is None else scene.tracer.embree_entry()
+    return None if entry is None else (lib, entry)
+
+
+def _fan_inputs(scene: Scene, geom: CubemapBlocks, pos: torch.Tensor, nrm: torch.Tensor):
+    """The kernel's (m, 3) float32 origins, (m, 3) float64 normals and (3, T) float64 centres
+    (the same values as :func:`_visible`'s)."""
+    origins = (pos + scene.ray_epsilon * nrm).float().numpy()
+    return origins, nrm.to(torch.float64).numpy(), _centres(geom)
+
+
 def _centres(geom: CubemapBlocks) -> np.ndarray:
     """(3, T) float64 texel-centre directions in block order, C-contiguous."""
     return np.ascontiguousarray(geom.directions.reshape(-1, 3).numpy().T)
@@ -160,11 +190,19 @@ def _chunk_entries(
     """The differential entries of a few vertices' maps (``counts`` (m, NB) int16, ``index``
     (F,) uint8, graded maps also ``delta`` (F,) int16), by casting the rays above each horizon;
     binary maps go from the rays' results to the flips through bits packed 8 a byte.
-    ``split`` (profiling, binary maps): CPU seconds per stage (horizon, gather, embree, scatter,
-    flips) are added to it."""
+    ``split`` (profiling, binary maps): CPU seconds per stage are added to it (``kernel`` when
+    the compiled kernel casts the rays; else horizon, gather, embree, scatter, flips)."""
     if dirs.shape[1] > 1:
         rec = BlockVisibility.encode(_fraction(scene, geom, pos, nrm, dirs), bits=bits)
         return {"counts": rec.counts.numpy(), "index": rec.index.numpy(), "delta": rec.delta.numpy()}
+    native = _native_rays(scene)
+    if native is not None and geom.block_size == BLOCK_TEXELS:  # flips as uint8 texel positions
+        t = time.process_time()
+        counts, index = _native.visibility_fans(
+            *native, *_fan_inputs(scene, geom, pos, nrm), dirs.numpy(), HORIZON_EPS, geom.block
+        )
+        _lap(split, "kernel", t)
+        return {"counts": counts, "index": index}
     vis = _visible(scene, geom, pos, nrm, dirs.numpy(), split)
     t = time.process_time()
     counts, index = packed_entries(np.packbits(vis.reshape(len(vis), geom.block_count, geom.block_size), axis=-1))
