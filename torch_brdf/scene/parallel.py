@@ -218,8 +218,8 @@ def _embree_library() -> ctypes.CDLL | None:
     try:
         with open("/proc/self/maps") as f:  # Linux: the exact file in use
             paths = [line.split(None, 5)[-1].strip() for line in f if "libembree4" in line]
-    except OSError:
-        pass
+    except OSError:  # no /proc (not Linux): look beside the wheel's extensions below
+        paths = []
     if not paths:  # elsewhere: the copy bundled beside the wheel's extensions
         here = os.path.dirname(rtcore_scene.__file__)
         for pattern in ("../embreex.libs/libembree4*", ".dylibs/libembree4*", "libembree4*"):
@@ -227,7 +227,7 @@ def _embree_library() -> ctypes.CDLL | None:
     for path in paths:
         try:
             return ctypes.CDLL(path)
-        except OSError:
+        except OSError:  # not loadable here: try the next candidate, else None (callers fall back)
             continue
     return None
 
