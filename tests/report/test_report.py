@@ -170,6 +170,20 @@ def test_missing_keys_and_grown_planner_json_degrade_gracefully():
     assert len(sections({})) == len(CAPABILITIES)  # nothing ran: every section, no figure, no error
 
 
+def test_a_skipped_ray_start_is_a_cell_not_a_crash():
+    """scaleout.py prints ``ray_skipped`` (and its local figures) when Ray does not start in its
+    time: the section says so in a cell, draws the local point and lists no Ray key as missing."""
+    skipped = "skipped: Ray (1 worker(s)) did not start in 9 tries, 301 s (load 22.0): node timed out"
+    recs = {
+        "scaleout": {
+            "result": {"quick": True, "cpus": 2, "local_s": 1.3, "local_tiles_per_s": 6.2, "ray_skipped": skipped}
+        }
+    }
+    sec = {s.key: s for s in sections(recs)}["scaleout"]
+    assert sec.numbers["scaleout.ray"] == skipped and sec.numbers["scaleout.local_s"] == 1.3
+    assert not sec.notes and [f.key for f in sec.figures if f.has_data()] == ["scaleout_time"]
+
+
 def test_cli_report_from_saved_results(tmp_path):
     results = tmp_path / "r"
     results.mkdir()

@@ -629,10 +629,16 @@ def editor(results: dict) -> Section:
 def scaleout(results: dict) -> Section:
     sec = Section("scaleout", "Scale-out of the GI precompute (Ray)", ["scaleout"])
     r = _Reader(results, "scaleout")
+    skipped = get(r.res, "ray_skipped")  # Ray did not start in its time: the local figures only
+    local = Series(
+        "local executor (its trace pool on every usable core)", pt(num(r("cpus")) or 1, r("local_s")), "default"
+    )
+    if skipped:
+        sec.add("scaleout_time", "Scale-out: seconds vs workers", "workers", "seconds", [local], str(skipped))
+        sec.numbers["scaleout.ray"] = str(skipped)
+        return _finish(sec, (r, "local_s local_tiles_per_s"))
     ser = [
-        Series(
-            "local executor (its trace pool on every usable core)", pt(num(r("cpus")) or 1, r("local_s")), "default"
-        ),
+        local,
         Series("Ray", [p for w in (1, 2) for p in pt(w, r(f"ray{w}_s"))]),
         Series(
             "model: predicted seconds (1024², 1024 spp), nodes x 2 workers",
