@@ -48,3 +48,10 @@ def test_plan_prints_choice_cost_error_and_psnr():
     assert "k 3" in text and "predicted cost 4 s" in text and f"{-20 * math.log10(0.05):.2f} dB" in text
     assert "* k 3" in text and "k 4" not in text  # the dominated option is left out
     assert plan.settings == {"k": 3} and plan.predicted_error == 0.05
+
+
+def test_plan_prints_the_interval_of_a_measured_option():
+    chosen = Option((("q", 2),), 0.008, 3.0, interval=(0.006, 0.011))
+    text = str(Plan("manifold", "median held-out log-RMSE", 0.01, None, chosen, (chosen,), 1.0))
+    assert "predicted error 0.008 (median held-out log-RMSE); interval 0.006 to 0.011" in text
+    assert "interval" not in str(Plan("relighting", "RMSE", 0.1, None, OPTIONS[1], tuple(OPTIONS), 0.5))

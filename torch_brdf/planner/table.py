@@ -33,6 +33,8 @@ class Option:
         parts: ((name, error), ...) the error's components where the planner splits it.
         costs: ((name, value), ...) the cost's components, printed with it (e.g. precompute
             and frame seconds, bytes).
+        interval: (low, high) of the predicted error where the planner measures its spread
+            (e.g. a bootstrap interval over materials), printed with it; None: not measured.
     """
 
     settings: tuple[tuple[str, Any], ...]
@@ -40,6 +42,7 @@ class Option:
     predicted_seconds: float
     parts: tuple[tuple[str, float], ...] = ()
     costs: tuple[tuple[str, float], ...] = ()
+    interval: tuple[float, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The settings as a dict."""
@@ -146,7 +149,8 @@ class Plan:
         lines = [
             f"{self.capability} plan for {' and '.join(want)}: {c.describe()}",
             f"  predicted error {self._err(c.predicted_error)} ({self.metric})"
-            + (" = sqrt(" + " + ".join(f"{k} {v:.4g}^2" for k, v in c.parts) + ")" if c.parts else ""),
+            + (" = sqrt(" + " + ".join(f"{k} {v:.4g}^2" for k, v in c.parts) + ")" if c.parts else "")
+            + (f"; interval {self._err(c.interval[0])} to {self._err(c.interval[1])}" if c.interval else ""),
             f"  predicted cost {c.predicted_seconds:.3g} s"
             + "".join(f", {k} {v:.3g}" for k, v in c.costs)
             + f" (pilots {self.pilot_seconds:.3g} s)",
