@@ -38,9 +38,11 @@ BENCHMARKS = (
     "scaleout",
     "inverse_gi",
     "denoise",
+    "denoise_tune",  # after denoise: it reads denoise's cached parts (and makes what is missing)
     "manifold",
     "editor",
     "load",
+    "reduce_numba",
 )
 
 #: extra environment per benchmark (as its docstring asks)
