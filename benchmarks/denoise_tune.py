@@ -9,7 +9,10 @@ applied to the noisy frame (checked here against the cached ``linear`` frame). T
 grid cheap:
 each setting is chosen on the lowest-spp run with the default material (seed 0) and reported
 at the middle spp (another seed) on the default and the edited material, which it never saw.
-Run ``denoise.py`` first (same options); prints one JSON object.
+Run ``denoise.py`` first (same options), or pass ``--build`` (implied by ``--quick``, the
+report's run): parts not cached are then made by running ``denoise.py`` with these options for
+that scene. ``--quick``: ``denoise.py --quick``'s sizes (48², series 16,1,1, spp 4,16, hi 64,
+reference 512). Prints one JSON object.
 
 ``--bound`` adds ``selection_bound``: how low *any* per-pixel choice among the local
 regressions of :class:`SelectionSettings` (and the identity) could take the middle-spp error.
@@ -24,6 +27,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -101,13 +105,17 @@ def selection_bound(g, gl, noisy: dict, refs: dict, means: tuple, mask, smooth=(
     return out
 
 
+class NotCached(Exception):
+    """A part of ``denoise.py`` that these options need is not in the cache."""
+
+
 def tune(name: str, cfg: dict, folder: Path, filters: list[str], bound: bool = False) -> dict:
     build, obj, edited = SCENES[name]
     scene = build(cfg["res"])
     bounces = len(cfg["series"].split(","))
 
     def missing():
-        raise SystemExit(f"{name}: run benchmarks/denoise.py with the same options first")
+        raise NotCached(f"{name}: run benchmarks/denoise.py with the same options first")
 
     refs, _ = _cached(folder, "reference", {"ref_spp": cfg["ref_spp"], "edited": edited, "b": bounces}, scene, missing)
     units = {}
@@ -171,12 +179,29 @@ def main() -> None:
         "--filters", default=",".join(GRIDS), help="comma-separated subset of " + ",".join(GRIDS) + " or none"
     )
     ap.add_argument("--bound", action="store_true", help="also the oracle bound of per-pixel window selection")
-    args, _ = ap.parse_known_args()
+    ap.add_argument("--quick", action="store_true", help="denoise.py --quick's sizes; implies --build")
+    ap.add_argument("--build", action="store_true", help="run denoise.py (these options) for parts not cached")
+    args, _ = ap.parse_known_args()  # denoise.py's other options (--figure, --hi-step, ...) are accepted
+    if args.quick:
+        args.res, args.series, args.spp, args.hi_spp, args.ref_spp = 48, "16,1,1", "4,16", 64, 512
     spps = [int(s) for s in args.spp.split(",")]
     cfg = {"res": args.res, "series": args.series, "spp": spps, "ref_spp": args.ref_spp, "hi_spp": args.hi_spp}
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
     filters = [f for f in args.filters.split(",") if f != "none"]
-    print(json.dumps({name: tune(name, cfg, folder, filters, args.bound) for name in args.scenes.split(",")}))
+    sizes = ["--res", str(args.res), "--series", args.series, "--spp", args.spp, "--hi-spp", str(args.hi_spp)]
+    sizes += ["--ref-spp", str(args.ref_spp), "--cache", str(folder)]
+    out = {"quick": args.quick, "settings": cfg}
+    for name in args.scenes.split(","):
+        try:
+            out[name] = tune(name, cfg, folder, filters, args.bound)
+        except NotCached as exc:
+            if not (args.build or args.quick):
+                raise SystemExit(str(exc)) from exc
+            print(f"{exc}: running it ({' '.join(sizes)})", flush=True)
+            cmd = [sys.executable, str(Path(__file__).with_name("denoise.py")), *sizes, "--scenes", name]
+            subprocess.run(cmd, check=True, stdout=sys.stderr)  # its JSON is not this script's last line
+            out[name] = tune(name, cfg, folder, filters, args.bound)
+    print(json.dumps(out))
 
 
 if __name__ == "__main__":
