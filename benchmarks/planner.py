@@ -2,7 +2,7 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11] [--orders 8]
+        [--psnr 50] [--families 7,11,13] [--orders 8]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -43,12 +43,14 @@ rule, and both at 32x32x6) carried out on the whole scene: achieved error and PS
 and frame seconds, ``cost_s`` = precompute + 100 frames; ``planner_cost_ratio`` over the
 cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
-Manifold (``manifold``; not in the default list): q and the training materials for a median
+Manifold (``manifold``): q and the training materials for a median
 held-out log-RMSE of 0.01 on the analytic family (120 materials, 9 x 9 x 18 grid: 40 pool, 80
-held out; family seeds 7 and 11, ``--quick`` 7 only, or ``--families``), for pool orders 0-7
-(quick 0-1, or ``--orders N``): per plan
-(``orders``) its q, n, predicted and achieved error (median over the 80 held-out materials of
-the plan carried out) and their ratio, CPU seconds of the fit + 80 placements; ``planned`` is the
+held out; family seeds 7, 11 and 13 -- 13 chosen before any run of it --, ``--quick`` 7 only,
+or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan
+(``orders``) its q, n, predicted error with its 90% interval and achieved error (median over the
+80 held-out materials of the plan carried out) and their ratio, CPU seconds of the fit + 80
+placements, ``achieved_interval`` (the achieved median's own 90% bootstrap interval over the
+80 materials: how far another 80 would move it); ``planned`` is the
 first; ``defaults``: the seed's q = 2 and 5 trained on the whole pool, measured alike;
 ``prediction_ratio`` (worst over the plans), ``achieved_over_predicted`` (range),
 ``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches the error).
@@ -85,7 +87,7 @@ from torch_brdf.manifold.data import MERLGrid
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.planner.gi import with_fixed
 from torch_brdf.planner.inverse import _basis, design_image, plan_inverse
-from torch_brdf.planner.manifold import plan_manifold
+from torch_brdf.planner.manifold import bootstrap_interval, plan_manifold
 from torch_brdf.records.polynomial import Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.render.relight_plan import DEFAULT_RULE, make_rule, plan_relighting, shade_vertices
@@ -405,7 +407,7 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
         h = heldout_reconstruction(
             obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT
         )
-        return float(h.gplvm_logrmse.median()), time.process_time() - t0
+        return h.gplvm_logrmse, time.process_time() - t0
 
     runs, defaults = [], []
     for fam in families:
@@ -413,14 +415,16 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
         names = list(obs.names)
         test, pool = names[:80], names[80:]
         for q in MANIFOLD_DEFAULTS:
-            a, secs = carry_out(obs, pool, test, q)
+            scores, secs = carry_out(obs, pool, test, q)
+            a = float(scores.median())
             defaults.append({"family": fam, "q": q, "n": len(pool), "achieved_error": a, "cpu_s": secs})
         for order in orders:
             t0 = time.process_time()
             plan = plan_manifold(obs, pool, error=error, generator=torch.Generator().manual_seed(order), **MANIFOLD_FIT)
             plan_s = time.process_time() - t0
             s = plan.settings
-            a, secs = carry_out(obs, s["train"], test, s["q"])
+            scores, secs = carry_out(obs, s["train"], test, s["q"])
+            a = float(scores.median())
             r = a / plan.predicted_error
             runs.append(
                 {
@@ -429,7 +433,9 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
                     "q": s["q"],
                     "n": s["n"],
                     "predicted_error": plan.predicted_error,
+                    "predicted_interval": plan.chosen.interval,
                     "achieved_error": a,
+                    "achieved_interval": bootstrap_interval(scores, torch.median),
                     "ratio": r,
                     "cpu_s": secs,
                     "plan_cpu_s": plan_s,
@@ -467,10 +473,10 @@ def main() -> None:
     ap.add_argument("--error", type=float, default=None, help="requested relative RMSE (default 0.1; quick 0.2)")
     ap.add_argument("--resolution", type=int, default=None, help="image size (default 32; quick 24)")
     ap.add_argument(
-        "--capabilities", default="gi,inverse,relight", help="comma-separated: gi, inverse, relight, manifold"
+        "--capabilities", default="gi,inverse,relight,manifold", help="comma-separated: gi, inverse, relight, manifold"
     )
     ap.add_argument("--psnr", type=float, default=None, help="relighting target in dB (default 50; quick 45)")
-    ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11; quick 7)")
+    ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11,13; quick 7)")
     ap.add_argument("--orders", type=int, default=None, help="manifold: pool orders 0..N-1 (default 8; quick 2)")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
@@ -489,7 +495,7 @@ def main() -> None:
     if "relight" in caps:
         out["relight"] = run_relight(args.psnr or (45.0 if q else 50.0), q)
     if "manifold" in caps:
-        families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11)
+        families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11, 13)
         out["manifold"] = run_manifold(0.01, families, tuple(range(args.orders or (2 if q else 8))))
     out["load_end"] = os.getloadavg()[0]
     others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
