@@ -25,10 +25,10 @@ pool (never the held-out ones):
 * **the choice is the cheapest option whose interval's upper end is within the budget**
   (``confident=True``; False: its estimate). Choosing on the estimate picks, among options near
   the budget, those whose 40 materials happened to score low, so the achieved error of the
-  chosen model comes out above its prediction (three family draws x 8 pool orders: 16 of 23
-  ratios above 1, the four misses of 1.5x all above, 1.57-1.89x); an upper end within the budget
+  chosen model comes out above its prediction (three family draws x 8 pool orders: 17 of 24
+  ratios above 1, the five misses of 1.5x all above, 1.57-2.77x); an upper end within the budget
   leaves the estimate far enough below it that this selection hardly biases it, at the price of
-  larger plans (n = |R| in 18 of 24 plans against 6 of 23): 22 of 24 within 1.5x, the two
+  larger plans (n = |R| in 18 of 24 plans against 6 of 24): 22 of 24 within 1.5x, the two
   misses (0.66x and 1.58x) within the materials' own scatter (below);
 * cost: the fit + projection seconds, predicted as :math:`\kappa\,u(q, n)` with the operation
   count :math:`u = (n^2 + q n) D + n^3` (D columns: the kernel products and the Cholesky of one
