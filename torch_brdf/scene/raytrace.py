@@ -288,9 +288,12 @@ class RayTracer:
     def embree_hits(self) -> EmbreeHits | None:
         """:class:`~torch_brdf.scene.parallel.EmbreeHits` (scene handle, embree's closest-hit and
         occlusion calls, the hit tables) for a compiled loop that casts this scene's rays and
-        makes the :meth:`trace` hits itself, in the calling process; None as for :meth:`embree_entry`.
-        Such a loop adds its wall seconds to :attr:`seconds`."""
-        return None if self._pool is not None else self._kernel.native_hits()
+        makes the :meth:`trace` hits itself, in the calling process, or None where the handle
+        cannot be checked. Unlike :meth:`embree_entry`, also for a tracer with forked workers: the
+        GI precompute then casts on one core in each tile's process whatever the tile layout
+        (one code path, so the same hits in one process as in forked tiles). Such a loop adds
+        its wall seconds to :attr:`seconds`."""
+        return self._kernel.native_hits()
 
     def in_process(self) -> RayTracer:
         """A shallow copy that traces in the calling process only (no pool; shares the embree

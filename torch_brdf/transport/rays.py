@@ -12,8 +12,10 @@ triangle ids are the same and positions and normals agree to float32 rounding
 (``tests/transport/test_rays.py``).
 
 :meth:`NativeRays.make` gives None -- and callers keep the tracer's own methods -- without the
-kernel (no compiler, ``TORCH_BRDF_NATIVE=0``), when the embreex layout cannot be checked, or when
-the tracer spreads large batches over forked workers (a compiled loop would use one core).
+kernel (no compiler, ``TORCH_BRDF_NATIVE=0``) or when the embreex layout cannot be checked. A
+tracer with forked workers gets one too: the rays are then cast on one core in the calling
+process (the GI precompute's tiles already use the cores, and one code path gives the same hits
+in one process as in forked tiles).
 """
 
 from __future__ import annotations
