@@ -158,8 +158,8 @@ def _embree_seconds(scene, log, totals) -> dict[str, float]:
             lib.tb_intersect_only(entry[0], intersect, len(b[0]), b[0].ctypes.data, b[1].ctypes.data, None,
                                   out.ctypes.data)  # fmt: skip
         else:
-            lib.tb_occluded_rays(entry[0], entry[1], len(b[0]), b[0].ctypes.data, b[1].ctypes.data, None,
-                                 b[2].ctypes.data, out.ctypes.data)  # fmt: skip
+            lib.tb_occluded_rays(entry[0], entry[1], len(b[0]), b[0].ctypes.data, b[1].ctypes.data, len(b[1]),
+                                 None, b[2].ctypes.data, out.ctypes.data)  # fmt: skip
 
     secs = {"embreex": 0.0, "c": 0.0, "fastest": 0.0}
     for kind in ("closest", "shadow"):

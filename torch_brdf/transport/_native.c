@@ -844,13 +844,16 @@ int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const fl
 }
 
 /* tb_occluded_rays: whether anything lies on ray i within (0, min(tmax[i], 1e37)) (origins o
- * (n, 3), directions d[rows[i]] (rows NULL: d[i]), float32): out[i] = 1 occluded, 0 free.
- * Returns the occluded rays, or -1 - i when ray i is not finite or tmax[i] is NaN (nothing cast). */
-int64_t tb_occluded_rays(void *scene, void *fn, int64_t n, const float *o, const float *d, const int64_t *rows,
-                         const float *tmax, uint8_t *out) {
+ * (n, 3), directions d[rows[i]] (d: (D, 3); rows NULL: d[i]), float32): out[i] = 1 occluded,
+ * 0 free. Returns the occluded rays, or -1 - i when ray i is not finite, tmax[i] is NaN or
+ * rows[i] is outside [0, D) (nothing cast). */
+int64_t tb_occluded_rays(void *scene, void *fn, int64_t n, const float *o, const float *d, int64_t D,
+                         const int64_t *rows, const float *tmax, uint8_t *out) {
     tb_occluded1 occluded = (tb_occluded1)fn;
-    for (int64_t i = 0; i < n; i++)
+    for (int64_t i = 0; i < n; i++) {
+        if (rows && (rows[i] < 0 || rows[i] >= D)) return -1 - i;
         if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * (rows ? rows[i] : i)) || isnan(tmax[i])) return -1 - i;
+    }
     int64_t hits = 0;
     tb_ray r;
     for (int64_t i = 0; i < n; i++) {
