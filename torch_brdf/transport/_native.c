@@ -804,16 +804,15 @@ static inline void tb_rayhit_init(tb_rayhit *r, const float *o, const float *d, 
  * offsets: (O,) int64 first row of each object (NULL: one object); flat: (O,) uint8, 1 where the
  * shading normal is the face normal (NULL: none). Out: t (n,) float32 (inf on a miss), obj and
  * prim (n,) int64 (-1 on a miss), bary (n, 2), pos, ng, ns (n, 3) float32 (0 on a miss).
- * Returns the hits, or -1 - i when ray i is not finite (nothing cast). */
+ * Returns the hits, or -1 - i when ray i is not finite (the rays before it are cast). */
 int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const float *d, const float *table,
                       const int64_t *offsets, const uint8_t *flat, float *t, int64_t *obj, int64_t *prim, float *bary,
                       float *pos, float *ng, float *ns) {
     tb_intersect1 intersect = (tb_intersect1)fn;
-    for (int64_t i = 0; i < n; i++)
-        if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * i)) return -1 - i;
     int64_t hits = 0;
     tb_rayhit r;
     for (int64_t i = 0; i < n; i++) {
+        if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * i)) return -1 - i; /* the outputs are then partial */
         tb_rayhit_init(&r, o + 3 * i, d + 3 * i, INFINITY);
         intersect(scene, &r, NULL);
         float *p = pos + 3 * i, *g = ng + 3 * i, *s = ns + 3 * i;
@@ -846,18 +845,16 @@ int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const fl
 /* tb_occluded_rays: whether anything lies on ray i within (0, min(tmax[i], 1e37)) (origins o
  * (n, 3), directions d[rows[i]] (d: (D, 3); rows NULL: d[i]), float32): out[i] = 1 occluded,
  * 0 free. Returns the occluded rays, or -1 - i when ray i is not finite, tmax[i] is NaN or
- * rows[i] is outside [0, D) (nothing cast). */
+ * rows[i] is outside [0, D) (the rays before it are cast). */
 int64_t tb_occluded_rays(void *scene, void *fn, int64_t n, const float *o, const float *d, int64_t D,
                          const int64_t *rows, const float *tmax, uint8_t *out) {
     tb_occluded1 occluded = (tb_occluded1)fn;
-    for (int64_t i = 0; i < n; i++) {
-        if (rows && (rows[i] < 0 || rows[i] >= D)) return -1 - i;
-        if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * (rows ? rows[i] : i)) || isnan(tmax[i])) return -1 - i;
-    }
     int64_t hits = 0;
     tb_ray r;
     for (int64_t i = 0; i < n; i++) {
+        if (rows && (rows[i] < 0 || rows[i] >= D)) return -1 - i;
         const float *oi = o + 3 * i, *di = d + 3 * (rows ? rows[i] : i);
+        if (!tb_finite3(oi) || !tb_finite3(di) || isnan(tmax[i])) return -1 - i;
         r.org_x = oi[0], r.org_y = oi[1], r.org_z = oi[2], r.tnear = 0.0f;
         r.dir_x = di[0], r.dir_y = di[1], r.dir_z = di[2], r.time = 0.0f;
         r.tfar = tmax[i] < 1e37f ? tmax[i] : 1e37f;
