@@ -29,7 +29,8 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   per-vertex steps moved into the kernel, whose libm rounds differently in the last ulp; the
   tests compare the two paths with tolerances).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
-  calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
+  calls with the hit interpolation, ``transport/rays.py``'s compiled loop or the tracer's
+  embreex path with its array conversions), ``sampling`` (camera rays, light samples, frames, the
   direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
   (entries, per-path and per-tile reduction), ``assemble`` (sparse blocks, term tables),
   ``write`` (tile files; none without a checkpoint); ``split_other_s`` the rest.
