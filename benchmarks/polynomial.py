@@ -7,14 +7,17 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 
 * ``precompute_s``: tensors for 256x256, series (64,1,1,1), 64 spp, 4 bounces (``--quick``:
   64x64, 8 spp); ``precompute_paths_per_s``; ``rays`` cast (closest-hit, shadow).
-* ``rays_s``: the time embreex alone (one ``EmbreeScene.run`` per batch, one process) takes to
-  trace those rays, measured on the first rays of a second, 8x fewer-spp run in this process
-  (recorded after the timed run; the timed run's tiles may trace in forked processes) and
-  scaled by the timed run's total counts; ``precompute_over_rays``: the ratio (the goal is
-  <= 1.5). ``precompute_processes``: processes that computed tiles at once (by default one
-  per core unless the machine is busy; with ``--baseline`` one per core whatever the load),
-  and with ``--baseline`` also ``one_process_s`` (tiles one after another in this process, as before
-  #14's parallel tiles), ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
+* ``rays_s``: the time embree alone (one process) takes to trace those rays, measured on the
+  first rays of a second, 8x fewer-spp run in this process (recorded after the timed run; the
+  timed run's tiles may trace in forked processes) and scaled by the timed run's total counts,
+  best of two rounds, the faster per kind of ray of ``rays_embreex_s`` (one ``EmbreeScene.run``
+  per batch) and ``rays_c_s`` (with the kernel: a C loop calling embree's ``rtcIntersect1`` /
+  ``rtcOccluded1`` per ray, as the precompute's kernel casts them, null without it);
+  ``precompute_over_rays``: the ratio (the goal is <= 1.5). ``precompute_processes``:
+  processes that computed tiles at once (by default one per core unless the machine is busy;
+  with ``--baseline`` one per core whatever the load), and with ``--baseline`` also
+  ``one_process_s`` (tiles one after another in this process, as before #14's parallel tiles),
+  ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
 * ``native``: whether the compiled entry kernel (``transport/_native.c``) ran;
   ``native_build_s``: seconds this process spent compiling it on first use (0 when the cached
   build was loaded), ``native_load_s`` building or loading it, both before and outside
@@ -26,7 +29,8 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   per-vertex steps moved into the kernel, whose libm rounds differently in the last ulp; the
   tests compare the two paths with tolerances).
 * ``split_s``: the profile split of that precompute (exclusive seconds): ``rays`` (embree
-  calls with their array conversions), ``sampling`` (camera rays, light samples, frames, the
+  calls with the hit interpolation, ``transport/rays.py``'s compiled loop or the tracer's
+  embreex path with its array conversions), ``sampling`` (camera rays, light samples, frames, the
   direction mixture), ``brdf`` (band indices, quotients, fixed BRDFs), ``bookkeeping``
   (entries, per-path and per-tile reduction), ``assemble`` (sparse blocks, term tables),
   ``write`` (tile files; none without a checkpoint); ``split_other_s`` the rest.
@@ -60,6 +64,7 @@ import math
 import os
 import resource
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -71,56 +76,110 @@ from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.rays import NativeRays
 
 
 def _materials(scene):
     return {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
 
 
-def _record_rays(scene, limit: int):
-    """Wrap the scene's tracer to keep the first ``limit`` closest-hit and shadow rays."""
+@contextmanager
+def _recording_rays(scene, limit: int):
+    """Keep the first ``limit`` closest-hit and shadow rays the scene's rays take, whether they go
+    through its tracer (embreex) or the compiled kernel (:class:`NativeRays`), in the yielded log."""
     tracer = scene.tracer
     log = {"closest": [], "shadow": [], "n": {"closest": 0, "shadow": 0}}
     real_trace, real_occ = tracer.trace, tracer.occluded
+    native_trace, native_occ = NativeRays.trace, NativeRays.occluded
+
+    def keep(kind, o, d, t_max=None):
+        if log["n"][kind] < limit:
+            rays = [o.numpy().astype(np.float32), d.numpy().astype(np.float32)]
+            if t_max is not None:
+                tm = t_max.numpy() if isinstance(t_max, torch.Tensor) else np.full(o.shape[0], t_max)
+                rays.append(tm.astype(np.float32))
+            log[kind].append(tuple(rays))
+            log["n"][kind] += o.shape[0]
 
     def trace(o, d):
-        if log["n"]["closest"] < limit:
-            log["closest"].append((o.numpy().astype(np.float32), d.numpy().astype(np.float32)))
-            log["n"]["closest"] += o.shape[0]
+        keep("closest", o, d)
         return real_trace(o, d)
 
     def occluded(o, d, t_max):
-        if log["n"]["shadow"] < limit:
-            tm = t_max.numpy() if isinstance(t_max, torch.Tensor) else np.full(o.shape[0], t_max)
-            log["shadow"].append((o.numpy().astype(np.float32), d.numpy().astype(np.float32), tm.astype(np.float32)))
-            log["n"]["shadow"] += o.shape[0]
+        keep("shadow", o, d, t_max)
         return real_occ(o, d, t_max)
 
+    def n_trace(self, o, d):
+        if self.rt is tracer:
+            keep("closest", o, d)
+        return native_trace(self, o, d)
+
+    def n_occluded(self, o, d, t_max, rows=None):
+        if self.rt is tracer:
+            keep("shadow", o, d if rows is None else d[rows], t_max)
+        return native_occ(self, o, d, t_max, rows)
+
     tracer.trace, tracer.occluded = trace, occluded
-    return log
+    NativeRays.trace, NativeRays.occluded = n_trace, n_occluded
+    try:
+        yield log
+    finally:
+        del tracer.trace, tracer.occluded
+        NativeRays.trace, NativeRays.occluded = native_trace, native_occ
 
 
-def _embree_seconds(scene, log, totals) -> float:
-    """Time embreex alone on the recorded rays, scaled to the run's total ray counts."""
+def _embree_seconds(scene, log, totals) -> dict[str, float]:
+    """Embree alone on the recorded rays, scaled to the run's total ray counts, best of two rounds:
+    ``embreex`` (``EmbreeScene.run`` per batch) and, with the compiled kernel, ``c`` (a C loop
+    calling ``rtcIntersect1`` / ``rtcOccluded1`` per ray on the same scene, as the precompute's
+    kernel does, keeping only the geometry id / the occlusion). ``fastest``: per kind of ray the
+    faster of the two, summed (the strictest baseline)."""
     from embreex import mesh_construction, rtcore_scene
+
+    from torch_brdf.scene.parallel import embree_entry, embree_function
 
     es = rtcore_scene.EmbreeScene()
     for obj in scene.objects:
         v = np.ascontiguousarray(obj.mesh.vertices, dtype=np.float32)
         f = np.ascontiguousarray(obj.mesh.faces, dtype=np.int32)
         mesh_construction.TriangleMesh(es, v, f)
-    secs = 0.0
+    es.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # the BVH, outside the timing
+    lib, entry, intersect = _native.library(), embree_entry(es), embree_function("rtcIntersect1")
+    c_loop = lib is not None and entry is not None and intersect is not None
+
+    def embreex(kind, b):
+        if kind == "closest":
+            es.run(b[0], b[1], output=1)
+        else:
+            es.run(b[0], b[1], query="OCCLUDED", dists=np.minimum(b[2], 1e37))
+
+    def c(kind, b):
+        out = np.empty(len(b[0]), np.int32 if kind == "closest" else np.uint8)
+        if kind == "closest":
+            lib.tb_intersect_only(entry[0], intersect, len(b[0]), b[0].ctypes.data, b[1].ctypes.data, None,
+                                  out.ctypes.data)  # fmt: skip
+        else:
+            lib.tb_occluded_rays(entry[0], entry[1], len(b[0]), b[0].ctypes.data, b[1].ctypes.data, len(b[1]),
+                                 None, b[2].ctypes.data, out.ctypes.data)  # fmt: skip
+
+    secs = {"embreex": 0.0, "c": 0.0, "fastest": 0.0}
     for kind in ("closest", "shadow"):
         n = sum(b[0].shape[0] for b in log[kind])
         if n == 0:
             continue
-        t0 = time.perf_counter()
-        for b in log[kind]:
-            if kind == "closest":
-                es.run(b[0], b[1], output=1)
-            else:
-                es.run(b[0], b[1], query="OCCLUDED", dists=np.minimum(b[2], 1e37))
-        secs += (time.perf_counter() - t0) * totals[kind] / n
+        best = {}
+        for name, fn in [("embreex", embreex)] + ([("c", c)] if c_loop else []):
+            rounds = []
+            for _ in range(2):
+                t0 = time.perf_counter()
+                for b in log[kind]:
+                    fn(kind, b)
+                rounds.append((time.perf_counter() - t0) * totals[kind] / n)
+            best[name] = min(rounds)
+            secs[name] += best[name]
+        secs["fastest"] += min(best.values())
+    if not c_loop:
+        del secs["c"]
     return secs
 
 
@@ -204,12 +263,13 @@ def main() -> None:
     # recorded after the timed run (which stays the first call in the process)
     rec_spp = max(1, spp // 8)
     rsc = cornell_box_glossy(res)
-    log = _record_rays(rsc, limit=1 << 20 if q else 1 << 22)
-    precompute_polynomial(rsc, "64,1,1,1", spp=rec_spp, seed=1, progress=False, processes=1, guides=False)
+    with _recording_rays(rsc, limit=1 << 20 if q else 1 << 22) as log:
+        precompute_polynomial(rsc, "64,1,1,1", spp=rec_spp, seed=1, progress=False, processes=1, guides=False)
     out["precompute_resolution"], out["precompute_spp"] = res, spp
     out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
     out["rays"] = T.meta["rays"]
-    out["rays_s"] = _embree_seconds(sc, log, T.meta["rays"])
+    alone = _embree_seconds(sc, log, T.meta["rays"])
+    out["rays_s"], out["rays_embreex_s"], out["rays_c_s"] = alone["fastest"], alone["embreex"], alone.get("c")
     out["precompute_over_rays"] = out["precompute_s"] / out["rays_s"]
     # where the time went (exclusive seconds per stage, summed over tiles; meta["split"])
     out["split_s"] = {k: round(v, 4) for k, v in T.meta["split"].items()}

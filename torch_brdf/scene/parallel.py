@@ -175,6 +175,18 @@ class TraceKernel:
             self._native = embree_entry(self.scene)
         return self._native
 
+    def native_hits(self) -> EmbreeHits | None:
+        """:class:`EmbreeHits` of this kernel (its scene committed first), found once per kernel;
+        None where :func:`embree_entry` is None."""
+        if not hasattr(self, "_native_hits"):
+            entry, intersect = self.native(), embree_function("rtcIntersect1")
+            self._native_hits = None
+            if entry is not None and intersect is not None:
+                offsets = None if self.offsets is None else np.ascontiguousarray(self.offsets, np.int64)
+                flat = None if self.flat is None else np.ascontiguousarray(self.flat, np.uint8)
+                self._native_hits = EmbreeHits(entry[0], intersect, entry[1], self.table, offsets, flat)
+        return self._native_hits
+
     def _embree(self, o: np.ndarray, d: np.ndarray) -> dict[str, np.ndarray]:
         # rays start with tfar = inf, which embree leaves on a miss (embreex returns, and
         # may overwrite, the ``dists`` array: it is a fresh one)
@@ -230,6 +242,36 @@ def _embree_library() -> ctypes.CDLL | None:
         except OSError:  # not loadable here: try the next candidate, else None (callers fall back)
             continue
     return None
+
+
+def embree_function(name: str) -> int | None:
+    """Address of embree's C function ``name`` (e.g. ``"rtcIntersect1"``) in the library
+    embreex loaded (:func:`embree_entry` finds ``rtcOccluded1`` the same way), or None."""
+    lib = _embree_library()
+    fn = None if lib is None else getattr(lib, name, None)
+    return None if fn is None else ctypes.cast(fn, ctypes.c_void_p).value
+
+
+@dataclass(frozen=True)
+class EmbreeHits:
+    """What a compiled loop needs to cast a :class:`TraceKernel`'s closest-hit and shadow rays
+    itself and to make :class:`HitArrays` as :meth:`TraceKernel.trace` does
+    (``tb_trace_hits`` / ``tb_occluded_rays`` in ``transport/_native.c``).
+
+    Attributes:
+        scene: the committed ``RTCScene`` handle (:func:`embree_entry`).
+        intersect, occluded: addresses of ``rtcIntersect1`` and ``rtcOccluded1``.
+        table: (F + 1, 21) float32 per-triangle rows (see :class:`TraceKernel`).
+        offsets: (O + 1,) int64 first row of each object, or None (one object).
+        flat: (O + 1,) uint8, 1 where an object's shading normal is its face normal, or None.
+    """
+
+    scene: int
+    intersect: int
+    occluded: int
+    table: np.ndarray
+    offsets: np.ndarray | None
+    flat: np.ndarray | None
 
 
 def embree_entry(scene) -> tuple[int, int] | None:

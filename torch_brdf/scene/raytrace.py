@@ -34,7 +34,7 @@ from embreex import mesh_construction, rtcore_scene
 
 from .._checks import as_float_tensor, check_finite, check_vectors
 from ..errors import ShapeError, ValueRangeError
-from .parallel import CHUNK, HitArrays, TraceKernel, TracePool, default_workers
+from .parallel import CHUNK, EmbreeHits, HitArrays, TraceKernel, TracePool, default_workers
 
 #: largest ``t_max`` handed to embree for occlusion (embreex's own default far distance).
 _EMBREE_FAR = 1e37
@@ -162,9 +162,9 @@ class RayTracer:
         self.bbox = (lo, hi)
         extent = float((hi - lo).norm())
         magnitude = float(torch.maximum(lo.abs(), hi.abs()).max())
-        #: distance by which ray origins are pushed off surfaces (self-intersection).
         #: wall seconds spent in :meth:`trace` and :meth:`occluded` (profiles of callers).
         self.seconds = 0.0
+        #: distance by which ray origins are pushed off surfaces (self-intersection).
         self.ray_epsilon = max(1e-5 * extent, 64 * float(np.finfo(np.float32).eps) * magnitude, 1e-7)
 
     # -- queries ---------------------------------------------------------------------------
@@ -284,6 +284,16 @@ class RayTracer:
         batches over its forked workers (such a loop would use one core) or the handle cannot be
         checked; callers then use :meth:`occluded_fans`."""
         return None if self._pool is not None else self._kernel.native()
+
+    def embree_hits(self) -> EmbreeHits | None:
+        """:class:`~torch_brdf.scene.parallel.EmbreeHits` (scene handle, embree's closest-hit and
+        occlusion calls, the hit tables) for a compiled loop that casts this scene's rays and
+        makes the :meth:`trace` hits itself, in the calling process, or None where the handle
+        cannot be checked. Unlike :meth:`embree_entry`, also for a tracer with forked workers: the
+        GI precompute then casts on one core in each tile's process whatever the tile layout
+        (one code path, so the same hits in one process as in forked tiles). Such a loop adds
+        its wall seconds to :attr:`seconds`."""
+        return self._kernel.native_hits()
 
     def in_process(self) -> RayTracer:
         """A shallow copy that traces in the calling process only (no pool; shares the embree

@@ -92,6 +92,10 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_vis_fans.restype = i64
     lib.tb_vis_fans.argtypes = [p, p, i64, p, p, i64, p, p, i64, ctypes.c_double, i64, p, p, p]
     lib.tb_occluded_fans.restype, lib.tb_occluded_fans.argtypes = i64, [p, p, i64, p, p, p, p, p]
+    # GI ray casting (transport/rays.py)
+    lib.tb_trace_hits.restype, lib.tb_trace_hits.argtypes = i64, [p, p, i64, p, p, p, p, p, p, p, p, p, p, p, p]
+    lib.tb_occluded_rays.restype, lib.tb_occluded_rays.argtypes = i64, [p, p, i64, p, p, i64, p, p, p]
+    lib.tb_intersect_only.restype, lib.tb_intersect_only.argtypes = i64, [p, p, i64, p, p, p, p]
     return lib
 
 

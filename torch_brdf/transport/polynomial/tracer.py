@@ -25,6 +25,7 @@ from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import library
 from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
+from ..rays import NativeRays
 from .sampler import Mixture
 from .vertex import VertexKernel
 
@@ -240,14 +241,33 @@ class _Tracer:
         self.level2 = _Layers(bases, self.brdfs, 2, offs, self.clock) if series.two_level else None
         self.rays = {"closest": 0, "shadow": 0}
         self._vk = None  # the compiled per-vertex steps, made on first use
+        self._rays = None  # the compiled ray casting, made on first use
         # pi^-k by the number k of earlier diffuse-equivalent vertices (one table for both the
         # torch and the compiled entries, so they agree bit for bit)
         self.pi_powers = math.pi ** -(torch.arange(series.bounces + 2).double()).float()
 
     def _trace(self, o, d):
+        """Closest hits of the rays (:meth:`Scene.trace <torch_brdf.scene.scene.Scene.trace>`; by the
+        compiled kernel where it can, :class:`~torch_brdf.transport.rays.NativeRays`: its hits hold
+        until the next call)."""
         self.rays["closest"] += o.shape[0]
         with self.clock("rays"):
-            return self.scene.trace(o, d)
+            rays = self._native_rays()
+            return self.scene.trace(o, d) if rays is None else rays.trace(o, d)
+
+    def occluded(self, o, d, t_max, rows=None):
+        """(n,) bool: shadow rays from ``o`` (n, 3) along ``d[rows]`` (``rows`` None: ``d``) within
+        ``t_max`` (n,), by the compiled kernel where it can (else the scene's tracer)."""
+        rays = self._native_rays()
+        if rays is not None:
+            return rays.occluded(o, d, t_max, rows)
+        return self.scene.tracer.occluded(o, d if rows is None else d[rows], t_max)
+
+    def _native_rays(self):
+        """:class:`~torch_brdf.transport.rays.NativeRays` of the scene's tracer, or None."""
+        if self._rays is None:
+            self._rays = NativeRays.make(self.scene.tracer) or False
+        return self._rays or None
 
     def _fixed_f(self, oid, wi, wo):
         """(n, 3): the full BRDF of fixed objects, 1 for editable ones."""

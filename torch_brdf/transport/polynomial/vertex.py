@@ -161,7 +161,7 @@ class VertexKernel:
         if m == 0:
             return d, w, cos, 0, k[:0]
         k = k[:m]
-        occ = scene.tracer.occluded(so[:m], d[k], tmax[:m])
+        occ = self.tracer.occluded(so[:m], d, tmax[:m], rows=k)
         return d, w, cos, m, k[~occ]
 
     def gather(self, kk, d, w, cos, reps: int, fr, wo, oid):
