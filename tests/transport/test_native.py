@@ -67,6 +67,28 @@ def test_tile_reduction_equals_torch(m, count_max, rec):
     _equal(want, got)
 
 
+@needs_cc
+@pytest.mark.parametrize(("m", "count_max"), [(7, 3), (40, 3)])  # last-object-first and first-object-first order
+def test_tile_runs_merge_like_the_sort(m, count_max):
+    """A tile's sums from its pass groups' sorted runs (merged, ``reduce_into``) equal those of
+    the same rows re-sorted (``_reduce_groups``): same keys, same sums in the same order."""
+    g = torch.Generator().manual_seed(3 + m)
+    sizes = {"rec": 4, "obj": 2, "bounce": 3, "j": 2, "w": 1, "path": 4}  # few keys: ~16 terms per sum
+    bits = native_bits(sizes, m, count_max)
+    tile, exports = tile_accumulator(LIB, m, bits), []
+    rows = _sums(g, 9501, m, count_max, sizes)  # one pool of multisets: keys repeat across groups
+    for a, n in ((0, 3000), (3000, 1), (3001, 0), (3001, 2500), (5501, 4000)):  # an empty group among them
+        acc = _native.Accumulator(LIB, m, 3, bits)
+        d = {k: v[a : a + n] for k, v in rows.items()}
+        acc.add_sums(d["rec"], d["obj"], d["bounce"], d["j"], d["w"], d["counts"], d["sum"])
+        if n:
+            exports.append(_exported(acc))
+        acc.reduce_into(not _code_fits(m, acc.max_count()), tile)
+    got = _exported(tile)
+    assert len(got["rec"]) < 1000  # keys repeat across the runs
+    _equal(_reduce_groups(LIB, exports, m, bits), got)
+
+
 def _state(g, tracer: _Tracer, n: int, sizes: dict) -> PathState:
     """A random path state: slots and weights at both banded levels (zeros, a NaN and huge
     values among them), counts of earlier diffuse-equivalent vertices, throughputs."""

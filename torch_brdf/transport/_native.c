@@ -34,6 +34,10 @@ typedef struct {
     u128 *key;                /* room */
     double *val;              /* room * V */
     int max_count;
+    /* sorted runs (tb_reduce_into appends one per call, in its key order): starts of nruns runs
+     * (-1: the entries are not such runs), their order (forward) */
+    int64_t *run_at;
+    int nruns, run_room, run_fwd;
 } tb_acc;
 
 static u128 field_mask(int b) { return (((u128)1) << b) - 1; }
@@ -57,7 +61,7 @@ tb_acc *tb_new(int M, int V, const int32_t *bits) {
 
 void tb_free(tb_acc *a) {
     if (!a) return;
-    free(a->key), free(a->val), free(a);
+    free(a->key), free(a->val), free(a->run_at), free(a);
 }
 
 int64_t tb_size(const tb_acc *a) { return a->n; }
@@ -102,6 +106,7 @@ int tb_add_sums(tb_acc *a, int64_t n, const int64_t *rec, const int64_t *obj, co
                 const int64_t *j, const int64_t *w, const int8_t *counts, const double *wd) {
     int bad = 0;
     if (reserve(a, n)) return -1;
+    if (n) a->nruns = -1;
     for (int64_t i = 0; i < n; i++) {
         int64_t f[NFIXED] = {rec[i], obj[i], bounce[i], j[i], w[i] + 1};
         a->key[a->n] = pack(a, f, counts + i * a->M, -1, 0, &bad);
@@ -132,6 +137,7 @@ int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, 
         free(base);
         return -1;
     }
+    if (n) a->nruns = -1;
     for (int64_t i = 0; i < n; i++) {
         int64_t r = kk[i];
         for (int c = 0; c < 3; c++) {
@@ -211,6 +217,28 @@ static u128 forward_key(const tb_acc *a, u128 k) {
         out = x;                                                                    \
     } while (0)
 
+/* stable merge of the sorted runs at[0..runs) (the last ends at n) of x into sorted order, y scratch (pairs
+ * of adjacent runs, left first on equal keys, until one run is left); the result in *out */
+#define RUN_MERGE(ITEM, x, y, n, at, runs, out)                                              \
+    do {                                                                                  \
+        int64_t nr = (runs);                                                              \
+        while (nr > 1) {                                                                  \
+            int64_t w = 0;                                                                \
+            for (int64_t r = 0; r < nr; r += 2) {                                         \
+                int64_t a0 = at[r], a1 = r + 1 < nr ? at[r + 1] : (n), b1 = r + 2 < nr ? at[r + 2] : (n); \
+                int64_t i = a0, j = a1, mo = a0;                                          \
+                while (i < a1 && j < b1) y[mo++] = x[j].k < x[i].k ? x[j++] : x[i++];     \
+                while (i < a1) y[mo++] = x[i++];                                          \
+                while (j < b1) y[mo++] = x[j++];                                          \
+                at[w++] = a0;                                                             \
+            }                                                                             \
+            nr = w;                                                                       \
+            ITEM *t = x;                                                                  \
+            x = y, y = t;                                                                 \
+        }                                                                                 \
+        out = x;                                                                          \
+    } while (0)
+
 /* Sum the entries per key: *u distinct keys in ascending order (count digits compared last
  * object first, or first object first when forward) into fields_out (n, 5 + M) int64 (rec,
  * obj, bounce, j, w, counts) and sums_out (n, V) float64 (first *u rows; room for n). Each
@@ -218,6 +246,16 @@ static u128 forward_key(const tb_acc *a, u128 k) {
 static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
     int64_t n = a->n, o = 0;
     if (into && (into->V != 2 * a->V || reserve(into, n))) return -1;
+    if (into && into->nruns >= 0 && n) { /* this call's output is one more sorted run of into */
+        if (into->nruns == into->run_room) {
+            int room = into->run_room ? 2 * into->run_room : 16;
+            int64_t *r = (int64_t *)realloc(into->run_at, sizeof(int64_t) * room);
+            if (!r) return -1;
+            into->run_at = r, into->run_room = room;
+        }
+        if (into->nruns && into->run_fwd != forward) into->nruns = -1;
+        else into->run_at[into->nruns++] = into->n, into->run_fwd = forward;
+    }
     int small = a->total <= 64;
     size_t isz = small ? sizeof(item64) : sizeof(item);
     void *xv = malloc(isz * (n ? n : 1)), *yv = malloc(isz * (n ? n : 1));
@@ -235,7 +273,16 @@ static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double
         else
             xw[i].k = k, xw[i].s = i;
     }
-    if (n && small)
+    /* runs appended by tb_reduce_into in this order: merge them (the same stable order) */
+    int64_t *starts = NULL;
+    if (n && a->nruns > 0 && a->run_fwd == forward && (starts = (int64_t *)malloc(sizeof(int64_t) * a->nruns))) {
+        memcpy(starts, a->run_at, sizeof(int64_t) * a->nruns);
+        if (small)
+            RUN_MERGE(item64, xs, ys, n, starts, a->nruns, ss);
+        else
+            RUN_MERGE(item, xw, yw, n, starts, a->nruns, sw);
+        free(starts);
+    } else if (n && small)
         RADIX_SORT(item64, xs, ys, n, a->total, cnt, ss);
     else if (n)
         RADIX_SORT(item, xw, yw, n, a->total, cnt, sw);
@@ -412,11 +459,12 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
  * (drawn by torch, as the torch path draws them); cdf (T,) float64, tri (T, 3, 3), nrm (T, 3),
  * radiance (3,) float32; pos, ng, ns (n, 3). Out per vertex: dir (n, 3), weight (n, 3), cos (n,);
  * the candidates (cos > 0, light in front of ng, pdf > 0) compacted: rows k (m,), shadow-ray
- * origins so (m, 3) (spawned off the surface by eps) and t_max (m,) = dist - 2 eps.
+ * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
+ * t_max (m,) = dist - 2 eps.
  * Returns m. */
 int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
                        const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
-                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *tmax) {
+                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
     const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) {
@@ -436,7 +484,7 @@ int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T,
         cosv[i] = cs;
         if (cs > 0 && cg > 0 && pdf > 0) {
             float side = cg >= 0 ? eps : -eps;
-            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c];
+            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
             tmax[m] = r - 2 * eps;
             k[m++] = i;
         }
@@ -444,16 +492,26 @@ int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T,
     return m;
 }
 
+/* The rows k[i] (m,) whose shadow ray is not occluded (occ (m,) bool bytes), in order, into out;
+ * returns their number (tracer.py: k[~occ]). */
+int64_t tb_unoccluded(int64_t m, const int64_t *k, const uint8_t *occ, int64_t *out) {
+    int64_t n = 0;
+    for (int64_t i = 0; i < m; i++)
+        if (!occ[i]) out[n++] = k[i];
+    return n;
+}
+
 /* The light samples kk (m,) that reached their vertex, in the frame there: wl = to_local(dir),
- * wo, object and lw = (weight * cos) / reps (tracer.py LightHit). */
+ * wo, object, whether it is editable (editable (O,) bytes) and lw = (weight * cos) / reps
+ * (tracer.py LightHit). */
 void tb_light_gather(int64_t m, const int64_t *kk, const float *dir, const float *weight, const float *cosv, float reps,
-                     const float *frame, const float *wo, const int64_t *oid, float *wl, float *wo_k, int64_t *ob,
-                     float *lw) {
+                     const float *frame, const float *wo, const int64_t *oid, const uint8_t *editable, float *wl,
+                     float *wo_k, int64_t *ob, uint8_t *ed, float *lw) {
     for (int64_t i = 0; i < m; i++) {
         int64_t r = kk[i];
         to_local(frame + 9 * r, dir + 3 * r, wl + 3 * i);
         for (int c = 0; c < 3; c++) wo_k[3 * i + c] = wo[3 * r + c], lw[3 * i + c] = (weight[3 * r + c] * cosv[r]) / reps;
-        ob[i] = oid[r];
+        ob[i] = oid[r], ed[i] = editable[oid[r]] != 0;
     }
 }
 

@@ -80,9 +80,10 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     f32 = ctypes.c_float
     lib.tb_frame.restype, lib.tb_frame.argtypes = None, [i64, p, p, p, p, p]
     lib.tb_area_sample.restype = i64
-    lib.tb_area_sample.argtypes = [i64, p, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p]
+    lib.tb_area_sample.argtypes = [i64, p, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p, p]
+    lib.tb_unoccluded.restype, lib.tb_unoccluded.argtypes = i64, [i64, p, p, p]
     lib.tb_light_gather.restype = None
-    lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p]
+    lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p, p, p]
     lib.tb_layers.restype, lib.tb_layers.argtypes = None, [i64, i32, i64, p, p, p, p, p, p, p, p]
     lib.tb_fixed_f.restype, lib.tb_fixed_f.argtypes = None, [i64, p, p, p, p, p, p]
     lib.tb_gather.restype, lib.tb_gather.argtypes = None, [i64, p, i32, p, p, p]
