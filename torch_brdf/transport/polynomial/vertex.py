@@ -151,7 +151,12 @@ class VertexKernel:
         n = pos.shape[0]
         u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
         d, w, cos = torch.empty(n, 3, **_F32), torch.empty(n, 3, **_F32), torch.empty(n, **_F32)
-        k, so, sd, tmax = torch.empty(n, **_I64), torch.empty(n, 3, **_F32), torch.empty(n, 3, **_F32), torch.empty(n, **_F32)
+        k, so, sd, tmax = (
+            torch.empty(n, **_I64),
+            torch.empty(n, 3, **_F32),
+            torch.empty(n, 3, **_F32),
+            torch.empty(n, **_F32),
+        )
         tri, nrm, cdf = light.triangles.contiguous(), light.normals.contiguous(), light.cdf.contiguous()
         rad = light.radiance.to(torch.float32).contiguous()
         m = self.lib.tb_area_sample(
