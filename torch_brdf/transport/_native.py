@@ -74,6 +74,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
     lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
     lib.tb_reduce_into.restype, lib.tb_reduce_into.argtypes = i32, [p, i32, p]
+    lib.tb_blocks.restype, lib.tb_blocks.argtypes = i64, [i64, i32, p, p, p, p, i64, i64, p, p, p, p, p, p]
     lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
     lib.tb_area_finish.restype = None
     lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
@@ -180,7 +181,7 @@ class Accumulator:
     """
 
     def __init__(self, lib: ctypes.CDLL, num_objects: int, values: int, bits: list[int]):
-        self.lib, self.M, self.V = lib, num_objects, values
+        self.lib, self.M, self.V, self.bits = lib, num_objects, values, list(bits)
         b = torch.tensor(bits, dtype=torch.int32)
         self._h = lib.tb_new(num_objects, values, b.data_ptr())
         if not self._h:
