@@ -38,6 +38,8 @@ typedef struct {
      * (-1: the entries are not such runs), their order (forward) */
     int64_t *run_at;
     int nruns, run_room, run_fwd;
+    void *scratch; /* the sorts' item arrays, kept for the next reduction (no fresh pages per call) */
+    size_t scratch_bytes;
 } tb_acc;
 
 static u128 field_mask(int b) { return (((u128)1) << b) - 1; }
@@ -61,8 +63,11 @@ tb_acc *tb_new(int M, int V, const int32_t *bits) {
 
 void tb_free(tb_acc *a) {
     if (!a) return;
-    free(a->key), free(a->val), free(a->run_at), free(a);
+    free(a->key), free(a->val), free(a->run_at), free(a->scratch), free(a);
 }
+
+/* Empty the accumulator for reuse (its memory kept). */
+void tb_clear(tb_acc *a) { a->n = 0, a->max_count = 0, a->nruns = 0; }
 
 int64_t tb_size(const tb_acc *a) { return a->n; }
 int tb_max_count(const tb_acc *a) { return a->max_count; }
@@ -243,7 +248,7 @@ static u128 forward_key(const tb_acc *a, u128 k) {
  * object first, or first object first when forward) into fields_out (n, 5 + M) int64 (rec,
  * obj, bounce, j, w, counts) and sums_out (n, V) float64 (first *u rows; room for n). Each
  * sum adds its entries in arrival order, starting from 0.0. Returns 0 or -1 (out of memory). */
-static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
+static int reduce_impl(tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
     int64_t n = a->n, o = 0;
     if (into && (into->V != 2 * a->V || reserve(into, n))) return -1;
     if (into && into->nruns >= 0 && n) { /* this call's output is one more sorted run of into */
@@ -258,12 +263,14 @@ static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double
     }
     int small = a->total <= 64;
     size_t isz = small ? sizeof(item64) : sizeof(item);
-    void *xv = malloc(isz * (n ? n : 1)), *yv = malloc(isz * (n ? n : 1));
-    int64_t *cnt = (int64_t *)malloc(sizeof(int64_t) * 2048);
-    if (!xv || !yv || !cnt) {
-        free(xv), free(yv), free(cnt);
-        return -1;
+    size_t need = 2 * isz * (n ? n : 1);
+    if (a->scratch_bytes < need) {
+        free(a->scratch);
+        a->scratch = malloc(need), a->scratch_bytes = a->scratch ? need : 0;
     }
+    void *xv = a->scratch, *yv = xv ? (char *)xv + isz * (n ? n : 1) : NULL;
+    int64_t cnt[2048];
+    if (!xv) return -1;
     item *xw = (item *)xv, *yw = (item *)yv, *sw = NULL;
     item64 *xs = (item64 *)xv, *ys = (item64 *)yv, *ss = NULL;
     for (int64_t i = 0; i < n; i++) {
@@ -329,11 +336,10 @@ static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double
         if (a->max_count > into->max_count) into->max_count = a->max_count;
     }
     *u = o;
-    free(xv), free(yv), free(cnt);
     return 0;
 }
 
-int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
+int tb_reduce(tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
     return reduce_impl(a, forward, fields_out, sums_out, u, NULL);
 }
 
@@ -341,7 +347,7 @@ int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_ou
  * under their key without the path field (into's fields are a's without path), in ascending
  * key order: what tb_add_sums of tb_reduce's output adds, without unpacking the keys. The
  * caller checks that `into` was made with a's widths (path 0). Returns 0 or -1. */
-int tb_reduce_into(const tb_acc *a, int forward, tb_acc *into) {
+int tb_reduce_into(tb_acc *a, int forward, tb_acc *into) {
     int64_t u = 0;
     if (into->M != a->M || into->bp != 0 || into->total != a->total - a->bp) return -1;
     return reduce_impl(a, forward, NULL, NULL, &u, into);

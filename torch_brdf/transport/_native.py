@@ -67,6 +67,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.tb_new.restype, lib.tb_new.argtypes = p, [i32, i32, p]
     lib.tb_free.restype, lib.tb_free.argtypes = None, [p]
+    lib.tb_clear.restype, lib.tb_clear.argtypes = None, [p]
     lib.tb_size.restype, lib.tb_size.argtypes = i64, [p]
     lib.tb_max_count.restype, lib.tb_max_count.argtypes = i32, [p]
     lib.tb_add_sums.restype, lib.tb_add_sums.argtypes = i32, [p, i64, p, p, p, p, p, p, p]
@@ -256,6 +257,10 @@ class Accumulator:
         to ``into`` as values ``(s, s * s)`` under the keys without their path field (``into``:
         twice the values, the same widths with no path field), without unpacking the keys."""
         self._check(self.lib.tb_reduce_into(self._h, int(forward), into._h))
+
+    def clear(self) -> None:
+        """Remove every entry (the memory stays for the next ones)."""
+        self.lib.tb_clear(self._h)
 
     def __len__(self) -> int:
         return int(self.lib.tb_size(self._h))

@@ -118,7 +118,12 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
-        ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
+        if lib and gi:  # one group's entries at a time: the accumulator (and its memory) reused
+            ent.acc.clear()
+        elif lib:
+            ent = NativeEntries(lib, tracer.num_objects, p, bits)
+        else:
+            ent = None
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
         e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
