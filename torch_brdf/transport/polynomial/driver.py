@@ -109,6 +109,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
     tile_acc = tile_accumulator(lib, tracer.num_objects, bits) if lib else None  # the pass groups' sums
+    group_ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
     for gi, (s0, s1) in enumerate(groups):
         with clock("sampling"):
             # the (pass, pixel record) of each ray, pass-major: pass s0 + a, then its records
@@ -118,12 +119,9 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
-        if lib and gi:  # one group's entries at a time: the accumulator (and its memory) reused
-            ent.acc.clear()
-        elif lib:
-            ent = NativeEntries(lib, tracer.num_objects, p, bits)
-        else:
-            ent = None
+        if group_ent is not None:  # one group's entries at a time: the accumulator (and its memory) reused
+            group_ent.acc.clear()
+        ent = group_ent
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
         e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
