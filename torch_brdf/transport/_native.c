@@ -132,56 +132,86 @@ int tb_add_sums(tb_acc *a, int64_t n, const int64_t *rec, const int64_t *obj, co
  * Shapes: raw (N, 3), idx, m1 (N,), counts (N, M) int8, rec (rays,); kk, ob (n,) int64, ed (n,) uint8
  * (or NULL), lw, f (n, 3) float32; xi (., La) int64, xw (., La, 3); yi (., Lb), yw (., Lb, 3).
  * Returns 0; -1 out of memory; -2 a field does not fit its width. */
+/* a field value masked to its width; *bad when it does not fit (as pack) */
+static u128 fit(int64_t v, int b, int *bad) {
+    if (v < 0 || ((uint64_t)v >> b)) *bad = 1;
+    return (u128)((uint64_t)v & (uint64_t)field_mask(b));
+}
+
 int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, const float *raw, const int64_t *idx,
             const int64_t *rec, const int64_t *m1, const int8_t *counts, const int64_t *ob, const uint8_t *ed, const float *lw,
             const float *f, const float *scale, int64_t nscale, int64_t La, const int64_t *xi, const float *xw,
             int x_rows, int64_t Lb, const int64_t *yi, const float *yw, int y_rows) {
     int M = a->M, bad = 0;
-    float *base = (float *)malloc(sizeof(float) * 3 * (n ? n : 1));
-    if (!base || reserve(a, n * La * Lb)) {
-        free(base);
+    /* per sample: its weight base, the key's fields above j (rec, obj, bounce) and below w
+     * (counts, path), whether they fit and the largest count (pack's, once per sample) */
+    typedef struct {
+        u128 hi, lo;
+        float base[3];
+        int bad, maxc;
+    } sample;
+    sample *sm = (sample *)malloc(sizeof(sample) * (n ? n : 1));
+    if (!sm || reserve(a, n * La * Lb)) {
+        free(sm);
         return -1;
     }
     if (n) a->nruns = -1;
+    const int low = M * a->bc + a->bp;
     for (int64_t i = 0; i < n; i++) {
         int64_t r = kk[i];
+        sample *q = sm + i;
         for (int c = 0; c < 3; c++) {
             float v = raw ? raw[3 * r + c] * lw[3 * i + c] : lw[3 * i + c];
             if (f) v = v * f[3 * i + c];
-            base[3 * i + c] = v;
+            q->base[c] = v;
         }
         if (scale) {
             int64_t e = 0;
             for (int m = 0; m < M; m++) e += counts[r * M + m];
             if (e < 0 || e >= nscale) {
-                free(base);
+                free(sm);
                 return -2;
             }
-            for (int c = 0; c < 3; c++) base[3 * i + c] = base[3 * i + c] * scale[e];
+            for (int c = 0; c < 3; c++) q->base[c] = q->base[c] * scale[e];
         }
+        int64_t ray = rec[idx[r]];
+        int b = 0, inc = (ed && ed[i]) ? (int)ob[i] : -1, mx = 0;
+        q->hi = (((fit(ray % p, a->bits[F_REC], &b) << a->bits[F_OBJ]) | fit(m1[r], a->bits[F_OBJ], &b))
+                 << a->bits[F_BOUNCE]) | fit(bounce, a->bits[F_BOUNCE], &b);
+        u128 lo = 0;
+        for (int m = M - 1; m >= 0; m--) { /* last object most significant (the code's order) */
+            int c = counts[r * M + m] + (m == inc);
+            if (c < 0 || ((unsigned)c >> a->bc)) b = 1;
+            if (c > mx) mx = c;
+            lo = (lo << a->bc) | (u128)((unsigned)c & (unsigned)field_mask(a->bc));
+        }
+        q->lo = a->bp ? (lo << a->bp) | fit(ray / p, a->bp, &b) : lo;
+        q->bad = b, q->maxc = mx;
     }
+    const int bj = a->bits[F_J], bw = a->bits[F_W];
     for (int64_t ia = 0; ia < La; ia++)
         for (int64_t ib = 0; ib < Lb; ib++)
             for (int64_t i = 0; i < n; i++) {
                 int64_t r = kk[i], rx = x_rows ? r : i, ry = y_rows ? r : i;
                 const float *x = xw + (rx * La + ia) * 3;
+                const sample *q = sm + i;
                 float w3[3];
                 for (int c = 0; c < 3; c++) {
-                    float v = base[3 * i + c] * x[c];
+                    float v = q->base[c] * x[c];
                     w3[c] = yw ? v * yw[(ry * Lb + ib) * 3 + c] : v;
                 }
                 if (w3[0] != w3[0] || w3[1] != w3[1] || w3[2] != w3[2]) continue;
                 if (!(w3[0] != 0.0f || w3[1] != 0.0f || w3[2] != 0.0f)) continue;
-                int64_t ray = rec[idx[r]];
-                int64_t fl[NFIXED] = {ray % p, m1[r], bounce, xi[rx * La + ia], yi ? yi[ry * Lb + ib] + 1 : 0};
-                int inc = (ed && ed[i]) ? (int)ob[i] : -1;
-                u128 k = pack(a, fl, counts + r * M, inc, ray / p, &bad);
-                a->key[a->n] = k;
+                u128 k = (q->hi << bj) | fit(xi[rx * La + ia], bj, &bad);
+                k = (k << bw) | fit(yi ? yi[ry * Lb + ib] + 1 : 0, bw, &bad);
+                a->key[a->n] = (k << low) | q->lo;
+                bad |= q->bad;
+                if (q->maxc > a->max_count) a->max_count = q->maxc;
                 double *v = a->val + a->n * a->V;
                 for (int c = 0; c < 3; c++) v[c] = (double)w3[c];
                 a->n++;
             }
-    free(base);
+    free(sm);
     return bad ? -2 : 0;
 }
 
