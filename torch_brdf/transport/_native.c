@@ -274,6 +274,28 @@ static u128 forward_key(const tb_acc *a, u128 k) {
         out = x;                                                                          \
     } while (0)
 
+/* the sorts and merges as functions: one copy of each loop per item type (a smaller, faster build) */
+static item64 *sort64(item64 *x, item64 *y, int64_t n, int total, int64_t *cnt) {
+    item64 *out;
+    RADIX_SORT(item64, x, y, n, total, cnt, out);
+    return out;
+}
+static item *sort128(item *x, item *y, int64_t n, int total, int64_t *cnt) {
+    item *out;
+    RADIX_SORT(item, x, y, n, total, cnt, out);
+    return out;
+}
+static item64 *merge64(item64 *x, item64 *y, int64_t n, int64_t *at, int64_t runs) {
+    item64 *out;
+    RUN_MERGE(item64, x, y, n, at, runs, out);
+    return out;
+}
+static item *merge128(item *x, item *y, int64_t n, int64_t *at, int64_t runs) {
+    item *out;
+    RUN_MERGE(item, x, y, n, at, runs, out);
+    return out;
+}
+
 /* Sum the entries per key: *u distinct keys in ascending order (count digits compared last
  * object first, or first object first when forward) into fields_out (n, 5 + M) int64 (rec,
  * obj, bounce, j, w, counts) and sums_out (n, V) float64 (first *u rows; room for n). Each
@@ -315,14 +337,14 @@ static int reduce_impl(tb_acc *a, int forward, int64_t *fields_out, double *sums
     if (n && a->nruns > 0 && a->run_fwd == forward && (starts = (int64_t *)malloc(sizeof(int64_t) * a->nruns))) {
         memcpy(starts, a->run_at, sizeof(int64_t) * a->nruns);
         if (small)
-            RUN_MERGE(item64, xs, ys, n, starts, a->nruns, ss);
+            ss = merge64(xs, ys, n, starts, a->nruns);
         else
-            RUN_MERGE(item, xw, yw, n, starts, a->nruns, sw);
+            sw = merge128(xw, yw, n, starts, a->nruns);
         free(starts);
     } else if (n && small)
-        RADIX_SORT(item64, xs, ys, n, a->total, cnt, ss);
+        ss = sort64(xs, ys, n, a->total, cnt);
     else if (n)
-        RADIX_SORT(item, xw, yw, n, a->total, cnt, sw);
+        sw = sort128(xw, yw, n, a->total, cnt);
     int M = a->M, K = NFIXED + M, V = a->V, narrow = a->total - a->bp <= 64;
     int sh[NFIXED + 256];
     uint64_t mk[NFIXED + 256];
@@ -437,8 +459,7 @@ int64_t tb_blocks(int64_t U, int M, const int32_t *bits, const int64_t *fields, 
             for (int m = 0; m < M; m++) k = (k << bc) | (u128)f[NFIXED + m];
         x[i].k = (((k << bj) | (u128)f[F_J]) << br) | (u128)f[F_REC], x[i].s = i;
     }
-    if (U) RADIX_SORT(item, x, y, U, total, cnt, sorted);
-    else sorted = x;
+    sorted = U ? sort128(x, y, U, total, cnt) : x;
     const int tail = bj + br; /* the term is the key without (block) above and (j, rec) below it */
     const u128 term_mask = (((u128)1) << (bw + M * bc)) - 1;
     int64_t at = 0, up = 0;
@@ -465,8 +486,7 @@ int64_t tb_blocks(int64_t U, int M, const int32_t *bits, const int64_t *fields, 
         }
         /* pix holds the distinct records in order of first appearance: sort them (radix) */
         for (int64_t q = 0; q < np; q++) x2[q].k = (uint64_t)pix[q], x2[q].s = q;
-        item64 *ps = x2, *py = y2;
-        if (np) RADIX_SORT(item64, ps, py, np, br, cnt, ps);
+        item64 *ps = np ? sort64(x2, y2, np, br, cnt) : x2;
         for (int64_t q = 0; q < np; q++) pix[q] = (int64_t)ps[q].k, rank[pix[q]] = (int32_t)q;
         /* terms: z per row (order 1 is ascending in the term), the final key (j Z + z) P + p */
         int64_t Z = 0;
@@ -483,9 +503,8 @@ int64_t tb_blocks(int64_t U, int M, const int32_t *bits, const int64_t *fields, 
             x2[i - i0].k = k, x2[i - i0].s = sorted[i].s;
             while (kbits < 64 && (k >> kbits)) kbits++;
         }
-        item64 *ks = x2, *ky = y2;
         const int64_t E = i1 - i0;
-        RADIX_SORT(item64, ks, ky, E, kbits, cnt, ks);
+        item64 *ks = sort64(x2, y2, E, kbits, cnt);
         float *mo = mean_out + 3 * at, *vo = var_out + 3 * at;
         for (int64_t e = 0; e < E; e++) {
             int64_t r = ks[e].s;
