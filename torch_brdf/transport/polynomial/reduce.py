@@ -219,7 +219,6 @@ def native_local_blocks(acc: Accumulator, bases, spp: int | torch.Tensor) -> lis
     )  # fmt: skip
     if nb == -1:
         raise MemoryError("the block kernel ran out of memory")
-    red = None
     if nb < 0:  # fields too wide for the kernel's tables: torch
         red = {k: keys[:, c].contiguous() for c, k in enumerate(("rec", "obj", "bounce", "j", "w"))}
         red["counts"] = keys[:, 5:].to(torch.int8)
