@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -16,9 +17,11 @@ from torch_brdf.transport.polynomial.reduce import (
     NativeEntries,
     _code_fits,
     _exported,
+    _local_blocks,
     _reduce,
     _reduce_groups,
     native_bits,
+    native_local_blocks,
     tile_accumulator,
 )
 from torch_brdf.transport.polynomial.tracer import LightHit, PathState, _Entries, _Tracer
@@ -65,6 +68,59 @@ def test_tile_reduction_equals_torch(m, count_max, rec):
     assert len(got["rec"]) < 12000  # keys repeat: sums over several rows in their order
     assert _code_fits(m, count_max) == (m != 40)
     _equal(want, got)
+
+
+@needs_cc
+@pytest.mark.parametrize(("m", "count_max"), [(7, 3), (40, 3)])  # last-object-first and first-object-first order
+def test_tile_runs_merge_like_the_sort(m, count_max):
+    """A tile's sums from its pass groups' sorted runs (merged, ``reduce_into``) equal those of
+    the same rows re-sorted (``_reduce_groups``): same keys, same sums in the same order."""
+    g = torch.Generator().manual_seed(3 + m)
+    sizes = {"rec": 4, "obj": 2, "bounce": 3, "j": 2, "w": 1, "path": 4}  # few keys: ~16 terms per sum
+    bits = native_bits(sizes, m, count_max)
+    tile, exports = tile_accumulator(LIB, m, bits), []
+    rows = _sums(g, 9501, m, count_max, sizes)  # one pool of multisets: keys repeat across groups
+    for a, n in ((0, 3000), (3000, 1), (3001, 0), (3001, 2500), (5501, 4000)):  # an empty group among them
+        acc = _native.Accumulator(LIB, m, 3, bits)
+        d = {k: v[a : a + n] for k, v in rows.items()}
+        acc.add_sums(d["rec"], d["obj"], d["bounce"], d["j"], d["w"], d["counts"], d["sum"])
+        if n:
+            exports.append(_exported(acc))
+        acc.reduce_into(not _code_fits(m, acc.max_count()), tile)
+    got = _exported(tile)
+    assert len(got["rec"]) < 1000  # keys repeat across the runs
+    _equal(_reduce_groups(LIB, exports, m, bits), got)
+
+
+@needs_cc
+@pytest.mark.parametrize(("m", "count_max", "adaptive"), [(7, 3, False), (7, 2, True), (40, 3, False)])
+def test_blocks_equal_torch(m, count_max, adaptive):
+    """A tile's sparse blocks made in the kernel equal _local_blocks of its exported sums: same
+    records, terms (both multiset orders), keys, means and variances (a NaN and negative
+    variances among them), with one spp or an spp per record."""
+    g = torch.Generator().manual_seed(11 + m)
+    sizes = {"rec": 40, "obj": 3, "bounce": 5, "j": 6, "w": 3, "path": 4}
+    bits = native_bits(sizes, m, count_max)
+    tile = tile_accumulator(LIB, m, bits)
+    rows = _sums(g, 6000, m, count_max, sizes)
+    rows["sum"][5, 1] = float("nan")
+    for a in (0, 2000, 4500):
+        acc = _native.Accumulator(LIB, m, 3, bits)
+        d = {k: v[a : a + 2000] for k, v in rows.items()}
+        acc.add_sums(d["rec"], d["obj"], d["bounce"], d["j"], d["w"], d["counts"], d["sum"])
+        acc.reduce_into(not _code_fits(m, acc.max_count()), tile)
+    bases = [None, SimpleNamespace(size=6), None]  # J: 1 without a basis, else the basis's size
+    spp = torch.randint(1, 5, (sizes["rec"],), generator=g) if adaptive else 3
+    red = _exported(tile)
+    want = _local_blocks(red, bases, spp[red["rec"]][:, None] if adaptive else spp)
+    got = native_local_blocks(tile, bases, spp)
+    assert len(want) == len(got) > 5
+    for w_, g_ in zip(want, got, strict=True):
+        assert sorted(w_) == sorted(g_)
+        for k in w_:
+            assert w_[k].dtype == g_[k].dtype and w_[k].shape == g_[k].shape, k
+            assert torch.equal(w_[k].nan_to_num(7.0), g_[k].nan_to_num(7.0)), k
+    assert any(bool(b["vals"].isnan().any()) for b in got)
 
 
 def _state(g, tracer: _Tracer, n: int, sizes: dict) -> PathState:

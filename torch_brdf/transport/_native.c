@@ -34,6 +34,12 @@ typedef struct {
     u128 *key;                /* room */
     double *val;              /* room * V */
     int max_count;
+    /* sorted runs (tb_reduce_into appends one per call, in its key order): starts of nruns runs
+     * (-1: the entries are not such runs), their order (forward) */
+    int64_t *run_at;
+    int nruns, run_room, run_fwd;
+    void *scratch; /* the sorts' item arrays, kept for the next reduction (no fresh pages per call) */
+    size_t scratch_bytes;
 } tb_acc;
 
 static u128 field_mask(int b) { return (((u128)1) << b) - 1; }
@@ -57,8 +63,11 @@ tb_acc *tb_new(int M, int V, const int32_t *bits) {
 
 void tb_free(tb_acc *a) {
     if (!a) return;
-    free(a->key), free(a->val), free(a);
+    free(a->key), free(a->val), free(a->run_at), free(a->scratch), free(a);
 }
+
+/* Empty the accumulator for reuse (its memory kept). */
+void tb_clear(tb_acc *a) { a->n = 0, a->max_count = 0, a->nruns = 0; }
 
 int64_t tb_size(const tb_acc *a) { return a->n; }
 int tb_max_count(const tb_acc *a) { return a->max_count; }
@@ -102,6 +111,7 @@ int tb_add_sums(tb_acc *a, int64_t n, const int64_t *rec, const int64_t *obj, co
                 const int64_t *j, const int64_t *w, const int8_t *counts, const double *wd) {
     int bad = 0;
     if (reserve(a, n)) return -1;
+    if (n) a->nruns = -1;
     for (int64_t i = 0; i < n; i++) {
         int64_t f[NFIXED] = {rec[i], obj[i], bounce[i], j[i], w[i] + 1};
         a->key[a->n] = pack(a, f, counts + i * a->M, -1, 0, &bad);
@@ -122,55 +132,86 @@ int tb_add_sums(tb_acc *a, int64_t n, const int64_t *rec, const int64_t *obj, co
  * Shapes: raw (N, 3), idx, m1 (N,), counts (N, M) int8, rec (rays,); kk, ob (n,) int64, ed (n,) uint8
  * (or NULL), lw, f (n, 3) float32; xi (., La) int64, xw (., La, 3); yi (., Lb), yw (., Lb, 3).
  * Returns 0; -1 out of memory; -2 a field does not fit its width. */
+/* a field value masked to its width; *bad when it does not fit (as pack) */
+static u128 fit(int64_t v, int b, int *bad) {
+    if (v < 0 || ((uint64_t)v >> b)) *bad = 1;
+    return (u128)((uint64_t)v & (uint64_t)field_mask(b));
+}
+
 int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, const float *raw, const int64_t *idx,
             const int64_t *rec, const int64_t *m1, const int8_t *counts, const int64_t *ob, const uint8_t *ed, const float *lw,
             const float *f, const float *scale, int64_t nscale, int64_t La, const int64_t *xi, const float *xw,
             int x_rows, int64_t Lb, const int64_t *yi, const float *yw, int y_rows) {
     int M = a->M, bad = 0;
-    float *base = (float *)malloc(sizeof(float) * 3 * (n ? n : 1));
-    if (!base || reserve(a, n * La * Lb)) {
-        free(base);
+    /* per sample: its weight base, the key's fields above j (rec, obj, bounce) and below w
+     * (counts, path), whether they fit and the largest count (pack's, once per sample) */
+    typedef struct {
+        u128 hi, lo;
+        float base[3];
+        int bad, maxc;
+    } sample;
+    sample *sm = (sample *)malloc(sizeof(sample) * (n ? n : 1));
+    if (!sm || reserve(a, n * La * Lb)) {
+        free(sm);
         return -1;
     }
+    if (n) a->nruns = -1;
+    const int low = M * a->bc + a->bp;
     for (int64_t i = 0; i < n; i++) {
         int64_t r = kk[i];
+        sample *q = sm + i;
         for (int c = 0; c < 3; c++) {
             float v = raw ? raw[3 * r + c] * lw[3 * i + c] : lw[3 * i + c];
             if (f) v = v * f[3 * i + c];
-            base[3 * i + c] = v;
+            q->base[c] = v;
         }
         if (scale) {
             int64_t e = 0;
             for (int m = 0; m < M; m++) e += counts[r * M + m];
             if (e < 0 || e >= nscale) {
-                free(base);
+                free(sm);
                 return -2;
             }
-            for (int c = 0; c < 3; c++) base[3 * i + c] = base[3 * i + c] * scale[e];
+            for (int c = 0; c < 3; c++) q->base[c] = q->base[c] * scale[e];
         }
+        int64_t ray = rec[idx[r]];
+        int b = 0, inc = (ed && ed[i]) ? (int)ob[i] : -1, mx = 0;
+        q->hi = (((fit(ray % p, a->bits[F_REC], &b) << a->bits[F_OBJ]) | fit(m1[r], a->bits[F_OBJ], &b))
+                 << a->bits[F_BOUNCE]) | fit(bounce, a->bits[F_BOUNCE], &b);
+        u128 lo = 0;
+        for (int m = M - 1; m >= 0; m--) { /* last object most significant (the code's order) */
+            int c = counts[r * M + m] + (m == inc);
+            if (c < 0 || ((unsigned)c >> a->bc)) b = 1;
+            if (c > mx) mx = c;
+            lo = (lo << a->bc) | (u128)((unsigned)c & (unsigned)field_mask(a->bc));
+        }
+        q->lo = a->bp ? (lo << a->bp) | fit(ray / p, a->bp, &b) : lo;
+        q->bad = b, q->maxc = mx;
     }
+    const int bj = a->bits[F_J], bw = a->bits[F_W];
     for (int64_t ia = 0; ia < La; ia++)
         for (int64_t ib = 0; ib < Lb; ib++)
             for (int64_t i = 0; i < n; i++) {
                 int64_t r = kk[i], rx = x_rows ? r : i, ry = y_rows ? r : i;
                 const float *x = xw + (rx * La + ia) * 3;
+                const sample *q = sm + i;
                 float w3[3];
                 for (int c = 0; c < 3; c++) {
-                    float v = base[3 * i + c] * x[c];
+                    float v = q->base[c] * x[c];
                     w3[c] = yw ? v * yw[(ry * Lb + ib) * 3 + c] : v;
                 }
                 if (w3[0] != w3[0] || w3[1] != w3[1] || w3[2] != w3[2]) continue;
                 if (!(w3[0] != 0.0f || w3[1] != 0.0f || w3[2] != 0.0f)) continue;
-                int64_t ray = rec[idx[r]];
-                int64_t fl[NFIXED] = {ray % p, m1[r], bounce, xi[rx * La + ia], yi ? yi[ry * Lb + ib] + 1 : 0};
-                int inc = (ed && ed[i]) ? (int)ob[i] : -1;
-                u128 k = pack(a, fl, counts + r * M, inc, ray / p, &bad);
-                a->key[a->n] = k;
+                u128 k = (q->hi << bj) | fit(xi[rx * La + ia], bj, &bad);
+                k = (k << bw) | fit(yi ? yi[ry * Lb + ib] + 1 : 0, bw, &bad);
+                a->key[a->n] = (k << low) | q->lo;
+                bad |= q->bad;
+                if (q->maxc > a->max_count) a->max_count = q->maxc;
                 double *v = a->val + a->n * a->V;
                 for (int c = 0; c < 3; c++) v[c] = (double)w3[c];
                 a->n++;
             }
-    free(base);
+    free(sm);
     return bad ? -2 : 0;
 }
 
@@ -211,21 +252,77 @@ static u128 forward_key(const tb_acc *a, u128 k) {
         out = x;                                                                    \
     } while (0)
 
+/* stable merge of the sorted runs at[0..runs) (the last ends at n) of x into sorted order, y scratch (pairs
+ * of adjacent runs, left first on equal keys, until one run is left); the result in *out */
+#define RUN_MERGE(ITEM, x, y, n, at, runs, out)                                              \
+    do {                                                                                  \
+        int64_t nr = (runs);                                                              \
+        while (nr > 1) {                                                                  \
+            int64_t w = 0;                                                                \
+            for (int64_t r = 0; r < nr; r += 2) {                                         \
+                int64_t a0 = at[r], a1 = r + 1 < nr ? at[r + 1] : (n), b1 = r + 2 < nr ? at[r + 2] : (n); \
+                int64_t i = a0, j = a1, mo = a0;                                          \
+                while (i < a1 && j < b1) y[mo++] = x[j].k < x[i].k ? x[j++] : x[i++];     \
+                while (i < a1) y[mo++] = x[i++];                                          \
+                while (j < b1) y[mo++] = x[j++];                                          \
+                at[w++] = a0;                                                             \
+            }                                                                             \
+            nr = w;                                                                       \
+            ITEM *t = x;                                                                  \
+            x = y, y = t;                                                                 \
+        }                                                                                 \
+        out = x;                                                                          \
+    } while (0)
+
+/* the sorts and merges as functions: one copy of each loop per item type (a smaller, faster build) */
+static item64 *sort64(item64 *x, item64 *y, int64_t n, int total, int64_t *cnt) {
+    item64 *out;
+    RADIX_SORT(item64, x, y, n, total, cnt, out);
+    return out;
+}
+static item *sort128(item *x, item *y, int64_t n, int total, int64_t *cnt) {
+    item *out;
+    RADIX_SORT(item, x, y, n, total, cnt, out);
+    return out;
+}
+static item64 *merge64(item64 *x, item64 *y, int64_t n, int64_t *at, int64_t runs) {
+    item64 *out;
+    RUN_MERGE(item64, x, y, n, at, runs, out);
+    return out;
+}
+static item *merge128(item *x, item *y, int64_t n, int64_t *at, int64_t runs) {
+    item *out;
+    RUN_MERGE(item, x, y, n, at, runs, out);
+    return out;
+}
+
 /* Sum the entries per key: *u distinct keys in ascending order (count digits compared last
  * object first, or first object first when forward) into fields_out (n, 5 + M) int64 (rec,
  * obj, bounce, j, w, counts) and sums_out (n, V) float64 (first *u rows; room for n). Each
  * sum adds its entries in arrival order, starting from 0.0. Returns 0 or -1 (out of memory). */
-static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
+static int reduce_impl(tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u, tb_acc *into) {
     int64_t n = a->n, o = 0;
     if (into && (into->V != 2 * a->V || reserve(into, n))) return -1;
+    if (into && into->nruns >= 0 && n) { /* this call's output is one more sorted run of into */
+        if (into->nruns == into->run_room) {
+            int room = into->run_room ? 2 * into->run_room : 16;
+            int64_t *r = (int64_t *)realloc(into->run_at, sizeof(int64_t) * room);
+            if (!r) return -1;
+            into->run_at = r, into->run_room = room;
+        }
+        if (into->nruns && into->run_fwd != forward) into->nruns = -1;
+        else into->run_at[into->nruns++] = into->n, into->run_fwd = forward;
+    }
     int small = a->total <= 64;
     size_t isz = small ? sizeof(item64) : sizeof(item);
-    void *xv = malloc(isz * (n ? n : 1)), *yv = malloc(isz * (n ? n : 1));
-    int64_t *cnt = (int64_t *)malloc(sizeof(int64_t) * 2048);
-    if (!xv || !yv || !cnt) {
-        free(xv), free(yv), free(cnt);
-        return -1;
+    size_t need = 2 * isz * (n ? n : 1);
+    if (a->scratch_bytes < need) {
+        free(a->scratch);
+        a->scratch = malloc(need), a->scratch_bytes = a->scratch ? need : 0;
     }
+    void *xv = a->scratch, *yv = xv ? (char *)xv + isz * (n ? n : 1) : NULL;
+    int64_t cnt[2048];
+    if (!xv) return -1;
     item *xw = (item *)xv, *yw = (item *)yv, *sw = NULL;
     item64 *xs = (item64 *)xv, *ys = (item64 *)yv, *ss = NULL;
     for (int64_t i = 0; i < n; i++) {
@@ -235,10 +332,19 @@ static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double
         else
             xw[i].k = k, xw[i].s = i;
     }
-    if (n && small)
-        RADIX_SORT(item64, xs, ys, n, a->total, cnt, ss);
+    /* runs appended by tb_reduce_into in this order: merge them (the same stable order) */
+    int64_t *starts = NULL;
+    if (n && a->nruns > 0 && a->run_fwd == forward && (starts = (int64_t *)malloc(sizeof(int64_t) * a->nruns))) {
+        memcpy(starts, a->run_at, sizeof(int64_t) * a->nruns);
+        if (small)
+            ss = merge64(xs, ys, n, starts, a->nruns);
+        else
+            sw = merge128(xw, yw, n, starts, a->nruns);
+        free(starts);
+    } else if (n && small)
+        ss = sort64(xs, ys, n, a->total, cnt);
     else if (n)
-        RADIX_SORT(item, xw, yw, n, a->total, cnt, sw);
+        sw = sort128(xw, yw, n, a->total, cnt);
     int M = a->M, K = NFIXED + M, V = a->V, narrow = a->total - a->bp <= 64;
     int sh[NFIXED + 256];
     uint64_t mk[NFIXED + 256];
@@ -282,11 +388,10 @@ static int reduce_impl(const tb_acc *a, int forward, int64_t *fields_out, double
         if (a->max_count > into->max_count) into->max_count = a->max_count;
     }
     *u = o;
-    free(xv), free(yv), free(cnt);
     return 0;
 }
 
-int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
+int tb_reduce(tb_acc *a, int forward, int64_t *fields_out, double *sums_out, int64_t *u) {
     return reduce_impl(a, forward, fields_out, sums_out, u, NULL);
 }
 
@@ -294,10 +399,135 @@ int tb_reduce(const tb_acc *a, int forward, int64_t *fields_out, double *sums_ou
  * under their key without the path field (into's fields are a's without path), in ascending
  * key order: what tb_add_sums of tb_reduce's output adds, without unpacking the keys. The
  * caller checks that `into` was made with a's widths (path 0). Returns 0 or -1. */
-int tb_reduce_into(const tb_acc *a, int forward, tb_acc *into) {
+int tb_reduce_into(tb_acc *a, int forward, tb_acc *into) {
     int64_t u = 0;
     if (into->M != a->M || into->bp != 0 || into->total != a->total - a->bp) return -1;
     return reduce_impl(a, forward, NULL, NULL, &u, into);
+}
+
+/* ---- A tile's sparse blocks (reduce.py _local_blocks; #14, session 7) -----------------------
+ * From a tile's per-key sums (tb_reduce's output: fields (U, 5 + M) int64 rec, obj, bounce, j,
+ * w, counts and values (U, 6) float64 sum, then sum of per-path squares), per (eye object,
+ * bounce) block in ascending (object, bounce) order: the records that occur (upix, ascending),
+ * the terms (w, counts) that occur in _local_blocks' order (w, then the multiset in
+ * _multiset_ids' order: count digits last object first when that code fits in 62 bits for the
+ * block's largest count, else first object first), and the entries in ascending local key
+ * (j Z + z) P + p with their mean sum / spp and variance ((sq / spp - mean^2) / max(spp - 1, 1))
+ * clamped at 0, in float64 then float32, as torch computes them (so the same bits).
+ * bits: widths of rec, obj, bounce, j, w + 1 and one count digit (the tile's key_bits).
+ * spp_rec (records,) int64 paths of each record, or NULL: spp for all.
+ * Out (capacity U each): key (U,) int64; vals, var (3 U) float32, block after block, each (3, E)
+ * row-major; upix (U,) int64 and term_row (U,) int64 (a row of `fields` holding the term),
+ * block after block; meta (obj, bounce, E, P, Z) int64 per block (capacity: room blocks).
+ * Returns the number of blocks; -1 out of memory; -2 fields too wide (torch does it then). */
+static int fits_code(int M, int64_t max_count) {
+    double b = (double)(max_count + 1 < 2 ? 2 : max_count + 1);
+    return M * log2(b) < 62;
+}
+
+int64_t tb_blocks(int64_t U, int M, const int32_t *bits, const int64_t *fields, const double *vals,
+                  const int64_t *spp_rec, int64_t spp, int64_t room, int64_t *key, float *mean_out, float *var_out,
+                  int64_t *upix, int64_t *term_row, int64_t *meta) {
+    const int br = bits[F_REC], bo = bits[F_OBJ], bb = bits[F_BOUNCE], bj = bits[F_J], bw = bits[F_W], bc = bits[NFIXED];
+    const int K = NFIXED + M, total = bo + bb + bw + M * bc + bj + br;
+    if (bo + bb > 20 || br > 24 || total > 127) return -2;
+    const int64_t nblk = (int64_t)1 << (bo + bb), nrec = (int64_t)1 << br;
+    int64_t *maxc = (int64_t *)calloc(nblk, sizeof(int64_t));
+    int32_t *rank = (int32_t *)malloc(sizeof(int32_t) * nrec);
+    item *x = (item *)malloc(sizeof(item) * (U ? U : 1)), *y = (item *)malloc(sizeof(item) * (U ? U : 1)), *sorted;
+    item64 *x2 = (item64 *)malloc(sizeof(item64) * (U ? U : 1)), *y2 = (item64 *)malloc(sizeof(item64) * (U ? U : 1));
+    int64_t *cnt = (int64_t *)malloc(sizeof(int64_t) * 2048), *fin = (int64_t *)malloc(sizeof(int64_t) * (U ? U : 1));
+    int64_t nb = 0;
+    if (!maxc || !rank || !x || !y || !x2 || !y2 || !cnt || !fin) {
+        nb = -1;
+        goto done;
+    }
+    for (int64_t i = 0; i < U; i++) {
+        const int64_t *f = fields + i * K;
+        int64_t b = (f[F_OBJ] << bb) | f[F_BOUNCE];
+        for (int m = 0; m < M; m++)
+            if (f[NFIXED + m] > maxc[b]) maxc[b] = f[NFIXED + m];
+    }
+    /* order 1: (block, w + 1, multiset, j, rec): each block's terms contiguous and ascending */
+    for (int64_t i = 0; i < U; i++) {
+        const int64_t *f = fields + i * K;
+        int64_t b = (f[F_OBJ] << bb) | f[F_BOUNCE];
+        u128 k = ((u128)b << bw) | (u128)(f[F_W] + 1);
+        if (fits_code(M, maxc[b]))
+            for (int m = M - 1; m >= 0; m--) k = (k << bc) | (u128)f[NFIXED + m];
+        else
+            for (int m = 0; m < M; m++) k = (k << bc) | (u128)f[NFIXED + m];
+        x[i].k = (((k << bj) | (u128)f[F_J]) << br) | (u128)f[F_REC], x[i].s = i;
+    }
+    sorted = U ? sort128(x, y, U, total, cnt) : x;
+    const int tail = bj + br; /* the term is the key without (block) above and (j, rec) below it */
+    const u128 term_mask = (((u128)1) << (bw + M * bc)) - 1;
+    int64_t at = 0, up = 0;
+    for (int64_t i0 = 0; i0 < U;) {
+        const int64_t *f0 = fields + sorted[i0].s * K;
+        const int64_t b = (f0[F_OBJ] << bb) | f0[F_BOUNCE];
+        int64_t i1 = i0;
+        while (i1 < U && (int64_t)(sorted[i1].k >> (tail + bw + M * bc)) == b) i1++;
+        if (nb >= room) {
+            nb = -1;
+            goto done;
+        }
+        /* the block's records, ascending, and their ranks p */
+        for (int64_t i = i0; i < i1; i++) rank[fields[sorted[i].s * K + F_REC]] = 1;
+        int64_t P = 0;
+        for (int64_t i = i0; i < i1; i++) { /* mark-and-count without scanning every record id */
+            int64_t r = fields[sorted[i].s * K + F_REC];
+            if (rank[r] == 1) rank[r] = -1, P++;
+        }
+        int64_t *pix = upix + up, np = 0;
+        for (int64_t i = i0; i < i1; i++) {
+            int64_t r = fields[sorted[i].s * K + F_REC];
+            if (rank[r] == -1) pix[np++] = r, rank[r] = 0;
+        }
+        /* pix holds the distinct records in order of first appearance: sort them (radix) */
+        for (int64_t q = 0; q < np; q++) x2[q].k = (uint64_t)pix[q], x2[q].s = q;
+        item64 *ps = np ? sort64(x2, y2, np, br, cnt) : x2;
+        for (int64_t q = 0; q < np; q++) pix[q] = (int64_t)ps[q].k, rank[pix[q]] = (int32_t)q;
+        /* terms: z per row (order 1 is ascending in the term), the final key (j Z + z) P + p */
+        int64_t Z = 0;
+        u128 prev = 0;
+        for (int64_t i = i0; i < i1; i++) {
+            u128 t = (sorted[i].k >> tail) & term_mask;
+            if (i == i0 || t != prev) term_row[up + Z] = sorted[i].s, Z++, prev = t;
+            fin[i] = Z - 1; /* z for now */
+        }
+        int kbits = 1;
+        for (int64_t i = i0; i < i1; i++) {
+            const int64_t *f = fields + sorted[i].s * K;
+            uint64_t k = (uint64_t)((f[F_J] * Z + fin[i]) * P + rank[f[F_REC]]);
+            x2[i - i0].k = k, x2[i - i0].s = sorted[i].s;
+            while (kbits < 64 && (k >> kbits)) kbits++;
+        }
+        const int64_t E = i1 - i0;
+        item64 *ks = sort64(x2, y2, E, kbits, cnt);
+        float *mo = mean_out + 3 * at, *vo = var_out + 3 * at;
+        for (int64_t e = 0; e < E; e++) {
+            int64_t r = ks[e].s;
+            const double *v = vals + 6 * r;
+            int64_t n = spp_rec ? spp_rec[fields[r * K + F_REC]] : spp;
+            double dn = (double)n, dof = (double)(n - 1 < 1 ? 1 : n - 1);
+            key[at + e] = (int64_t)ks[e].k;
+            for (int c = 0; c < 3; c++) {
+                double mu = v[c] / dn, q = (v[3 + c] / dn - mu * mu) / dof;
+                mo[c * E + e] = (float)mu, vo[c * E + e] = (float)(q < 0 ? 0.0 : q);
+            }
+        }
+        int64_t *mt = meta + 5 * nb;
+        mt[0] = f0[F_OBJ], mt[1] = f0[F_BOUNCE], mt[2] = E, mt[3] = P, mt[4] = Z;
+        /* term_row and upix share one offset per block: the larger of P and Z */
+        for (int64_t q = Z; q < P; q++) term_row[up + q] = -1;
+        for (int64_t q = P; q < Z; q++) upix[up + q] = -1;
+        up += P > Z ? P : Z, at += E, nb++;
+        i0 = i1;
+    }
+done:
+    free(maxc), free(rank), free(x), free(y), free(x2), free(y2), free(cnt), free(fin);
+    return nb;
 }
 
 /* Next-event samples of an area light from float32 points (scene/lights.py AreaLight.sample_points
@@ -412,11 +642,12 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
  * (drawn by torch, as the torch path draws them); cdf (T,) float64, tri (T, 3, 3), nrm (T, 3),
  * radiance (3,) float32; pos, ng, ns (n, 3). Out per vertex: dir (n, 3), weight (n, 3), cos (n,);
  * the candidates (cos > 0, light in front of ng, pdf > 0) compacted: rows k (m,), shadow-ray
- * origins so (m, 3) (spawned off the surface by eps) and t_max (m,) = dist - 2 eps.
+ * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
+ * t_max (m,) = dist - 2 eps.
  * Returns m. */
 int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
                        const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
-                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *tmax) {
+                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
     const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) {
@@ -436,7 +667,7 @@ int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T,
         cosv[i] = cs;
         if (cs > 0 && cg > 0 && pdf > 0) {
             float side = cg >= 0 ? eps : -eps;
-            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c];
+            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
             tmax[m] = r - 2 * eps;
             k[m++] = i;
         }
@@ -444,16 +675,26 @@ int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T,
     return m;
 }
 
+/* The rows k[i] (m,) whose shadow ray is not occluded (occ (m,) bool bytes), in order, into out;
+ * returns their number (tracer.py: k[~occ]). */
+int64_t tb_unoccluded(int64_t m, const int64_t *k, const uint8_t *occ, int64_t *out) {
+    int64_t n = 0;
+    for (int64_t i = 0; i < m; i++)
+        if (!occ[i]) out[n++] = k[i];
+    return n;
+}
+
 /* The light samples kk (m,) that reached their vertex, in the frame there: wl = to_local(dir),
- * wo, object and lw = (weight * cos) / reps (tracer.py LightHit). */
+ * wo, object, whether it is editable (editable (O,) bytes) and lw = (weight * cos) / reps
+ * (tracer.py LightHit). */
 void tb_light_gather(int64_t m, const int64_t *kk, const float *dir, const float *weight, const float *cosv, float reps,
-                     const float *frame, const float *wo, const int64_t *oid, float *wl, float *wo_k, int64_t *ob,
-                     float *lw) {
+                     const float *frame, const float *wo, const int64_t *oid, const uint8_t *editable, float *wl,
+                     float *wo_k, int64_t *ob, uint8_t *ed, float *lw) {
     for (int64_t i = 0; i < m; i++) {
         int64_t r = kk[i];
         to_local(frame + 9 * r, dir + 3 * r, wl + 3 * i);
         for (int c = 0; c < 3; c++) wo_k[3 * i + c] = wo[3 * r + c], lw[3 * i + c] = (weight[3 * r + c] * cosv[r]) / reps;
-        ob[i] = oid[r];
+        ob[i] = oid[r], ed[i] = editable[oid[r]] != 0;
     }
 }
 

@@ -67,6 +67,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     lib.tb_new.restype, lib.tb_new.argtypes = p, [i32, i32, p]
     lib.tb_free.restype, lib.tb_free.argtypes = None, [p]
+    lib.tb_clear.restype, lib.tb_clear.argtypes = None, [p]
     lib.tb_size.restype, lib.tb_size.argtypes = i64, [p]
     lib.tb_max_count.restype, lib.tb_max_count.argtypes = i32, [p]
     lib.tb_add_sums.restype, lib.tb_add_sums.argtypes = i32, [p, i64, p, p, p, p, p, p, p]
@@ -74,15 +75,17 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
     lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
     lib.tb_reduce_into.restype, lib.tb_reduce_into.argtypes = i32, [p, i32, p]
+    lib.tb_blocks.restype, lib.tb_blocks.argtypes = i64, [i64, i32, p, p, p, p, i64, i64, p, p, p, p, p, p]
     lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
     lib.tb_area_finish.restype = None
     lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
     f32 = ctypes.c_float
     lib.tb_frame.restype, lib.tb_frame.argtypes = None, [i64, p, p, p, p, p]
     lib.tb_area_sample.restype = i64
-    lib.tb_area_sample.argtypes = [i64, p, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p]
+    lib.tb_area_sample.argtypes = [i64, p, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p, p]
+    lib.tb_unoccluded.restype, lib.tb_unoccluded.argtypes = i64, [i64, p, p, p]
     lib.tb_light_gather.restype = None
-    lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p]
+    lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p, p, p]
     lib.tb_layers.restype, lib.tb_layers.argtypes = None, [i64, i32, i64, p, p, p, p, p, p, p, p]
     lib.tb_fixed_f.restype, lib.tb_fixed_f.argtypes = None, [i64, p, p, p, p, p, p]
     lib.tb_gather.restype, lib.tb_gather.argtypes = None, [i64, p, i32, p, p, p]
@@ -183,7 +186,7 @@ class Accumulator:
     """
 
     def __init__(self, lib: ctypes.CDLL, num_objects: int, values: int, bits: list[int]):
-        self.lib, self.M, self.V = lib, num_objects, values
+        self.lib, self.M, self.V, self.bits = lib, num_objects, values, list(bits)
         b = torch.tensor(bits, dtype=torch.int32)
         self._h = lib.tb_new(num_objects, values, b.data_ptr())
         if not self._h:
@@ -258,6 +261,10 @@ class Accumulator:
         to ``into`` as values ``(s, s * s)`` under the keys without their path field (``into``:
         twice the values, the same widths with no path field), without unpacking the keys."""
         self._check(self.lib.tb_reduce_into(self._h, int(forward), into._h))
+
+    def clear(self) -> None:
+        """Remove every entry (the memory stays for the next ones)."""
+        self.lib.tb_clear(self._h)
 
     def __len__(self) -> int:
         return int(self.lib.tb_size(self._h))

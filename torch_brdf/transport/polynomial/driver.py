@@ -21,7 +21,7 @@ from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
-from .._native import library
+from .._native import Accumulator, library
 from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
@@ -29,11 +29,11 @@ from .plan import plan_bases
 from .reduce import (
     NativeEntries,
     _blocks_from_local,
-    _exported,
     _local_blocks,
     _reduce,
     _term_tables,
     native_bits,
+    native_local_blocks,
     tile_accumulator,
 )
 from .sampler import Mixture
@@ -86,7 +86,12 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     ``s`` paths equals the uniform run's tile at ``s`` entry for entry). ``native``: the compiled
     entry kernel (None: :func:`~torch_brdf.transport._native.library`, None without a compiler;
     False: the torch entries); the sums are the same bit for bit on the same paths (the paths
-    themselves come from the tracer's compiled per-vertex steps whenever the kernel exists)."""
+    themselves come from the tracer's compiled per-vertex steps whenever the kernel exists).
+
+    Returns:
+        (emission (P, 3) float64, the sums): with the kernel its tile
+        :class:`~torch_brdf.transport._native.Accumulator` (read by
+        :func:`~.reduce.native_local_blocks`), else ``_reduce``'s dict."""
     cam, clock = scene.camera, tracer.clock
     p = pixels.numel()
     sizes = {
@@ -104,6 +109,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
     emis = torch.zeros(p, 3, dtype=torch.float64)
     reduced = []
     tile_acc = tile_accumulator(lib, tracer.num_objects, bits) if lib else None  # the pass groups' sums
+    group_ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
     for gi, (s0, s1) in enumerate(groups):
         with clock("sampling"):
             # the (pass, pixel record) of each ray, pass-major: pass s0 + a, then its records
@@ -113,7 +119,9 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             pix = pixels[rec]
             o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
-        ent = NativeEntries(lib, tracer.num_objects, p, bits) if lib else None
+        if group_ent is not None:  # one group's entries at a time: the accumulator (and its memory) reused
+            group_ent.acc.clear()
+        ent = group_ent
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
         e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
@@ -132,9 +140,8 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             ray_id = dd.pop("path")
             dd["rec"], dd["path"] = ray_id % p, ray_id // p
             reduced.append(_reduce(dd, {**sizes, "path": s1 - s0}, by_path=True))
-    if lib:
-        with clock("bookkeeping"):
-            return emis, _exported(tile_acc)
+    if lib:  # the tile's sums stay in the kernel (native_local_blocks reads them)
+        return emis, tile_acc
     reduced = [r for r in reduced if r]
     if not reduced:
         return emis, {}
@@ -230,7 +237,12 @@ def _polynomial_tile(work: _TileWork, k: int):
     counts = work.path_counts(k)
     emis, red = _tile_entries(tracer, work.scene, pix, counts, k, group, work.seed, work.paths, tick=tile_tick)
     with tracer.clock("blocks"):  # an adaptive tile: each entry is the mean over its pixel's paths
-        local = _local_blocks(red, work.plan, spp if isinstance(spp, int) else spp[red["rec"]][:, None] if red else 1)
+        if isinstance(red, Accumulator):  # the compiled entries: the blocks in the kernel too
+            local = native_local_blocks(red, work.plan, spp)
+        else:
+            local = _local_blocks(
+                red, work.plan, spp if isinstance(spp, int) else spp[red["rec"]][:, None] if red else 1
+            )
     arrays = {"emission": emis.numpy()}
     arrays |= {f"b{g}_{n}": b[n].numpy() for g, b in enumerate(local) for n in _BLOCK_ARRAYS}
     rays = {n: tracer.rays[n] - rays0[n] for n in rays0}

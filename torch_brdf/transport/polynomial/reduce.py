@@ -199,6 +199,49 @@ def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) 
     return out
 
 
+def native_local_blocks(acc: Accumulator, bases, spp: int | torch.Tensor) -> list[dict[str, torch.Tensor]]:
+    """:func:`_local_blocks` of a tile's sums (:func:`tile_accumulator`) in the compiled kernel
+    (``tb_blocks``): the same blocks, bit for bit. ``spp``: the paths per pixel, or (P,) those of
+    each of the tile's records."""
+    if len(acc) == 0:
+        return []
+    keys, vals = acc.reduce(forward=not _code_fits(acc.M, acc.max_count()))
+    u, m = keys.shape[0], acc.M
+    sp = spp.to(torch.int64).contiguous() if isinstance(spp, torch.Tensor) else None
+    bits = torch.tensor(acc.bits[:6], dtype=torch.int32)
+    room = (1 << (acc.bits[1] + acc.bits[2])) if acc.bits[1] + acc.bits[2] <= 20 else 0
+    key, upix, rows = (torch.empty(u, dtype=torch.int64) for _ in range(3))
+    mean, var = torch.empty(3 * u, dtype=torch.float32), torch.empty(3 * u, dtype=torch.float32)
+    meta = torch.empty(max(room, 1), 5, dtype=torch.int64)
+    nb = acc.lib.tb_blocks(
+        u, m, bits.data_ptr(), keys.data_ptr(), vals.data_ptr(), None if sp is None else sp.data_ptr(),
+        0 if sp is not None else int(spp), room, *(t.data_ptr() for t in (key, mean, var, upix, rows, meta)),
+    )  # fmt: skip
+    if nb == -1:
+        raise MemoryError("the block kernel ran out of memory")
+    if nb < 0:  # fields too wide for the kernel's tables: torch
+        red = {k: keys[:, c].contiguous() for c, k in enumerate(("rec", "obj", "bounce", "j", "w"))}
+        red["counts"] = keys[:, 5:].to(torch.int8)
+        red["sum"], red["sq"] = vals[:, :3].contiguous(), vals[:, 3:].contiguous()
+        return _local_blocks(red, bases, spp if sp is None else sp[red["rec"]][:, None])
+    out, at, up = [], 0, 0
+    for obj, bounce, e, p, z in meta[:nb].tolist():
+        t = rows[up : up + z]
+        out.append(
+            {
+                "head": torch.tensor([obj, bounce, 1 if bases[obj] is None else bases[obj].size]),
+                "upix": upix[up : up + p].clone(),
+                "tw": keys[t, 4],
+                "tc": keys[t, 5:].to(torch.int8),
+                "key": key[at : at + e].clone(),
+                "vals": mean[3 * at : 3 * (at + e)].view(3, e).clone(),
+                "var": var[3 * at : 3 * (at + e)].view(3, e).clone(),
+            }
+        )
+        at, up = at + e, up + max(p, z)
+    return out
+
+
 def _blocks_from_local(local: list[dict[str, torch.Tensor]], pixels: torch.Tensor, term_index: dict[int, dict]):
     """The driver's part of the block assembly, in tile order: the tile's terms get their
     global ids (numbered in order of first appearance over the tiles), and the entries are

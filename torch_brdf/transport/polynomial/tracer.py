@@ -353,15 +353,21 @@ class _Tracer:
                 pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
         return emis, ent
 
-    def _start(self, origins, directions, paths):
+    def _start(self, origins, directions, paths, vk=None):
         """The eye rays traced: (emission seen (n, 3), the :class:`PathState` of the rays that hit,
-        their arriving directions, positions, both normals and objects)."""
+        their arriving directions, positions, both normals and objects; ``vk``: gathered by the
+        compiled kernel)."""
         hits = self._trace(origins, directions)
         with self.clock("bookkeeping"):
             emis = emission_seen(self.scene, directions, hits)
             idx = torch.nonzero(hits.hit).squeeze(1)
-            d_in, pos = directions[idx], hits.position[idx]
-            ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+            if vk is None:
+                d_in, pos = directions[idx], hits.position[idx]
+                ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+            else:
+                d_in, pos, ng, ns, oid = vk.take(
+                    idx, directions, hits.position, hits.geometric_normal, hits.normal, hits.object_id
+                )
             st = PathState.start(idx, oid.clone(), self.num_objects, paths is not None)
         return emis, st, d_in, pos, ng, ns, oid
 
@@ -378,13 +384,12 @@ class _Tracer:
         """:meth:`run` with the per-vertex steps in the compiled kernel: the same steps in the
         same order, drawing the same random numbers (see :mod:`.vertex`)."""
         nb, clock = self.series.bounces, self.clock
-        emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths)
+        emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths, vk)
         for v in range(1, nb + 1):
             if st.idx.numel() == 0:
                 break
             with clock("sampling"):
                 ng, ns, fr, wo = vk.frame(d_in, ng, ns)
-                ed = self.editable[oid]
             reps = self.eye_light_samples if v == 1 else 1
             for light in [li for li in self.lights for _ in range(reps)]:
                 with clock("sampling"):
@@ -392,8 +397,7 @@ class _Tracer:
                     self.rays["shadow"] += cast
                     if kk.numel() == 0:
                         continue
-                    wl, wok, ob, lw = vk.gather(kk, d, w, cos, reps, fr, wo, oid)
-                    hit = LightHit(kk, wl, wok, ob, self.editable[ob], lw)
+                    hit = LightHit(kk, *vk.gather(kk, d, w, cos, reps, fr, wo, oid))
                 with clock("bookkeeping"):
                     self._emit(ent, st, v, hit, paths, rec, vk)
             if v == nb:
@@ -415,7 +419,7 @@ class _Tracer:
                 else:
                     f = None if self.all_editable else vk.fixed_f(oid, wi, wo)
                     if rec_p is not None:
-                        rec_p["objs"].append(torch.where(ed, oid, -1))
+                        rec_p["objs"].append(torch.where(self.editable[oid], oid, -1))
             with clock("sampling"):
                 counted = v > 1 and not self._banded(v)
                 a, so, sd = vk.advance(st, wi, cosw, ok, f, counted, oid, fr, ng, pos)

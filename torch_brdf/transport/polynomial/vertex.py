@@ -151,33 +151,35 @@ class VertexKernel:
         n = pos.shape[0]
         u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
         d, w, cos = torch.empty(n, 3, **_F32), torch.empty(n, 3, **_F32), torch.empty(n, **_F32)
-        k, so, tmax = torch.empty(n, **_I64), torch.empty(n, 3, **_F32), torch.empty(n, **_F32)
+        k, so, sd, tmax = (
+            torch.empty(n, **_I64),
+            torch.empty(n, 3, **_F32),
+            torch.empty(n, 3, **_F32),
+            torch.empty(n, **_F32),
+        )
         tri, nrm, cdf = light.triangles.contiguous(), light.normals.contiguous(), light.cdf.contiguous()
         rad = light.radiance.to(torch.float32).contiguous()
         m = self.lib.tb_area_sample(
             n, _p(u), _p(cdf), cdf.numel(), _p(_f(tri)), _p(_f(nrm)), _p(rad), ctypes.c_float(light.total_area),
-            _p(pos), _p(ng), _p(ns), ctypes.c_float(self.eps), *map(_p, (d, w, cos, k, so, tmax)),
+            _p(pos), _p(ng), _p(ns), ctypes.c_float(self.eps), *map(_p, (d, w, cos, k, so, sd, tmax)),
         )  # fmt: skip
         if m == 0:
             return d, w, cos, 0, k[:0]
-        k = k[:m]
-        occ = self.tracer.occluded(so[:m], d, tmax[:m], rows=k)
-        return d, w, cos, m, k[~occ]
+        # the kernel wrote the shadow directions (sd); the scene's rays or the compiled ones cast them
+        occ = self.tracer.occluded(so[:m], sd[:m], tmax[:m]).contiguous()
+        kk = torch.empty(m, **_I64)
+        return d, w, cos, m, kk[: self.lib.tb_unoccluded(m, _p(k), _p(occ), _p(kk))]
 
     def gather(self, kk, d, w, cos, reps: int, fr, wo, oid):
-        """The light samples ``kk`` in their frames: (wl, wo, object, lw = weight cos / reps)."""
+        """The light samples ``kk`` in their frames: (wl, wo, object, editable, lw = weight cos / reps)."""
         m = kk.numel()
-        wl, wok, ob, lw = (
-            torch.empty(m, 3, **_F32),
-            torch.empty(m, 3, **_F32),
-            torch.empty(m, **_I64),
-            torch.empty(m, 3, **_F32),
-        )
+        wl, wok, lw = torch.empty(m, 3, **_F32), torch.empty(m, 3, **_F32), torch.empty(m, 3, **_F32)
+        ob, ed = torch.empty(m, **_I64), torch.empty(m, dtype=torch.bool)
         self.lib.tb_light_gather(
-            m, _p(_i(kk)), _p(d), _p(w), _p(cos), ctypes.c_float(reps), _p(fr), _p(wo), _p(_i(oid)),
-            *map(_p, (wl, wok, ob, lw)),
+            m, _p(_i(kk)), _p(d), _p(w), _p(cos), ctypes.c_float(reps), _p(fr), _p(wo), _p(_i(oid)), _p(self.editable),
+            *map(_p, (wl, wok, ob, ed, lw)),
         )  # fmt: skip
-        return wl, wok, ob, lw
+        return wl, wok, ob, ed, lw
 
     def layers(self, level: int, oid, wi, wo):
         """:class:`~.tracer._Layers` of ``level``: index (n, L) and weight (n, L, 3)."""
