@@ -353,7 +353,9 @@ def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int
     ray = connect_ray(address)
     key = f"{fn.__module__}.{fn.__qualname__}:{uuid.uuid4().hex}"  # this run's context
     ref = ray.put(context)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
-    task = ray.remote(num_cpus=1, max_retries=max_retries)(_run_in_worker)
+    # SPREAD: tiles go to every node from the start, instead of filling the first node whose
+    # CPU frees up first (short tiles could otherwise all run on one node of a small cluster)
+    task = ray.remote(num_cpus=1, max_retries=max_retries, scheduling_strategy="SPREAD")(_run_in_worker)
     pending = {task.remote(fn, key, [ref], k, cache, meta): k for k in todo}
     try:
         while pending:
