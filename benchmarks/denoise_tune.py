@@ -31,7 +31,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import torch
 import torch.nn.functional as F
-from denoise import SCENES, _cached, _load
+from denoise import KIND, SCENES, _cached, _load, _materials
+
+from torch_brdf.denoise import SelectedRegressionFilter, glossy_objects
+from torch_brdf.records.cache import Checkpoint, settings_key
+from torch_brdf.records.polynomial import PolynomialTensors
+from torch_brdf.render.polynomial import PolynomialRenderer
+from torch_brdf.transport.polynomial import precompute_polynomial
 
 from torch_brdf.data import cache_path
 from torch_brdf.denoise import (
@@ -45,6 +51,14 @@ from torch_brdf.denoise import (
 from torch_brdf.metrics import relative_rmse
 
 INF = float("inf")
+#: The probe materials of the edit-robust pick (chosen before any test, not the benchmark's
+#: edit): Blinn-Phong exponents 10^(1 + 0.75 k), k = 0..4 (10, 56, 316, 1778, 10000), each with
+#: a small diffuse part and a specular colour from a fixed cycle, plus one diffuse probe.
+PROBE_COLOURS = ((0.7, 0.7, 0.7), (0.8, 0.5, 0.3), (0.3, 0.5, 0.8), (0.5, 0.8, 0.4), (0.6, 0.6, 0.8))
+PROBES = tuple(
+    {"type": "blinn_phong", "kd": 0.1, "ks": PROBE_COLOURS[k], "exponent": round(10 ** (1 + 0.75 * k), 1)}
+    for k in range(5)
+) + ({"type": "blinn_phong", "kd": (0.6, 0.55, 0.5), "ks": 0.02, "exponent": 10.0},)
 GRIDS = {
     "linear": (
         EdgeAwareFilter,
@@ -77,6 +91,51 @@ def _hi_mean(folder: Path, cfg: dict, scene, obj: str, edited: dict, missing) ->
         settings = {"series": cfg["series"], "spp": spps[-1], "seed": seed, "edited": edited, "obj": obj}
         runs.append(_cached(folder, "unit", {**settings, "full": k == 0}, scene, missing)[0])
     return tuple(torch.stack([r[k] for r in runs]).mean(0) for k in ("none", "none_e"))
+
+
+def half_records(name: str, cfg: dict, folder: Path) -> list:
+    """The two half-spp records of ``denoise.py``'s ``halves`` part at the middle spp (same
+    seeds, so the same records), each cached as a record file under ``folder``."""
+    build, obj, _ = SCENES[name]
+    scene = build(cfg["res"])
+    spp, seed = cfg["spp"][1], 1
+    out = []
+    for k in range(2):
+        s = {"what": "half_record", "series": cfg["series"], "spp": spp // 2, "seed": 1000 + 2 * seed + k}
+        key = settings_key(s, scene)
+        ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
+        T = ck.load_record(PolynomialTensors)
+        if T is None:
+            print(f"[{name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
+            T = precompute_polynomial(scene, cfg["series"], spp=spp // 2, seed=s["seed"], progress=False)
+            ck.save_record(T)
+        else:
+            print(f"[{name}] half record {k}: cached", flush=True)
+        out.append(T)
+    return out
+
+
+def probe_pilots(name: str, cfg: dict, folder: Path) -> tuple[dict, dict]:
+    """The half records (:func:`half_records`), each frozen on the benchmark's object and
+    rendered at every material of :data:`PROBES` and at the scene's own: ``{"a{i}", "b{i}"}``
+    (H, W, 3) frames (i = len(PROBES): the default material, which must equal the cached
+    ``half_a``/``half_b`` of ``denoise.py``)."""
+    build, obj, _ = SCENES[name]
+    scene = build(cfg["res"])
+    mats = _materials(scene)
+
+    def compute():
+        arrays = {}
+        for tag, T in zip("ab", half_records(name, cfg, folder), strict=True):
+            R = PolynomialRenderer(T, mats)
+            R.freeze(obj)
+            for i, m in enumerate((*PROBES, mats[obj])):
+                R.set_material(obj, dict(m))
+                arrays[f"{tag}{i}"] = R()
+        return arrays, {}
+
+    settings = {"series": cfg["series"], "spp": cfg["spp"][1], "seed": 1, "obj": obj, "probes": list(PROBES)}
+    return _cached(folder, "probes", settings, scene, compute)
 
 
 def selection_bound(g, gl, noisy: dict, refs: dict, means: tuple, mask, smooth=(2, 4)) -> dict:
