@@ -22,7 +22,8 @@ frozen on the edited object and rendered by four methods:
   before it existed are reused;
 * ``selected``: the per-pixel choice among local regressions (:class:`SelectedRegressionFilter`,
   NFOR's selection, linear once picked): the spp is spent as two half-spp precomputations
-  (other seeds), whose frames at the default material pick the window per pixel; the mean
+  (other seeds), whose frames at the default material pick the window per pixel (and, on
+  silhouette pixels, the along-edge mean or the pixel itself: :class:`SelectionSettings`); the mean
   record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. Its own
   part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
   ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed.
