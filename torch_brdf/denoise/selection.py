@@ -50,7 +50,7 @@ import torch.nn.functional as F
 
 from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
-from .atrous import GuideFilter, GuideSigmas, GuideWeights
+from .atrous import GuideFilter, GuideSigmas, GuideWeights, _shift
 from .guides import GuideBuffers
 from .regression import RegressionFilter, RegressionSettings, apply_hat
 
@@ -213,7 +213,7 @@ class SelectedRegressionFilter(GuideFilter):
         self.offsets = [(dy, dx) for dy in range(-big, big + 1) for dx in range(-big, big + 1)]
         where = {o: k for k, o in enumerate(self.offsets)}
         hat = torch.zeros(len(self.offsets), *self.shape)
-        hat[where[(0, 0)]] = 1.0  # the identity (and silhouette pixels)
+        hat[where[(0, 0)]] = 1.0  # the identity (pixels that pick it keep their value)
         first = 1 if s.identity else 0
         for k, A in enumerate(cands + sil):
             mine = self.pick == k + first
@@ -241,8 +241,6 @@ class _SilhouetteMean:
     never picked there)."""
 
     def __init__(self, guides: GuideBuffers, interior: torch.Tensor, r: int, sigma_normal: float):
-        from .atrous import _shift
-
         self.shape, self.radius = (guides.height, guides.width), r
         self.offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
         sig = silhouette_signature(guides.object_id).double()
