@@ -14,6 +14,9 @@ report's run): parts not cached are then made by running ``denoise.py`` with the
 that scene. ``--quick``: ``denoise.py --quick``'s sizes (48², series 16,1,1, spp 4,16, hi 64,
 reference 512). Prints one JSON object.
 
+``--edit-robust`` reports only :func:`edit_robust`: the selection's pick from pilots at probe
+materials and per band group, beside the benchmark's pick, on the same half records.
+
 ``--bound`` adds ``selection_bound``: how low *any* per-pixel choice among the local
 regressions of :class:`SelectionSettings` (and the identity) could take the middle-spp error.
 Each pixel takes the candidate whose squared error against the hi-spp mean (four runs at the
@@ -35,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import torch
 import torch.nn.functional as F
-from denoise import SCENES, _cached, _load
+from denoise import KIND, SCENES, _cached, _load, _materials
 
 from torch_brdf.data import cache_path
 from torch_brdf.denoise import (
@@ -43,12 +46,26 @@ from torch_brdf.denoise import (
     EdgeAwareFilter,
     RegressionFilter,
     RegressionSettings,
+    SelectedRegressionFilter,
     SelectionSettings,
     guide_buffers,
+    mean_tensors,
 )
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.records.cache import Checkpoint, settings_key
+from torch_brdf.records.polynomial import PolynomialTensors
+from torch_brdf.render.polynomial import PolynomialRenderer
+from torch_brdf.transport.polynomial import precompute_polynomial
 
 INF = float("inf")
+#: The probe materials of the edit-robust pick (chosen before any test, not the benchmark's
+#: edit): Blinn-Phong exponents 10^(1 + 0.75 k), k = 0..4 (10, 56, 316, 1778, 10000), each with
+#: a small diffuse part and a specular colour from a fixed cycle, plus one diffuse probe.
+PROBE_COLOURS = ((0.7, 0.7, 0.7), (0.8, 0.5, 0.3), (0.3, 0.5, 0.8), (0.5, 0.8, 0.4), (0.6, 0.6, 0.8))
+PROBES = tuple(
+    {"type": "blinn_phong", "kd": 0.1, "ks": PROBE_COLOURS[k], "exponent": round(10 ** (1 + 0.75 * k), 1)}
+    for k in range(5)
+) + ({"type": "blinn_phong", "kd": (0.6, 0.55, 0.5), "ks": 0.02, "exponent": 10.0},)
 GRIDS = {
     "linear": (
         EdgeAwareFilter,
@@ -74,13 +91,58 @@ def _apply(A, img):
 
 
 def _hi_mean(folder: Path, cfg: dict, scene, obj: str, edited: dict, missing) -> tuple:
-    """The hi-spp means (default, edited) of ``denoise.py``: every run at the largest spp."""
-    spps, runs = cfg["spp"], []
-    for k in range(cfg["hi_spp"] // spps[-1]):
-        seed = len(spps) - 1 if k == 0 else len(spps) + k - 1
-        settings = {"series": cfg["series"], "spp": spps[-1], "seed": seed, "edited": edited, "obj": obj}
+    """The hi-spp means (default, edited) of ``denoise.py``: its runs at ``--hi-step`` spp (the
+    full unit of that spp and the extra seeds after the ``--spp`` list)."""
+    spps, step, runs = cfg["spp"], cfg["hi_step"], []
+    for k in range(cfg["hi_spp"] // step):
+        seed = spps.index(step) if k == 0 else len(spps) + k - 1
+        settings = {"series": cfg["series"], "spp": step, "seed": seed, "edited": edited, "obj": obj}
         runs.append(_cached(folder, "unit", {**settings, "full": k == 0}, scene, missing)[0])
     return tuple(torch.stack([r[k] for r in runs]).mean(0) for k in ("none", "none_e"))
+
+
+def half_records(name: str, cfg: dict, folder: Path) -> list:
+    """The two half-spp records of ``denoise.py``'s ``halves`` part at the middle spp (same
+    seeds, so the same records), each cached as a record file under ``folder``."""
+    scene = SCENES[name][0](cfg["res"])
+    spp, seed = cfg["spp"][1], 1
+    out = []
+    for k in range(2):
+        s = {"what": "half_record", "series": cfg["series"], "spp": spp // 2, "seed": 1000 + 2 * seed + k}
+        key = settings_key(s, scene)
+        ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
+        T = ck.load_record(PolynomialTensors)
+        if T is None:
+            print(f"[{name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
+            T = precompute_polynomial(scene, cfg["series"], spp=spp // 2, seed=s["seed"], progress=False)
+            ck.save_record(T)
+        else:
+            print(f"[{name}] half record {k}: cached", flush=True)
+        out.append(T)
+    return out
+
+
+def probe_pilots(name: str, cfg: dict, folder: Path) -> tuple[dict, dict]:
+    """The half records (:func:`half_records`), each frozen on the benchmark's object and
+    rendered at every material of :data:`PROBES` and at the scene's own: ``{"a{i}", "b{i}"}``
+    (H, W, 3) frames (i = len(PROBES): the default material, which must equal the cached
+    ``half_a``/``half_b`` of ``denoise.py``)."""
+    build, obj, _ = SCENES[name]
+    scene = build(cfg["res"])
+    mats = _materials(scene)
+
+    def compute():
+        arrays = {}
+        for tag, T in zip("ab", half_records(name, cfg, folder), strict=True):
+            R = PolynomialRenderer(T, mats)
+            R.freeze(obj)
+            for i, m in enumerate((*PROBES, mats[obj])):
+                R.set_material(obj, dict(m))
+                arrays[f"{tag}{i}"] = R()
+        return arrays, {}
+
+    settings = {"series": cfg["series"], "spp": cfg["spp"][1], "seed": 1, "obj": obj, "probes": list(PROBES)}
+    return _cached(folder, "probes", settings, scene, compute)
 
 
 def selection_bound(g, gl, noisy: dict, refs: dict, means: tuple, mask, smooth=(2, 4)) -> dict:
@@ -107,6 +169,99 @@ def selection_bound(g, gl, noisy: dict, refs: dict, means: tuple, mask, smooth=(
 
 class NotCached(Exception):
     """A part of ``denoise.py`` that these options need is not in the cache."""
+
+
+def _band_parts(T, mats: dict, obj: str, material: dict, groups: int) -> tuple[list, torch.Tensor]:
+    """The frozen frame of ``T`` at ``material`` split into ``groups`` images (3, H, W), one per
+    group of consecutive bands of ``obj`` (its pixels' own records, Eq. 28: linear in the band
+    coefficients), plus one image of the other records; and the emission (3, H, W)."""
+    R = PolynomialRenderer(T, mats)
+    R.freeze(obj)
+    R.set_material(obj, dict(material))
+    fz = R._frozen
+    i, nb, K, h, w = fz["object"], R.max_bounces, fz["K"], T.height, T.width
+    di = R.d[i] * R._map_mean(i)
+    pw = torch.stack([di**k for k in range(nb)])  # (nb, C)
+    sv = torch.cat([torch.ones(1, 3, dtype=R.dtype)] + ([R.c_hat[i]] if fz["slots"] else []), 0)
+    gk = (sv[:, None, :] * pw[None, :, :]).reshape(K, 3).T  # (C, K), as the frozen frame
+    if R._pixel_weights(i, fz["pix_i"]) is not None:
+        raise SystemExit("band groups: per-pixel weights of the frozen object are not handled")
+    p_i, c = fz["pix_i"].numel(), R.c[i]
+    bounds = torch.linspace(0, c.shape[0], groups + 1).round().long().tolist()
+    parts = []
+    for a, b in itertools.pairwise(bounds):
+        cg = torch.zeros_like(c)
+        cg[a:b] = c[a:b]
+        u = torch.bmm(cg.T.unsqueeze(1), fz["F"]).reshape(3, K, p_i)
+        own = torch.bmm(gk.unsqueeze(1), u).squeeze(1)
+        parts.append(torch.zeros(3, h * w, dtype=own.dtype).index_add(1, fz["pix_i"], own).reshape(3, h, w))
+    other = torch.bmm(gk.unsqueeze(1), fz["V"]).squeeze(1)
+    parts.append(torch.zeros(3, h * w, dtype=other.dtype).index_add(1, fz["pix_r"], other).reshape(3, h, w))
+    emission = R.emission.T.reshape(h, w, 3).permute(2, 0, 1)
+    frame = R().permute(2, 0, 1)
+    assert float((sum(parts) + emission - frame).abs().max()) <= 1e-5 * float(frame.abs().max())
+    return parts, emission
+
+
+def edit_robust(name: str, cfg: dict, folder: Path, groups: int = 8) -> dict:
+    """Picks of :class:`SelectedRegressionFilter` meant to hold under edits, on the mean record of
+    ``denoise.py``'s ``halves`` part at the middle spp (rel. RMSE ``[default, edited]``; exact:
+    the filters are linear per image and the emission is not filtered where errors are measured):
+    ``selected`` (the benchmark's pick: default-material pilots, silhouette candidates),
+    ``no_silhouette`` (silhouette pixels kept, the session-6 pick), ``probes`` (pilots at the
+    :data:`PROBES` materials, ``relative=True``: not the benchmark's edit) and ``band_groups``
+    (one pick per group of ``groups`` consecutive bands of the frozen object and one for the
+    other records, each from the default-material halves of that group)."""
+    build, obj, edited = SCENES[name]
+    scene = build(cfg["res"])
+    mats = _materials(scene)
+
+    def missing():
+        raise SystemExit(f"{name}: run benchmarks/denoise.py with the same options first")
+
+    bounces = len(cfg["series"].split(","))
+    refs, _ = _cached(folder, "reference", {"ref_spp": cfg["ref_spp"], "edited": edited, "b": bounces}, scene, missing)
+    st = {"series": cfg["series"], "spp": cfg["spp"][1], "seed": 1, "edited": edited, "obj": obj, "full": True}
+    unit, meta = _cached(folder, "unit", st, scene, missing)
+    methods = [SelectedRegressionFilter.__name__, repr(SelectionSettings())]
+    h, _ = _cached(folder, "halves", {**st, "methods": methods}, scene, missing)
+    pilots, _ = probe_pilots(name, cfg, folder)
+    mask, g, gl = unit["emitter_free"].bool(), guide_buffers(scene), meta["glossy"]
+    n = len(PROBES)
+    out = {"pilot_equals_halves_part": float((pilots[f"a{n}"] - h["half_a"]).abs().max() / h["half_a"].abs().max())}
+
+    def perm(x):
+        return x.permute(2, 0, 1)
+
+    default = [(perm(h["half_a"]), perm(h["half_b"]))]
+    probes = [(perm(pilots[f"a{i}"]), perm(pilots[f"b{i}"])) for i in range(n)]
+    variants = {
+        "selected": (default, SelectionSettings()),
+        "no_silhouette": (default, SelectionSettings(silhouette=())),
+        "probes": (probes, SelectionSettings(relative=True)),
+    }
+    for k, (pairs, s) in variants.items():
+        A = SelectedRegressionFilter(g, pairs, s, glossy=gl)
+        out[k] = [
+            relative_rmse(_apply(A, h["none_h"]), refs["ref"], mask),
+            relative_rmse(_apply(A, h["none_h_e"]), refs["ref_e"], mask),
+        ]
+        print(name, k, out[k], flush=True)
+    halves = half_records(name, cfg, folder)
+    pa, _ = _band_parts(halves[0], mats, obj, mats[obj], groups)
+    pb, _ = _band_parts(halves[1], mats, obj, mats[obj], groups)
+    filters = [SelectedRegressionFilter(g, [(a, b)], glossy=gl) for a, b in zip(pa, pb, strict=True)]
+    mean = mean_tensors(halves)
+    row = []
+    for mat, ref in ((mats[obj], refs["ref"]), (edited, refs["ref_e"])):
+        parts, e = _band_parts(mean, mats, obj, mat, groups)
+        img = sum(A(p) for A, p in zip(filters, parts, strict=True)) + e
+        row.append(relative_rmse(img.permute(1, 2, 0), ref, mask))
+    out[f"band_groups{groups}"] = row
+    print(name, f"band_groups{groups}", row, flush=True)
+    out["probes_materials"] = list(PROBES)
+    out["load"] = _load()
+    return out
 
 
 def tune(name: str, cfg: dict, folder: Path, filters: list[str], bound: bool = False) -> dict:
@@ -181,17 +336,27 @@ def main() -> None:
     ap.add_argument("--bound", action="store_true", help="also the oracle bound of per-pixel window selection")
     ap.add_argument("--quick", action="store_true", help="denoise.py --quick's sizes; implies --build")
     ap.add_argument("--build", action="store_true", help="run denoise.py (these options) for parts not cached")
-    args, _ = ap.parse_known_args()  # denoise.py's other options (--figure, --hi-step, ...) are accepted
+    ap.add_argument("--hi-step", type=int, default=None, help="as denoise.py (default the middle spp)")
+    ap.add_argument(
+        "--edit-robust", action="store_true", help="only the edit-robust picks (edit_robust) on the halves part"
+    )
+    args, _ = ap.parse_known_args()  # denoise.py's other options (--figure, ...) are accepted
     if args.quick:
         args.res, args.series, args.spp, args.hi_spp, args.ref_spp = 48, "16,1,1", "4,16", 64, 512
     spps = [int(s) for s in args.spp.split(",")]
+    mid = spps[len(spps) // 2] if len(spps) > 2 else spps[-1]
     cfg = {"res": args.res, "series": args.series, "spp": spps, "ref_spp": args.ref_spp, "hi_spp": args.hi_spp}
+    cfg["hi_step"] = args.hi_step or mid
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
     filters = [f for f in args.filters.split(",") if f != "none"]
     sizes = ["--res", str(args.res), "--series", args.series, "--spp", args.spp, "--hi-spp", str(args.hi_spp)]
-    sizes += ["--ref-spp", str(args.ref_spp), "--cache", str(folder)]
+    sizes += ["--ref-spp", str(args.ref_spp), "--hi-step", str(cfg["hi_step"]), "--cache", str(folder)]
+    names = [n for n in SCENES if any(n.startswith(p) for p in args.scenes.split(","))]
+    if args.edit_robust:
+        print(json.dumps({name: edit_robust(name, cfg, folder) for name in names}))
+        return
     out = {"quick": args.quick, "settings": cfg}
-    for name in args.scenes.split(","):
+    for name in names:
         try:
             out[name] = tune(name, cfg, folder, filters, args.bound)
         except NotCached as exc:

@@ -16,7 +16,7 @@ from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, 
 from .guides import GuideBuffers, guide_buffers
 from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
-from .selection import SelectedRegressionFilter, SelectionSettings
+from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
 from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser, mean_tensors
 
 __all__ = [
@@ -41,4 +41,5 @@ __all__ = [
     "oidn_available",
     "oidn_frame",
     "oidn_image",
+    "silhouette_signature",
 ]

@@ -24,9 +24,19 @@ reflections the guides do not see, large ones on flat shading.
 The pick is computed **once from fixed data** (the halves) and then frozen: the filter is
 one fixed set of hat weights, applied alike to every basis image, so it is linear and
 every BRDF edit stays exact, as with the other linear filters. It never crosses object ids
-(each candidate's weights do not) and leaves silhouette pixels as they are. What it cannot
-do: choose for a material it never saw (the pick follows the pilots; an edit that makes a
-reflection sharper than the pilot's keeps the pilot's windows) and remove structure no
+(each candidate's weights do not).
+
+Silhouette pixels (whose 3 x 3 neighbourhood sees two objects, or the image border) hold
+records of both objects and are no regression's taps. They get candidates of their own:
+the mean over pixels along the same edge (the same objects on the same side of it, the same
+mirror object, similar normals; :func:`silhouette_signature`), chosen by the same error
+estimate (smoothed along the edge) against the unfiltered pixel, so a pixel whose coverage
+differs from its neighbours' keeps its value. Their taps stay inside pixels that see the same
+pair of objects, so the denoised record covers the same pixels (the frame costs the same).
+
+What it cannot do: choose for a material it never saw (the pick follows the pilots; an edit
+that makes a reflection sharper than the pilot's keeps the pilot's windows; pilots at several
+probe materials, ``relative=True``, spread the pick over them) and remove structure no
 candidate keeps.
 """
 
@@ -40,7 +50,7 @@ import torch.nn.functional as F
 
 from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
-from .atrous import GuideFilter, GuideSigmas, GuideWeights
+from .atrous import GuideFilter, GuideSigmas, GuideWeights, _shift
 from .guides import GuideBuffers
 from .regression import RegressionFilter, RegressionSettings, apply_hat
 
@@ -54,6 +64,17 @@ class SelectionSettings(GuideSigmas):
         identity: also offer the unfiltered pixel.
         smooth: radius of the box that smooths the error estimates (0: per pixel).
         ridge: the candidates' ridge (:class:`~.regression.RegressionSettings`).
+        silhouette: radii of the silhouette candidates: for a pixel whose 3 x 3 neighbourhood
+            sees two objects (or the image border), the mean over its window of the pixels of
+            the same *signature* (:func:`silhouette_signature`: the same objects, on the same
+            side of the edge) and the same mirror object, weighted by normal agreement
+            (``sigma_normal``); () leaves silhouette pixels as they are.
+        silhouette_smooth: radius of the box that smooths the silhouette pixels' error
+            estimates (over pixels of the same signature).
+        relative: divide each pilot pair's error map by the image mean of its full buffer's
+            square (summed over channels) before the pairs are summed, so that every pilot
+            (e.g. each probe material of an edited object) counts as its relative squared
+            error rather than by its brightness.
     """
 
     sigma_half: float = 0.02
@@ -61,11 +82,18 @@ class SelectionSettings(GuideSigmas):
     identity: bool = True
     smooth: int = 12
     ridge: float = 1e-3
+    silhouette: tuple[int, ...] = (1, 2, 4)
+    silhouette_smooth: int = 6
+    relative: bool = False
 
     def __post_init__(self):
         super().__post_init__()
         if not self.candidates or self.smooth < 0:
             raise ValueRangeError(f"need at least one candidate and smooth >= 0; got {self}")
+        if any(r < 1 for r in self.silhouette) or self.silhouette_smooth < 0:
+            raise ValueRangeError(f"need silhouette radii >= 1 and silhouette_smooth >= 0; got {self}")
+        if self.silhouette and not self.identity:
+            raise ValueRangeError("silhouette candidates need the identity (interior pixels' fallback)")
 
     def regression(self, radius: int, order: int) -> RegressionSettings:
         """The :class:`RegressionSettings` of one candidate (same guide tolerances)."""
@@ -81,6 +109,18 @@ class SelectionSettings(GuideSigmas):
         )
 
 
+def silhouette_signature(object_id: torch.Tensor) -> torch.Tensor:
+    """(H, W) int64 id of each pixel's (centre object, least id, greatest id) over its 3 x 3
+    neighbourhood (-2 beyond the image border): pixels of one signature lie on the same side
+    of an edge between the same objects."""
+    oid = object_id.double()[None, None]
+    pad = F.pad(oid, (1, 1, 1, 1), value=-2.0)
+    hi = F.max_pool2d(pad, 3, 1)[0, 0]
+    lo = -F.max_pool2d(-pad, 3, 1)[0, 0]
+    trip = torch.stack([object_id.double(), lo, hi], -1).reshape(-1, 3)
+    return torch.unique(trip, dim=0, return_inverse=True)[1].reshape(object_id.shape)
+
+
 def _box_within(x: torch.Tensor, label: torch.Tensor, r: int) -> torch.Tensor:
     """Mean of ``x`` (K, H, W) over the (2r + 1)² box of each pixel, over pixels of the same ``label``."""
     if r == 0:
@@ -88,7 +128,7 @@ def _box_within(x: torch.Tensor, label: torch.Tensor, r: int) -> torch.Tensor:
     out = torch.zeros_like(x)
     count = torch.zeros_like(x[0])
     h, w = label.shape
-    lp = F.pad(label[None, None].double(), (r, r, r, r), value=-7.0)[0, 0]
+    lp = F.pad(label[None, None].double(), (r, r, r, r), value=float("nan"))[0, 0]  # nan: equals no label
     xp = F.pad(x, (r, r, r, r))
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
@@ -112,7 +152,8 @@ class SelectedRegressionFilter(GuideFilter):
 
     Attributes:
         pick: (H, W) int64 index of each pixel's candidate in :attr:`names`.
-        names: the candidates, ``"identity"`` or ``"r{radius}o{degree}"``.
+        names: the candidates, ``"identity"``, ``"r{radius}o{degree}"`` or ``"silhouette_r{radius}"``.
+        interior: (H, W) bool pixels the regressions filter (the others: silhouette candidates).
         weights: ((2R + 1)², H, W) float32 hat weights (R the largest candidate radius).
     """
 
@@ -129,7 +170,11 @@ class SelectedRegressionFilter(GuideFilter):
             a, b = torch.as_tensor(a), torch.as_tensor(b)
             if a.shape != b.shape:
                 raise ShapeError(f"the halves of a pair differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
-            pairs.append((self._planes(a).double(), self._planes(b).double()))
+            a, b = self._planes(a).double(), self._planes(b).double()
+            scale = 1.0
+            if self.settings.relative:
+                scale = 1.0 / float((0.25 * (a + b) ** 2).sum(0).mean()) if bool((a + b).any()) else 0.0
+            pairs.append((a, b, scale))
         if not pairs:
             raise ValueRangeError("need at least one pair of half buffers")
         # many small elementwise ops (the box over the error maps): pick the thread count
@@ -142,23 +187,35 @@ class SelectedRegressionFilter(GuideFilter):
         cands = [RegressionFilter(self.guides, s.regression(r, o), self.glossy, gw) for r, o in s.candidates]
         del gw
         self.names = (["identity"] if s.identity else []) + [f"r{r}o{o}" for r, o in s.candidates]
+        interior = self.interior = cands[0].interior
+        sil_radii = s.silhouette
+        sil = [_SilhouetteMean(self.guides, interior, r, s.sigma_normal) for r in sil_radii]
+        self.names += [f"silhouette_r{r}" for r in sil_radii]
         risks = []
-        for A in [None] * s.identity + cands:
+        for A in [None] * s.identity + cands + sil:
             risk = torch.zeros(self.shape, dtype=torch.float64)
-            for a, b in pairs:
+            for a, b, scale in pairs:
                 fa, fb = (a, b) if A is None else (A(a), A(b))
-                risk += (0.5 * ((fa - b) ** 2 + (fb - a) ** 2) - 0.25 * (fa - fb) ** 2).sum(0)
+                risk += scale * (0.5 * ((fa - b) ** 2 + (fb - a) ** 2) - 0.25 * (fa - fb) ** 2).sum(0)
             risks.append(risk)
-        label = torch.where(cands[0].interior, self.guides.object_id, -1)
-        self.pick = _box_within(torch.stack(risks), label, s.smooth).argmin(0)
-        self.radius = max(r for r, _ in s.candidates)
+        risks = torch.stack(risks)
+        first_sil = len(risks) - len(sil)
+        inner = _box_within(risks, torch.where(interior, self.guides.object_id, -1), s.smooth)
+        inner[first_sil:] = torch.inf  # silhouette candidates leave interior pixels as they are
+        self.pick = inner.argmin(0)
+        if sil:
+            self.signature = silhouette_signature(self.guides.object_id)
+            outer = _box_within(risks, torch.where(interior, -1, self.signature), s.silhouette_smooth)
+            outer[s.identity : first_sil] = torch.inf  # the regressions leave silhouettes as they are
+            self.pick = torch.where(interior, self.pick, outer.argmin(0))
+        self.radius = max([r for r, _ in s.candidates] + list(sil_radii))
         big = self.radius
         self.offsets = [(dy, dx) for dy in range(-big, big + 1) for dx in range(-big, big + 1)]
         where = {o: k for k, o in enumerate(self.offsets)}
         hat = torch.zeros(len(self.offsets), *self.shape)
-        hat[where[(0, 0)]] = 1.0  # the identity (and silhouette pixels)
+        hat[where[(0, 0)]] = 1.0  # the identity (pixels that pick it keep their value)
         first = 1 if s.identity else 0
-        for k, A in enumerate(cands):
+        for k, A in enumerate(cands + sil):
             mine = self.pick == k + first
             rows = torch.tensor([where[o] for o in A.offsets])
             hat[:, mine] = 0.0
@@ -173,4 +230,38 @@ class SelectedRegressionFilter(GuideFilter):
 
     def __call__(self, images: torch.Tensor, groups: torch.Tensor | None = None) -> torch.Tensor:
         """Filter images (..., H, W) -> the same shape. ``groups`` is ignored (linear)."""
+        return apply_hat(self, images)
+
+
+class _SilhouetteMean:
+    """The silhouette candidate of radius ``r`` (see :class:`SelectionSettings`): hat
+    weights (offsets of radius r) that average, at every non-interior pixel, the non-interior
+    pixels of the same signature and mirror object in its window, weighted by
+    ``max(0, n_p . n_q) ** sigma_normal``; interior pixels keep their value (this candidate is
+    never picked there)."""
+
+    def __init__(self, guides: GuideBuffers, interior: torch.Tensor, r: int, sigma_normal: float):
+        self.shape, self.radius = (guides.height, guides.width), r
+        self.offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+        sig = silhouette_signature(guides.object_id).double()
+        outer = (~interior).double()
+        mid = guides.mirror_id.double()
+        n = guides.normal.double().permute(2, 0, 1)
+        w = []
+        for dy, dx in self.offsets:
+            same = (_shift(sig, dy, dx, fill=-1.0) == sig) & (_shift(outer, dy, dx) > 0)
+            same &= _shift(mid, dy, dx, fill=-9.0) == mid
+            cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal if (dy or dx) else 1.0
+            w.append(torch.where(same, cos, 0.0).double() if (dy or dx) else torch.ones(self.shape).double())
+        w = torch.stack(w)
+        w = w / w.sum(0)
+        centre = self.offsets.index((0, 0))
+        w = torch.where(interior, 0.0, w)
+        w[centre] = torch.where(interior, 1.0, w[centre])
+        self.weights = w.float()
+
+    def _planes(self, images: torch.Tensor) -> torch.Tensor:
+        return images.reshape(-1, *self.shape)
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
         return apply_hat(self, images)
