@@ -228,12 +228,12 @@ def serve(config: dict[str, Any], port: int | None = None, echo=print) -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _interrupt)  # a plain kill stops the server too
-    server.start()
-    echo(f"torch_brdf editor: {server.url}  (Ctrl-C stops the server)")
-    try:
+    try:  # from before the URL is printed: a signal right after it (a loaded machine) stops cleanly
+        server.start()
+        echo(f"torch_brdf editor: {server.url}  (Ctrl-C stops the server)")
         while server.proc.poll() is None:
             time.sleep(0.5)
     except KeyboardInterrupt:
-        pass
+        echo("torch_brdf editor: stopped")  # Ctrl-C / SIGTERM is how the server is meant to stop: exit 0
     finally:
         server.stop()
