@@ -147,8 +147,11 @@ def build_seconds() -> float:
     return _state["build_s"]
 
 
-def _ptr(t: torch.Tensor | None) -> int | None:
-    return None if t is None else t.data_ptr()
+def ptr(t: torch.Tensor | np.ndarray | None) -> int | None:
+    """The address of a contiguous tensor's or numpy array's data for a ctypes call (None: NULL)."""
+    if t is None:
+        return None
+    return t.ctypes.data if isinstance(t, np.ndarray) else t.data_ptr()
 
 
 def _c(t: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:
@@ -210,7 +213,7 @@ class Accumulator:
         if n:
             cols = [_c(x, torch.int64) for x in (rec, obj, bounce, j, w)]
             cnt, vals = _c(counts, torch.int8), _c(values, torch.float64)
-            self._check(self.lib.tb_add_sums(self._h, n, *map(_ptr, cols), _ptr(cnt), _ptr(vals)))
+            self._check(self.lib.tb_add_sums(self._h, n, *map(ptr, cols), ptr(cnt), ptr(vals)))
 
     def emit(self, bounce: int, p: int, kk, raw, idx, rec, m1, counts, ob, ed, lw, f, scale, x, x_rows, y, y_rows):
         """The entries of light samples ``kk`` at vertex ``bounce`` (see ``tb_emit`` in
@@ -242,16 +245,16 @@ class Accumulator:
             n,
             bounce,
             p,
-            *map(_ptr, args),
-            _ptr(sc),
+            *map(ptr, args),
+            ptr(sc),
             0 if sc is None else sc.numel(),
             xi.shape[1],
-            _ptr(xi),
-            _ptr(xw),
+            ptr(xi),
+            ptr(xw),
             int(x_rows),
             1 if yi is None else yi.shape[1],
-            _ptr(yi),
-            _ptr(yw),
+            ptr(yi),
+            ptr(yw),
             int(y_rows),
         )
         self._check(rc)
@@ -307,12 +310,12 @@ def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tens
     pos, ng, ns = (_c(x, torch.float32) for x in (pos, ng, ns))
     f32 = {"dtype": torch.float32}
     d, d2, idx = torch.empty(n, 3, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.int64)
-    lib.tb_area_points(n, *map(_ptr, (u, sq, cdf)), cdf.numel(), *map(_ptr, (tri, pos, d, d2, idx)))
+    lib.tb_area_points(n, *map(ptr, (u, sq, cdf)), cdf.numel(), *map(ptr, (tri, pos, d, d2, idx)))
     dist = d2.sqrt()
     w, wt = torch.empty(n, 3, **f32), torch.empty(n, 3, **f32)
     pdf, cos, ok = torch.empty(n, **f32), torch.empty(n, **f32), torch.empty(n, dtype=torch.bool)
     area = ctypes.c_float(light.total_area)
-    lib.tb_area_finish(n, *map(_ptr, (d, d2, dist, idx, nrm, rad)), area, *map(_ptr, (ng, ns, w, wt, pdf, cos, ok)))
+    lib.tb_area_finish(n, *map(ptr, (d, d2, dist, idx, nrm, rad)), area, *map(ptr, (ng, ns, w, wt, pdf, cos, ok)))
     return LightSample(direction=w, distance=dist, weight=wt, pdf=pdf), cos, ok
 
 

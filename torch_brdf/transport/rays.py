@@ -23,20 +23,14 @@ from __future__ import annotations
 import ctypes
 import time
 
-import numpy as np
 import torch
 
 from ..errors import ShapeError, ValueRangeError
 from ..scene.raytrace import Hits, RayTracer
 from ._native import library
+from ._native import ptr as _p
 
 __all__ = ["NativeRays"]
-
-
-def _p(x) -> int | None:
-    if x is None:
-        return None
-    return x.ctypes.data if isinstance(x, np.ndarray) else x.data_ptr()
 
 
 class NativeRays:

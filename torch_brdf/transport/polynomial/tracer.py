@@ -255,13 +255,11 @@ class _Tracer:
             rays = self._native_rays()
             return self.scene.trace(o, d) if rays is None else rays.trace(o, d)
 
-    def occluded(self, o, d, t_max, rows=None):
-        """(n,) bool: shadow rays from ``o`` (n, 3) along ``d[rows]`` (``rows`` None: ``d``) within
-        ``t_max`` (n,), by the compiled kernel where it can (else the scene's tracer)."""
+    def occluded(self, o, d, t_max):
+        """(n,) bool: shadow rays from ``o`` (n, 3) along ``d`` (n, 3) within ``t_max`` (n,), by the
+        compiled kernel where it can (else the scene's tracer)."""
         rays = self._native_rays()
-        if rays is not None:
-            return rays.occluded(o, d, t_max, rows)
-        return self.scene.tracer.occluded(o, d if rows is None else d[rows], t_max)
+        return self.scene.tracer.occluded(o, d, t_max) if rays is None else rays.occluded(o, d, t_max)
 
     def _native_rays(self):
         """:class:`~torch_brdf.transport.rays.NativeRays` of the scene's tracer, or None."""

@@ -27,6 +27,7 @@ from ...brdf.bands import quotients as _q
 from ...brdf.base import Lambert
 from ...scene.lights import AreaLight
 from .._native import library
+from .._native import ptr as _p
 from ..pathtrace import rows_by_object, sample_light
 
 __all__ = ["VertexKernel", "quotient_code"]
@@ -43,10 +44,6 @@ def quotient_code(q) -> int | None:
     if type(q) is _q.SchlickFresnel and q.f0 is None and type(q.base) in _BASE_CODES:
         return 8 + _BASE_CODES[type(q.base)]
     return None
-
-
-def _p(t: torch.Tensor | None) -> int | None:
-    return None if t is None else t.data_ptr()
 
 
 def _f(t: torch.Tensor) -> torch.Tensor:
