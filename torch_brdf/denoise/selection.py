@@ -189,7 +189,9 @@ class SelectedRegressionFilter(GuideFilter):
         self.names = (["identity"] if s.identity else []) + [f"r{r}o{o}" for r, o in s.candidates]
         interior = self.interior = cands[0].interior
         sil_radii = s.silhouette
-        sil = [_SilhouetteMean(self.guides, interior, r, s.sigma_normal) for r in sil_radii]
+        if sil_radii:
+            self.signature = silhouette_signature(self.guides.object_id)
+        sil = [_SilhouetteMean(self.guides, interior, self.signature, r, s.sigma_normal) for r in sil_radii]
         self.names += [f"silhouette_r{r}" for r in sil_radii]
         risks = []
         for A in [None] * s.identity + cands + sil:
@@ -204,7 +206,6 @@ class SelectedRegressionFilter(GuideFilter):
         inner[first_sil:] = torch.inf  # silhouette candidates leave interior pixels as they are
         self.pick = inner.argmin(0)
         if sil:
-            self.signature = silhouette_signature(self.guides.object_id)
             outer = _box_within(risks, torch.where(interior, -1, self.signature), s.silhouette_smooth)
             outer[s.identity : first_sil] = torch.inf  # the regressions leave silhouettes as they are
             self.pick = torch.where(interior, self.pick, outer.argmin(0))
@@ -240,19 +241,24 @@ class _SilhouetteMean:
     ``max(0, n_p . n_q) ** sigma_normal``; interior pixels keep their value (this candidate is
     never picked there)."""
 
-    def __init__(self, guides: GuideBuffers, interior: torch.Tensor, r: int, sigma_normal: float):
+    def __init__(
+        self, guides: GuideBuffers, interior: torch.Tensor, signature: torch.Tensor, r: int, sigma_normal: float
+    ):
         self.shape, self.radius = (guides.height, guides.width), r
         self.offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
-        sig = silhouette_signature(guides.object_id).double()
+        sig = signature.double()  # silhouette_signature of the guides' object ids
         outer = (~interior).double()
         mid = guides.mirror_id.double()
         n = guides.normal.double().permute(2, 0, 1)
         w = []
         for dy, dx in self.offsets:
+            if not (dy or dx):  # the pixel itself, weight 1
+                w.append(torch.ones(self.shape, dtype=torch.float64))
+                continue
             same = (_shift(sig, dy, dx, fill=-1.0) == sig) & (_shift(outer, dy, dx) > 0)
             same &= _shift(mid, dy, dx, fill=-9.0) == mid
-            cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal if (dy or dx) else 1.0
-            w.append(torch.where(same, cos, 0.0).double() if (dy or dx) else torch.ones(self.shape).double())
+            cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal
+            w.append(torch.where(same, cos, 0.0).double())
         w = torch.stack(w)
         w = w / w.sum(0)
         centre = self.offsets.index((0, 0))
