@@ -70,15 +70,27 @@ def test_tile_reduction_equals_torch(m, count_max, rec):
     _equal(want, got)
 
 
+def _tile(kind: str, m: int, bits: list[int]):
+    """A tile's accumulator: the default (per-record sums, :class:`_native.TileSums`) or the
+    sorted runs it falls back to (an :class:`_native.Accumulator`, merged at the end)."""
+    if kind == "runs":
+        return _native.Accumulator(LIB, m, 6, bits[:-1] + [0])
+    tile = tile_accumulator(LIB, m, bits)
+    assert isinstance(tile, _native.TileSums)
+    return tile
+
+
 @needs_cc
+@pytest.mark.parametrize("kind", ["records", "runs"])
 @pytest.mark.parametrize(("m", "count_max"), [(7, 3), (40, 3)])  # last-object-first and first-object-first order
-def test_tile_runs_merge_like_the_sort(m, count_max):
-    """A tile's sums from its pass groups' sorted runs (merged, ``reduce_into``) equal those of
-    the same rows re-sorted (``_reduce_groups``): same keys, same sums in the same order."""
+def test_tile_runs_merge_like_the_sort(m, count_max, kind):
+    """A tile's sums from its pass groups (summed record by record, or their sorted runs merged;
+    ``reduce_into``) equal those of the same rows re-sorted (``_reduce_groups``): same keys, same
+    sums in the same order."""
     g = torch.Generator().manual_seed(3 + m)
     sizes = {"rec": 4, "obj": 2, "bounce": 3, "j": 2, "w": 1, "path": 4}  # few keys: ~16 terms per sum
     bits = native_bits(sizes, m, count_max)
-    tile, exports = tile_accumulator(LIB, m, bits), []
+    tile, exports = _tile(kind, m, bits), []
     rows = _sums(g, 9501, m, count_max, sizes)  # one pool of multisets: keys repeat across groups
     for a, n in ((0, 3000), (3000, 1), (3001, 0), (3001, 2500), (5501, 4000)):  # an empty group among them
         acc = _native.Accumulator(LIB, m, 3, bits)
@@ -93,15 +105,17 @@ def test_tile_runs_merge_like_the_sort(m, count_max):
 
 
 @needs_cc
+@pytest.mark.parametrize("kind", ["records", "runs"])
 @pytest.mark.parametrize(("m", "count_max", "adaptive"), [(7, 3, False), (7, 2, True), (40, 3, False)])
-def test_blocks_equal_torch(m, count_max, adaptive):
-    """A tile's sparse blocks made in the kernel equal _local_blocks of its exported sums: same
-    records, terms (both multiset orders), keys, means and variances (a NaN and negative
-    variances among them), with one spp or an spp per record."""
+def test_blocks_equal_torch(m, count_max, adaptive, kind):
+    """A tile's sparse blocks made in the kernel (from its per-record sums, or from its merged
+    runs' export) equal _local_blocks of its exported sums: same records, terms (both multiset
+    orders), keys, means and variances (a NaN and negative variances among them), with one spp
+    or an spp per record."""
     g = torch.Generator().manual_seed(11 + m)
     sizes = {"rec": 40, "obj": 3, "bounce": 5, "j": 6, "w": 3, "path": 4}
     bits = native_bits(sizes, m, count_max)
-    tile = tile_accumulator(LIB, m, bits)
+    tile = _tile(kind, m, bits)
     rows = _sums(g, 6000, m, count_max, sizes)
     rows["sum"][5, 1] = float("nan")
     for a in (0, 2000, 4500):

@@ -40,6 +40,7 @@ from ..scene.lights import AreaLight, LightSample
 __all__ = [
     "ENV_VAR",
     "Accumulator",
+    "TileSums",
     "area_light_sample",
     "build_seconds",
     "key_bits",
@@ -99,6 +100,14 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_trace_hits.restype, lib.tb_trace_hits.argtypes = i64, [p, p, i64, p, p, p, p, p, p, p, p, p, p, p, p]
     lib.tb_occluded_rays.restype, lib.tb_occluded_rays.argtypes = i64, [p, p, i64, p, p, i64, p, p, p]
     lib.tb_intersect_only.restype, lib.tb_intersect_only.argtypes = i64, [p, p, i64, p, p, p, p]
+    # a tile's sums by record (TileSums)
+    lib.tb_tile_new.restype, lib.tb_tile_new.argtypes = p, [i32, p]
+    lib.tb_tile_free.restype, lib.tb_tile_free.argtypes = None, [p]
+    lib.tb_tile_size.restype, lib.tb_tile_size.argtypes = i64, [p]
+    lib.tb_tile_max_count.restype, lib.tb_tile_max_count.argtypes = i32, [p]
+    lib.tb_tile_add.restype, lib.tb_tile_add.argtypes = i32, [p, p]
+    lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, i32, p, p]
+    lib.tb_tile_blocks.restype, lib.tb_tile_blocks.argtypes = i64, [p, p, i64, i64, p, p, p, p, p, p, p]
     return lib
 
 
@@ -259,11 +268,15 @@ class Accumulator:
         )
         self._check(rc)
 
-    def reduce_into(self, forward: bool, into: Accumulator) -> None:
+    def reduce_into(self, forward: bool, into: Accumulator | TileSums) -> None:
         """Append this accumulator's per-key sums ``s`` (ascending key order, as :meth:`reduce`)
         to ``into`` as values ``(s, s * s)`` under the keys without their path field (``into``:
-        twice the values, the same widths with no path field), without unpacking the keys."""
-        self._check(self.lib.tb_reduce_into(self._h, int(forward), into._h))
+        twice the values, the same widths with no path field), without unpacking the keys; a
+        :class:`TileSums` adds them to its per-key sums instead (the same sums)."""
+        if isinstance(into, TileSums):
+            self._check(self.lib.tb_tile_add(into._h, self._h))
+        else:
+            self._check(self.lib.tb_reduce_into(self._h, int(forward), into._h))
 
     def clear(self) -> None:
         """Remove every entry (the memory stays for the next ones)."""
@@ -285,6 +298,62 @@ class Accumulator:
         u = ctypes.c_int64(0)
         self._check(self.lib.tb_reduce(self._h, int(forward), keys.data_ptr(), vals.data_ptr(), ctypes.byref(u)))
         return keys[: u.value], vals[: u.value]
+
+
+class TileSums:
+    """A tile's per-key sums and sums of per-path squares, from its pass groups
+    (:meth:`Accumulator.reduce_into`) bucketed by (record, path) and summed record by record
+    (``tb_tile_add`` in ``_native.c``) instead of sorted and merged: the same sums, added in the
+    same order, as an :class:`Accumulator` of 6 values receiving the groups' sorted runs.
+
+    Args:
+        lib: :func:`library`'s kernel.
+        num_objects: M.
+        bits: the pass groups' :func:`key_bits` with the path width 0 (:meth:`fits` says when
+            the groups' record and path fields are narrow enough).
+    """
+
+    V = 6
+
+    def __init__(self, lib: ctypes.CDLL, num_objects: int, bits: list[int]):
+        self.lib, self.M, self.bits = lib, num_objects, list(bits)
+        b = torch.tensor(bits, dtype=torch.int32)
+        self._h = lib.tb_tile_new(num_objects, b.data_ptr())
+        if not self._h:
+            raise MemoryError("the tile's sums could not allocate their tables")
+
+    @staticmethod
+    def fits(bits: list[int]) -> bool:
+        """Whether groups of these :func:`key_bits` (with a path field) fit the kernel's buckets
+        (record + path bits <= 22; else the sorted runs of :class:`Accumulator`)."""
+        return bits[0] <= 22 and 1 <= bits[-1] and bits[0] + bits[-1] <= 22
+
+    def __del__(self):
+        if getattr(self, "_h", None):
+            self.lib.tb_tile_free(self._h)
+            self._h = None
+
+    def __len__(self) -> int:
+        """The keys (the first call sums each record's rows; groups cannot be added after it)."""
+        n = int(self.lib.tb_tile_size(self._h))
+        if n < 0:
+            raise MemoryError("the tile's sums ran out of memory")
+        return n
+
+    def max_count(self) -> int:
+        return int(self.lib.tb_tile_max_count(self._h))
+
+    def reduce(self, forward: bool, ordered: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> fields (U, 5 + M) int64 (rec, obj, bounce, j, w, counts) and (U, 6) float64 sums and
+        sums of squares per key: ascending as :meth:`Accumulator.reduce` returns them, or
+        (``ordered=False``) record by record in table order (for consumers that sort anyway)."""
+        n = len(self)
+        keys = torch.empty(n, 5 + self.M, dtype=torch.int64)
+        vals = torch.empty(n, self.V, dtype=torch.float64)
+        u = self.lib.tb_tile_export(self._h, int(forward), int(ordered), keys.data_ptr(), vals.data_ptr())
+        if u != n:
+            raise MemoryError("the tile's sums could not be exported")
+        return keys, vals
 
 
 def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor, gen):

@@ -21,7 +21,7 @@ from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
-from .._native import Accumulator, library
+from .._native import Accumulator, TileSums, library
 from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
@@ -237,7 +237,7 @@ def _polynomial_tile(work: _TileWork, k: int):
     counts = work.path_counts(k)
     emis, red = _tile_entries(tracer, work.scene, pix, counts, k, group, work.seed, work.paths, tick=tile_tick)
     with tracer.clock("blocks"):  # an adaptive tile: each entry is the mean over its pixel's paths
-        if isinstance(red, Accumulator):  # the compiled entries: the blocks in the kernel too
+        if isinstance(red, (TileSums, Accumulator)):  # the compiled entries: the blocks in the kernel too
             local = native_local_blocks(red, work.plan, spp)
         else:
             local = _local_blocks(

@@ -14,7 +14,7 @@ import torch
 
 from ...errors import ValueRangeError
 from ...records.polynomial import TensorBlock, TermTable
-from .._native import Accumulator, key_bits
+from .._native import Accumulator, TileSums, key_bits
 
 
 def _radix_key(cols: list[tuple[torch.Tensor, int]]) -> torch.Tensor:
@@ -117,9 +117,14 @@ class NativeEntries:
         self.acc.reduce_into(not _code_fits(self.acc.M, self.acc.max_count()), tile)
 
 
-def tile_accumulator(lib, num_objects: int, bits: list[int]) -> Accumulator:
+def tile_accumulator(lib, num_objects: int, bits: list[int]) -> TileSums | Accumulator:
     """The accumulator of a tile's per-path sums and squares (keys without the path field),
-    for :meth:`NativeEntries.reduce_into`; ``bits``: the pass groups' :func:`native_bits`."""
+    for :meth:`NativeEntries.reduce_into`; ``bits``: the pass groups' :func:`native_bits`.
+    A :class:`~torch_brdf.transport._native.TileSums` (per-record tables, no sort) where the
+    groups' record and path fields fit its buckets, else an accumulator of the groups' sorted
+    runs (merged at the end); both give the same sums bit for bit."""
+    if TileSums.fits(bits):
+        return TileSums(lib, num_objects, bits[:-1] + [0])
     return Accumulator(lib, num_objects, 6, bits[:-1] + [0])
 
 
@@ -146,7 +151,7 @@ def _reduce_groups(lib, groups: list[dict[str, torch.Tensor]], num_objects: int,
     """``_reduce(cat(groups), sizes, by_path=False)`` in the compiled kernel: the per-path sums
     of a tile's pass groups summed per key in the same order (group by group). ``bits``: the
     groups' :func:`native_bits` (its path field is dropped)."""
-    acc = tile_accumulator(lib, num_objects, bits)
+    acc = Accumulator(lib, num_objects, 6, bits[:-1] + [0])
     for g in groups:
         vals = torch.cat([g["sum"], g["sq"]], 1)
         acc.add_sums(g["rec"], g["obj"], g["bounce"], g["j"], g["w"], g["counts"], vals)
@@ -199,15 +204,19 @@ def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) 
     return out
 
 
-def native_local_blocks(acc: Accumulator, bases, spp: int | torch.Tensor) -> list[dict[str, torch.Tensor]]:
+def native_local_blocks(acc: TileSums | Accumulator, bases, spp: int | torch.Tensor) -> list[dict[str, torch.Tensor]]:
     """:func:`_local_blocks` of a tile's sums (:func:`tile_accumulator`) in the compiled kernel
     (``tb_blocks``): the same blocks, bit for bit. ``spp``: the paths per pixel, or (P,) those of
     each of the tile's records."""
     if len(acc) == 0:
         return []
-    keys, vals = acc.reduce(forward=not _code_fits(acc.M, acc.max_count()))
-    u, m = keys.shape[0], acc.M
     sp = spp.to(torch.int64).contiguous() if isinstance(spp, torch.Tensor) else None
+    if isinstance(acc, TileSums):
+        out = _tile_blocks(acc, bases, spp, sp)
+        if out is not None:
+            return out
+    keys, vals = acc.reduce(not _code_fits(acc.M, acc.max_count()))
+    u, m = keys.shape[0], acc.M
     bits = torch.tensor(acc.bits[:6], dtype=torch.int32)
     room = (1 << (acc.bits[1] + acc.bits[2])) if acc.bits[1] + acc.bits[2] <= 20 else 0
     key, upix, rows = (torch.empty(u, dtype=torch.int64) for _ in range(3))
@@ -239,6 +248,43 @@ def native_local_blocks(acc: Accumulator, bases, spp: int | torch.Tensor) -> lis
             }
         )
         at, up = at + e, up + max(p, z)
+    return out
+
+
+def _tile_blocks(acc: TileSums, bases, spp, sp: torch.Tensor | None) -> list[dict[str, torch.Tensor]] | None:
+    """:func:`native_local_blocks` of a :class:`~torch_brdf.transport._native.TileSums` read in
+    place (``tb_tile_blocks``: no export of its keys, no sort of them), or None when its fields
+    are too wide for the kernel's tables."""
+    u, m = len(acc), acc.M
+    nblk = 1 << (acc.bits[1] + acc.bits[2])
+    if acc.bits[1] + acc.bits[2] > 20:
+        return None
+    key, upix, tw = (torch.empty(u, dtype=torch.int64) for _ in range(3))
+    tc = torch.empty(u, m, dtype=torch.int8)
+    mean, var = torch.empty(3 * u, dtype=torch.float32), torch.empty(3 * u, dtype=torch.float32)
+    meta = torch.empty(nblk, 5, dtype=torch.int64)
+    nb = acc.lib.tb_tile_blocks(
+        acc._h, None if sp is None else sp.data_ptr(), 0 if sp is not None else int(spp), nblk,
+        *(t.data_ptr() for t in (key, mean, var, upix, tw, tc, meta)),
+    )  # fmt: skip
+    if nb == -2:
+        return None
+    if nb < 0:
+        raise MemoryError("the block kernel ran out of memory")
+    out, at, ap, az = [], 0, 0, 0
+    for obj, bounce, e, p, z in meta[:nb].tolist():
+        out.append(
+            {
+                "head": torch.tensor([obj, bounce, 1 if bases[obj] is None else bases[obj].size]),
+                "upix": upix[ap : ap + p].clone(),
+                "tw": tw[az : az + z].clone(),
+                "tc": tc[az : az + z].clone(),
+                "key": key[at : at + e].clone(),
+                "vals": mean[3 * at : 3 * (at + e)].view(3, e).clone(),
+                "var": var[3 * at : 3 * (at + e)].view(3, e).clone(),
+            }
+        )
+        at, ap, az = at + e, ap + p, az + z
     return out
 
 
