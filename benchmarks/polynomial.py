@@ -18,6 +18,11 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   with ``--baseline`` one per core whatever the load), and with ``--baseline`` also
   ``one_process_s`` (tiles one after another in this process, as before #14's parallel tiles),
   ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
+* ``tile_timeline``: per tile of that precompute [tile, process id, start, end (wall seconds
+  after the call began), CPU seconds]; ``serial_before_tiles_s`` / ``serial_after_tiles_s``
+  the wall time before the first tile started and after the last ended (process start,
+  assembly of the last tile, the record), ``tiles_cpu_s`` the tiles' CPU seconds and
+  ``tiles_parallelism`` those over ``precompute_s`` (2 on two cores at perfect efficiency).
 * ``native``: whether the compiled entry kernel (``transport/_native.c``) ran;
   ``native_build_s``: seconds this process spent compiling it on first use (0 when the cached
   build was loaded), ``native_load_s`` building or loading it, both before and outside
@@ -227,6 +232,13 @@ def main() -> None:
     T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
+    tl = T.meta["timeline"]  # [tile, process, start, end, CPU s] of each tile, s after the call began
+    if tl:
+        out["tile_timeline"] = tl
+        out["serial_before_tiles_s"] = min(r[2] for r in tl)
+        out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
+        out["tiles_cpu_s"] = sum(r[4] for r in tl)
+        out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
 
     def again(**kw):
         """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""

@@ -84,6 +84,35 @@ def test_local_processes_equal_one_process(scene, local):
     assert one.meta["rays"] == two.meta["rays"]
 
 
+def _mixed_arrays(ctx, k):
+    """A tile's arrays of several dtypes and shapes (one empty)."""
+    return {
+        "f": np.arange(7 * k + 3, dtype=np.float32).reshape(-1, 1) / 3,
+        "i": np.full((2, k + 1), -k, dtype=np.int64),
+        "b": np.array([k % 2 == 0] * 5),
+        "e": np.zeros((0, 3), dtype=np.float64),
+    }, {"k": k}
+
+
+@pytest.mark.parametrize("limit", [0, 1 << 40])
+def test_forked_arrays_handed_back_through_files(monkeypatch, limit):
+    """Forked tiles hand large arrays back through files in a private folder (``limit`` 0: all
+    of them), small ones through the pipe: the same arrays (dtype, shape, values), writable,
+    and no file or folder left behind."""
+    monkeypatch.setattr(executor, "HAND_BACK_BYTES", limit)
+    made = []
+    real = executor._hand_folder
+    monkeypatch.setattr(executor, "_hand_folder", lambda: made.append(real()) or made[-1])
+    tiles = run_tiles(_mixed_arrays, None, 5, TileCache(None, "t", "k"), progress=False, processes=2)
+    for k, (a, m) in enumerate(tiles):
+        want = _mixed_arrays(None, k)[0]
+        assert m["k"] == k and sorted(a) == sorted(want)
+        for n, v in want.items():
+            assert a[n].dtype == v.dtype and a[n].shape == v.shape and np.array_equal(a[n], v), n
+            assert a[n].flags.writeable
+    assert made and all(f is None or not os.path.exists(f) for f in made)
+
+
 def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
     """Fewer tiles at once when they would not fit in memory; the tensors stay the same."""
     from torch_brdf.transport.polynomial import driver

@@ -31,7 +31,10 @@ from __future__ import annotations
 
 import copy
 import multiprocessing
+import os
+import shutil
 import signal
+import tempfile
 import time
 import uuid
 import warnings
@@ -175,6 +178,7 @@ def run_tiles(
     max_new: int | None = None,
     processes: int | None = None,
     steps_per_tile: Sequence[int] | None = None,
+    idle: Callable[[], None] | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -203,6 +207,10 @@ def run_tiles(
         steps_per_tile: the bar's units per tile (``num_tiles`` counts, e.g. pass groups), which
             ``fn`` reports as it goes with :func:`tile_tick` (locally, forked processes
             included); None: one unit per tile.
+        idle: work of this process that does not depend on the tiles (e.g. a record's side
+            buffers), called once: while forked processes or Ray tasks compute the tiles (so it
+            is not serial after them), else after the tiles; always, even when every tile was
+            cached.
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -266,14 +274,23 @@ def run_tiles(
             ray_context = context.for_ray() if hasattr(context, "for_ray") else context
         nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
+        pending_idle = [idle]
+
+        def run_idle() -> None:
+            work, pending_idle[0] = pending_idle[0], None
+            if work is not None:
+                with single_thread():
+                    work()
+
         if executor == "local" and nproc > 1:
-            _run_forked(fn, ray_context, todo, finish, advance, nproc, cache, meta or {})
+            _run_forked(fn, ray_context, todo, finish, advance, nproc, cache, meta or {}, run_idle)
         elif executor == "local":
             with single_thread():
                 for k in todo:
                     finish(k, _ticking(lambda n, k=k: advance(k, n), fn, context, k))
         elif todo:
-            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {})
+            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {}, run_idle)
+        run_idle()
     finally:
         bar.close()
     return out
@@ -289,9 +306,57 @@ def _ticking(report: Callable[[int], None], fn: TileFn, context: Any, k: int) ->
         _TICK = None
 
 
-# what forked tile processes run: set before forking, inherited by the children (the last item:
-# the queue on which they report (tile, units) for :func:`tile_tick`)
-_FORKED: tuple[TileFn, Any, TileCache, dict, Any] | None = None
+# what forked tile processes run: set before forking, inherited by the children (the last two
+# items: the queue on which they report (tile, units) for :func:`tile_tick`, and the folder,
+# None or in memory, through which they hand their arrays back: see :func:`_handed`)
+_FORKED: tuple[TileFn, Any, TileCache, dict, Any, str | None] | None = None
+
+#: a forked tile's arrays of at least this many bytes go back through a file in the run's folder
+#: (tmpfs where there is one) rather than pickled through the pool's pipe, during which the
+#: process would wait for the driver to read them (~0.1 s per tile of ~20 MB at 256²)
+HAND_BACK_BYTES = 1 << 20
+
+
+def _hand_folder() -> str | None:
+    """A fresh private folder for the forked tiles' arrays: in /dev/shm (memory) when it exists
+    and is writable, else None (the arrays go through the pipe)."""
+    if not os.access("/dev/shm", os.W_OK):
+        return None
+    try:
+        return tempfile.mkdtemp(prefix="torch_brdf-tiles-", dir="/dev/shm")
+    except OSError:
+        return None
+
+
+def _handed(arrays: dict[str, np.ndarray], folder: str | None, k: int):
+    """A forked tile's arrays as they travel to the driver: the arrays themselves, or (large
+    ones, with a folder) the file that holds their bytes one after another and each array's
+    (name, dtype, shape); :func:`_received` reverses it."""
+    if folder is None or sum(v.nbytes for v in arrays.values()) < HAND_BACK_BYTES:
+        return arrays
+    path, layout = os.path.join(folder, f"tile{k}-{os.getpid()}.bin"), []
+    with open(path, "wb") as f:
+        for name, v in arrays.items():
+            v = np.ascontiguousarray(v)
+            f.write(v.reshape(-1).view(np.uint8).data)  # the bytes, no copy
+            layout.append((name, v.dtype.str, v.shape))
+    return ("file", path, layout)
+
+
+def _received(handed) -> dict[str, np.ndarray]:
+    """The arrays of :func:`_handed` (views into one buffer read from the file, which is removed)."""
+    if isinstance(handed, dict):
+        return handed
+    _, path, layout = handed
+    buf = np.fromfile(path, dtype=np.uint8)
+    os.unlink(path)
+    out, at = {}, 0
+    for name, dtype, shape in layout:
+        d = np.dtype(dtype)
+        n = int(np.prod(shape, dtype=np.int64)) * d.itemsize
+        out[name] = buf[at : at + n].view(d).reshape(shape)
+        at += n
+    return out
 
 
 def _forked_init() -> None:
@@ -299,21 +364,24 @@ def _forked_init() -> None:
     configure_worker(1)
 
 
-def _forked_tile(k: int) -> tuple[TileResult, bytes | None]:
-    """Tile ``k`` in a forked process, and the bytes of its checkpoint file (encoded here, as a
-    Ray task does, so the driver only writes them; None without a checkpoint folder)."""
-    fn, ctx, cache, meta, ticks = _FORKED
+def _forked_tile(k: int) -> tuple[tuple, bytes | None]:
+    """Tile ``k`` in a forked process, its arrays as :func:`_handed` sends them, and the bytes of
+    its checkpoint file (encoded here, as a Ray task does, so the driver only writes them; None
+    without a checkpoint folder)."""
+    fn, ctx, cache, meta, ticks, folder = _FORKED
     try:
         arrays, tile_meta = _ticking(lambda n: ticks.put((k, n)), fn, ctx, k)
     except (KeyboardInterrupt, SystemExit) as exc:  # would kill the worker: report it as the tile's error
         raise TileError(f"tile {k} stopped: {type(exc).__name__}: {exc}") from None
-    return (arrays, tile_meta), cache.encode(arrays, {**meta, **tile_meta})
+    return (_handed(arrays, folder, k), tile_meta), cache.encode(arrays, {**meta, **tile_meta})
 
 
-def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, advance, processes: int, cache, meta) -> None:
+def _run_forked(
+    fn: TileFn, context: Any, todo: Sequence[int], finish, advance, processes: int, cache, meta, idle=None
+) -> None:
     """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
     here as each tile arrives (any order; it assembles in tile order), ``advance(k, n)`` as the
-    processes report progress within tile ``k``. A tile's exception is raised here; a process
+    processes report progress within tile ``k``, ``idle()`` once the tiles are under way. A tile's exception is raised here; a process
     that dies (killed, out of memory) raises ``BrokenProcessPool``; either way, and on Ctrl-C,
     the other processes are stopped."""
     global _FORKED
@@ -325,20 +393,23 @@ def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, advance, 
         while not ticks.empty():
             advance(*ticks.get())
 
-    _FORKED = (fn, context, cache, meta, ticks)
+    folder = _hand_folder()
+    _FORKED = (fn, context, cache, meta, ticks, folder)
     with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
         warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
         pool = ProcessPoolExecutor(processes, mp, initializer=_forked_init)
         try:
             with single_thread():
                 futures = {pool.submit(_forked_tile, k): k for k in todo}
+                if idle is not None:
+                    idle()
                 pending = set(futures)
                 while pending:
                     done, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
                     report()
                     for f in done:
-                        res, encoded = f.result()
-                        finish(futures[f], res, encoded)
+                        (handed, tile_meta), encoded = f.result()
+                        finish(futures[f], (_received(handed), tile_meta), encoded)
         except BaseException:
             for proc in list((getattr(pool, "_processes", None) or {}).values()):
                 proc.terminate()  # running tiles are not waited for
@@ -347,9 +418,13 @@ def _run_forked(fn: TileFn, context: Any, todo: Sequence[int], finish, advance, 
             pool.shutdown(wait=True, cancel_futures=True)
             _FORKED = None
             ticks.close()
+            if folder is not None:  # files of tiles never received (an error, Ctrl-C)
+                shutil.rmtree(folder, ignore_errors=True)
 
 
-def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta) -> None:
+def _run_ray(
+    fn, context, todo: Sequence[int], finish, address, max_retries: int, nodes: set, cache, meta, idle=None
+) -> None:
     ray = connect_ray(address)
     key = f"{fn.__module__}.{fn.__qualname__}:{uuid.uuid4().hex}"  # this run's context
     ref = ray.put(context)  # once; tasks carry only the reference (wrapped, so Ray does not resolve it)
@@ -357,6 +432,8 @@ def _run_ray(fn, context, todo: Sequence[int], finish, address, max_retries: int
     # CPU frees up first (short tiles could otherwise all run on one node of a small cluster)
     task = ray.remote(num_cpus=1, max_retries=max_retries, scheduling_strategy="SPREAD")(_run_in_worker)
     pending = {task.remote(fn, key, [ref], k, cache, meta): k for k in todo}
+    if idle is not None:
+        idle()
     try:
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -229,7 +230,9 @@ _BLOCK_ARRAYS = ("head", "upix", "tw", "tc", "key", "vals", "var")
 
 def _polynomial_tile(work: _TileWork, k: int):
     """Tile ``k``: arrays (emission, its blocks with tile-local term and pixel numbers) and
-    meta (rays cast, profile split)."""
+    meta (rays cast, profile split, ``clock``: the process, wall-clock start and end (epoch
+    seconds) and CPU seconds of the tile)."""
+    start, cpu0 = time.time(), time.process_time()
     tracer = work.tracer
     rays0, split0 = dict(tracer.rays), dict(tracer.clock.seconds)
     pix = work.pixels(k)
@@ -247,7 +250,8 @@ def _polynomial_tile(work: _TileWork, k: int):
     arrays |= {f"b{g}_{n}": b[n].numpy() for g, b in enumerate(local) for n in _BLOCK_ARRAYS}
     rays = {n: tracer.rays[n] - rays0[n] for n in rays0}
     split = {n: v - split0.get(n, 0.0) for n, v in tracer.clock.seconds.items()}
-    return arrays, {"rays": rays, "split": split}
+    clock = [os.getpid(), start, time.time(), time.process_time() - cpu0]
+    return arrays, {"rays": rays, "split": split, "clock": clock}
 
 
 def _check_spp(spp, height: int, width: int) -> torch.Tensor:
@@ -351,7 +355,9 @@ def precompute_polynomial(
         ``meta["split"]`` holds the profile split in seconds
         (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
         computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
-        ``meta["tiles_cached"]`` the tiles loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
+        ``meta["timeline"]`` the tiles computed in this call as [tile, process id, start, end
+        (wall seconds after the call began), CPU seconds], ``meta["tiles_cached"]`` the tiles
+        loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
         Ray nodes that computed tiles (0 for ``local``), ``meta["processes"]`` the local
         processes that computed tiles at once (0 for Ray).
     """
@@ -451,6 +457,7 @@ def precompute_polynomial(
     split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "blocks": 0.0}
     split["assemble"] = 0.0
     cached = [0]
+    timeline: list[list] = []
 
     def consume(ti: int, arrays: dict, meta: dict) -> None:
         """Tile ``ti`` into the record (in tile order: term ids number in order of appearance)."""
@@ -466,14 +473,23 @@ def precompute_polynomial(
         else:
             for k, v in meta.get("split", {}).items():
                 split[k] = split.get(k, 0.0) + float(v)
+            if "clock" in meta:  # [tile, process, start, end (s after the call's start), CPU s]
+                pid, start, end, cpu = meta["clock"]
+                timeline.append([ti, int(pid), round(start - epoch0, 4), round(end - epoch0, 4), round(cpu, 4)])
         n = tile_spp[ti]
         emission[:, pix] = (emis / (n if isinstance(n, int) else n[:, None])).float().T
         blocks.extend(_blocks_from_local(local, pix, term_index))
         split["assemble"] += time.perf_counter() - t
 
+    view_guides = None
+
+    def make_guides() -> None:  # independent of the tiles: computed while they run
+        nonlocal view_guides
+        view_guides = guide_buffers(scene) if guides else None
+
     if executor == "local":
         library()  # build (or load) the compiled kernel once, before tiles fork
-    t0 = time.perf_counter()
+    t0, epoch0 = time.perf_counter(), time.time()
     results = run_tiles(
         _polynomial_tile,
         work,
@@ -489,6 +505,7 @@ def precompute_polynomial(
         consume=consume,
         processes=1 if paths is not None else processes,
         steps_per_tile=[work.steps(k) for k in range(num_tiles)],
+        idle=make_guides,
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
@@ -497,15 +514,13 @@ def precompute_polynomial(
         "rays": rays,
         "seconds": time.perf_counter() - t0,
         "split": split,
+        "timeline": timeline,
         "tiles_cached": cached[0],
         "executor": executor,
         "ray_nodes": len(results.nodes),
         "processes": results.processes,
     }
-    view_guides = None
-    meta["guides"] = None
-    if guides:
-        view_guides, meta["guides"] = guide_buffers(scene), GUIDE_VERSION
+    meta["guides"] = GUIDE_VERSION if guides else None
     if not keep_checkpoint:
         cache.remove()
     names = [o.name for o in scene.objects]
