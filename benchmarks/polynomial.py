@@ -79,6 +79,7 @@ from torch_brdf.metrics import relative_rmse
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
+from torch_brdf.transport.executor import wait_tile_processes
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 from torch_brdf.transport.rays import NativeRays
@@ -189,8 +190,10 @@ def _embree_seconds(scene, log, totals) -> dict[str, float]:
 
 
 def _cpu_seconds() -> float:
-    """User + system CPU seconds of this process and its finished children (forked tiles; the
-    scene's trace process, which lives on, is not counted: ray casting is outside)."""
+    """User + system CPU seconds of this process and its finished children (forked tiles, once
+    they have exited; the scene's trace process, which lives on, is not counted: ray casting is
+    outside)."""
+    wait_tile_processes()
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
 

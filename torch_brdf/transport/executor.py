@@ -50,7 +50,16 @@ from .._threads import configure_worker, prepare_fork, single_thread, tile_proce
 from ..errors import TorchBRDFError, ValueRangeError
 from ..records.cache import TileCache
 
-__all__ = ["EXECUTORS", "TileError", "TileWork", "connect_ray", "run_tiles", "single_process", "tile_tick"]
+__all__ = [
+    "EXECUTORS",
+    "TileError",
+    "TileWork",
+    "connect_ray",
+    "run_tiles",
+    "single_process",
+    "tile_tick",
+    "wait_tile_processes",
+]
 
 EXECUTORS = ("local", "ray")
 
@@ -395,6 +404,17 @@ def _forked_tile(k: int) -> tuple[tuple, bytes | None]:
     return (_handed(arrays, folder, k), tile_meta), cache.encode(arrays, {**meta, **tile_meta})
 
 
+# forked tile processes of finished runs that may still be exiting (see :func:`wait_tile_processes`)
+_EXITING: list = []
+
+
+def wait_tile_processes() -> None:
+    """Wait until the forked tile processes of finished runs have exited (a run returns while
+    they free their memory), e.g. before reading the CPU time of this process's children."""
+    while _EXITING:
+        _EXITING.pop().join()
+
+
 def _run_forked(
     fn: TileFn, context: Any, todo: Sequence[int], finish, advance, processes: int, cache, meta, idle=None
 ) -> None:
@@ -404,6 +424,7 @@ def _run_forked(
     that dies (killed, out of memory) raises ``BrokenProcessPool``; either way, and on Ctrl-C,
     the other processes are stopped."""
     global _FORKED
+    _EXITING[:] = [p for p in _EXITING if p.is_alive()]  # those of earlier runs that are gone
     prepare_fork()
     mp = multiprocessing.get_context("fork")
     ticks = mp.SimpleQueue()
@@ -417,6 +438,7 @@ def _run_forked(
     with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
         warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
         pool = ProcessPoolExecutor(processes, mp, initializer=_forked_init)
+        received = False
         try:
             with single_thread():
                 futures = {pool.submit(_forked_tile, k): k for k in todo}
@@ -429,12 +451,17 @@ def _run_forked(
                     for f in done:
                         (handed, tile_meta), encoded = f.result()
                         finish(futures[f], (_received(handed), tile_meta), encoded)
+            received = True
         except BaseException:
             for proc in list((getattr(pool, "_processes", None) or {}).values()):
                 proc.terminate()  # running tiles are not waited for
             raise
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            # every tile received: the processes exit (freeing their memory) while this one
+            # goes on; the pool's own thread reaps them (:func:`wait_tile_processes` waits)
+            if received:
+                _EXITING.extend((getattr(pool, "_processes", None) or {}).values())
+            pool.shutdown(wait=not received, cancel_futures=True)
             _FORKED = None
             ticks.close()
             if folder is not None:  # files of tiles never received (an error, Ctrl-C)
