@@ -767,13 +767,13 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
         half_terms(a, b, h, &cos_d, &sin_d);
         float gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
         const float *in = edges + sp[7];
-        int lo = 0, hi = sp[2] - 1; /* bucketize(right=True): the number of inner edges <= gamma */
-        while (lo < hi) {
-            int mid = (lo + hi) / 2;
-            if (in[mid] <= gamma)
-                lo = mid + 1;
-            else
-                hi = mid;
+        /* bucketize(right=True): the number of inner edges <= gamma (an upper bound by halving,
+         * without a branch per step: the step's outcome is as random as the sample) */
+        int lo = 0, len = sp[2] - 1;
+        while (len > 0) {
+            int half = len >> 1, go = in[lo + half] <= gamma;
+            lo = go ? lo + half + 1 : lo;
+            len = go ? len - half - 1 : half;
         }
         float up = (a[2] > 0 && b[2] > 0) ? 1.0f : 0.0f;
         for (int l = 0; l < sp[4] && l < L; l++) {
@@ -1122,4 +1122,204 @@ int64_t tb_intersect_only(void *scene, void *fn, int64_t n, const float *o, cons
         if (geom) geom[i] = r.geomID == TB_INVALID_ID ? -1 : (int32_t)r.geomID;
     }
     return hits;
+}
+
+/* ---- The GI tracer's wavefront in reused buffers (tracer.py _Tracer._run_wavefront; #14, session 8)
+ *
+ * The sampling side of a bounce without torch ops between the steps: the random numbers are drawn
+ * here from the bytes of torch's CPU generator state (Generator.get_state(), written back after
+ * the wavefront), the light samples that reach their vertex are gathered with their diffuse
+ * factor, and the paths whose next ray hits are compacted in place into the wavefront's buffers
+ * (allocated once per tracer, sized by the largest wavefront), instead of torch.rand, boolean
+ * indexing and fresh tensors per step. The arithmetic is the session-6 steps' above (tb_frame,
+ * tb_area_sample, tb_layers, tb_mixture, tb_advance), called on those buffers, so the tensors
+ * are the same bit for bit. */
+
+/* torch's CPU generator (ATen CPUGeneratorImpl: at::mt19937) as Generator.get_state() lays it
+ * out (CPUGeneratorImplState: initial seed int64 at byte 0, left int32 at 8, seeded int32 at 12,
+ * next uint64 at 16, state uint64[624] at 24). torch.rand fills a tensor element after element
+ * (row-major) from one serial engine: float32 as (u32 & 0xFFFFFF) * 2^-24, float64 as
+ * ((u32 << 32 | u32') & (2^53 - 1)) * 2^-53, the first draw the high word. _native.py checks
+ * once per process that this equals torch.rand bit for bit on a copy of a generator. */
+enum { MT_N = 624, MT_M = 397, GS_LEFT = 8, GS_NEXT = 16, GS_STATE = 24 };
+typedef struct {
+    uint32_t s[MT_N]; /* the engine's words (what get_state holds) */
+    uint32_t t[MT_N]; /* the same words tempered, drawn in order */
+    int32_t left;
+    uint64_t next;
+} tb_mt;
+
+static void mt_temper(tb_mt *g) { /* all 624 at once: a loop the compiler vectorises */
+    for (int i = 0; i < MT_N; i++) {
+        uint32_t y = g->s[i];
+        y ^= (y >> 11);
+        y ^= (y << 7) & 0x9d2c5680u;
+        y ^= (y << 15) & 0xefc60000u;
+        g->t[i] = y ^ (y >> 18);
+    }
+}
+
+static void mt_load(tb_mt *g, const uint8_t *b) {
+    memcpy(&g->left, b + GS_LEFT, 4), memcpy(&g->next, b + GS_NEXT, 8);
+    for (int i = 0; i < MT_N; i++) {
+        uint64_t v;
+        memcpy(&v, b + GS_STATE + 8 * i, 8);
+        g->s[i] = (uint32_t)v;
+    }
+    mt_temper(g);
+}
+
+static void mt_store(const tb_mt *g, uint8_t *b) {
+    memcpy(b + GS_LEFT, &g->left, 4), memcpy(b + GS_NEXT, &g->next, 8);
+    for (int i = 0; i < MT_N; i++) {
+        uint64_t v = g->s[i];
+        memcpy(b + GS_STATE + 8 * i, &v, 8);
+    }
+}
+
+static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
+    return ((((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u));
+}
+
+static void mt_refill(tb_mt *g) { /* at::mt19937::next_state */
+    uint32_t *p = g->s;
+    g->left = MT_N, g->next = 0;
+    for (int j = MT_N - MT_M + 1; --j; p++) *p = p[MT_M] ^ mt_twist(p[0], p[1]);
+    for (int j = MT_M; --j; p++) *p = p[MT_M - MT_N] ^ mt_twist(p[0], p[1]);
+    *p = p[MT_M - MT_N] ^ mt_twist(p[0], g->s[0]);
+}
+
+static inline uint32_t mt_u32(tb_mt *g) {
+    if (--g->left == 0) mt_refill(g), mt_temper(g);
+    return g->t[g->next++];
+}
+
+static inline float mt_f32(tb_mt *g) { return (float)(mt_u32(g) & 0xFFFFFFu) * (1.0f / 16777216.0f); }
+
+static inline double mt_f64(tb_mt *g) {
+    uint64_t hi = mt_u32(g), lo = mt_u32(g);
+    return (double)(((hi << 32) | lo) & ((1ull << 53) - 1)) * (1.0 / 9007199254740992.0);
+}
+
+/* torch.rand(n, generator=g, dtype=float64 if dbl else float32) into out, drawn from and
+ * advancing the state bytes gs (Generator.get_state()). */
+void tb_rand(uint8_t *gs, int64_t n, int dbl, void *out) {
+    tb_mt g;
+    mt_load(&g, gs);
+    if (dbl)
+        for (int64_t i = 0; i < n; i++) ((double *)out)[i] = mt_f64(&g);
+    else
+        for (int64_t i = 0; i < n; i++) ((float *)out)[i] = mt_f32(&g);
+    mt_store(&g, gs);
+}
+
+/* The path state of a wavefront, one row per live path (tracer.py PathState): idx, m1 (int64),
+ * raw (3 float32), A_i (La int64), A_w (La x 3), B_i (Lb), B_w (Lb x 3), counts (M int8), and the
+ * vertex the path is at: d_in, pos, ng, ns (3 float32 each), oid (int64). */
+typedef struct {
+    int64_t *idx, *m1, *A_i, *B_i, *oid;
+    float *raw, *A_w, *B_w, *d_in, *pos, *ng, *ns;
+    int8_t *counts;
+    int64_t La, Lb, M;
+} tb_wf;
+
+static void wf_copy_row(const tb_wf *s, int64_t to, int64_t from) {
+    s->idx[to] = s->idx[from], s->m1[to] = s->m1[from];
+    memmove(s->raw + 3 * to, s->raw + 3 * from, 12);
+    memmove(s->A_i + s->La * to, s->A_i + s->La * from, 8 * s->La);
+    memmove(s->A_w + 3 * s->La * to, s->A_w + 3 * s->La * from, 12 * s->La);
+    memmove(s->B_i + s->Lb * to, s->B_i + s->Lb * from, 8 * s->Lb);
+    memmove(s->B_w + 3 * s->Lb * to, s->B_w + 3 * s->Lb * from, 12 * s->Lb);
+    memmove(s->counts + s->M * to, s->counts + s->M * from, s->M);
+}
+
+static void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, const int64_t *obj, const float *hpos,
+                      const float *hng, const float *hns) {
+    for (int c = 0; c < 3; c++) {
+        s->d_in[3 * h + c] = d[3 * i + c], s->pos[3 * h + c] = hpos[3 * i + c];
+        s->ng[3 * h + c] = hng[3 * i + c], s->ns[3 * h + c] = hns[3 * i + c];
+    }
+    s->oid[h] = obj[i];
+}
+
+static tb_wf wf_make(void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = {(int64_t *)p[0], (int64_t *)p[1], (int64_t *)p[2], (int64_t *)p[3], (int64_t *)p[4],
+               (float *)p[5],   (float *)p[6],   (float *)p[7],   (float *)p[8],   (float *)p[9],
+               (float *)p[10],  (float *)p[11],  (int8_t *)p[12], La,              Lb,
+               M};
+    return s;
+}
+
+/* The eye vertices: rays 0..n-1 (directions d (n, 3)) whose closest hit obj[i] >= 0 (hit
+ * positions and normals hpos, hng, hns (n, 3)) start paths (PathState.start: idx = ray, m1 = the
+ * object, raw 1, A (0, 1), B (-1, 1), counts 0) in the state buffers p (13 pointers in tb_wf's
+ * order). Returns the paths. */
+int64_t tb_wf_start(int64_t n, const float *d, const int64_t *obj, const float *hpos, const float *hng,
+                    const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = wf_make(p, La, Lb, M);
+    int64_t h = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (obj[i] < 0) continue;
+        s.idx[h] = i, s.m1[h] = obj[i];
+        for (int c = 0; c < 3; c++) s.raw[3 * h + c] = 1.0f;
+        for (int64_t l = 0; l < La; l++) s.A_i[La * h + l] = 0;
+        for (int64_t l = 0; l < 3 * La; l++) s.A_w[3 * La * h + l] = 1.0f;
+        for (int64_t l = 0; l < Lb; l++) s.B_i[Lb * h + l] = -1;
+        for (int64_t l = 0; l < 3 * Lb; l++) s.B_w[3 * Lb * h + l] = 1.0f;
+        memset(s.counts + M * h, 0, M);
+        wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
+        h++;
+    }
+    return h;
+}
+
+/* After a bounce's trace: ray i (n rays, directions d (n, 3)) continued path a[i] (increasing
+ * rows of the state); the paths whose ray hit (obj[i] >= 0) keep their rows, compacted in place
+ * (row h <- row a[i], h <= a[i]: no row is overwritten before it is read), with their new vertex.
+ * Returns the live paths (tracer.py: st.keep(a[hit]) and the gathers of the hits). */
+int64_t tb_wf_compact(int64_t n, const int64_t *a, const float *d, const int64_t *obj, const float *hpos,
+                      const float *hng, const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = wf_make(p, La, Lb, M);
+    int64_t h = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (obj[i] < 0) continue;
+        if (a[i] != h) wf_copy_row(&s, h, a[i]);
+        wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
+        h++;
+    }
+    return h;
+}
+
+/* The light samples that reach their vertex: candidates k (m,) of tb_area_sample (per vertex
+ * dir, weight (n, 3), cos (n,)), occluded ones (occ (m,) bytes) dropped, in order, gathered as
+ * tb_unoccluded + tb_light_gather do (kk, wl, wo_k, ob, ed, lw = (weight cos) / reps); with
+ * `diffuse` also the factor of a diffuse-equivalent vertex (tracer.py _diffuse_f): 1/pi for
+ * editable objects, else the fixed BRDF (mode (O,): 1 Lambertian, reflectance lambert (O, 3),
+ * else 1), into f (m, 3). Returns the samples. */
+int64_t tb_wf_light_hits(int64_t m, const int64_t *k, const uint8_t *occ, const float *dir, const float *weight,
+                         const float *cosv, float reps, const float *frame, const float *wo, const int64_t *oid,
+                         const uint8_t *editable, int diffuse, const int32_t *mode, const float *lambert, int64_t *kk,
+                         float *wl, float *wo_k, int64_t *ob, uint8_t *ed, float *lw, float *f) {
+    const float inv_pi = (float)(1.0 / 3.14159265358979323846);
+    int64_t h = 0;
+    for (int64_t i = 0; i < m; i++) {
+        if (occ[i]) continue;
+        int64_t r = k[i];
+        kk[h] = r;
+        float *l = wl + 3 * h;
+        const float *o = wo + 3 * r;
+        to_local(frame + 9 * r, dir + 3 * r, l);
+        for (int c = 0; c < 3; c++) wo_k[3 * h + c] = o[c], lw[3 * h + c] = (weight[3 * r + c] * cosv[r]) / reps;
+        int64_t b = oid[r];
+        ob[h] = b, ed[h] = editable[b] != 0;
+        if (diffuse) {
+            int up = l[2] > 0 && o[2] > 0;
+            for (int c = 0; c < 3; c++)
+                f[3 * h + c] = ed[h] ? inv_pi
+                               : mode[b] == 1 ? (up ? lambert[3 * b + c] / (float)3.14159265358979323846 : 0.0f)
+                                              : 1.0f;
+        }
+        h++;
+    }
+    return h;
 }

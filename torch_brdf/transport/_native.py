@@ -99,6 +99,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_trace_hits.restype, lib.tb_trace_hits.argtypes = i64, [p, p, i64, p, p, p, p, p, p, p, p, p, p, p, p]
     lib.tb_occluded_rays.restype, lib.tb_occluded_rays.argtypes = i64, [p, p, i64, p, p, i64, p, p, p]
     lib.tb_intersect_only.restype, lib.tb_intersect_only.argtypes = i64, [p, p, i64, p, p, p, p]
+    # the GI tracer's wavefront in reused buffers (polynomial/vertex.py Wavefront)
+    lib.tb_rand.restype, lib.tb_rand.argtypes = None, [p, i64, i32, p]
+    lib.tb_wf_start.restype, lib.tb_wf_start.argtypes = i64, [i64, p, p, p, p, p, p, i64, i64, i64]
+    lib.tb_wf_compact.restype, lib.tb_wf_compact.argtypes = i64, [i64, p, p, p, p, p, p, p, i64, i64, i64]
+    lib.tb_wf_light_hits.restype = i64
+    lib.tb_wf_light_hits.argtypes = [i64, p, p, p, p, p, f32, p, p, p, p, i32, p, p, p, p, p, p, p, p, p]
     return lib
 
 
