@@ -763,9 +763,18 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
             for (int c = 0; c < 3; c++) wr[c] = up ? rho[c] / (float)3.14159265358979323846 : 0.0f;
         }
         if (sp[0] != 1) continue;
-        float h[3], cos_d, sin_d;
-        half_terms(a, b, h, &cos_d, &sin_d);
-        float gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
+        /* the half vector and angle only where something reads them (session 8): a single band
+         * (J = 1) needs no angle, and the one, distribution and microfacet quotients no h or
+         * theta_d; the values written are the same */
+        int need_h = sp[2] > 1;
+        for (int l = 0; l < sp[4] && l < L; l++) {
+            int q = sp[5 + l];
+            need_h |= (q & Q_SCHLICK) || (q & 7) == Q_COOK_TORRANCE || (q & 7) == Q_ASHIKHMIN_SHIRLEY;
+        }
+        float h[3] = {0, 0, 1}, cos_d = 1, sin_d = 0, gamma = 0;
+        if (need_h) half_terms(a, b, h, &cos_d, &sin_d);
+        if (sp[2] > 1)
+            gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
         const float *in = edges + sp[7];
         /* bucketize(right=True): the number of inner edges <= gamma (an upper bound by halving,
          * without a branch per step: the step's outcome is as random as the sample) */
