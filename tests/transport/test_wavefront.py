@@ -4,6 +4,9 @@ per-step kernel calls it replaces bit for bit (same arithmetic, same stream, sam
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+
 import numpy as np
 import pytest
 import torch
@@ -98,3 +101,56 @@ def test_wavefront_only_where_the_kernel_knows_every_step():
     sc.objects[sc.object_id("tall_box")].editable = False
     sc.objects[sc.object_id("tall_box")].material = "fixed_gloss"
     assert vx.Wavefront.make(vx.VertexKernel.make(tracer(sc, list(sc.lights)))) is None
+
+
+def _powf():
+    libm = ctypes.CDLL(ctypes.util.find_library("m"))
+    libm.powf.restype, libm.powf.argtypes = ctypes.c_float, [ctypes.c_float, ctypes.c_float]
+    return libm.powf
+
+
+@needs_cc
+@pytest.mark.parametrize("exponent", [200.0, 12.0, 3000.0])
+def test_mixture_pdf_without_negligible_lobe_terms_is_exact(exponent):
+    """tb_mixture leaves the Blinn lobe's pdf term out where it is below a quarter ulp of the
+    cosine term; its pdf and cos / pdf still equal, bit for bit, the full float32 formula with
+    libm's powf (sampler.py Mixture.pdf in the kernel's operation order), recomputed here in
+    numpy float32 from the directions the kernel drew."""
+    g = torch.Generator().manual_seed(int(exponent))
+    n = 40000
+    wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    wo[:, 2] = wo[:, 2].abs()
+    wo[: n // 8, 2] *= 1e-3  # grazing: small cosine terms
+    wo = torch.nn.functional.normalize(wo, dim=-1).contiguous()
+    u = torch.rand(n, 3, generator=g)
+    # directions near the horizon (the disk's rim): tiny cosine terms, where the lobe's term counts
+    u[n // 2 :, 1] = 1 - torch.rand(n - n // 2, generator=g) * torch.logspace(-8, -2, n - n // 2)
+    m = Mixture(exponent=exponent)
+    nn = float(m.exponent)
+    mix = [m.diffuse, 1 - m.diffuse, nn, (nn + 1.0) / (2 * np.pi)]
+    wi, pdf, cosw = torch.empty(n, 3), torch.empty(n), torch.empty(n)
+    ok = torch.empty(n, dtype=torch.uint8)
+    LIB.tb_mixture(
+        n, _native.ptr(u), _native.ptr(wo), *map(ctypes.c_float, mix), *map(_native.ptr, (wi, pdf, cosw, ok))
+    )
+    f = np.float32
+    d, gl, ex, nm = (f(x) for x in mix)
+    w, o = wi.numpy(), wo.numpy()
+    s = w + o
+    ln = np.sqrt(np.maximum((s[:, 0] * s[:, 0] + s[:, 1] * s[:, 1]) + s[:, 2] * s[:, 2], f(0)))
+    big = ln > f(1.1920929e-07)
+    h = np.where(big[:, None], s / np.where(big, ln, f(1))[:, None], np.array([0, 0, 1], np.float32))
+    coh = np.abs((o[:, 0] * h[:, 0] + o[:, 1] * h[:, 1]) + o[:, 2] * h[:, 2])
+    coh = np.where(coh < f(1e-12), f(1e-12), coh)
+    ch = np.maximum(h[:, 2], f(0))
+    powf = _powf()
+    pw = np.array([powf(float(max(c, f(1.17549435e-38))), float(ex)) for c in ch], np.float32)
+    ph = np.where(ch > 0, nm * pw, f(0))
+    cz = np.maximum(w[:, 2], f(0))
+    p = d * (cz * f(1 / np.pi)) + (gl * ph) / (f(4) * coh)
+    p = np.where(w[:, 2] > 0, p, f(0))
+    good = (p > 0) & (w[:, 2] > 0) & (o[:, 2] > 0)
+    want_cosw = np.where(good, w[:, 2] / np.maximum(p, f(1e-30)), f(0))
+    assert np.array_equal(pdf.numpy(), p.astype(np.float32))
+    assert np.array_equal(cosw.numpy(), want_cosw.astype(np.float32))
+    assert np.array_equal(ok.numpy().astype(bool), good)

@@ -793,6 +793,17 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
     }
 }
 
+/* a quarter of the spacing of float32 values at x (normal, positive) as a float64 */
+static double ulp_quarter(float x) {
+    uint32_t b;
+    memcpy(&b, &x, 4);
+    int e = (int)((b >> 23) & 0xff) - 127; /* x in [2^e, 2^(e+1)): its ulp is 2^(e - 23) */
+    uint64_t d = (uint64_t)(e - 23 - 2 + 1023) << 52;
+    double q;
+    memcpy(&q, &d, 8);
+    return q;
+}
+
 /* sampler.py Mixture.sample and .pdf, then the tracer's ok and cos / pdf: u (n, 3) float32,
  * wo (n, 3) local -> wi (n, 3), pdf (n,), cosw (n,) and ok (n,) uint8. The constants as torch
  * rounds them: diffuse, gloss = 1 - diffuse, exponent n and norm = (n + 1) / (2 pi) in float64,
@@ -802,6 +813,12 @@ void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float
     const double PI = 3.14159265358979323846;
     const float tiny = 1.17549435e-38f, e = 1.1920929e-07f, q1 = (float)(PI / 4), q2 = (float)(PI / 2);
     const float two_pi = (float)(2 * PI), inv_pi = (float)(1 / PI);
+    /* Session 8: the lobe's pdf term gloss * norm * powf(ch, n) / (4 coh) (powf: ~40% of this
+     * loop) is left out where it cannot change p: for ch <= c0 it is at most lobe_bound / coh
+     * (c0^n in float64 with margins for powf's ulp and the four float32 roundings), and a
+     * term below half an ulp of t1 > 0 leaves the rounded sum t1 + term at t1. */
+    float c0 = exponent > 0 ? (float)exp(log(1e-12) / exponent) : -1.0f;
+    double lobe_bound = c0 > 0 ? (double)gloss * (double)norm * pow((double)c0, (double)exponent) * 1.01 / 4.0 : 0.0;
     for (int64_t i = 0; i < n; i++) {
         const float *ui = u + 3 * i, *o = wo + 3 * i;
         float *w = wi + 3 * i;
@@ -832,10 +849,16 @@ void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float
         float coh = fabsf(dot3(o, h));
         coh = coh < 1e-12f ? 1e-12f : coh;
         float ch = h[2] > 0 ? h[2] : 0.0f;
-        float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
         float cz = w[2] > 0 ? w[2] : 0.0f;
-        float p = diffuse * (cz * inv_pi) + gloss * ph / (4 * coh);
-        p = w[2] > 0 ? p : 0.0f;
+        float t1 = diffuse * (cz * inv_pi), p;
+        if (!(w[2] > 0)) /* p is 0 whatever the lobe's term */
+            p = 0.0f;
+        else if (ch <= c0 && t1 >= 0x1p-100f && lobe_bound < (double)coh * ulp_quarter(t1))
+            p = t1; /* the lobe's term is below a quarter ulp of t1: t1 + it rounds to t1 */
+        else {
+            float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
+            p = t1 + gloss * ph / (4 * coh);
+        }
         pdf[i] = p;
         int good = p > 0 && w[2] > 0 && o[2] > 0;
         ok[i] = (uint8_t)good;
