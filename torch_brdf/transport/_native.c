@@ -619,10 +619,8 @@ static void to_local(const float *fr, const float *v, float *out) {
 
 /* pathtrace.py shading_frame: flipped normals (in place), the frame (n, 9: s, t, n) from the
  * shading normal (frame.py orthonormal_basis, Duff et al. 2017) and wo = to_local(-d_in). */
-void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, float *wo) {
-    for (int64_t i = 0; i < n; i++) {
-        float *g = ng + 3 * i, *s = ns + 3 * i, *fr = frame + 9 * i;
-        const float *d = d_in + 3 * i;
+static inline void frame_row(const float *d, float *g, float *s, float *fr, float *wo) {
+    {
         float flip = dot3(d, g) > 0 ? -1.0f : 1.0f;
         for (int c = 0; c < 3; c++) g[c] *= flip, s[c] *= flip;
         if (!(dot3(s, g) > 0))
@@ -633,8 +631,12 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
         fr[3] = b, fr[4] = sign + y * y * a, fr[5] = -y;
         fr[6] = x, fr[7] = y, fr[8] = z;
         float md[3] = {-d[0], -d[1], -d[2]};
-        to_local(fr, md, wo + 3 * i);
+        to_local(fr, md, wo);
     }
+}
+
+void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, float *wo) {
+    for (int64_t i = 0; i < n; i++) frame_row(d_in + 3 * i, ng + 3 * i, ns + 3 * i, frame + 9 * i, wo + 3 * i);
 }
 
 /* An area light's next-event samples from every vertex (lights.py AreaLight.sample_points and
@@ -1252,6 +1254,7 @@ typedef struct {
     int64_t *idx, *m1, *A_i, *B_i, *oid;
     float *raw, *A_w, *B_w, *d_in, *pos, *ng, *ns;
     int8_t *counts;
+    float *frame, *wo; /* the vertex's shading frame (9) and wo (3): tb_frame's outputs */
     int64_t La, Lb, M;
 } tb_wf;
 
@@ -1272,20 +1275,21 @@ static void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, cons
         s->ng[3 * h + c] = hng[3 * i + c], s->ns[3 * h + c] = hns[3 * i + c];
     }
     s->oid[h] = obj[i];
+    frame_row(s->d_in + 3 * h, s->ng + 3 * h, s->ns + 3 * h, s->frame + 9 * h, s->wo + 3 * h);
 }
 
 static tb_wf wf_make(void *const *p, int64_t La, int64_t Lb, int64_t M) {
-    tb_wf s = {(int64_t *)p[0], (int64_t *)p[1], (int64_t *)p[2], (int64_t *)p[3], (int64_t *)p[4],
-               (float *)p[5],   (float *)p[6],   (float *)p[7],   (float *)p[8],   (float *)p[9],
-               (float *)p[10],  (float *)p[11],  (int8_t *)p[12], La,              Lb,
-               M};
+    tb_wf s = {(int64_t *)p[0], (int64_t *)p[1], (int64_t *)p[2],  (int64_t *)p[3], (int64_t *)p[4],
+               (float *)p[5],   (float *)p[6],   (float *)p[7],    (float *)p[8],   (float *)p[9],
+               (float *)p[10],  (float *)p[11],  (int8_t *)p[12],  (float *)p[13],  (float *)p[14],
+               La,              Lb,              M};
     return s;
 }
 
 /* The eye vertices: rays 0..n-1 (directions d (n, 3)) whose closest hit obj[i] >= 0 (hit
  * positions and normals hpos, hng, hns (n, 3)) start paths (PathState.start: idx = ray, m1 = the
- * object, raw 1, A (0, 1), B (-1, 1), counts 0) in the state buffers p (13 pointers in tb_wf's
- * order). Returns the paths. */
+ * object, raw 1, A (0, 1), B (-1, 1), counts 0) in the state buffers p (15 pointers in tb_wf's
+ * order), each vertex with its shading frame (tb_frame: normals flipped). Returns the paths. */
 int64_t tb_wf_start(int64_t n, const float *d, const int64_t *obj, const float *hpos, const float *hng,
                     const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
     tb_wf s = wf_make(p, La, Lb, M);
@@ -1307,8 +1311,9 @@ int64_t tb_wf_start(int64_t n, const float *d, const int64_t *obj, const float *
 
 /* After a bounce's trace: ray i (n rays, directions d (n, 3)) continued path a[i] (increasing
  * rows of the state); the paths whose ray hit (obj[i] >= 0) keep their rows, compacted in place
- * (row h <- row a[i], h <= a[i]: no row is overwritten before it is read), with their new vertex.
- * Returns the live paths (tracer.py: st.keep(a[hit]) and the gathers of the hits). */
+ * (row h <- row a[i], h <= a[i]: no row is overwritten before it is read), with their new vertex
+ * and its frame. Returns the live paths (tracer.py: st.keep(a[hit]), the gathers of the hits and
+ * tb_frame). */
 int64_t tb_wf_compact(int64_t n, const int64_t *a, const float *d, const int64_t *obj, const float *hpos,
                       const float *hng, const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
     tb_wf s = wf_make(p, La, Lb, M);

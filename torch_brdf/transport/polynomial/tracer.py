@@ -406,9 +406,7 @@ class _Tracer:
                 if n == 0:
                     break
                 banded = self._banded(v)
-                with clock("sampling"):
-                    st = wf.state(n, PathState)
-                    wf.frame(n)
+                st = wf.state(n, PathState)  # its vertices' frames came with them (start, compact)
                 reps = self.eye_light_samples if v == 1 else 1
                 for light in [li for li in self.lights for _ in range(reps)]:
                     with clock("sampling"):

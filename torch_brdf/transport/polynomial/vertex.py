@@ -332,9 +332,10 @@ class Wavefront:
                    "oid": e(r, **_I64), "raw": e(r, 3, **_F32), "A_w": e(r, La, 3, **_F32),
                    "B_w": e(r, Lb, 3, **_F32), "d_in": e(r, 3, **_F32), "pos": e(r, 3, **_F32),
                    "ng": e(r, 3, **_F32), "ns": e(r, 3, **_F32), "counts": e(r, M, dtype=torch.int8)}  # fmt: skip
-        # the order of tb_wf in _native.c
-        self._st_ptrs = (ctypes.c_void_p * 13)(*[x.data_ptr() for x in self.st.values()])
         self.fr, self.wo = e(r, 9, **_F32), e(r, 3, **_F32)
+        # the order of tb_wf in _native.c
+        ptrs = [x.data_ptr() for x in (*self.st.values(), self.fr, self.wo)]
+        self._st_ptrs = (ctypes.c_void_p * 15)(*ptrs)
         # light samples: uniforms, per vertex, candidates, the ones that reach their vertex
         self.u64, self.lcos = e(r, 3, dtype=torch.float64), e(r, **_F32)
         self.ldir, self.lwt = e(r, 3, **_F32), e(r, 3, **_F32)
@@ -355,7 +356,8 @@ class Wavefront:
                    s["B_w"][:n], s["counts"][:n])  # fmt: skip
 
     def start(self, directions, hits) -> int:
-        """The eye vertices of the rays that hit (``PathState.start``); returns the paths."""
+        """The eye vertices of the rays that hit (``PathState.start``) with their shading frames
+        (``fr``, ``wo``; normals flipped); returns the paths."""
         self.ensure(directions.shape[0])
         d = _f(directions)
         return self.lib.tb_wf_start(
@@ -364,16 +366,12 @@ class Wavefront:
         )  # fmt: skip
 
     def compact(self, m: int, hits) -> int:
-        """After the trace of the ``m`` next rays: the paths whose ray hit, at their new vertex."""
+        """After the trace of the ``m`` next rays: the paths whose ray hit, at their new vertex
+        with its shading frame."""
         return self.lib.tb_wf_compact(
             m, _p(self.a), _p(self.nsd), _p(hits.object_id), _p(hits.position), _p(hits.geometric_normal),
             _p(hits.normal), self._st_ptrs, self.La, self.Lb, self.M,
         )  # fmt: skip
-
-    def frame(self, n: int) -> None:
-        """The shading frames and ``wo`` of the ``n`` vertices (normals flipped in place)."""
-        s = self.st
-        self.lib.tb_frame(n, _p(s["d_in"]), _p(s["ng"]), _p(s["ns"]), _p(self.fr), _p(self.wo))
 
     def _light(self, light):
         if id(light) not in self._lights:
