@@ -414,7 +414,8 @@ class _Tracer:
                     self.rays["shadow"] += m
                     if m == 0:
                         continue
-                    occ = self.occluded(wf.so[:m], wf.sd[:m], wf.tmax[:m])
+                    with clock("rays"):  # (the clock counts ray time only inside a section)
+                        occ = self.occluded(wf.so[:m], wf.sd[:m], wf.tmax[:m])
                     with clock("sampling"):
                         h = wf.light_hits(m, occ, reps, v > 1 and not banded)
                     if h == 0:
