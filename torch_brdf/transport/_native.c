@@ -1258,14 +1258,17 @@ typedef struct {
     int64_t La, Lb, M;
 } tb_wf;
 
+/* row `from` of the path state into row `to` < from (distinct rows: plain loops, no libc call
+ * per field) */
 static void wf_copy_row(const tb_wf *s, int64_t to, int64_t from) {
+    const int64_t La = s->La, Lb = s->Lb, M = s->M;
     s->idx[to] = s->idx[from], s->m1[to] = s->m1[from];
-    memmove(s->raw + 3 * to, s->raw + 3 * from, 12);
-    memmove(s->A_i + s->La * to, s->A_i + s->La * from, 8 * s->La);
-    memmove(s->A_w + 3 * s->La * to, s->A_w + 3 * s->La * from, 12 * s->La);
-    memmove(s->B_i + s->Lb * to, s->B_i + s->Lb * from, 8 * s->Lb);
-    memmove(s->B_w + 3 * s->Lb * to, s->B_w + 3 * s->Lb * from, 12 * s->Lb);
-    memmove(s->counts + s->M * to, s->counts + s->M * from, s->M);
+    for (int c = 0; c < 3; c++) s->raw[3 * to + c] = s->raw[3 * from + c];
+    for (int64_t l = 0; l < La; l++) s->A_i[La * to + l] = s->A_i[La * from + l];
+    for (int64_t l = 0; l < 3 * La; l++) s->A_w[3 * La * to + l] = s->A_w[3 * La * from + l];
+    for (int64_t l = 0; l < Lb; l++) s->B_i[Lb * to + l] = s->B_i[Lb * from + l];
+    for (int64_t l = 0; l < 3 * Lb; l++) s->B_w[3 * Lb * to + l] = s->B_w[3 * Lb * from + l];
+    for (int64_t l = 0; l < M; l++) s->counts[M * to + l] = s->counts[M * from + l];
 }
 
 static void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, const int64_t *obj, const float *hpos,
