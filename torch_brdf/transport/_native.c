@@ -647,33 +647,44 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
  * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
  * t_max (m,) = dist - 2 eps.
  * Returns m. */
+/* vertex i's sample at uniforms (u0, u1, u2); a candidate goes to row m of k, so, sd, tmax.
+ * Returns the candidates after it. */
+static inline int64_t area_sample_row(int64_t i, double u0, double u1, double u2, const double *cdf, int64_t T,
+                                      const float *tri, const float *nrm, const float *radiance, float area,
+                                      const float *pos, const float *ng, const float *ns, float eps, float *dir,
+                                      float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax,
+                                      int64_t m) {
+    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
+    double sq = sqrt(u1);
+    const float *p = pos + 3 * i;
+    float d[3];
+    const float *nl = nrm + 3 * area_point(u0, 1 - sq, u2 * sq, cdf, T, tri, p, d);
+    float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
+    float *w = dir + 3 * i;
+    for (int c = 0; c < 3; c++) w[c] = d[c] / den;
+    float cl = -dot3(w, nl);
+    int valid = cl > 0 && r > 0;
+    float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
+    for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
+    const float *g = ng + 3 * i;
+    float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
+    cosv[i] = cs;
+    if (cs > 0 && cg > 0 && pdf > 0) {
+        float side = cg >= 0 ? eps : -eps;
+        for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
+        tmax[m] = r - 2 * eps;
+        k[m++] = i;
+    }
+    return m;
+}
+
 int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
                        const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
                        float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
-    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
     int64_t m = 0;
-    for (int64_t i = 0; i < n; i++) {
-        double sq = sqrt(u[3 * i + 1]);
-        const float *p = pos + 3 * i;
-        float d[3];
-        const float *nl = nrm + 3 * area_point(u[3 * i], 1 - sq, u[3 * i + 2] * sq, cdf, T, tri, p, d);
-        float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
-        float *w = dir + 3 * i;
-        for (int c = 0; c < 3; c++) w[c] = d[c] / den;
-        float cl = -dot3(w, nl);
-        int valid = cl > 0 && r > 0;
-        float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
-        for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
-        const float *g = ng + 3 * i;
-        float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
-        cosv[i] = cs;
-        if (cs > 0 && cg > 0 && pdf > 0) {
-            float side = cg >= 0 ? eps : -eps;
-            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
-            tmax[m] = r - 2 * eps;
-            k[m++] = i;
-        }
-    }
+    for (int64_t i = 0; i < n; i++)
+        m = area_sample_row(i, u[3 * i], u[3 * i + 1], u[3 * i + 2], cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps,
+                            dir, weight, cosv, k, so, sd, tmax, m);
     return m;
 }
 
@@ -1362,4 +1373,22 @@ int64_t tb_wf_light_hits(int64_t m, const int64_t *k, const uint8_t *occ, const 
         h++;
     }
     return h;
+}
+
+/* tb_area_sample with its uniforms drawn here, vertex after vertex, from the generator's state
+ * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array. */
+int64_t tb_wf_area_sample(uint8_t *gs, int64_t n, const double *cdf, int64_t T, const float *tri, const float *nrm,
+                          const float *radiance, float area, const float *pos, const float *ng, const float *ns,
+                          float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd,
+                          float *tmax) {
+    tb_mt g;
+    mt_load(&g, gs);
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        double u0 = mt_f64(&g), u1 = mt_f64(&g), u2 = mt_f64(&g);
+        m = area_sample_row(i, u0, u1, u2, cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps, dir, weight, cosv, k, so,
+                            sd, tmax, m);
+    }
+    mt_store(&g, gs);
+    return m;
 }

@@ -336,8 +336,8 @@ class Wavefront:
         # the order of tb_wf in _native.c
         ptrs = [x.data_ptr() for x in (*self.st.values(), self.fr, self.wo)]
         self._st_ptrs = (ctypes.c_void_p * 15)(*ptrs)
-        # light samples: uniforms, per vertex, candidates, the ones that reach their vertex
-        self.u64, self.lcos = e(r, 3, dtype=torch.float64), e(r, **_F32)
+        # light samples: per vertex, candidates, the ones that reach their vertex
+        self.lcos = e(r, **_F32)
         self.ldir, self.lwt = e(r, 3, **_F32), e(r, 3, **_F32)
         self.k, self.so, self.sd, self.tmax = e(r, **_I64), e(r, 3, **_F32), e(r, 3, **_F32), e(r, **_F32)
         self.kk, self.ob, self.ed = e(r, **_I64), e(r, **_I64), e(r, **u8)
@@ -385,9 +385,9 @@ class Wavefront:
         ``gs``): the candidates' rows, shadow rays and ``t_max`` in ``k``, ``so``, ``sd``, ``tmax``."""
         _, cdf, tri, nrm, rad = self._light(light)
         s = self.st
-        self.lib.tb_rand(_p(gs), 3 * n, 1, _p(self.u64))  # as AreaLight.sample_points draws them
-        return self.lib.tb_area_sample(
-            n, _p(self.u64), _p(cdf), cdf.numel(), _p(tri), _p(nrm), _p(rad), ctypes.c_float(light.total_area),
+        # the uniforms torch.rand(n, 3, dtype=float64) would give (as AreaLight.sample_points draws them)
+        return self.lib.tb_wf_area_sample(
+            _p(gs), n, _p(cdf), cdf.numel(), _p(tri), _p(nrm), _p(rad), ctypes.c_float(light.total_area),
             _p(s["pos"]), _p(s["ng"]), _p(s["ns"]), ctypes.c_float(self.vk.eps),
             *map(_p, (self.ldir, self.lwt, self.lcos, self.k, self.so, self.sd, self.tmax)),
         )  # fmt: skip
