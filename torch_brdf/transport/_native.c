@@ -619,10 +619,8 @@ static void to_local(const float *fr, const float *v, float *out) {
 
 /* pathtrace.py shading_frame: flipped normals (in place), the frame (n, 9: s, t, n) from the
  * shading normal (frame.py orthonormal_basis, Duff et al. 2017) and wo = to_local(-d_in). */
-void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, float *wo) {
-    for (int64_t i = 0; i < n; i++) {
-        float *g = ng + 3 * i, *s = ns + 3 * i, *fr = frame + 9 * i;
-        const float *d = d_in + 3 * i;
+static inline void frame_row(const float *d, float *g, float *s, float *fr, float *wo) {
+    {
         float flip = dot3(d, g) > 0 ? -1.0f : 1.0f;
         for (int c = 0; c < 3; c++) g[c] *= flip, s[c] *= flip;
         if (!(dot3(s, g) > 0))
@@ -633,8 +631,12 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
         fr[3] = b, fr[4] = sign + y * y * a, fr[5] = -y;
         fr[6] = x, fr[7] = y, fr[8] = z;
         float md[3] = {-d[0], -d[1], -d[2]};
-        to_local(fr, md, wo + 3 * i);
+        to_local(fr, md, wo);
     }
+}
+
+void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, float *wo) {
+    for (int64_t i = 0; i < n; i++) frame_row(d_in + 3 * i, ng + 3 * i, ns + 3 * i, frame + 9 * i, wo + 3 * i);
 }
 
 /* An area light's next-event samples from every vertex (lights.py AreaLight.sample_points and
@@ -645,33 +647,44 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
  * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
  * t_max (m,) = dist - 2 eps.
  * Returns m. */
+/* vertex i's sample at uniforms (u0, u1, u2); a candidate goes to row m of k, so, sd, tmax.
+ * Returns the candidates after it. */
+static inline int64_t area_sample_row(int64_t i, double u0, double u1, double u2, const double *cdf, int64_t T,
+                                      const float *tri, const float *nrm, const float *radiance, float area,
+                                      const float *pos, const float *ng, const float *ns, float eps, float *dir,
+                                      float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax,
+                                      int64_t m) {
+    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
+    double sq = sqrt(u1);
+    const float *p = pos + 3 * i;
+    float d[3];
+    const float *nl = nrm + 3 * area_point(u0, 1 - sq, u2 * sq, cdf, T, tri, p, d);
+    float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
+    float *w = dir + 3 * i;
+    for (int c = 0; c < 3; c++) w[c] = d[c] / den;
+    float cl = -dot3(w, nl);
+    int valid = cl > 0 && r > 0;
+    float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
+    for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
+    const float *g = ng + 3 * i;
+    float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
+    cosv[i] = cs;
+    if (cs > 0 && cg > 0 && pdf > 0) {
+        float side = cg >= 0 ? eps : -eps;
+        for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
+        tmax[m] = r - 2 * eps;
+        k[m++] = i;
+    }
+    return m;
+}
+
 int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
                        const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
                        float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
-    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
     int64_t m = 0;
-    for (int64_t i = 0; i < n; i++) {
-        double sq = sqrt(u[3 * i + 1]);
-        const float *p = pos + 3 * i;
-        float d[3];
-        const float *nl = nrm + 3 * area_point(u[3 * i], 1 - sq, u[3 * i + 2] * sq, cdf, T, tri, p, d);
-        float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
-        float *w = dir + 3 * i;
-        for (int c = 0; c < 3; c++) w[c] = d[c] / den;
-        float cl = -dot3(w, nl);
-        int valid = cl > 0 && r > 0;
-        float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
-        for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
-        const float *g = ng + 3 * i;
-        float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
-        cosv[i] = cs;
-        if (cs > 0 && cg > 0 && pdf > 0) {
-            float side = cg >= 0 ? eps : -eps;
-            for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
-            tmax[m] = r - 2 * eps;
-            k[m++] = i;
-        }
-    }
+    for (int64_t i = 0; i < n; i++)
+        m = area_sample_row(i, u[3 * i], u[3 * i + 1], u[3 * i + 2], cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps,
+                            dir, weight, cosv, k, so, sd, tmax, m);
     return m;
 }
 
@@ -763,17 +776,26 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
             for (int c = 0; c < 3; c++) wr[c] = up ? rho[c] / (float)3.14159265358979323846 : 0.0f;
         }
         if (sp[0] != 1) continue;
-        float h[3], cos_d, sin_d;
-        half_terms(a, b, h, &cos_d, &sin_d);
-        float gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
+        /* the half vector and angle only where something reads them (session 8): a single band
+         * (J = 1) needs no angle, and the one, distribution and microfacet quotients no h or
+         * theta_d; the values written are the same */
+        int need_h = sp[2] > 1;
+        for (int l = 0; l < sp[4] && l < L; l++) {
+            int q = sp[5 + l];
+            need_h |= (q & Q_SCHLICK) || (q & 7) == Q_COOK_TORRANCE || (q & 7) == Q_ASHIKHMIN_SHIRLEY;
+        }
+        float h[3] = {0, 0, 1}, cos_d = 1, sin_d = 0, gamma = 0;
+        if (need_h) half_terms(a, b, h, &cos_d, &sin_d);
+        if (sp[2] > 1)
+            gamma = sp[1] == 0 ? atan2f(sqrt0f(h[0] * h[0] + h[1] * h[1]), h[2]) : atan2f(sin_d, cos_d);
         const float *in = edges + sp[7];
-        int lo = 0, hi = sp[2] - 1; /* bucketize(right=True): the number of inner edges <= gamma */
-        while (lo < hi) {
-            int mid = (lo + hi) / 2;
-            if (in[mid] <= gamma)
-                lo = mid + 1;
-            else
-                hi = mid;
+        /* bucketize(right=True): the number of inner edges <= gamma (an upper bound by halving,
+         * without a branch per step: the step's outcome is as random as the sample) */
+        int lo = 0, len = sp[2] - 1;
+        while (len > 0) {
+            int half = len >> 1, go = in[lo + half] <= gamma;
+            lo = go ? lo + half + 1 : lo;
+            len = go ? len - half - 1 : half;
         }
         float up = (a[2] > 0 && b[2] > 0) ? 1.0f : 0.0f;
         for (int l = 0; l < sp[4] && l < L; l++) {
@@ -782,6 +804,17 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
             wr[3 * l] = wr[3 * l + 1] = wr[3 * l + 2] = q;
         }
     }
+}
+
+/* a quarter of the spacing of float32 values at x (normal, positive) as a float64 */
+static double ulp_quarter(float x) {
+    uint32_t b;
+    memcpy(&b, &x, 4);
+    int e = (int)((b >> 23) & 0xff) - 127; /* x in [2^e, 2^(e+1)): its ulp is 2^(e - 23) */
+    uint64_t d = (uint64_t)(e - 23 - 2 + 1023) << 52;
+    double q;
+    memcpy(&q, &d, 8);
+    return q;
 }
 
 /* sampler.py Mixture.sample and .pdf, then the tracer's ok and cos / pdf: u (n, 3) float32,
@@ -793,6 +826,12 @@ void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float
     const double PI = 3.14159265358979323846;
     const float tiny = 1.17549435e-38f, e = 1.1920929e-07f, q1 = (float)(PI / 4), q2 = (float)(PI / 2);
     const float two_pi = (float)(2 * PI), inv_pi = (float)(1 / PI);
+    /* Session 8: the lobe's pdf term gloss * norm * powf(ch, n) / (4 coh) (powf: ~40% of this
+     * loop) is left out where it cannot change p: for ch <= c0 it is at most lobe_bound / coh
+     * (c0^n in float64 with margins for powf's ulp and the four float32 roundings), and a
+     * term below half an ulp of t1 > 0 leaves the rounded sum t1 + term at t1. */
+    float c0 = exponent > 0 ? (float)exp(log(1e-12) / exponent) : -1.0f;
+    double lobe_bound = c0 > 0 ? (double)gloss * (double)norm * pow((double)c0, (double)exponent) * 1.01 / 4.0 : 0.0;
     for (int64_t i = 0; i < n; i++) {
         const float *ui = u + 3 * i, *o = wo + 3 * i;
         float *w = wi + 3 * i;
@@ -823,10 +862,16 @@ void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float
         float coh = fabsf(dot3(o, h));
         coh = coh < 1e-12f ? 1e-12f : coh;
         float ch = h[2] > 0 ? h[2] : 0.0f;
-        float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
         float cz = w[2] > 0 ? w[2] : 0.0f;
-        float p = diffuse * (cz * inv_pi) + gloss * ph / (4 * coh);
-        p = w[2] > 0 ? p : 0.0f;
+        float t1 = diffuse * (cz * inv_pi), p;
+        if (!(w[2] > 0)) /* p is 0 whatever the lobe's term */
+            p = 0.0f;
+        else if (ch <= c0 && t1 >= 0x1p-100f && lobe_bound < (double)coh * ulp_quarter(t1))
+            p = t1; /* the lobe's term is below a quarter ulp of t1: t1 + it rounds to t1 */
+        else {
+            float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
+            p = t1 + gloss * ph / (4 * coh);
+        }
         pdf[i] = p;
         int good = p > 0 && w[2] > 0 && o[2] > 0;
         ok[i] = (uint8_t)good;
@@ -1534,4 +1579,228 @@ done:
     free(hb), free(maxc), free(jmax), free(ord), free(zid), free(ord2), free(prank), free(hk), free(terms), free(hv);
     free(zrank), free(sorted_terms), free(jh);
     return nb;
+}
+
+/* ---- The GI tracer's wavefront in reused buffers (tracer.py _Tracer._run_wavefront; #14, session 8)
+ *
+ * The sampling side of a bounce without torch ops between the steps: the random numbers are drawn
+ * here from the bytes of torch's CPU generator state (Generator.get_state(), written back after
+ * the wavefront), the light samples that reach their vertex are gathered with their diffuse
+ * factor, and the paths whose next ray hits are compacted in place into the wavefront's buffers
+ * (allocated once per tracer, sized by the largest wavefront), instead of torch.rand, boolean
+ * indexing and fresh tensors per step. The arithmetic is the session-6 steps' above (tb_frame,
+ * tb_area_sample, tb_layers, tb_mixture, tb_advance), called on those buffers, so the tensors
+ * are the same bit for bit. */
+
+/* torch's CPU generator (ATen CPUGeneratorImpl: at::mt19937) as Generator.get_state() lays it
+ * out (CPUGeneratorImplState: initial seed int64 at byte 0, left int32 at 8, seeded int32 at 12,
+ * next uint64 at 16, state uint64[624] at 24). torch.rand fills a tensor element after element
+ * (row-major) from one serial engine: float32 as (u32 & 0xFFFFFF) * 2^-24, float64 as
+ * ((u32 << 32 | u32') & (2^53 - 1)) * 2^-53, the first draw the high word. _native.py checks
+ * once per process that this equals torch.rand bit for bit on a copy of a generator. */
+enum { MT_N = 624, MT_M = 397, GS_LEFT = 8, GS_NEXT = 16, GS_STATE = 24 };
+typedef struct {
+    uint32_t s[MT_N]; /* the engine's words (what get_state holds) */
+    uint32_t t[MT_N]; /* the same words tempered, drawn in order */
+    int32_t left;
+    uint64_t next;
+} tb_mt;
+
+static void mt_temper(tb_mt *g) { /* all 624 at once: a loop the compiler vectorises */
+    for (int i = 0; i < MT_N; i++) {
+        uint32_t y = g->s[i];
+        y ^= (y >> 11);
+        y ^= (y << 7) & 0x9d2c5680u;
+        y ^= (y << 15) & 0xefc60000u;
+        g->t[i] = y ^ (y >> 18);
+    }
+}
+
+static void mt_load(tb_mt *g, const uint8_t *b) {
+    memcpy(&g->left, b + GS_LEFT, 4), memcpy(&g->next, b + GS_NEXT, 8);
+    for (int i = 0; i < MT_N; i++) {
+        uint64_t v;
+        memcpy(&v, b + GS_STATE + 8 * i, 8);
+        g->s[i] = (uint32_t)v;
+    }
+    mt_temper(g);
+}
+
+static void mt_store(const tb_mt *g, uint8_t *b) {
+    memcpy(b + GS_LEFT, &g->left, 4), memcpy(b + GS_NEXT, &g->next, 8);
+    for (int i = 0; i < MT_N; i++) {
+        uint64_t v = g->s[i];
+        memcpy(b + GS_STATE + 8 * i, &v, 8);
+    }
+}
+
+static inline uint32_t mt_twist(uint32_t u, uint32_t v) {
+    return ((((u & 0x80000000u) | (v & 0x7fffffffu)) >> 1) ^ ((v & 1u) ? 0x9908b0dfu : 0u));
+}
+
+static void mt_refill(tb_mt *g) { /* at::mt19937::next_state */
+    uint32_t *p = g->s;
+    g->left = MT_N, g->next = 0;
+    for (int j = MT_N - MT_M + 1; --j; p++) *p = p[MT_M] ^ mt_twist(p[0], p[1]);
+    for (int j = MT_M; --j; p++) *p = p[MT_M - MT_N] ^ mt_twist(p[0], p[1]);
+    *p = p[MT_M - MT_N] ^ mt_twist(p[0], g->s[0]);
+}
+
+static inline uint32_t mt_u32(tb_mt *g) {
+    if (--g->left == 0) mt_refill(g), mt_temper(g);
+    return g->t[g->next++];
+}
+
+static inline float mt_f32(tb_mt *g) { return (float)(mt_u32(g) & 0xFFFFFFu) * (1.0f / 16777216.0f); }
+
+static inline double mt_f64(tb_mt *g) {
+    uint64_t hi = mt_u32(g), lo = mt_u32(g);
+    return (double)(((hi << 32) | lo) & ((1ull << 53) - 1)) * (1.0 / 9007199254740992.0);
+}
+
+/* torch.rand(n, generator=g, dtype=float64 if dbl else float32) into out, drawn from and
+ * advancing the state bytes gs (Generator.get_state()). */
+void tb_rand(uint8_t *gs, int64_t n, int dbl, void *out) {
+    tb_mt g;
+    mt_load(&g, gs);
+    if (dbl)
+        for (int64_t i = 0; i < n; i++) ((double *)out)[i] = mt_f64(&g);
+    else
+        for (int64_t i = 0; i < n; i++) ((float *)out)[i] = mt_f32(&g);
+    mt_store(&g, gs);
+}
+
+/* The path state of a wavefront, one row per live path (tracer.py PathState): idx, m1 (int64),
+ * raw (3 float32), A_i (La int64), A_w (La x 3), B_i (Lb), B_w (Lb x 3), counts (M int8), and the
+ * vertex the path is at: d_in, pos, ng, ns (3 float32 each), oid (int64). */
+typedef struct {
+    int64_t *idx, *m1, *A_i, *B_i, *oid;
+    float *raw, *A_w, *B_w, *d_in, *pos, *ng, *ns;
+    int8_t *counts;
+    float *frame, *wo; /* the vertex's shading frame (9) and wo (3): tb_frame's outputs */
+    int64_t La, Lb, M;
+} tb_wf;
+
+/* row `from` of the path state into row `to` < from (distinct rows: plain loops, no libc call
+ * per field) */
+static void wf_copy_row(const tb_wf *s, int64_t to, int64_t from) {
+    const int64_t La = s->La, Lb = s->Lb, M = s->M;
+    s->idx[to] = s->idx[from], s->m1[to] = s->m1[from];
+    for (int c = 0; c < 3; c++) s->raw[3 * to + c] = s->raw[3 * from + c];
+    for (int64_t l = 0; l < La; l++) s->A_i[La * to + l] = s->A_i[La * from + l];
+    for (int64_t l = 0; l < 3 * La; l++) s->A_w[3 * La * to + l] = s->A_w[3 * La * from + l];
+    for (int64_t l = 0; l < Lb; l++) s->B_i[Lb * to + l] = s->B_i[Lb * from + l];
+    for (int64_t l = 0; l < 3 * Lb; l++) s->B_w[3 * Lb * to + l] = s->B_w[3 * Lb * from + l];
+    for (int64_t l = 0; l < M; l++) s->counts[M * to + l] = s->counts[M * from + l];
+}
+
+static void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, const int64_t *obj, const float *hpos,
+                      const float *hng, const float *hns) {
+    for (int c = 0; c < 3; c++) {
+        s->d_in[3 * h + c] = d[3 * i + c], s->pos[3 * h + c] = hpos[3 * i + c];
+        s->ng[3 * h + c] = hng[3 * i + c], s->ns[3 * h + c] = hns[3 * i + c];
+    }
+    s->oid[h] = obj[i];
+    frame_row(s->d_in + 3 * h, s->ng + 3 * h, s->ns + 3 * h, s->frame + 9 * h, s->wo + 3 * h);
+}
+
+static tb_wf wf_make(void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = {(int64_t *)p[0], (int64_t *)p[1], (int64_t *)p[2],  (int64_t *)p[3], (int64_t *)p[4],
+               (float *)p[5],   (float *)p[6],   (float *)p[7],    (float *)p[8],   (float *)p[9],
+               (float *)p[10],  (float *)p[11],  (int8_t *)p[12],  (float *)p[13],  (float *)p[14],
+               La,              Lb,              M};
+    return s;
+}
+
+/* The eye vertices: rays 0..n-1 (directions d (n, 3)) whose closest hit obj[i] >= 0 (hit
+ * positions and normals hpos, hng, hns (n, 3)) start paths (PathState.start: idx = ray, m1 = the
+ * object, raw 1, A (0, 1), B (-1, 1), counts 0) in the state buffers p (15 pointers in tb_wf's
+ * order), each vertex with its shading frame (tb_frame: normals flipped). Returns the paths. */
+int64_t tb_wf_start(int64_t n, const float *d, const int64_t *obj, const float *hpos, const float *hng,
+                    const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = wf_make(p, La, Lb, M);
+    int64_t h = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (obj[i] < 0) continue;
+        s.idx[h] = i, s.m1[h] = obj[i];
+        for (int c = 0; c < 3; c++) s.raw[3 * h + c] = 1.0f;
+        for (int64_t l = 0; l < La; l++) s.A_i[La * h + l] = 0;
+        for (int64_t l = 0; l < 3 * La; l++) s.A_w[3 * La * h + l] = 1.0f;
+        for (int64_t l = 0; l < Lb; l++) s.B_i[Lb * h + l] = -1;
+        for (int64_t l = 0; l < 3 * Lb; l++) s.B_w[3 * Lb * h + l] = 1.0f;
+        memset(s.counts + M * h, 0, M);
+        wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
+        h++;
+    }
+    return h;
+}
+
+/* After a bounce's trace: ray i (n rays, directions d (n, 3)) continued path a[i] (increasing
+ * rows of the state); the paths whose ray hit (obj[i] >= 0) keep their rows, compacted in place
+ * (row h <- row a[i], h <= a[i]: no row is overwritten before it is read), with their new vertex
+ * and its frame. Returns the live paths (tracer.py: st.keep(a[hit]), the gathers of the hits and
+ * tb_frame). */
+int64_t tb_wf_compact(int64_t n, const int64_t *a, const float *d, const int64_t *obj, const float *hpos,
+                      const float *hng, const float *hns, void *const *p, int64_t La, int64_t Lb, int64_t M) {
+    tb_wf s = wf_make(p, La, Lb, M);
+    int64_t h = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (obj[i] < 0) continue;
+        if (a[i] != h) wf_copy_row(&s, h, a[i]);
+        wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
+        h++;
+    }
+    return h;
+}
+
+/* The light samples that reach their vertex: candidates k (m,) of tb_area_sample (per vertex
+ * dir, weight (n, 3), cos (n,)), occluded ones (occ (m,) bytes) dropped, in order, gathered as
+ * tb_unoccluded + tb_light_gather do (kk, wl, wo_k, ob, ed, lw = (weight cos) / reps); with
+ * `diffuse` also the factor of a diffuse-equivalent vertex (tracer.py _diffuse_f): 1/pi for
+ * editable objects, else the fixed BRDF (mode (O,): 1 Lambertian, reflectance lambert (O, 3),
+ * else 1), into f (m, 3). Returns the samples. */
+int64_t tb_wf_light_hits(int64_t m, const int64_t *k, const uint8_t *occ, const float *dir, const float *weight,
+                         const float *cosv, float reps, const float *frame, const float *wo, const int64_t *oid,
+                         const uint8_t *editable, int diffuse, const int32_t *mode, const float *lambert, int64_t *kk,
+                         float *wl, float *wo_k, int64_t *ob, uint8_t *ed, float *lw, float *f) {
+    const float inv_pi = (float)(1.0 / 3.14159265358979323846);
+    int64_t h = 0;
+    for (int64_t i = 0; i < m; i++) {
+        if (occ[i]) continue;
+        int64_t r = k[i];
+        kk[h] = r;
+        float *l = wl + 3 * h;
+        const float *o = wo + 3 * r;
+        to_local(frame + 9 * r, dir + 3 * r, l);
+        for (int c = 0; c < 3; c++) wo_k[3 * h + c] = o[c], lw[3 * h + c] = (weight[3 * r + c] * cosv[r]) / reps;
+        int64_t b = oid[r];
+        ob[h] = b, ed[h] = editable[b] != 0;
+        if (diffuse) {
+            int up = l[2] > 0 && o[2] > 0;
+            for (int c = 0; c < 3; c++)
+                f[3 * h + c] = ed[h] ? inv_pi
+                               : mode[b] == 1 ? (up ? lambert[3 * b + c] / (float)3.14159265358979323846 : 0.0f)
+                                              : 1.0f;
+        }
+        h++;
+    }
+    return h;
+}
+
+/* tb_area_sample with its uniforms drawn here, vertex after vertex, from the generator's state
+ * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array. */
+int64_t tb_wf_area_sample(uint8_t *gs, int64_t n, const double *cdf, int64_t T, const float *tri, const float *nrm,
+                          const float *radiance, float area, const float *pos, const float *ng, const float *ns,
+                          float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd,
+                          float *tmax) {
+    tb_mt g;
+    mt_load(&g, gs);
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        double u0 = mt_f64(&g), u1 = mt_f64(&g), u2 = mt_f64(&g);
+        m = area_sample_row(i, u0, u1, u2, cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps, dir, weight, cosv, k, so,
+                            sd, tmax, m);
+    }
+    mt_store(&g, gs);
+    return m;
 }

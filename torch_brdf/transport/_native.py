@@ -108,6 +108,14 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_tile_add.restype, lib.tb_tile_add.argtypes = i32, [p, p]
     lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, i32, p, p]
     lib.tb_tile_blocks.restype, lib.tb_tile_blocks.argtypes = i64, [p, p, i64, i64, p, p, p, p, p, p, p]
+    # the GI tracer's wavefront in reused buffers (polynomial/vertex.py Wavefront)
+    lib.tb_rand.restype, lib.tb_rand.argtypes = None, [p, i64, i32, p]
+    lib.tb_wf_start.restype, lib.tb_wf_start.argtypes = i64, [i64, p, p, p, p, p, p, i64, i64, i64]
+    lib.tb_wf_compact.restype, lib.tb_wf_compact.argtypes = i64, [i64, p, p, p, p, p, p, p, i64, i64, i64]
+    lib.tb_wf_area_sample.restype = i64
+    lib.tb_wf_area_sample.argtypes = [p, i64, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p, p]
+    lib.tb_wf_light_hits.restype = i64
+    lib.tb_wf_light_hits.argtypes = [i64, p, p, p, p, p, f32, p, p, p, p, i32, p, p, p, p, p, p, p, p, p]
     return lib
 
 

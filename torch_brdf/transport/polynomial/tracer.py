@@ -27,7 +27,7 @@ from .._native import library
 from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
 from ..rays import NativeRays
 from .sampler import Mixture
-from .vertex import VertexKernel
+from .vertex import VertexKernel, Wavefront
 
 __all__ = ["Clock", "LightHit", "PathState"]
 
@@ -241,6 +241,7 @@ class _Tracer:
         self.level2 = _Layers(bases, self.brdfs, 2, offs, self.clock) if series.two_level else None
         self.rays = {"closest": 0, "shadow": 0}
         self._vk = None  # the compiled per-vertex steps, made on first use
+        self._wf = None  # their reused wavefront buffers (vertex.py Wavefront), made on first use
         self._rays = None  # the compiled ray casting, made on first use
         # pi^-k by the number k of earlier diffuse-equivalent vertices (one table for both the
         # torch and the compiled entries, so they agree bit for bit)
@@ -292,6 +293,10 @@ class _Tracer:
         scene, nb, clock = self.scene, self.series.bounces, self.clock
         ent = _Entries() if ent is None else ent
         vk = self._vertex_kernel() if directions.dtype == torch.float32 else None
+        if vk is not None and paths is None and getattr(ent, "native", False) and isinstance(gen, torch.Generator):
+            wf = self._wavefront(vk)
+            if wf is not None and gen.device.type == "cpu":
+                return self._run_wavefront(wf, origins, directions, rec, gen, ent)
         if vk is not None:
             return self._run_fused(vk, origins, directions, rec, gen, paths, ent)
         emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths)
@@ -377,6 +382,77 @@ class _Tracer:
         if self._vk is None:
             self._vk = VertexKernel.make(self) or False
         return self._vk or None
+
+    def _wavefront(self, vk):
+        """The reused wavefront buffers (:class:`~.vertex.Wavefront`), or None (see its ``make``)."""
+        if self._wf is None:
+            self._wf = Wavefront.make(vk) or False
+        return self._wf or None
+
+    def _run_wavefront(self, wf, origins, directions, rec, gen, ent):
+        """:meth:`run` on the reused buffers of ``wf`` (:class:`~.vertex.Wavefront`), the entries
+        going to the compiled ``ent``: the steps of :meth:`_run_fused` in the same order on the
+        same random numbers (drawn by the kernel from ``gen``'s state, written back at the end),
+        so the same tensors bit for bit, with no torch op between the kernel calls of a bounce."""
+        nb, clock = self.series.bounces, self.clock
+        hits = self._trace(origins, directions)
+        with clock("bookkeeping"):
+            emis = emission_seen(self.scene, directions, hits)
+        with clock("sampling"):
+            gs = gen.get_state()  # the kernel draws torch.rand's numbers from these bytes
+            n = wf.start(directions, hits)
+        try:
+            for v in range(1, nb + 1):
+                if n == 0:
+                    break
+                banded = self._banded(v)
+                st = wf.state(n, PathState)  # its vertices' frames came with them (start, compact)
+                reps = self.eye_light_samples if v == 1 else 1
+                for light in [li for li in self.lights for _ in range(reps)]:
+                    with clock("sampling"):
+                        m = wf.light_sample(light, n, gs)
+                    self.rays["shadow"] += m
+                    if m == 0:
+                        continue
+                    with clock("rays"):  # (the clock counts ray time only inside a section)
+                        occ = self.occluded(wf.so[:m], wf.sd[:m], wf.tmax[:m])
+                    with clock("sampling"):
+                        h = wf.light_hits(m, occ, reps, v > 1 and not banded)
+                    if h == 0:
+                        continue
+                    kk, ob, lw = wf.kk[:h], wf.ob[:h], wf.lw[:h]
+                    if v == 1 or banded:
+                        level = 1 if v == 1 else 2
+                        with clock("brdf"):
+                            wf.layers(level, h, ob, wf.wl, wf.wok, wf.lj[level], wf.lq[level])
+                        lq = (wf.lj[level][:h], wf.lq[level][:h])
+                    with clock("bookkeeping"):
+                        if v == 1:
+                            ent.emit(v, kk, st, lw, rec, ob, None, None, None, lq, False, None, False)
+                        elif banded:
+                            ent.emit(v, kk, st, lw, rec, ob, None, None, None, (st.A_i, st.A_w), True, lq, False)
+                        else:
+                            ent.emit(v, kk, st, lw, rec, ob, wf.ed[:h], wf.lf[:h], self.pi_powers,
+                                     (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)  # fmt: skip
+                if v == nb:
+                    break
+                with clock("sampling"):
+                    wf.mixture(n, gs)
+                with clock("brdf"):
+                    f = None
+                    if v == 1 or banded:
+                        level, i, w = (1, st.A_i, st.A_w) if v == 1 else (2, st.B_i, st.B_w)
+                        wf.layers(level, n, wf.st["oid"], wf.wi, wf.wo, i, w)
+                    elif not self.all_editable:
+                        f = wf.fixed_f(n)
+                with clock("sampling"):
+                    m = wf.advance(n, f, v > 1 and not banded)
+                sub = self._trace(wf.nso[:m], wf.nsd[:m])
+                with clock("sampling"):
+                    n = wf.compact(m, sub)
+        finally:
+            gen.set_state(gs)
+        return emis, ent
 
     def _run_fused(self, vk, origins, directions, rec, gen, paths, ent):
         """:meth:`run` with the per-vertex steps in the compiled kernel: the same steps in the

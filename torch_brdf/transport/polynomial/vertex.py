@@ -252,3 +252,180 @@ class VertexKernel:
         )  # fmt: skip
         st.raw, st.counts = raw, counts
         return a[:m], so[:m], sd[:m]
+
+
+_RAND: dict = {}
+
+
+def c_rand_matches(lib) -> bool:
+    """Whether ``tb_rand`` draws what ``torch.rand`` draws (float32 and float64, bit for bit, and
+    the same generator state after), checked once per process on a generator of its own; the
+    wavefront keeps ``torch.rand``'s stream either way (without the match it is not used)."""
+    if "ok" not in _RAND:
+        g = torch.Generator().manual_seed(20260)
+        torch.rand(1000, generator=g)  # somewhere inside the engine's 624-word block
+        s0 = g.get_state()
+        a = torch.rand(1500, generator=g)
+        b = torch.rand(700, 3, generator=g, dtype=torch.float64)
+        after = g.get_state()
+        s = s0.clone()
+        x, y = torch.empty(1500, **_F32), torch.empty(2100, dtype=torch.float64)
+        ok = s.dtype == torch.uint8 and s.numel() >= 24 + 8 * 624
+        if ok:
+            lib.tb_rand(_p(s), 1500, 0, _p(x))
+            lib.tb_rand(_p(s), 2100, 1, _p(y))
+            used = list(range(8, 12)) + list(range(16, 24 + 8 * 624))  # left, next, the state words
+            ok = torch.equal(a, x) and torch.equal(b.flatten(), y) and torch.equal(s[used], after[used])
+        if ok:  # the state written back goes on as torch's own would
+            h = torch.Generator()
+            h.set_state(s)
+            ok = torch.equal(torch.rand(5, generator=h), torch.rand(5, generator=g))
+        _RAND["ok"] = bool(ok)
+    return _RAND["ok"]
+
+
+class Wavefront:
+    r"""The GI tracer's wavefront in buffers allocated once and reused (#14, session 8): the path
+    state, the vertices and every per-step output of :meth:`~.tracer._Tracer._run_wavefront`, so
+    a bounce runs as a few kernel calls on them (frame, light samples with their uniforms drawn in
+    the kernel, the light samples that reach their vertex with their factors, mixture, band slots,
+    advance, compaction of the paths whose ray hit) with no torch op or fresh page between them.
+    The arithmetic is :class:`VertexKernel`'s (the same C functions), the random numbers are
+    ``torch.rand``'s stream drawn by ``tb_rand`` (:func:`c_rand_matches`), so the tensors are
+    the same bit for bit as with the per-step calls.
+
+    Args:
+        vk: the tracer's :class:`VertexKernel`.
+    """
+
+    def __init__(self, vk: VertexKernel):
+        self.vk, self.lib, t = vk, vk.lib, vk.tracer
+        self.La = t.level1.max_layers
+        self.Lb = t.level2.max_layers if t.level2 is not None else 1
+        self.M = t.num_objects
+        self.room = 0
+        self._lights: dict[int, tuple] = {}
+
+    @classmethod
+    def make(cls, vk: VertexKernel | None) -> Wavefront | None:
+        """The wavefront of ``vk``'s tracer, or None when a step would need torch (lights other
+        than area lights, fixed BRDFs or quotients the kernel does not know), its rays are not
+        the kernel's, or ``tb_rand`` does not match ``torch.rand`` here."""
+        if vk is None:
+            return None
+        t = vk.tracer
+        if any(type(li) is not AreaLight for li in t.lights) or vk.torch_fixed:
+            return None
+        if any(s.torch_objects for s in vk.levels.values()) or t._native_rays() is None:
+            return None
+        return cls(vk) if c_rand_matches(vk.lib) else None
+
+    def ensure(self, n: int) -> None:
+        """Buffers for wavefronts of up to ``n`` paths (grown, never shrunk)."""
+        if n <= self.room:
+            return
+        r = self.room = max(n, int(1.25 * self.room))
+        La, Lb, M = self.La, self.Lb, self.M
+        e = torch.empty
+        u8 = {"dtype": torch.uint8}
+        self.st = {"idx": e(r, **_I64), "m1": e(r, **_I64), "A_i": e(r, La, **_I64), "B_i": e(r, Lb, **_I64),
+                   "oid": e(r, **_I64), "raw": e(r, 3, **_F32), "A_w": e(r, La, 3, **_F32),
+                   "B_w": e(r, Lb, 3, **_F32), "d_in": e(r, 3, **_F32), "pos": e(r, 3, **_F32),
+                   "ng": e(r, 3, **_F32), "ns": e(r, 3, **_F32), "counts": e(r, M, dtype=torch.int8)}  # fmt: skip
+        self.fr, self.wo = e(r, 9, **_F32), e(r, 3, **_F32)
+        # the order of tb_wf in _native.c
+        ptrs = [x.data_ptr() for x in (*self.st.values(), self.fr, self.wo)]
+        self._st_ptrs = (ctypes.c_void_p * 15)(*ptrs)
+        # light samples: per vertex, candidates, the ones that reach their vertex
+        self.lcos = e(r, **_F32)
+        self.ldir, self.lwt = e(r, 3, **_F32), e(r, 3, **_F32)
+        self.k, self.so, self.sd, self.tmax = e(r, **_I64), e(r, 3, **_F32), e(r, 3, **_F32), e(r, **_F32)
+        self.kk, self.ob, self.ed = e(r, **_I64), e(r, **_I64), e(r, **u8)
+        self.wl, self.wok, self.lw, self.lf = (e(r, 3, **_F32) for _ in range(4))
+        self.lj = {1: e(r, La, **_I64), 2: e(r, Lb, **_I64)}
+        self.lq = {1: e(r, La, 3, **_F32), 2: e(r, Lb, 3, **_F32)}
+        # the mixture and the advance
+        self.u32, self.wi, self.ok = e(r, 3, **_F32), e(r, 3, **_F32), e(r, **u8)
+        self.pdf, self.cosw = e(r, **_F32), e(r, **_F32)
+        self.f, self.a, self.nso, self.nsd = e(r, 3, **_F32), e(r, **_I64), e(r, 3, **_F32), e(r, 3, **_F32)
+
+    def state(self, n: int, cls):
+        """The :class:`~.tracer.PathState` of the ``n`` live paths (views of the buffers)."""
+        s = self.st
+        return cls(s["idx"][:n], s["m1"][:n], s["raw"][:n], s["A_i"][:n], s["A_w"][:n], s["B_i"][:n],
+                   s["B_w"][:n], s["counts"][:n])  # fmt: skip
+
+    def start(self, directions, hits) -> int:
+        """The eye vertices of the rays that hit (``PathState.start``) with their shading frames
+        (``fr``, ``wo``; normals flipped); returns the paths."""
+        self.ensure(directions.shape[0])
+        d = _f(directions)
+        return self.lib.tb_wf_start(
+            d.shape[0], _p(d), _p(hits.object_id), _p(hits.position), _p(hits.geometric_normal), _p(hits.normal),
+            self._st_ptrs, self.La, self.Lb, self.M,
+        )  # fmt: skip
+
+    def compact(self, m: int, hits) -> int:
+        """After the trace of the ``m`` next rays: the paths whose ray hit, at their new vertex
+        with its shading frame."""
+        return self.lib.tb_wf_compact(
+            m, _p(self.a), _p(self.nsd), _p(hits.object_id), _p(hits.position), _p(hits.geometric_normal),
+            _p(hits.normal), self._st_ptrs, self.La, self.Lb, self.M,
+        )  # fmt: skip
+
+    def _light(self, light):
+        if id(light) not in self._lights:
+            cdf = light.cdf.to(torch.float64).contiguous()
+            tri, nrm = _f(light.triangles), _f(light.normals)
+            self._lights[id(light)] = (light, cdf, tri, nrm, light.radiance.to(torch.float32).contiguous())
+        return self._lights[id(light)]
+
+    def light_sample(self, light, n: int, gs) -> int:
+        """``light``'s next-event samples from the ``n`` vertices (uniforms from the state bytes
+        ``gs``): the candidates' rows, shadow rays and ``t_max`` in ``k``, ``so``, ``sd``, ``tmax``."""
+        _, cdf, tri, nrm, rad = self._light(light)
+        s = self.st
+        # the uniforms torch.rand(n, 3, dtype=float64) would give (as AreaLight.sample_points draws them)
+        return self.lib.tb_wf_area_sample(
+            _p(gs), n, _p(cdf), cdf.numel(), _p(tri), _p(nrm), _p(rad), ctypes.c_float(light.total_area),
+            _p(s["pos"]), _p(s["ng"]), _p(s["ns"]), ctypes.c_float(self.vk.eps),
+            *map(_p, (self.ldir, self.lwt, self.lcos, self.k, self.so, self.sd, self.tmax)),
+        )  # fmt: skip
+
+    def light_hits(self, m: int, occ, reps: int, diffuse: bool) -> int:
+        """The candidates not occluded (``occ`` (m,) bool), gathered into ``kk``, ``wl``, ``wok``,
+        ``ob``, ``ed``, ``lw`` (and the diffuse factor ``lf`` when ``diffuse``)."""
+        vk = self.vk
+        return self.lib.tb_wf_light_hits(
+            m, _p(self.k), _p(occ), _p(self.ldir), _p(self.lwt), _p(self.lcos), ctypes.c_float(reps), _p(self.fr),
+            _p(self.wo), _p(self.st["oid"]), _p(vk.editable), int(diffuse), _p(vk.fixed_mode), _p(vk.lambert),
+            *map(_p, (self.kk, self.wl, self.wok, self.ob, self.ed, self.lw, self.lf)),
+        )  # fmt: skip
+
+    def layers(self, level: int, n: int, oid, wi, wo, idx, w) -> None:
+        """``tb_layers`` of ``level`` on rows ``oid``, ``wi``, ``wo`` into ``idx``, ``w`` (buffers)."""
+        spec = self.vk.levels[level]
+        L = self.La if level == 1 else self.Lb
+        self.lib.tb_layers(n, L, -1 if level == 2 else 0, _p(spec.spec), _p(spec.edges), _p(self.vk.lambert),
+                           _p(oid), _p(wi), _p(wo), _p(idx), _p(w))  # fmt: skip
+
+    def mixture(self, n: int, gs) -> None:
+        """Directions from the mixture at the ``n`` vertices into ``wi``, ``pdf``, ``cosw``, ``ok``."""
+        self.lib.tb_rand(_p(gs), 3 * n, 0, _p(self.u32))
+        self.lib.tb_mixture(n, _p(self.u32), _p(self.wo), *map(ctypes.c_float, self.vk.mix),
+                            *map(_p, (self.wi, self.pdf, self.cosw, self.ok)))  # fmt: skip
+
+    def fixed_f(self, n: int):
+        vk = self.vk
+        self.lib.tb_fixed_f(n, _p(vk.fixed_mode), _p(vk.lambert), _p(self.st["oid"]), _p(self.wi), _p(self.wo),
+                            _p(self.f))  # fmt: skip
+        return self.f
+
+    def advance(self, n: int, f, count: bool) -> int:
+        """``tb_advance`` in place on the state; the next rays in ``a``, ``nso``, ``nsd``. Returns them."""
+        s = self.st
+        return self.lib.tb_advance(
+            n, _p(self.wi), _p(self.cosw), _p(self.ok), _p(f), int(count), _p(s["oid"]), _p(self.vk.editable),
+            self.M, _p(s["counts"]), _p(s["raw"]), _p(self.fr), _p(s["ng"]), _p(s["pos"]), self.La, _p(s["A_w"]),
+            self.Lb, _p(s["B_w"]), ctypes.c_float(self.vk.eps), _p(self.a), _p(self.nso), _p(self.nsd),
+        )  # fmt: skip
