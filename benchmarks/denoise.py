@@ -31,7 +31,9 @@ frozen on the edited object and rendered by four methods:
   the prefix sums of a term's bands are box-lobe images OIDN can read; the bands are their
   differences again), the other records and silhouette pixels by ``selected``'s pick, on the
   same mean record of the halves (its own part ``cumulative``, reusing the half records cached
-  as record files, which ``benchmarks/denoise_tune.py`` shares).
+  as record files, which ``benchmarks/denoise_tune.py`` shares), averaged with ``selected``
+  (``CUMULATIVE_MIX``); ``oidn_cumulative_mix0`` ``{spp: [default, edited]}`` is OIDN's share
+  alone (exact: the frame is linear in the denoised bases).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -100,6 +102,8 @@ DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
 EXTRA = ("regression",)  # computed in the "extra" part
 HALVES = ("selected",)  # computed in the "halves" part
 CUMULATIVE = ("oidn_cumulative",)  # computed in the "cumulative" part
+#: the weight of ``selected`` in ``oidn_cumulative`` (CumulativeOIDN's ``mix``): the plain average
+CUMULATIVE_MIX = 0.5
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -315,9 +319,15 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
     )
     print(f"[{scene.name}] oidn_cumulative at {spp} spp ...", flush=True)
     D = PolynomialRenderer(T, mats)
-    den = CumulativeOIDN(T.guides, A)
+    den = CumulativeOIDN(T.guides, A, mix=CUMULATIVE_MIX)
     _, secs = _secs(lambda: D.freeze(obj, denoiser=den))
     arrays = dict(zip(("oidn_cumulative", "oidn_cumulative_e"), _frames(D, obj, mats, edited), strict=True))
+    # the frames are linear in the denoised bases: OIDN's share alone (mix 0) from the same run
+    for suf in ("", "_e"):
+        sel = h["selected" + suf]
+        arrays["oidn_cumulative_mix0" + suf] = (arrays["oidn_cumulative" + suf] - CUMULATIVE_MIX * sel) / (
+            1 - CUMULATIVE_MIX
+        )
     meta = {
         "denoise_s": {"oidn_cumulative": max(secs - freeze_s, 0.0) + pick_s},
         "oidn_calls": den.calls,
@@ -443,7 +453,8 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             "cumulative",
             {
                 **settings,
-                "methods": [CumulativeOIDN.__name__, SelectedRegressionFilter.__name__, repr(SelectionSettings())],
+                "methods": [CumulativeOIDN.__name__, CUMULATIVE_MIX, SelectedRegressionFilter.__name__]
+                + [repr(SelectionSettings())],
             },
             scene,
             lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
@@ -453,6 +464,10 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
         out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
         out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
+        out.setdefault("oidn_cumulative_mix0", {})[str(spp)] = [
+            relative_rmse(c["oidn_cumulative_mix0"], ref, a["emitter_free"].bool()),
+            relative_rmse(c["oidn_cumulative_mix0_e"], ref_e, a["emitter_free"].bool()),
+        ]
         for m in ("none", "regression", "selected"):
             k = m if m == "selected" else m + "_h"
             pair = [

@@ -348,8 +348,12 @@ def test_cumulative_oidn_denoises_the_prefix_sums_of_each_group(setup, gen):
     same = CumulativeOIDN(g, fallback, image_denoiser=lambda img: img)(imgs, groups)
     torch.testing.assert_close(same[:3][..., keep], imgs[:3][..., keep], rtol=1e-12, atol=1e-12)
     assert float((out[:3][..., keep] - imgs[:3][..., keep]).abs().max()) > 1e-3
+    mixed = CumulativeOIDN(g, fallback, image_denoiser=squash, mix=0.25)(imgs, groups)
+    torch.testing.assert_close(mixed, 0.75 * out + 0.25 * lin, rtol=1e-12, atol=1e-12)
     with pytest.raises(ShapeError):
         den(imgs, groups[:3])
+    with pytest.raises(ValueRangeError):
+        CumulativeOIDN(g, mix=1.5)
 
 
 @needs_oidn

@@ -39,7 +39,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from ..errors import ShapeError, TorchBRDFError
+from ..errors import ShapeError, TorchBRDFError, ValueRangeError
 from .atrous import EdgeAwareFilter, GuideFilter
 from .guides import GuideBuffers
 
@@ -175,6 +175,11 @@ class CumulativeOIDN:
             when the spp was spent as two halves.
         quality: OIDN quality.
         image_denoiser: ``(H, W, 3) -> (H, W, 3)`` in place of OIDN (tests; other denoisers).
+        mix: weight of the fallback filter's output in the banded groups' result,
+            ``(1 - mix) D + mix A`` (two denoisers of the same fixed images, so edits stay
+            exact; their errors are partly independent: see the README's measurements).
+    Raises:
+        ValueRangeError: ``mix`` outside [0, 1].
     """
 
     def __init__(
@@ -183,7 +188,11 @@ class CumulativeOIDN:
         fallback: GuideFilter | None = None,
         quality: str = "high",
         image_denoiser: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        mix: float = 0.0,
     ):
+        if not 0.0 <= mix <= 1.0:
+            raise ValueRangeError(f"mix must be in [0, 1]; got {mix}")
+        self.mix = float(mix)
         self.guides = guides
         self.fallback = fallback or EdgeAwareFilter(guides)
         self.quality = quality
@@ -193,7 +202,7 @@ class CumulativeOIDN:
     @property
     def description(self) -> str:
         fb = getattr(self.fallback, "description", type(self.fallback).__name__)
-        return f"oidn per cumulative band sum (quality {self.quality}; else {fb})"
+        return f"oidn per cumulative band sum (quality {self.quality}, mix {self.mix}; else {fb})"
 
     def __call__(self, images: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
         """images (B, 3, H, W) -> (B, 3, H, W); ``groups`` (B,) as :mod:`.tensors`."""
@@ -217,5 +226,6 @@ class CumulativeOIDN:
                     d = self.image_denoiser(sums[k].permute(1, 2, 0)).permute(2, 0, 1).to(images.dtype)
                     den[k] = torch.where(keep, d, den[k])
                     self.calls += 1
-            out[a:b] = torch.diff(den, dim=0, prepend=torch.zeros_like(den[:1]))
+            bands = torch.diff(den, dim=0, prepend=torch.zeros_like(den[:1]))
+            out[a:b] = (1 - self.mix) * bands + self.mix * out[a:b]
         return out
