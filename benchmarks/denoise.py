@@ -26,7 +26,14 @@ frozen on the edited object and rendered by four methods:
   silhouette pixels, the along-edge mean or the pixel itself: :class:`SelectionSettings`); the mean
   record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. Its own
   part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
-  ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed.
+  ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed;
+* ``oidn_cumulative``: OIDN once per cumulative band sum of each term (:class:`CumulativeOIDN`:
+  the prefix sums of a term's bands are box-lobe images OIDN can read; the bands are their
+  differences again), the other records and silhouette pixels by ``selected``'s pick, on the
+  same mean record of the halves (its own part ``cumulative``, reusing the half records cached
+  as record files, which ``benchmarks/denoise_tune.py`` shares), averaged with ``selected``
+  (``CUMULATIVE_MIX``); ``oidn_cumulative_mix0`` ``{spp: [default, edited]}`` is OIDN's share
+  alone (exact: the frame is linear in the denoised bases).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -71,6 +78,7 @@ import torch
 
 from torch_brdf.data import cache_path
 from torch_brdf.denoise import (
+    CumulativeOIDN,
     EdgeAwareFilter,
     RegressionFilter,
     RegressionSettings,
@@ -83,15 +91,19 @@ from torch_brdf.denoise import (
 )
 from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
+from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 
-METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression", "selected")
+METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression", "selected", "oidn_cumulative")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
 EXTRA = ("regression",)  # computed in the "extra" part
 HALVES = ("selected",)  # computed in the "halves" part
+CUMULATIVE = ("oidn_cumulative",)  # computed in the "cumulative" part
+#: the weight of ``selected`` in ``oidn_cumulative`` (CumulativeOIDN's ``mix``): the plain average
+CUMULATIVE_MIX = 0.5
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -272,6 +284,61 @@ def _halves_unit(scene, obj, mats, edited, series, spp, seed):
     return arrays, meta
 
 
+def half_records(scene, series: str, spp: int, seed: int, folder: Path) -> list:
+    """The two half-spp records of the ``halves`` part at ``spp`` (the same seeds, so the same
+    records), each cached as a record file under ``folder``."""
+    out = []
+    for k in range(2):
+        s = {"what": "half_record", "series": series, "spp": spp // 2, "seed": 1000 + 2 * seed + k}
+        key = settings_key(s, scene)
+        ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
+        T = ck.load_record(PolynomialTensors)
+        if T is None:
+            print(f"[{scene.name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
+            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False)
+            ck.save_record(T)
+        else:
+            print(f"[{scene.name}] half record {k}: cached", flush=True)
+        out.append(T)
+    return out
+
+
+def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
+    """``oidn_cumulative`` at ``spp``: the mean record of the halves (:func:`half_records`)
+    frozen and denoised with :class:`CumulativeOIDN` over ``selected``'s pick (rebuilt from
+    the ``halves`` part's frames ``h``); its ``none`` frame is checked against that part's."""
+    T = mean_tensors(half_records(scene, series, spp, seed, folder))
+    gl = glossy_objects(T)
+    pilots = [(h["half_a"].permute(2, 0, 1), h["half_b"].permute(2, 0, 1))]
+    A, pick_s = _secs(lambda: SelectedRegressionFilter(T.guides, pilots, glossy=gl))
+    R = PolynomialRenderer(T, mats)
+    _, freeze_s = _secs(lambda: R.freeze(obj))
+    noisy = _frames(R, obj, mats, edited)
+    same = max(
+        float((a - b).abs().max() / b.abs().max()) for a, b in zip(noisy, (h["none_h"], h["none_h_e"]), strict=True)
+    )
+    print(f"[{scene.name}] oidn_cumulative at {spp} spp ...", flush=True)
+    D = PolynomialRenderer(T, mats)
+    den = CumulativeOIDN(T.guides, A, mix=CUMULATIVE_MIX)
+    _, secs = _secs(lambda: D.freeze(obj, denoiser=den))
+    arrays = dict(zip(("oidn_cumulative", "oidn_cumulative_e"), _frames(D, obj, mats, edited), strict=True))
+    # the frames are linear in the denoised bases: OIDN's share alone (mix 0) from the same run
+    for suf in ("", "_e"):
+        sel = h["selected" + suf]
+        arrays["oidn_cumulative_mix0" + suf] = (arrays["oidn_cumulative" + suf] - CUMULATIVE_MIX * sel) / (
+            1 - CUMULATIVE_MIX
+        )
+    meta = {
+        "denoise_s": {"oidn_cumulative": max(secs - freeze_s, 0.0) + pick_s},
+        "oidn_calls": den.calls,
+        "settings_oidn_cumulative": den.description,
+        "same_as_halves_part": same,
+        "frozen_mb": {"none": R.frozen_nbytes / 2**20, "oidn_cumulative": D.frozen_nbytes / 2**20},
+        "frame_s": _interleaved_frame_times({"none": R, "oidn_cumulative": D}, obj),
+    }
+    return arrays, meta
+
+
 def _regions(object_id: torch.Tensor, depth: torch.Tensor, glossy: list[int], mask: torch.Tensor, radius: int = 3):
     """(H, W) bool masks where a filter can blur: glossy objects' pixels, contact regions
     (within ``radius`` pixels of another object at a depth within 3%) and the rest."""
@@ -381,9 +448,26 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             scene,
             lambda spp=spp, seed=seed: _halves_unit(scene, obj, mats, edited, series, spp, seed),
         )
-        a = {**a, **x, **h}
+        c, cmeta = _cached(
+            folder,
+            "cumulative",
+            {
+                **settings,
+                "methods": [CumulativeOIDN.__name__, CUMULATIVE_MIX, SelectedRegressionFilter.__name__]
+                + [repr(SelectionSettings())],
+            },
+            scene,
+            lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
+        )
+        a = {**a, **x, **h, **c}
         out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
         out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
+        out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
+        out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
+        out.setdefault("oidn_cumulative_mix0", {})[str(spp)] = [
+            relative_rmse(c["oidn_cumulative_mix0"], ref, a["emitter_free"].bool()),
+            relative_rmse(c["oidn_cumulative_mix0_e"], ref_e, a["emitter_free"].bool()),
+        ]
         for m in ("none", "regression", "selected"):
             k = m if m == "selected" else m + "_h"
             pair = [
@@ -392,7 +476,12 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             ]
             out.setdefault("same_samples", {}).setdefault(m, {})[str(spp)] = pair
         out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
-        meta["denoise_s"] = {**meta["denoise_s"], **xmeta["denoise_s"], "selected": hmeta["denoise_s"]["selected"]}
+        meta["denoise_s"] = {
+            **meta["denoise_s"],
+            **xmeta["denoise_s"],
+            "selected": hmeta["denoise_s"]["selected"],
+            **cmeta["denoise_s"],
+        }
         key = str(spp)
         mask = a["emitter_free"].bool()
         out["precompute_s"][key] = meta["precompute_s"]
@@ -408,20 +497,31 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             out["record_mb"] = meta["record_mb"]
             out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
             out["frozen_mb"]["selected"] = hmeta["frozen_mb"]["selected"]
+            out["frozen_mb"]["oidn_cumulative"] = cmeta["frozen_mb"]["oidn_cumulative"]
             out["regression_settings"] = xmeta["settings_regression"]
             out["selected_settings"] = hmeta["settings_selected"]
             out["selected_pick_s"] = hmeta["pick_s"]
             out["frame_s_before"] = meta["frame_s"]["none"]
             for m in METHODS:
-                fs = {**dict.fromkeys(EXTRA, xmeta), **dict.fromkeys(HALVES, hmeta)}.get(m, meta)["frame_s"]
+                parts = {
+                    **dict.fromkeys(EXTRA, xmeta),
+                    **dict.fromkeys(HALVES, hmeta),
+                    **dict.fromkeys(CUMULATIVE, cmeta),
+                }
+                fs = parts.get(m, meta)["frame_s"]
                 # ratio to the same run's noisy frame
                 out["frame_s_after"][m] = fs[m]
                 out["frame_ratio"][m] = fs[m] / fs["none"]
                 out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
-            for m in ("none", *DENOISERS, *EXTRA, *HALVES):
+            for m in ("none", *DENOISERS, *EXTRA, *HALVES, *CUMULATIVE):
                 # the frame's cost is its frozen tensor's size (same pixels, same matmuls): the
                 # goal reads this ratio; the timings above are figures (load-noisy at ms scale)
-                part = {**dict.fromkeys(EXTRA, xmeta), **dict.fromkeys(HALVES, hmeta)}.get(m, meta)
+                part = {
+                    **dict.fromkeys(EXTRA, xmeta),
+                    **dict.fromkeys(HALVES, hmeta),
+                    **dict.fromkeys(CUMULATIVE, cmeta),
+                }
+                part = part.get(m, meta)
                 out["frozen_ratio"][m] = part["frozen_mb"][m] / part["frozen_mb"]["none"]
             regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
             out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
@@ -434,7 +534,11 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
                 if int(v.sum())
             }
             if figure:
-                _figure(figure, a["none"], a["linear"], a["oidn_basis"], a["regression"], a["selected"], ref)
+                _figure(
+                    figure,
+                    ref,
+                    *(a[m] for m in ("none", "linear", "oidn_basis", "regression", "selected", "oidn_cumulative")),
+                )
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
     for k in ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s", "same_samples"):
         out[k] = {m: dict(sorted(d.items(), key=lambda kv: int(kv[0]))) for m, d in out.get(k, {}).items()}
@@ -499,7 +603,7 @@ def _budget(hi, at_mid, ref, ref_e, second_ref, regions, mask, filters) -> dict:
 def _goals(out: dict, mid: str, top: str) -> dict:
     """The issue's goals per denoising method at the middle spp, each with its figures."""
     goals = {}
-    for m in ("linear", "oidn_basis", "regression", "selected"):
+    for m in ("linear", "oidn_basis", "regression", "selected", "oidn_cumulative"):
         e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]
         n, n_e = out["rel_rmse"]["none"][top], out["rel_rmse_edited"]["none"][top]
         goals[m] = {
@@ -512,12 +616,12 @@ def _goals(out: dict, mid: str, top: str) -> dict:
     return goals
 
 
-def _figure(path: str, noisy, linear, oidn, regression, selected, ref) -> None:
-    """noisy | linear | oidn_basis | regression | selected | reference side by side (exposure
-    from the reference)."""
+def _figure(path: str, ref, *frames) -> None:
+    """the frames (noisy | linear | oidn_basis | regression | selected | oidn_cumulative) and the
+    reference side by side (exposure from the reference)."""
     from torch_brdf.io.png import write_png
 
-    strip = torch.cat([noisy, linear, oidn, regression, selected, ref], 1)
+    strip = torch.cat([*frames, ref], 1)
     exposure = -float(np.log2(max(float(ref.quantile(0.99)), 1e-6)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_png(path, strip, exposure=exposure, tonemap="clip")
@@ -553,7 +657,7 @@ def main() -> None:
     ap.add_argument(
         "--figure",
         default=None,
-        help="PNG: noisy | linear | oidn_basis | regression | selected | reference (Cornell, middle spp)",
+        help="PNG: noisy | linear | oidn_basis | regression | selected | oidn_cumulative | reference (Cornell)",
     )
     ap.add_argument(
         "--skip-spp",

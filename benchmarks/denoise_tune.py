@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import torch
 import torch.nn.functional as F
-from denoise import KIND, SCENES, _cached, _load, _materials
+from denoise import SCENES, _cached, _load, _materials
+from denoise import half_records as _half_records
 
 from torch_brdf.data import cache_path
 from torch_brdf.denoise import (
@@ -52,10 +53,7 @@ from torch_brdf.denoise import (
     mean_tensors,
 )
 from torch_brdf.metrics import relative_rmse
-from torch_brdf.records.cache import Checkpoint, settings_key
-from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
-from torch_brdf.transport.polynomial import precompute_polynomial
 
 INF = float("inf")
 #: The probe materials of the edit-robust pick (chosen before any test, not the benchmark's
@@ -102,24 +100,9 @@ def _hi_mean(folder: Path, cfg: dict, scene, obj: str, edited: dict, missing) ->
 
 
 def half_records(name: str, cfg: dict, folder: Path) -> list:
-    """The two half-spp records of ``denoise.py``'s ``halves`` part at the middle spp (same
-    seeds, so the same records), each cached as a record file under ``folder``."""
-    scene = SCENES[name][0](cfg["res"])
-    spp, seed = cfg["spp"][1], 1
-    out = []
-    for k in range(2):
-        s = {"what": "half_record", "series": cfg["series"], "spp": spp // 2, "seed": 1000 + 2 * seed + k}
-        key = settings_key(s, scene)
-        ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
-        T = ck.load_record(PolynomialTensors)
-        if T is None:
-            print(f"[{name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
-            T = precompute_polynomial(scene, cfg["series"], spp=spp // 2, seed=s["seed"], progress=False)
-            ck.save_record(T)
-        else:
-            print(f"[{name}] half record {k}: cached", flush=True)
-        out.append(T)
-    return out
+    """The two half-spp records of ``denoise.py``'s ``halves`` part at the middle spp
+    (:func:`denoise.half_records`, cached as record files under ``folder``)."""
+    return _half_records(SCENES[name][0](cfg["res"]), cfg["series"], cfg["spp"][1], 1, folder)
 
 
 def probe_pilots(name: str, cfg: dict, folder: Path) -> tuple[dict, dict]:

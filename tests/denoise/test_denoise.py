@@ -12,6 +12,7 @@ import torch
 
 from torch_brdf.denoise import (
     AtrousSettings,
+    CumulativeOIDN,
     EdgeAwareFilter,
     GuideBuffers,
     GuideWeights,
@@ -281,12 +282,13 @@ def test_precompute_without_guides(setup):
 
 
 @needs_oidn
-def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen):
+@pytest.mark.parametrize("cls", [OIDNBasis, CumulativeOIDN])
+def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen, cls):
     """(b) OIDN is not linear, but it runs once on fixed basis images: afterwards the frozen
     tensor is fixed data (no OIDN per edit) and every frame is linear in the edited
     coefficients: frame(c1 + c2) = frame(c1) + frame(c2) - frame(0) at fixed d."""
     _, tensors, mats, g = setup
-    ob = OIDNBasis(g)
+    ob = cls(g)
     _, R = _frozen_frames(tensors, mats, "back", gen, n=0, den=ob)
     calls, fz = ob.calls, R._frozen
     assert calls > 0
@@ -318,6 +320,40 @@ def test_oidn_group_sums_equal_oidn_of_the_group(setup, gen):
     keep = inner & (lin_sum > 0).all(0)
     torch.testing.assert_close(out.sum(0)[:, keep], whole[:, keep], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(out[:, :, ~inner], imgs[:, :, ~inner])
+
+
+def test_cumulative_oidn_denoises_the_prefix_sums_of_each_group(setup, gen):
+    """CumulativeOIDN: the bands of a group, summed up to band k, are the image denoiser's output
+    on the noisy prefix sum S_k at the interior pixels holding a record of the group (so with an
+    identity denoiser the bands come back unchanged); everything else is the fallback filter."""
+    g = setup[3]
+    fallback = EdgeAwareFilter(g, glossy=_glossy(setup[1]))
+    occupied = torch.rand(5, 1, SIZE, SIZE, generator=gen) < 0.4
+    imgs = torch.rand(5, 3, SIZE, SIZE, generator=gen, dtype=torch.float64) * occupied * (g.object_id >= 0)
+    groups = torch.tensor([0, 0, 0, 1, 2])  # one term of three bands, then two single images
+
+    def squash(img):  # non-linear and not the identity, so a per-band or a total-only use fails
+        return img / (1 + img) + 0.1 * img.roll(1, 0)
+
+    den = CumulativeOIDN(g, fallback, image_denoiser=squash)
+    out = den(imgs, groups)
+    assert den.calls == 3
+    keep = fallback.interior & (imgs[:3] != 0).any(0).any(0)
+    lin = fallback(imgs)
+    for k in range(3):
+        want = squash(imgs[: k + 1].sum(0).permute(1, 2, 0)).permute(2, 0, 1)
+        torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out[:3][..., ~keep], lin[:3][..., ~keep], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out[3:], lin[3:], rtol=0, atol=0)
+    same = CumulativeOIDN(g, fallback, image_denoiser=lambda img: img)(imgs, groups)
+    torch.testing.assert_close(same[:3][..., keep], imgs[:3][..., keep], rtol=1e-12, atol=1e-12)
+    assert float((out[:3][..., keep] - imgs[:3][..., keep]).abs().max()) > 1e-3
+    mixed = CumulativeOIDN(g, fallback, image_denoiser=squash, mix=0.25)(imgs, groups)
+    torch.testing.assert_close(mixed, 0.75 * out + 0.25 * lin, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ShapeError):
+        den(imgs, groups[:3])
+    with pytest.raises(ValueRangeError):
+        CumulativeOIDN(g, mix=1.5)
 
 
 @needs_oidn

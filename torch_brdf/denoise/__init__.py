@@ -5,8 +5,8 @@
 * :mod:`.regression`: a linear local polynomial regression (NFOR-style) with the same weights;
 * :mod:`.selection`: per pixel the regression window of lowest error, picked once from two
   half-sample buffers (NFOR's selection; linear once picked);
-* :mod:`.oidn`: Intel Open Image Denoise per grouped basis image and per frame (optional
-  extra ``denoise``);
+* :mod:`.oidn`: Intel Open Image Denoise per grouped basis image, per cumulative band sum and
+  per frame (optional extra ``denoise``);
 * :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor.
 
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
@@ -14,13 +14,14 @@ HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.
 
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
 from .guides import GuideBuffers, guide_buffers
-from .oidn import OIDNBasis, oidn_available, oidn_frame, oidn_image
+from .oidn import CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
 from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser, mean_tensors
 
 __all__ = [
     "AtrousSettings",
+    "CumulativeOIDN",
     "EdgeAwareFilter",
     "GuideBuffers",
     "GuideSigmas",
