@@ -2,7 +2,7 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11,13] [--orders 8]
+        [--psnr 50] [--families 7,11,13] [--orders 8] [--heldout 240] [--statistic trimmed] [--scores FILE]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -43,17 +43,22 @@ rule, and both at 32x32x6) carried out on the whole scene: achieved error and PS
 and frame seconds, ``cost_s`` = precompute + 100 frames; ``planner_cost_ratio`` over the
 cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
-Manifold (``manifold``): q and the training materials for a median
-held-out log-RMSE of 0.01 on the analytic family (120 materials, 9 x 9 x 18 grid: 40 pool, 80
-held out; family seeds 7, 11 and 13 -- 13 chosen before any run of it --, ``--quick`` 7 only,
-or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan
-(``orders``) its q, n, predicted error with its 90% interval and achieved error (median over the
-80 held-out materials of the plan carried out) and their ratio, CPU seconds of the fit + 80
-placements, ``achieved_interval`` (the achieved median's own 90% bootstrap interval over the
-80 materials: how far another 80 would move it); ``planned`` is the
-first; ``defaults``: the seed's q = 2 and 5 trained on the whole pool, measured alike;
-``prediction_ratio`` (worst over the plans), ``achieved_over_predicted`` (range),
-``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches the error).
+Manifold (``manifold``): q and the training materials for a held-out log-RMSE of 0.01 -- its
+``--statistic`` over the materials, by default the interquartile mean of the log errors (see
+``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80-119
+the pool of 40, the rest ``--heldout`` (240) held out: the first 80 and 160 more of the same draw;
+family seeds 7, 11 and 13, ``--quick`` 7 only, or ``--families``), for pool orders 0-7 (quick
+0-1, or ``--orders N``): per plan (``orders``) its q, n, predicted error with its 90% interval
+and achieved error (the statistic over the held-out materials of the plan carried out;
+``achieved_first_80``: over the first 80, the former set) and their ratio, CPU seconds of the
+fit + placements, ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
+how far another set of materials would move it); ``planned`` is the first; ``defaults``: the
+seed's q = 2 and 5 trained on the whole pool, measured alike; ``prediction_ratio`` (worst over
+the plans), ``achieved_over_predicted`` (range), ``within_1_5`` (share of plans within 1.5x both
+ways), ``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches
+the error); ``statistics``: every candidate statistic on the plans' own per-material scores
+(bootstrap spread and the ratio each plan's model would have had; no fits). ``--scores FILE``
+saves the per-material scores.
 
 Top level (one JSON object, the last line): ``prediction_ratio`` (worst over scenes and
 capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` and the same against the
@@ -398,6 +403,39 @@ MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
 MANIFOLD_HELDOUT = 240
 
 
+def statistic_table(pairs: list[tuple[torch.Tensor, torch.Tensor]], resamples: int = 4000) -> dict:
+    """Every statistic of ``STATISTICS`` on the plans' own per-material scores (no fits): per plan,
+    its chosen option's pool scores (the prediction's) and its model's held-out scores (the
+    achieved). Per statistic: the median over the plans of the bootstrap standard deviation of
+    the statistic's log on the pool, on the first 80 and on all held-out scores; the RMS and mean
+    of log(held-out / pool) -- the prediction ratio each plan's model would have had under that
+    statistic (the choice itself may differ by statistic); the worst ratio either way and how
+    many are within 1.5x both ways."""
+
+    def sd(x: torch.Tensor, f) -> float:
+        idx = torch.randint(x.numel(), (resamples, x.numel()), generator=torch.Generator().manual_seed(0))
+        return float(f(x[idx].double()).log().std())
+
+    def median(v: list[float]) -> float:
+        return sorted(v)[len(v) // 2]
+
+    table = {}
+    for name, f in STATISTICS.items():
+        r = [float(f(h.double())) / float(f(p.double())) for p, h in pairs]
+        logs = [math.log(x) for x in r]
+        table[name] = {
+            "sd_log_pool": median([sd(p, f) for p, _ in pairs]),
+            "sd_log_heldout_80": median([sd(h[:80], f) for _, h in pairs]),
+            "sd_log_heldout": median([sd(h, f) for _, h in pairs]),
+            "rms_log_ratio": math.sqrt(sum(v * v for v in logs) / len(logs)),
+            "mean_log_ratio": sum(logs) / len(logs),
+            "worst_ratio": max(max(x, 1 / x) for x in r),
+            "within_1_5": sum(1 / 1.5 <= x <= 1.5 for x in r),
+            "ratios": [round(x, 3) for x in r],
+        }
+    return table
+
+
 def run_manifold(
     error: float,
     families: tuple[int, ...],
@@ -414,8 +452,9 @@ def run_manifold(
     placed) and scored by the same statistic of their log-RMSE; so are the fixed defaults
     (``MANIFOLD_DEFAULTS``, trained on the whole pool). Cost = CPU seconds of the fit + the
     placements. ``scores_path``: the per-material scores (every measured option's pool scores,
-    every plan's and default's held-out scores) saved there (``torch_brdf.io``, kind
-    ``manifold-planner-scores``), so another statistic can be studied without new fits."""
+    every plan's and default's held-out scores, each plan's (q, n)) saved there (``torch_brdf.io``,
+    kind ``manifold-planner-scores``), so another statistic can be studied without new fits;
+    ``statistics`` in the output: :func:`statistic_table` of the plans' own scores."""
     stat = STATISTICS[statistic]
 
     def carry_out(obs, train, test, q):
@@ -425,7 +464,7 @@ def run_manifold(
         )
         return h.gplvm_logrmse, time.process_time() - t0
 
-    runs, defaults, saved = [], [], {}
+    runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
         obs, _ = analytic_observations(
             40 + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
@@ -457,6 +496,8 @@ def run_manifold(
                 saved[f"f{fam}_o{order}_q{q}_n{n}_pool"] = sc.numpy()
                 saved[f"f{fam}_o{order}_q{q}_n{n}_pool_index"] = torch.tensor([pool.index(m) for m in held]).numpy()
             saved[f"f{fam}_o{order}_heldout"] = scores.numpy()
+            saved[f"f{fam}_o{order}_chosen"] = torch.tensor([s["q"], s["n"]]).numpy()
+            pairs.append((pilots[s["q"], s["n"]][1], scores))
             a = float(stat(scores))
             r = a / plan.predicted_error
             runs.append(
@@ -502,6 +543,7 @@ def run_manifold(
         "achieved_over_predicted": [min(o["ratio"] for o in runs), max(o["ratio"] for o in runs)],
         "within_1_5": sum(1 / 1.5 <= o["ratio"] <= 1.5 for o in runs) / len(runs),
         "reached": sum(o["achieved_error"] <= error for o in runs) / len(runs),
+        "statistics": statistic_table(pairs),
     }
     ratios = []
     for o in runs:
