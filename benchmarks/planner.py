@@ -519,7 +519,8 @@ def run_manifold(
             )
             print(
                 f"manifold family {fam} order {order}: q {s['q']}, n {s['n']}, predicted {plan.predicted_error:.5f}, "
-                f"achieved {a:.5f} ({statistic} of {len(test)}), achieved / predicted {r:.3f}",
+                f"achieved {a:.5f} ({statistic} of {len(test)}), achieved / predicted {r:.3f}; "
+                f"intervals {runs[-1]['predicted_interval']}, {runs[-1]['achieved_interval']}",
                 flush=True,
             )
     if scores_path:
