@@ -212,7 +212,8 @@ def plan_manifold(
             of the log errors), ``"geomean"``, ``"median"`` or ``"mean"`` of the per-material
             errors: what the plan predicts (and the budget bounds). Per-material errors are
             heavy-tailed and two-humped, so a mean over tens of materials scatters by more than
-            1.5x between material sets; the trimmed mean of the logs the least (see the module).
+            1.5x between material sets; the trimmed mean of the logs and the median far less (see
+            the module).
         confident: choose the cheapest option whose interval's upper end (not its estimate) is
             within ``error`` (see the module: choosing on the estimate picks the options whose
             materials happened to score low, and their achieved error comes out above it).
