@@ -2,7 +2,7 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11,13] [--orders 8]
+        [--psnr 50] [--families 7,11,13] [--orders 8] [--heldout 240] [--statistic trimmed] [--scores FILE]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -43,17 +43,22 @@ rule, and both at 32x32x6) carried out on the whole scene: achieved error and PS
 and frame seconds, ``cost_s`` = precompute + 100 frames; ``planner_cost_ratio`` over the
 cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
-Manifold (``manifold``): q and the training materials for a median
-held-out log-RMSE of 0.01 on the analytic family (120 materials, 9 x 9 x 18 grid: 40 pool, 80
-held out; family seeds 7, 11 and 13 -- 13 chosen before any run of it --, ``--quick`` 7 only,
-or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan
-(``orders``) its q, n, predicted error with its 90% interval and achieved error (median over the
-80 held-out materials of the plan carried out) and their ratio, CPU seconds of the fit + 80
-placements, ``achieved_interval`` (the achieved median's own 90% bootstrap interval over the
-80 materials: how far another 80 would move it); ``planned`` is the
-first; ``defaults``: the seed's q = 2 and 5 trained on the whole pool, measured alike;
-``prediction_ratio`` (worst over the plans), ``achieved_over_predicted`` (range),
-``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches the error).
+Manifold (``manifold``): q and the training materials for a held-out log-RMSE of 0.01 -- its
+``--statistic`` over the materials, by default the interquartile mean of the log errors (see
+``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80-119
+the pool of 40, the rest ``--heldout`` (240) held out: the first 80 and 160 more of the same draw;
+family seeds 7, 11 and 13, ``--quick`` 7 only, or ``--families``), for pool orders 0-7 (quick
+0-1, or ``--orders N``): per plan (``orders``) its q, n, predicted error with its 90% interval
+and achieved error (the statistic over the held-out materials of the plan carried out;
+``achieved_first_80``: over the first 80, the former set) and their ratio, CPU seconds of the
+fit + placements, ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
+how far another set of materials would move it); ``planned`` is the first; ``defaults``: the
+seed's q = 2 and 5 trained on the whole pool, measured alike; ``prediction_ratio`` (worst over
+the plans), ``achieved_over_predicted`` (range), ``within_1_5`` (share of plans within 1.5x both
+ways), ``planner_cost_ratio`` (worst over the plans, against the cheapest default that reaches
+the error); ``statistics``: every candidate statistic on the plans' own per-material scores
+(bootstrap spread and the ratio each plan's model would have had; no fits). ``--scores FILE``
+saves the per-material scores.
 
 Top level (one JSON object, the last line): ``prediction_ratio`` (worst over scenes and
 capabilities), ``planner_cost_ratio`` / ``planner_cost_ratio_rays`` and the same against the
@@ -82,12 +87,13 @@ from torch_brdf.inverse import (
     paint,
     transfer_functions,
 )
+from torch_brdf.io import save_arrays
 from torch_brdf.manifold import analytic_observations, heldout_reconstruction
 from torch_brdf.manifold.data import MERLGrid
 from torch_brdf.metrics import relative_rmse
 from torch_brdf.planner.gi import with_fixed
 from torch_brdf.planner.inverse import _basis, design_image, plan_inverse
-from torch_brdf.planner.manifold import bootstrap_interval, plan_manifold
+from torch_brdf.planner.manifold import STATISTICS, bootstrap_interval, plan_manifold
 from torch_brdf.records.polynomial import Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.render.relight_plan import DEFAULT_RULE, make_rule, plan_relighting, shade_vertices
@@ -392,15 +398,64 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 MANIFOLD_DEFAULTS = (2, 5)
 #: the manifold plans' fit settings (those of tests/planner/test_manifold.py)
 MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
+#: held-out materials per family draw (the analytic family makes as many as asked): the achieved
+#: statistic's own scatter between sets of materials must stay well inside 1.5x
+MANIFOLD_HELDOUT = 240
 
 
-def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...]) -> dict:
-    """Plan q and the training materials of the GPLVM for a median held-out log-RMSE ``error``
-    on the analytic family (120 materials on the 9 x 9 x 18 strided grid per ``families`` seed:
-    the last 40 are the pool, the first 80 the held-out set), once per pool order (``orders``);
-    each plan is carried out (fit on its training names, the 80 held-out materials placed) and
-    scored by the median of their log-RMSE; so are the fixed defaults (``MANIFOLD_DEFAULTS``,
-    trained on the whole pool). Cost = CPU seconds of the fit + the 80 placements."""
+def statistic_table(pairs: list[tuple[torch.Tensor, torch.Tensor]], resamples: int = 4000) -> dict:
+    """Every statistic of ``STATISTICS`` on the plans' own per-material scores (no fits): per plan,
+    its chosen option's pool scores (the prediction's) and its model's held-out scores (the
+    achieved). Per statistic: the median over the plans of the bootstrap standard deviation of
+    the statistic's log on the pool, on the first 80 and on all held-out scores; the RMS and mean
+    of log(held-out / pool) -- the prediction ratio each plan's model would have had under that
+    statistic (the choice itself may differ by statistic); the worst ratio either way and how
+    many are within 1.5x both ways."""
+
+    def sd(x: torch.Tensor, f) -> float:
+        idx = torch.randint(x.numel(), (resamples, x.numel()), generator=torch.Generator().manual_seed(0))
+        return float(f(x[idx].double()).log().std())
+
+    def median(v: list[float]) -> float:
+        return sorted(v)[len(v) // 2]
+
+    table = {}
+    for name, f in STATISTICS.items():
+        r = [float(f(h.double())) / float(f(p.double())) for p, h in pairs]
+        logs = [math.log(x) for x in r]
+        table[name] = {
+            "sd_log_pool": median([sd(p, f) for p, _ in pairs]),
+            "sd_log_heldout_80": median([sd(h[:80], f) for _, h in pairs]),
+            "sd_log_heldout": median([sd(h, f) for _, h in pairs]),
+            "rms_log_ratio": math.sqrt(sum(v * v for v in logs) / len(logs)),
+            "mean_log_ratio": sum(logs) / len(logs),
+            "worst_ratio": max(max(x, 1 / x) for x in r),
+            "within_1_5": sum(1 / 1.5 <= x <= 1.5 for x in r),
+            "ratios": [round(x, 3) for x in r],
+        }
+    return table
+
+
+def run_manifold(
+    error: float,
+    families: tuple[int, ...],
+    orders: tuple[int, ...],
+    heldout: int = MANIFOLD_HELDOUT,
+    statistic: str = "trimmed",
+    scores_path: str | None = None,
+) -> dict:
+    """Plan q and the training materials of the GPLVM for a held-out log-RMSE ``error`` (its
+    ``statistic`` over the materials) on the analytic family (per ``families`` seed, 120 +
+    ``heldout`` - 80 materials on the 9 x 9 x 18 strided grid: materials 80-119 are the pool, the
+    rest the held-out set; the first 120 are the same whatever ``heldout``), once per pool order
+    (``orders``); each plan is carried out (fit on its training names, the held-out materials
+    placed) and scored by the same statistic of their log-RMSE; so are the fixed defaults
+    (``MANIFOLD_DEFAULTS``, trained on the whole pool). Cost = CPU seconds of the fit + the
+    placements. ``scores_path``: the per-material scores (every measured option's pool scores,
+    every plan's and default's held-out scores, each plan's (q, n)) saved there (``torch_brdf.io``,
+    kind ``manifold-planner-scores``), so another statistic can be studied without new fits;
+    ``statistics`` in the output: :func:`statistic_table` of the plans' own scores."""
+    stat = STATISTICS[statistic]
 
     def carry_out(obs, train, test, q):
         t0 = time.process_time()
@@ -409,22 +464,41 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
         )
         return h.gplvm_logrmse, time.process_time() - t0
 
-    runs, defaults = [], []
+    runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
-        obs, _ = analytic_observations(120, MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam))
+        obs, _ = analytic_observations(
+            40 + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
+        )
         names = list(obs.names)
-        test, pool = names[:80], names[80:]
+        test, pool = names[:80] + names[120:], names[80:120]
         for q in MANIFOLD_DEFAULTS:
             scores, secs = carry_out(obs, pool, test, q)
-            a = float(scores.median())
-            defaults.append({"family": fam, "q": q, "n": len(pool), "achieved_error": a, "cpu_s": secs})
+            saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
+            defaults.append(
+                {"family": fam, "q": q, "n": len(pool), "achieved_error": float(stat(scores)), "cpu_s": secs}
+            )
         for order in orders:
             t0 = time.process_time()
-            plan = plan_manifold(obs, pool, error=error, generator=torch.Generator().manual_seed(order), **MANIFOLD_FIT)
+            pilots: dict = {}
+            plan = plan_manifold(
+                obs,
+                pool,
+                error=error,
+                generator=torch.Generator().manual_seed(order),
+                statistic=statistic,
+                scores=pilots,
+                **MANIFOLD_FIT,
+            )
             plan_s = time.process_time() - t0
             s = plan.settings
             scores, secs = carry_out(obs, s["train"], test, s["q"])
-            a = float(scores.median())
+            for (q, n), (held, sc) in pilots.items():
+                saved[f"f{fam}_o{order}_q{q}_n{n}_pool"] = sc.numpy()
+                saved[f"f{fam}_o{order}_q{q}_n{n}_pool_index"] = torch.tensor([pool.index(m) for m in held]).numpy()
+            saved[f"f{fam}_o{order}_heldout"] = scores.numpy()
+            saved[f"f{fam}_o{order}_chosen"] = torch.tensor([s["q"], s["n"]]).numpy()
+            pairs.append((pilots[s["q"], s["n"]][1], scores))
+            a = float(stat(scores))
             r = a / plan.predicted_error
             runs.append(
                 {
@@ -435,7 +509,8 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
                     "predicted_error": plan.predicted_error,
                     "predicted_interval": plan.chosen.interval,
                     "achieved_error": a,
-                    "achieved_interval": bootstrap_interval(scores, torch.median),
+                    "achieved_interval": bootstrap_interval(scores, stat),
+                    "achieved_first_80": float(stat(scores[:80])),
                     "ratio": r,
                     "cpu_s": secs,
                     "plan_cpu_s": plan_s,
@@ -443,19 +518,33 @@ def run_manifold(error: float, families: tuple[int, ...], orders: tuple[int, ...
                 }
             )
             print(
-                f"manifold family {fam} order {order}: q {s['q']}, n {s['n']}, achieved / predicted {r:.3f}", flush=True
+                f"manifold family {fam} order {order}: q {s['q']}, n {s['n']}, predicted {plan.predicted_error:.5f}, "
+                f"achieved {a:.5f} ({statistic} of {len(test)}), achieved / predicted {r:.3f}; "
+                f"intervals {runs[-1]['predicted_interval']}, {runs[-1]['achieved_interval']}",
+                flush=True,
             )
+    if scores_path:
+        save_arrays(
+            scores_path,
+            saved,
+            "manifold-planner-scores",
+            meta={"families": list(families), "orders": list(orders), "heldout": len(test), "statistic": statistic},
+        )
     first = runs[0]
     out = {
-        "data": f"analytic family ({len(families)} draws): 40 pool, 80 held-out materials; 9 x 9 x 18 grid",
+        "data": f"analytic family ({len(families)} draws): 40 pool, {len(test)} held-out materials; 9 x 9 x 18 grid",
         "error": error,
+        "statistic": statistic,
+        "heldout": len(test),
         "families": list(families),
         "orders": runs,
         "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error")} | {"seconds": first["cpu_s"]},
         "defaults": defaults,
         "prediction_ratio": max(max(o["ratio"], 1 / o["ratio"]) for o in runs),
         "achieved_over_predicted": [min(o["ratio"] for o in runs), max(o["ratio"] for o in runs)],
+        "within_1_5": sum(1 / 1.5 <= o["ratio"] <= 1.5 for o in runs) / len(runs),
         "reached": sum(o["achieved_error"] <= error for o in runs) / len(runs),
+        "statistics": statistic_table(pairs),
     }
     ratios = []
     for o in runs:
@@ -478,6 +567,16 @@ def main() -> None:
     ap.add_argument("--psnr", type=float, default=None, help="relighting target in dB (default 50; quick 45)")
     ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11,13; quick 7)")
     ap.add_argument("--orders", type=int, default=None, help="manifold: pool orders 0..N-1 (default 8; quick 2)")
+    ap.add_argument(
+        "--heldout",
+        type=int,
+        default=MANIFOLD_HELDOUT,
+        help=f"manifold: held-out materials (>= 80; default {MANIFOLD_HELDOUT})",
+    )
+    ap.add_argument(
+        "--statistic", default="trimmed", choices=sorted(STATISTICS), help="manifold: the planned statistic (trimmed)"
+    )
+    ap.add_argument("--scores", default=None, help="manifold: save the per-material scores to this .npz")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
     args = ap.parse_args()
@@ -496,7 +595,8 @@ def main() -> None:
         out["relight"] = run_relight(args.psnr or (45.0 if q else 50.0), q)
     if "manifold" in caps:
         families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11, 13)
-        out["manifold"] = run_manifold(0.01, families, tuple(range(args.orders or (2 if q else 8))))
+        orders = tuple(range(args.orders or (2 if q else 8)))
+        out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores)
     out["load_end"] = os.getloadavg()[0]
     others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
     if not out["scenes"]:
