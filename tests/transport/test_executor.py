@@ -113,6 +113,25 @@ def test_forked_arrays_handed_back_through_files(monkeypatch, limit):
     assert made and all(f is None or not os.path.exists(f) for f in made)
 
 
+def test_hand_folders_of_killed_drivers_removed(tmp_path):
+    """A driver killed with SIGKILL leaves its hand-back folder behind: the next run removes the
+    folders whose creating process is gone and keeps those of live processes and other names."""
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # reaped: its id names no process (until reused, which keeps a folder, never loses one)
+    stale = tmp_path / f"{executor.HAND_PREFIX}{dead.pid}-abc"
+    live = tmp_path / f"{executor.HAND_PREFIX}{os.getpid()}-def"
+    other = tmp_path / "somebody-else"
+    for d in (stale, live, other):
+        d.mkdir()
+        (d / "t0.bin").write_bytes(b"x")
+    made = executor._hand_folder(str(tmp_path))
+    assert made is not None and Path(made).name.startswith(f"{executor.HAND_PREFIX}{os.getpid()}-")
+    assert not stale.exists() and live.exists() and other.exists()
+
+
 def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
     """Fewer tiles at once when they would not fit in memory; the tensors stay the same."""
     from torch_brdf.transport.polynomial import driver

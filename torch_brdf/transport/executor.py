@@ -327,13 +327,35 @@ _FORKED: tuple[TileFn, Any, TileCache, dict, Any, str | None] | None = None
 HAND_BACK_BYTES = 1 << 20
 
 
-def _hand_folder() -> str | None:
+#: prefix of the hand-back folders; the creating process's id follows it
+HAND_PREFIX = "torch_brdf-tiles-"
+
+
+def _remove_stale_hand_folders(root: str) -> None:
+    """Remove the hand-back folders in ``root`` whose creating process is gone (a driver killed
+    with SIGKILL cannot remove its own; tmpfs holds them in memory until the next boot). A
+    folder whose process id is alive is kept, even if the id was reused."""
+    for name in os.listdir(root):
+        pid = name[len(HAND_PREFIX) :].split("-", 1)[0]
+        if not name.startswith(HAND_PREFIX) or not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(os.path.join(root, name), ignore_errors=True)
+        except PermissionError:  # alive, another user's
+            continue
+
+
+def _hand_folder(root: str = "/dev/shm") -> str | None:
     """A fresh private folder for the forked tiles' arrays: in /dev/shm (memory) when it exists
-    and is writable, else None (the arrays go through the pipe)."""
-    if not os.access("/dev/shm", os.W_OK):
+    and is writable, else None (the arrays go through the pipe). Folders left by killed
+    drivers are removed first."""
+    if not os.access(root, os.W_OK):
         return None
     try:
-        return tempfile.mkdtemp(prefix="torch_brdf-tiles-", dir="/dev/shm")
+        _remove_stale_hand_folders(root)
+        return tempfile.mkdtemp(prefix=f"{HAND_PREFIX}{os.getpid()}-", dir=root)
     except OSError:
         return None
 
@@ -420,9 +442,9 @@ def _run_forked(
 ) -> None:
     """Tiles ``todo`` in ``processes`` forked processes (one torch thread each); ``finish`` runs
     here as each tile arrives (any order; it assembles in tile order), ``advance(k, n)`` as the
-    processes report progress within tile ``k``, ``idle()`` once the tiles are under way. A tile's exception is raised here; a process
-    that dies (killed, out of memory) raises ``BrokenProcessPool``; either way, and on Ctrl-C,
-    the other processes are stopped."""
+    processes report progress within tile ``k``, ``idle()`` once the tiles are under way. A
+    tile's exception is raised here; a process that dies (killed, out of memory) raises
+    ``BrokenProcessPool``; either way, and on Ctrl-C, the other processes are stopped."""
     global _FORKED
     _EXITING[:] = [p for p in _EXITING if p.is_alive()]  # those of earlier runs that are gone
     prepare_fork()
