@@ -91,6 +91,13 @@ def oidn_frame(image: torch.Tensor, guides: GuideBuffers, quality: str = "high")
     return oidn_image(image, guides, quality)
 
 
+def _runs(groups: torch.Tensor) -> list[tuple[int, int]]:
+    """The [start, end) ranges of the runs of equal consecutive values of ``groups`` (B,)."""
+    _, counts = torch.unique_consecutive(groups, return_counts=True)
+    ends = counts.cumsum(0).tolist()
+    return list(zip([0, *ends][:-1], ends, strict=True))
+
+
 class OIDNBasis:
     """OIDN per (grouped) basis image, a denoiser for :mod:`.tensors`.
 
@@ -122,9 +129,8 @@ class OIDNBasis:
 
     def _subgroups(self, images: torch.Tensor, groups: torch.Tensor) -> list[tuple[int, int]]:
         out = []
-        _, counts = torch.unique_consecutive(groups, return_counts=True)
-        start = 0
-        for n in counts.tolist():
+        for start, end in _runs(groups):
+            n = end - start
             occ = (images[start : start + n] != 0).any(1).flatten(1)  # (n, H*W)
             total = max(int(occ.any(0).sum()), 1)
             a, have = start, torch.zeros_like(occ[0])
@@ -138,7 +144,6 @@ class OIDNBasis:
                     out[-1] = (out[-1][0], start + n)
                 else:
                     out.append((a, start + n))
-            start += n
         return out
 
     def __call__(self, images: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
@@ -212,10 +217,8 @@ class CumulativeOIDN:
             )
         out = self.fallback(images)
         inner = self.fallback.interior
-        _, counts = torch.unique_consecutive(groups, return_counts=True)
-        start = 0
-        for n in counts.tolist():
-            a, b, start = start, start + n, start + n
+        for a, b in _runs(groups):
+            n = b - a
             if n == 1:
                 continue
             sums = images[a:b].cumsum(0)

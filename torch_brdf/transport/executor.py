@@ -284,10 +284,10 @@ def run_tiles(
             ray_context = context.for_ray() if hasattr(context, "for_ray") else context
         nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
-        pending_idle = [idle]
 
-        def run_idle() -> None:
-            work, pending_idle[0] = pending_idle[0], None
+        def run_idle() -> None:  # once: the first call takes it
+            nonlocal idle
+            work, idle = idle, None
             if work is not None:
                 with single_thread():
                     work()

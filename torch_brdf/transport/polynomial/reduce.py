@@ -237,18 +237,24 @@ def native_local_blocks(acc: TileSums | Accumulator, bases, spp: int | torch.Ten
     for obj, bounce, e, p, z in meta[:nb].tolist():
         t = rows[up : up + z]
         out.append(
-            {
-                "head": torch.tensor([obj, bounce, 1 if bases[obj] is None else bases[obj].size]),
-                "upix": upix[up : up + p].clone(),
-                "tw": keys[t, 4],
-                "tc": keys[t, 5:].to(torch.int8),
-                "key": key[at : at + e].clone(),
-                "vals": mean[3 * at : 3 * (at + e)].view(3, e).clone(),
-                "var": var[3 * at : 3 * (at + e)].view(3, e).clone(),
-            }
+            _block(bases, obj, bounce, upix[up : up + p], keys[t, 4], keys[t, 5:].to(torch.int8), key, mean, var, at, e)
         )
         at, up = at + e, up + max(p, z)
     return out
+
+
+def _block(bases, obj: int, bounce: int, upix, tw, tc, key, mean, var, at: int, e: int) -> dict[str, torch.Tensor]:
+    """One block of :func:`native_local_blocks` (object ``obj``, ``bounce``): its pixels, term
+    tables and the ``e`` entries from ``at`` of the kernel's ``key``, ``mean`` and ``var``."""
+    return {
+        "head": torch.tensor([obj, bounce, 1 if bases[obj] is None else bases[obj].size]),
+        "upix": upix.clone(),
+        "tw": tw,
+        "tc": tc,
+        "key": key[at : at + e].clone(),
+        "vals": mean[3 * at : 3 * (at + e)].view(3, e).clone(),
+        "var": var[3 * at : 3 * (at + e)].view(3, e).clone(),
+    }
 
 
 def _tile_blocks(acc: TileSums, bases, spp, sp: torch.Tensor | None) -> list[dict[str, torch.Tensor]] | None:
@@ -256,9 +262,9 @@ def _tile_blocks(acc: TileSums, bases, spp, sp: torch.Tensor | None) -> list[dic
     place (``tb_tile_blocks``: no export of its keys, no sort of them), or None when its fields
     are too wide for the kernel's tables."""
     u, m = len(acc), acc.M
-    nblk = 1 << (acc.bits[1] + acc.bits[2])
     if acc.bits[1] + acc.bits[2] > 20:
         return None
+    nblk = 1 << (acc.bits[1] + acc.bits[2])
     key, upix, tw = (torch.empty(u, dtype=torch.int64) for _ in range(3))
     tc = torch.empty(u, m, dtype=torch.int8)
     mean, var = torch.empty(3 * u, dtype=torch.float32), torch.empty(3 * u, dtype=torch.float32)
@@ -273,17 +279,8 @@ def _tile_blocks(acc: TileSums, bases, spp, sp: torch.Tensor | None) -> list[dic
         raise MemoryError("the block kernel ran out of memory")
     out, at, ap, az = [], 0, 0, 0
     for obj, bounce, e, p, z in meta[:nb].tolist():
-        out.append(
-            {
-                "head": torch.tensor([obj, bounce, 1 if bases[obj] is None else bases[obj].size]),
-                "upix": upix[ap : ap + p].clone(),
-                "tw": tw[az : az + z].clone(),
-                "tc": tc[az : az + z].clone(),
-                "key": key[at : at + e].clone(),
-                "vals": mean[3 * at : 3 * (at + e)].view(3, e).clone(),
-                "var": var[3 * at : 3 * (at + e)].view(3, e).clone(),
-            }
-        )
+        tw_z, tc_z = tw[az : az + z].clone(), tc[az : az + z].clone()
+        out.append(_block(bases, obj, bounce, upix[ap : ap + p], tw_z, tc_z, key, mean, var, at, e))
         at, ap, az = at + e, ap + p, az + z
     return out
 

@@ -420,20 +420,14 @@ class _Tracer:
                         h = wf.light_hits(m, occ, reps, v > 1 and not banded)
                     if h == 0:
                         continue
-                    kk, ob, lw = wf.kk[:h], wf.ob[:h], wf.lw[:h]
+                    ob, lq = wf.ob[:h], None
                     if v == 1 or banded:
                         level = 1 if v == 1 else 2
                         with clock("brdf"):
                             wf.layers(level, h, ob, wf.wl, wf.wok, wf.lj[level], wf.lq[level])
                         lq = (wf.lj[level][:h], wf.lq[level][:h])
                     with clock("bookkeeping"):
-                        if v == 1:
-                            ent.emit(v, kk, st, lw, rec, ob, None, None, None, lq, False, None, False)
-                        elif banded:
-                            ent.emit(v, kk, st, lw, rec, ob, None, None, None, (st.A_i, st.A_w), True, lq, False)
-                        else:
-                            ent.emit(v, kk, st, lw, rec, ob, wf.ed[:h], wf.lf[:h], self.pi_powers,
-                                     (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)  # fmt: skip
+                        self._emit_entries(ent, v, wf.kk[:h], st, wf.lw[:h], rec, ob, lq, wf.ed[:h], wf.lf[:h])
                 if v == nb:
                     break
                 with clock("sampling"):
@@ -569,17 +563,27 @@ class _Tracer:
     ):
         """:meth:`_emit` in the compiled kernel (:class:`~.reduce.NativeEntries`): the same
         entries in the same order, made without torch ops per layer combination."""
-        kk, wl, wo, ob, ed, lw = hit.kk, hit.wl, hit.wo, hit.ob, hit.ed, hit.lw
-        common = (v, kk, st, lw, rec)
+        wl, wo, ob, ed = hit.wl, hit.wo, hit.ob, hit.ed
+        lq = f = None
         if v == 1:
-            j, q = (lv1 or self.level1)(ob, wl, wo)
-            ent.emit(*common, ob, None, None, None, (j, q), False, None, False)
+            lq = (lv1 or self.level1)(ob, wl, wo)
         elif self._banded(v):
-            k2, q2 = (lv2 or self.level2)(ob, wl, wo)
-            ent.emit(*common, ob, None, None, None, (st.A_i, st.A_w), True, (k2, q2), False)
+            lq = (lv2 or self.level2)(ob, wl, wo)
         else:
             f = self._diffuse_f(ob, ed, wl, wo, fixed)
-            ent.emit(*common, ob, ed, f, self.pi_powers, (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)
+        self._emit_entries(ent, v, hit.kk, st, hit.lw, rec, ob, lq, ed, f)
+
+    def _emit_entries(self, ent, v: int, kk, st: PathState, lw, rec, ob, lq=None, ed=None, f=None):
+        """The compiled entries (``ent.emit``) of the light samples ``kk`` reaching vertex ``v``:
+        ``lq`` the band slots and quotients of their directions at the first vertex or a banded
+        one, else ``ed`` (editable flags) and ``f`` (the diffuse-equivalent factor)."""
+        common = (v, kk, st, lw, rec, ob)
+        if v == 1:
+            ent.emit(*common, None, None, None, lq, False, None, False)
+        elif self._banded(v):
+            ent.emit(*common, None, None, None, (st.A_i, st.A_w), True, lq, False)
+        else:
+            ent.emit(*common, ed, f, self.pi_powers, (st.A_i, st.A_w), True, (st.B_i, st.B_w), True)
 
     def _record(self, paths: dict, st: PathState, v: int, hit: LightHit, rec: torch.Tensor, extra):
         """Raw path data for the exactness oracle (tests)."""

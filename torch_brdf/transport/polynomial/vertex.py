@@ -18,6 +18,7 @@ other than the built-in ones, and lights other than :class:`~torch_brdf.scene.li
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 from dataclasses import fields
 
@@ -254,34 +255,29 @@ class VertexKernel:
         return a[:m], so[:m], sd[:m]
 
 
-_RAND: dict = {}
-
-
+@functools.cache
 def c_rand_matches(lib) -> bool:
     """Whether ``tb_rand`` draws what ``torch.rand`` draws (float32 and float64, bit for bit, and
     the same generator state after), checked once per process on a generator of its own; the
     wavefront keeps ``torch.rand``'s stream either way (without the match it is not used)."""
-    if "ok" not in _RAND:
-        g = torch.Generator().manual_seed(20260)
-        torch.rand(1000, generator=g)  # somewhere inside the engine's 624-word block
-        s0 = g.get_state()
-        a = torch.rand(1500, generator=g)
-        b = torch.rand(700, 3, generator=g, dtype=torch.float64)
-        after = g.get_state()
-        s = s0.clone()
-        x, y = torch.empty(1500, **_F32), torch.empty(2100, dtype=torch.float64)
-        ok = s.dtype == torch.uint8 and s.numel() >= 24 + 8 * 624
-        if ok:
-            lib.tb_rand(_p(s), 1500, 0, _p(x))
-            lib.tb_rand(_p(s), 2100, 1, _p(y))
-            used = list(range(8, 12)) + list(range(16, 24 + 8 * 624))  # left, next, the state words
-            ok = torch.equal(a, x) and torch.equal(b.flatten(), y) and torch.equal(s[used], after[used])
-        if ok:  # the state written back goes on as torch's own would
-            h = torch.Generator()
-            h.set_state(s)
-            ok = torch.equal(torch.rand(5, generator=h), torch.rand(5, generator=g))
-        _RAND["ok"] = bool(ok)
-    return _RAND["ok"]
+    g = torch.Generator().manual_seed(20260)
+    torch.rand(1000, generator=g)  # somewhere inside the engine's 624-word block
+    s0 = g.get_state()
+    a = torch.rand(1500, generator=g)
+    b = torch.rand(700, 3, generator=g, dtype=torch.float64)
+    after = g.get_state()
+    s = s0.clone()
+    if s.dtype != torch.uint8 or s.numel() < 24 + 8 * 624:
+        return False
+    x, y = torch.empty(1500, **_F32), torch.empty(2100, dtype=torch.float64)
+    lib.tb_rand(_p(s), 1500, 0, _p(x))
+    lib.tb_rand(_p(s), 2100, 1, _p(y))
+    used = list(range(8, 12)) + list(range(16, 24 + 8 * 624))  # left, next, the state words
+    if not (torch.equal(a, x) and torch.equal(b.flatten(), y) and torch.equal(s[used], after[used])):
+        return False
+    h = torch.Generator()  # the state written back goes on as torch's own would
+    h.set_state(s)
+    return torch.equal(torch.rand(5, generator=h), torch.rand(5, generator=g))
 
 
 class Wavefront:
