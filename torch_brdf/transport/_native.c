@@ -1179,9 +1179,8 @@ int64_t tb_intersect_only(void *scene, void *fn, int64_t n, const float *o, cons
  * each record's rows, group after group, are summed per key (s and s * s from 0.0) in a small
  * hash table that stays in cache. A key's tile sums thus add the per-path sums group by group
  * and within a group path by path ascending: the merged runs' order, the same sums bit for
- * bit. The keys leave the tile record by record (tb_tile_export; ordered: ascending as
- * tb_reduce returns them); tb_blocks does not depend on their order (it sorts by keys unique
- * per row). */
+ * bit. The keys leave the tile ascending as tb_reduce returns them (tb_tile_export);
+ * tb_blocks does not depend on their order (it sorts by keys unique per row). */
 
 #define TT_EMPTY (~(u128)0)   /* a free hash slot: no key has all 128 bits set (keys have <= 127) */
 #define TT_MAX_BUCKET_BITS 22 /* record + path bits of a group: its counting sort's buckets (16 MB) */
@@ -1358,29 +1357,26 @@ int64_t tb_tile_size(tb_tile *t) { return tt_finish(t) ? -1 : t->U; }
 int tb_tile_max_count(const tb_tile *t) { return t->max_count; }
 
 /* The tile's keys and sums: fields_out (U, 5 + M) int64 (rec, obj, bounce, j, w, counts) and
- * vals_out (U, 6) float64 (sums, then sums of per-path squares), record by record, or (ordered)
- * ascending as tb_reduce returns them (count digits last object first, or first object first
+ * vals_out (U, 6) float64 (sums, then sums of per-path squares), ascending as tb_reduce returns them (count digits last object first, or first object first
  * when forward). Returns U; -1 out of memory. */
-int64_t tb_tile_export(tb_tile *t, int forward, int ordered, int64_t *fields_out, double *vals_out) {
+int64_t tb_tile_export(tb_tile *t, int forward, int64_t *fields_out, double *vals_out) {
     if (tt_finish(t)) return -1;
     const int64_t U = t->U;
     const int M = t->M, K = NFIXED + M;
-    item *x = NULL, *y = NULL, *sorted = NULL;
+    item *x, *y, *sorted;
     int64_t cnt[2048];
-    if (ordered) {
-        x = (item *)malloc(sizeof(item) * (U ? U : 1)), y = (item *)malloc(sizeof(item) * (U ? U : 1));
-        if (!x || !y) {
-            free(x), free(y);
-            return -1;
-        }
-        tb_acc shape; /* forward_key's view of the tile's widths (no path field) */
-        memset(&shape, 0, sizeof(shape));
-        shape.M = M, shape.bc = t->bc;
-        for (int64_t u = 0; u < U; u++) x[u].k = forward ? forward_key(&shape, t->sums[u].k) : t->sums[u].k, x[u].s = u;
-        sorted = U ? sort128(x, y, U, t->total, cnt) : x;
+    x = (item *)malloc(sizeof(item) * (U ? U : 1)), y = (item *)malloc(sizeof(item) * (U ? U : 1));
+    if (!x || !y) {
+        free(x), free(y);
+        return -1;
     }
+    tb_acc shape; /* forward_key's view of the tile's widths (no path field) */
+    memset(&shape, 0, sizeof(shape));
+    shape.M = M, shape.bc = t->bc;
+    for (int64_t u = 0; u < U; u++) x[u].k = forward ? forward_key(&shape, t->sums[u].k) : t->sums[u].k, x[u].s = u;
+    sorted = U ? sort128(x, y, U, t->total, cnt) : x;
     for (int64_t o = 0; o < U; o++) {
-        const tt_sum *s = t->sums + (ordered ? sorted[o].s : o);
+        const tt_sum *s = t->sums + sorted[o].s;
         u128 k = s->k;
         int64_t *row = fields_out + o * K;
         for (int m = 0; m < M; m++, k >>= t->bc) row[NFIXED + m] = (int64_t)(k & field_mask(t->bc));

@@ -106,7 +106,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_tile_size.restype, lib.tb_tile_size.argtypes = i64, [p]
     lib.tb_tile_max_count.restype, lib.tb_tile_max_count.argtypes = i32, [p]
     lib.tb_tile_add.restype, lib.tb_tile_add.argtypes = i32, [p, p]
-    lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, i32, p, p]
+    lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, p, p]
     lib.tb_tile_blocks.restype, lib.tb_tile_blocks.argtypes = i64, [p, p, i64, i64, p, p, p, p, p, p, p]
     # the GI tracer's wavefront in reused buffers (polynomial/vertex.py Wavefront)
     lib.tb_rand.restype, lib.tb_rand.argtypes = None, [p, i64, i32, p]
@@ -351,14 +351,13 @@ class TileSums:
     def max_count(self) -> int:
         return int(self.lib.tb_tile_max_count(self._h))
 
-    def reduce(self, forward: bool, ordered: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    def reduce(self, forward: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """-> fields (U, 5 + M) int64 (rec, obj, bounce, j, w, counts) and (U, 6) float64 sums and
-        sums of squares per key: ascending as :meth:`Accumulator.reduce` returns them, or
-        (``ordered=False``) record by record in table order (for consumers that sort anyway)."""
+        sums of squares per key, ascending as :meth:`Accumulator.reduce` returns them."""
         n = len(self)
         keys = torch.empty(n, 5 + self.M, dtype=torch.int64)
         vals = torch.empty(n, self.V, dtype=torch.float64)
-        u = self.lib.tb_tile_export(self._h, int(forward), int(ordered), keys.data_ptr(), vals.data_ptr())
+        u = self.lib.tb_tile_export(self._h, int(forward), keys.data_ptr(), vals.data_ptr())
         if u != n:
             raise MemoryError("the tile's sums could not be exported")
         return keys, vals
