@@ -153,6 +153,70 @@ def test_mixture_equals_torch():
     torch.testing.assert_close(cosw[clear], want_cosw[clear], rtol=1e-3, atol=1e-6)
 
 
+def _ulps(got: torch.Tensor, want: torch.Tensor) -> torch.Tensor:
+    """|got - want| in units of the float32 spacing at want (float64 want; 2^-149 at least)."""
+    a = want.abs().to(torch.float32).to(torch.float64)
+    e = torch.frexp(a.clamp_min(2.0**-126)).exponent.to(torch.float64)
+    return (got.to(torch.float64) - want).abs() / torch.pow(2.0, e - 24).clamp_min(2.0**-149)
+
+
+@needs_cc
+def test_sincos_against_float64_over_its_range():
+    """The kernel's own cos / sin (sincos_fd in _native.c, session 9: the mixture's angles, no
+    libm call) against float64 over the mixture's angles [-pi/4, 2 pi]: random angles, every
+    float within 4096 ulps of each multiple of pi/4 (the quadrant edges and the zeros) and tiny
+    angles. Stated bound 0.5 ulp (float64 arithmetic rounded once, without FMA, so the AVX2 and
+    the baseline copies give the same bits); measured here with a margin for ties."""
+    g = torch.Generator().manual_seed(9)
+    parts = [torch.rand(1 << 21, generator=g, dtype=torch.float64) * (2.25 * math.pi) - math.pi / 4]
+    step = torch.arange(-4096, 4097, dtype=torch.int32)
+    for k in range(-1, 9):
+        c = torch.tensor([k * math.pi / 4], dtype=torch.float32)
+        if k == 0:
+            continue
+        parts.append((c.view(torch.int32) + step).view(torch.float32).double())
+    tiny = torch.tensor([0.0, 2.0**-149, 1e-30, 1e-8, 3e-4, -1e-8], dtype=torch.float64)
+    x = torch.cat([*parts, tiny, -tiny]).to(torch.float32)
+    x = x[(x >= -math.pi / 4 - 1e-3) & (x <= 2 * math.pi + 1e-3)].contiguous()
+    c, s = torch.empty_like(x), torch.empty_like(x)
+    LIB.tb_sincos(x.numel(), _native.ptr(x), _native.ptr(c), _native.ptr(s))
+    xd = x.double()
+    err = torch.maximum(_ulps(c, torch.cos(xd)), _ulps(s, torch.sin(xd)))
+    assert float(err.max()) <= 0.5 + 2.0**-10, f"max error {float(err.max())} ulp at x = {float(x[err.argmax()])}"
+
+
+@needs_cc
+@pytest.mark.parametrize("exponent", [1.0, 200.0, 1e4])
+def test_mixture_against_float64_at_the_extremes(exponent):
+    """tb_mixture (its own sin/cos, libm's logf/expm1f/powf) against the float64 torch mixture:
+    uniforms at 0, 2^-24 and 1 - 2^-24 in every coordinate, grazing and upright wo, exponents
+    up to 1e4. Directions within a few float32 eps; the pdf at the kernel's direction within
+    the float32 rounding of its terms (the half vector: ~100 ulps near wi = -wo; cos^n: 2n)."""
+    g = torch.Generator().manual_seed(3)
+    ends = torch.tensor([0.0, 2.0**-24, 0.25, 0.5, 0.75, 1 - 2.0**-24])
+    grid = torch.cartesian_prod(ends, ends, ends)
+    u = torch.cat([grid, torch.rand(20000, 3, generator=g)]).to(torch.float32)
+    wo = _unit(g, u.shape[0])
+    wo[:, 2] = wo[:, 2].abs()
+    z = torch.tensor([1e-4, 1e-3, 0.05, 1.0])[torch.arange(u.shape[0]) % 4]  # grazing to upright
+    wo[: u.shape[0] // 2] = torch.cat([(1 - z * z).sqrt()[:, None] * torch.tensor([[0.6, 0.8]]), z[:, None]], 1)[
+        : u.shape[0] // 2
+    ]
+    wo = wo.contiguous()
+    _, _, vk = _tracer()
+    mix = Mixture(diffuse=0.7, exponent=exponent)
+    vk.mix = [mix.diffuse, 1 - mix.diffuse, exponent, (exponent + 1.0) / (2 * math.pi)]
+    wi, pdf, cosw, ok = vk.mixture(u, wo)
+    want_wi, _ = mix.sample(wo.double(), u.double())
+    torch.testing.assert_close(wi.double()[:, :2], want_wi[:, :2], rtol=0, atol=16 * 2.0**-23)
+    # z = sqrt(1 - x^2 - y^2) at the disk's rim (u = 0 or 1): a few eps under the root, sqrt(eps) out
+    torch.testing.assert_close(wi.double()[:, 2], want_wi[:, 2], rtol=0, atol=16 * 2.0**-23 + (8 * 2.0**-23) ** 0.5)
+    want_pdf = mix.pdf(wi.double(), wo.double())
+    up = wi[:, 2] > 1e-3
+    torch.testing.assert_close(pdf.double()[up], want_pdf[up], rtol=(2 * exponent + 128) * 2.0**-23, atol=1e-30)
+    assert bool(torch.isfinite(pdf).all() and torch.isfinite(cosw).all()) and 0 < int(ok.sum()) < u.shape[0]
+
+
 @needs_cc
 @pytest.mark.parametrize("series", ["64,1,1,1", "16,8,1,1"])
 def test_precompute_close_to_torch_path(series, monkeypatch):

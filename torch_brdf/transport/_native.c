@@ -14,13 +14,25 @@
  * _multiset_ids' base-(max + 1) code; when that code would not fit in 62 bits, torch numbers
  * multisets with unique(dim=0) (first object first) and the keys are repacked before sorting.
  *
- * Built on first use by _native.py with the system C compiler (-O2 -ffp-contract=off: no fused
- * multiply-add, IEEE float32 products as in torch) and called through ctypes.
+ * Built on first use by _native.py with the system C compiler (-O3 -ffp-contract=off: no fused
+ * multiply-add, IEEE float32 products as in torch; -fno-math-errno -fno-trapping-math only let
+ * sqrtf inline and selects replace branches, the values stay IEEE's) and called through ctypes.
  */
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+
+/* Session 9: loops of the sampling side written to vectorise (branch-free passes over arrays)
+ * are built twice, for AVX2 and for the baseline x86-64 (SSE2), and the loader picks the copy
+ * the CPU can run (GCC's target_clones: an ifunc resolved once). The two copies do the same
+ * IEEE operations in the same order (no FMA: -ffp-contract=off), so they give the same bits:
+ * the result does not depend on the CPU. Other compilers and CPUs: one plain copy. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
+#define TB_SIMD __attribute__((target_clones("avx2", "default")))
+#else
+#define TB_SIMD
+#endif
 
 typedef unsigned __int128 u128;
 
@@ -604,7 +616,8 @@ void tb_area_finish(int64_t n, const float *d, const float *d2, const float *dis
  * and quotients of the editable objects (_Layers), the direction mixture (sampler.py Mixture)
  * and the path's advance (throughput, counts, world direction, the next ray). Same formulas
  * and operation order as the torch code, in float32 (float64 where it uses float64), but libm's
- * scalar sqrtf/atan2f/powf/expm1f/logf/cosf/sinf instead of torch's vectorised ones: results
+ * scalar sqrtf/atan2f/powf/expm1f/logf (and, since session 9, the mixture's own cos/sin:
+ * sincos_fd) instead of torch's vectorised ones: results
  * may differ from the torch path in the last ulp (and a path that then lands on a band edge or
  * grazes an edge of the geometry may take the other side), so the tests compare them with
  * tolerances and the exactness oracles re-evaluate the paths this code traced. */
@@ -654,28 +667,51 @@ static inline int64_t area_sample_row(int64_t i, double u0, double u1, double u2
                                       const float *pos, const float *ng, const float *ns, float eps, float *dir,
                                       float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax,
                                       int64_t m) {
+    /* Session 9: without a branch on the sample's values (the triangle's search, valid and the
+     * candidate test are selects; the candidate's row m is written whatever it is and kept by
+     * m += cand), so the divisions and square roots of successive vertices overlap instead of
+     * waiting for mispredicted branches (~45 -> ~20 ns per vertex). The same operations in the
+     * same order: the values are the same bit for bit. */
     const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
-    double sq = sqrt(u1);
-    const float *p = pos + 3 * i;
-    float d[3];
-    const float *nl = nrm + 3 * area_point(u0, 1 - sq, u2 * sq, cdf, T, tri, p, d);
-    float d2 = (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2], r = sqrtf(d2), den = r < tiny ? tiny : r;
-    float *w = dir + 3 * i;
-    for (int c = 0; c < 3; c++) w[c] = d[c] / den;
-    float cl = -dot3(w, nl);
-    int valid = cl > 0 && r > 0;
-    float pdf = valid ? d2 / ((cl < lo_cos ? lo_cos : cl) * area) : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
-    for (int c = 0; c < 3; c++) weight[3 * i + c] = valid ? radiance[c] / pc : 0.0f;
-    const float *g = ng + 3 * i;
-    float cs = dot3(w, ns + 3 * i), cg = dot3(w, g);
-    cosv[i] = cs;
-    if (cs > 0 && cg > 0 && pdf > 0) {
-        float side = cg >= 0 ? eps : -eps;
-        for (int c = 0; c < 3; c++) so[3 * m + c] = p[c] + side * g[c], sd[3 * m + c] = w[c];
-        tmax[m] = r - 2 * eps;
-        k[m++] = i;
+    double sq = sqrt(u1), b1 = 1 - sq, b2 = u2 * sq;
+    int64_t a = 0, len = T; /* searchsorted(cdf, u0, right=True), halving with selects */
+    while (len > 0) {
+        int64_t half = len >> 1, go = cdf[a + half] <= u0;
+        a = go ? a + half + 1 : a;
+        len = go ? len - half - 1 : half;
     }
-    return m;
+    int64_t kt = a < T - 1 ? a : T - 1;
+    const float *t = tri + 9 * kt, *p = pos + 3 * i, *nl = nrm + 3 * kt;
+    float d0, d1, d2_;
+    {
+        double t0 = t[0], t1 = t[3], t2 = t[6];
+        d0 = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[0];
+        t0 = t[1], t1 = t[4], t2 = t[7];
+        d1 = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[1];
+        t0 = t[2], t1 = t[5], t2 = t[8];
+        d2_ = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[2];
+    }
+    float d2 = (d0 * d0 + d1 * d1) + d2_ * d2_, r = sqrtf(d2), den = r < tiny ? tiny : r;
+    float w0 = d0 / den, w1 = d1 / den, w2 = d2_ / den;
+    float *w = dir + 3 * i;
+    w[0] = w0, w[1] = w1, w[2] = w2;
+    float cl = -((w0 * nl[0] + w1 * nl[1]) + w2 * nl[2]);
+    int valid = cl > 0 && r > 0;
+    float pv = d2 / ((cl < lo_cos ? lo_cos : cl) * area), pdf = valid ? pv : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
+    for (int c = 0; c < 3; c++) {
+        float q = radiance[c] / pc;
+        weight[3 * i + c] = valid ? q : 0.0f;
+    }
+    const float *g = ng + 3 * i, *s = ns + 3 * i;
+    float cs = (w0 * s[0] + w1 * s[1]) + w2 * s[2], cg = (w0 * g[0] + w1 * g[1]) + w2 * g[2];
+    cosv[i] = cs;
+    int cand = (cs > 0) & (cg > 0) & (pdf > 0);
+    float side = cg >= 0 ? eps : -eps;
+    so[3 * m] = p[0] + side * g[0], so[3 * m + 1] = p[1] + side * g[1], so[3 * m + 2] = p[2] + side * g[2];
+    sd[3 * m] = w0, sd[3 * m + 1] = w1, sd[3 * m + 2] = w2;
+    tmax[m] = r - 2 * eps;
+    k[m] = i;
+    return m + cand;
 }
 
 int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
@@ -817,11 +853,44 @@ static double ulp_quarter(float x) {
     return q;
 }
 
+/* cos and sin of float angles x (|x| < 2^20), rounded to float from float64 arithmetic (session 9):
+ * x - k pi/2 with k = nearest integer of x 2/pi (pi/2 as two doubles: the reduced angle r,
+ * |r| <= pi/4 + 1e-9, is exact to ~1e-16 relative for these x), then Taylor polynomials of
+ * sin r to r^15 and cos r to r^14 (truncation < 1e-15 relative at pi/4), the quadrant by
+ * selects. The float64 result is within ~1e-15 relative of cos x / sin x, so the float is the
+ * correctly rounded value unless that lies within ~1e-7 ulp of a tie: max error 0.5 ulp (+1e-7)
+ * against a float64 reference (glibc's sincosf: 0.56 ulp); tests/transport/test_vertex.py
+ * measures it. No branch, no call: the loops that use it vectorise. */
+static inline void sincos_fd(float xf, float *cp, float *sp) {
+    const double two_over_pi = 0.63661977236758134308, pio2_hi = 1.5707963267341256, pio2_lo = 6.077100506506192e-11;
+    const double magic = 6755399441055744.0; /* 1.5 * 2^52: x + magic - magic rounds x to an integer */
+    double x = xf, kd = (x * two_over_pi + magic) - magic;
+    double r = (x - kd * pio2_hi) - kd * pio2_lo, r2 = r * r;
+    double sr = r + r * r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880 + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0)))))));
+    double cr = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (-1.0 / 3628800 + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0)))))));
+    int q = (int)kd & 3;
+    double c = (q & 1) ? sr : cr, s = (q & 1) ? cr : sr;
+    c = (q == 1 || q == 2) ? -c : c;
+    s = (q & 2) ? -s : s;
+    *cp = (float)c, *sp = (float)s;
+}
+
+void tb_sincos(int64_t n, const float *x, float *c, float *s) { /* tests: sincos_fd on an array */
+    for (int64_t i = 0; i < n; i++) sincos_fd(x[i], c + i, s + i);
+}
+
 /* sampler.py Mixture.sample and .pdf, then the tracer's ok and cos / pdf: u (n, 3) float32,
  * wo (n, 3) local -> wi (n, 3), pdf (n,), cosw (n,) and ok (n,) uint8. The constants as torch
  * rounds them: diffuse, gloss = 1 - diffuse, exponent n and norm = (n + 1) / (2 pi) in float64,
- * then float32. */
-void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float gloss, float exponent, float norm,
+ * then float32.
+ * Session 9: in blocks of MIX_B rows, as passes over the block: the angles of the sampler drawn
+ * and their cos / sin (sincos_fd, no libm call), the lobe's sin^2 (logf, expm1f) on the lobe's
+ * rows only, the directions and the pdf's diffuse term, the lobe's pdf term (powf) on the rows
+ * that need it, then cos / pdf: no branch on the sample in the arithmetic passes, so they
+ * vectorise or at least overlap (libm's sinf/cosf were replaced: the tensors' rounding changed
+ * by <= 1 ulp in those values; logf/expm1f/powf are libm's as before). */
+enum { MIX_B = 256 };
+TB_SIMD void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float gloss, float exponent, float norm,
                 float *wi, float *pdf, float *cosw, uint8_t *ok) {
     const double PI = 3.14159265358979323846;
     const float tiny = 1.17549435e-38f, e = 1.1920929e-07f, q1 = (float)(PI / 4), q2 = (float)(PI / 2);
@@ -832,50 +901,70 @@ void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float
      * term below half an ulp of t1 > 0 leaves the rounded sum t1 + term at t1. */
     float c0 = exponent > 0 ? (float)exp(log(1e-12) / exponent) : -1.0f;
     double lobe_bound = c0 > 0 ? (double)gloss * (double)norm * pow((double)c0, (double)exponent) * 1.01 / 4.0 : 0.0;
-    for (int64_t i = 0; i < n; i++) {
-        const float *ui = u + 3 * i, *o = wo + 3 * i;
-        float *w = wi + 3 * i;
-        if (ui[0] < diffuse) { /* Malley: the concentric disk lifted to the hemisphere */
+    float phi[MIX_B], cp[MIX_B], sp[MIX_B], s2[MIX_B], ch[MIX_B], coh[MIX_B], t1[MIX_B];
+    int32_t rows[MIX_B];
+    for (int64_t i0 = 0; i0 < n; i0 += MIX_B) {
+        const int nb = n - i0 < MIX_B ? (int)(n - i0) : MIX_B;
+        const float *ub = u + 3 * i0, *ob = wo + 3 * i0;
+        float *wb = wi + 3 * i0;
+        /* the angle of the sampler drawn (every division done, then selected: no branch) */
+        for (int j = 0; j < nb; j++) {
+            const float *ui = ub + 3 * j;
             float a = 2 * ui[1] - 1, b = 2 * ui[2] - 1;
             int first = fabsf(a) > fabsf(b);
-            float r = first ? a : b, safe = r == 0 ? 1.0f : r;
-            float phi = first ? q1 * (b / safe) : q2 - q1 * (a / safe);
-            w[0] = r * cosf(phi), w[1] = r * sinf(phi);
-            float z = 1 - (w[0] * w[0] + w[1] * w[1]);
-            w[2] = sqrtf(z > 0 ? z : 0.0f);
-        } else { /* a cos^n half vector about the normal, wo mirrored about it */
-            float om = 1.0f - ui[1];
+            float r = first ? a : b, safe = r == 0 ? 1.0f : r, ba = b / safe, ab = a / safe;
+            float phi_d = first ? q1 * ba : q2 - q1 * ab;
+            phi[j] = ui[0] < diffuse ? phi_d : two_pi * ui[2];
+            s2[j] = 0.0f;
+        }
+        int nl = 0; /* the lobe's rows */
+        for (int j = 0; j < nb; j++) rows[nl] = j, nl += !(ub[3 * j] < diffuse);
+        for (int j = 0; j < nb; j++) sincos_fd(phi[j], cp + j, sp + j);
+        for (int t = 0; t < nl; t++) { /* a cos^n half vector about the normal: its sin^2 */
+            int j = rows[t];
+            float om = 1.0f - ub[3 * j + 1];
             float lu = logf(om < tiny ? tiny : (om > 1 ? 1.0f : om));
-            float s2 = -expm1f(2.0f * lu / (exponent + 1.0f));
-            s2 = s2 < 0 ? 0.0f : (s2 > 1 ? 1.0f : s2);
-            float st = sqrtf(s2), phi = two_pi * ui[2];
-            float h[3] = {st * cosf(phi), st * sinf(phi), sqrtf(1.0f - s2)};
-            float k = 2 * dot3(o, h);
-            for (int c = 0; c < 3; c++) w[c] = k * h[c] - o[c];
+            float v = -expm1f(2.0f * lu / (exponent + 1.0f));
+            s2[j] = v < 0 ? 0.0f : (v > 1 ? 1.0f : v);
         }
-        float s[3] = {w[0] + o[0], w[1] + o[1], w[2] + o[2]}, h[3];
-        float len = sqrt0f((s[0] * s[0] + s[1] * s[1]) + s[2] * s[2]);
-        if (len > e)
-            for (int c = 0; c < 3; c++) h[c] = s[c] / len;
-        else
-            h[0] = 0, h[1] = 0, h[2] = 1;
-        float coh = fabsf(dot3(o, h));
-        coh = coh < 1e-12f ? 1e-12f : coh;
-        float ch = h[2] > 0 ? h[2] : 0.0f;
-        float cz = w[2] > 0 ? w[2] : 0.0f;
-        float t1 = diffuse * (cz * inv_pi), p;
-        if (!(w[2] > 0)) /* p is 0 whatever the lobe's term */
-            p = 0.0f;
-        else if (ch <= c0 && t1 >= 0x1p-100f && lobe_bound < (double)coh * ulp_quarter(t1))
-            p = t1; /* the lobe's term is below a quarter ulp of t1: t1 + it rounds to t1 */
-        else {
-            float ph = ch > 0 ? norm * powf(ch < tiny ? tiny : ch, exponent) : 0.0f;
-            p = t1 + gloss * ph / (4 * coh);
+        /* the directions (Malley's, or wo mirrored about the half vector) and the pdf's terms */
+        for (int j = 0; j < nb; j++) {
+            const float *ui = ub + 3 * j, *o = ob + 3 * j;
+            float a = 2 * ui[1] - 1, b = 2 * ui[2] - 1;
+            float r = fabsf(a) > fabsf(b) ? a : b;
+            int dif = ui[0] < diffuse;
+            float x_d = r * cp[j], y_d = r * sp[j], z_d = 1 - (x_d * x_d + y_d * y_d);
+            z_d = sqrtf(z_d > 0 ? z_d : 0.0f);
+            float st = sqrtf(s2[j]), h0 = st * cp[j], h1 = st * sp[j], h2 = sqrtf(1.0f - s2[j]);
+            float kl = 2 * ((o[0] * h0 + o[1] * h1) + o[2] * h2);
+            float x_l = kl * h0 - o[0], y_l = kl * h1 - o[1], z_l = kl * h2 - o[2];
+            float w0 = dif ? x_d : x_l, w1 = dif ? y_d : y_l, w2 = dif ? z_d : z_l;
+            float *w = wb + 3 * j;
+            w[0] = w0, w[1] = w1, w[2] = w2;
+            float s0 = w0 + o[0], s1 = w1 + o[1], sz = w2 + o[2];
+            float len = sqrt0f((s0 * s0 + s1 * s1) + sz * sz), d0 = s0 / len, d1 = s1 / len, d2 = sz / len;
+            int big = len > e;
+            float hx = big ? d0 : 0.0f, hy = big ? d1 : 0.0f, hz = big ? d2 : 1.0f;
+            float c = fabsf((o[0] * hx + o[1] * hy) + o[2] * hz);
+            coh[j] = c < 1e-12f ? 1e-12f : c;
+            ch[j] = hz > 0 ? hz : 0.0f;
+            float cz = w2 > 0 ? w2 : 0.0f;
+            t1[j] = diffuse * (cz * inv_pi);
         }
-        pdf[i] = p;
-        int good = p > 0 && w[2] > 0 && o[2] > 0;
-        ok[i] = (uint8_t)good;
-        cosw[i] = good ? w[2] / (p < 1e-30f ? 1e-30f : p) : 0.0f;
+        /* the lobe's pdf term where it can change p (p is 0 below the horizon whatever it is) */
+        for (int j = 0; j < nb; j++) {
+            float w2 = wb[3 * j + 2], p = t1[j];
+            if (w2 > 0 && !(ch[j] <= c0 && p >= 0x1p-100f && lobe_bound < (double)coh[j] * ulp_quarter(p))) {
+                float h = ch[j], ph = h > 0 ? norm * powf(h < tiny ? tiny : h, exponent) : 0.0f;
+                p = p + gloss * ph / (4 * coh[j]);
+            }
+            p = w2 > 0 ? p : 0.0f;
+            pdf[i0 + j] = p;
+            int good = (p > 0) & (w2 > 0) & (ob[3 * j + 2] > 0);
+            ok[i0 + j] = (uint8_t)good;
+            float cw = w2 / (p < 1e-30f ? 1e-30f : p);
+            cosw[i0 + j] = good ? cw : 0.0f;
+        }
     }
 }
 

@@ -10,8 +10,8 @@ cached file in milliseconds), and loads it with :mod:`ctypes`: no Python or torc
 no build step beyond ``pip install``. Without a working compiler (or with
 ``TORCH_BRDF_NATIVE=0``) it returns None after one warning and the precomputation keeps
 its torch path. The entries and sums equal the torch path's bit for bit on the same paths
-(``tests/transport/test_native.py``); the per-vertex steps use libm's scalar math where torch
-uses its vectorised math, so whole precomputations agree to float32 rounding, not bit for bit
+(``tests/transport/test_native.py``); the per-vertex steps use libm's scalar math (and their own
+cos/sin) where torch uses its vectorised math, so whole precomputations agree to float32 rounding, not bit for bit
 (``tests/transport/test_vertex.py``). The visibility fans give the same records bit for bit as
 the numpy path (``tests/transport/test_visibility.py``).
 """
@@ -52,7 +52,11 @@ __all__ = [
 #: ``TORCH_BRDF_NATIVE=0`` keeps the torch path (no compiler call)
 ENV_VAR = "TORCH_BRDF_NATIVE"
 _SOURCE = Path(__file__).with_name("_native.c")
-_FLAGS = ["-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math"]
+# -O3 vectorises the sampling passes (the AVX2 copies of TB_SIMD functions in _native.c);
+# -fno-math-errno and -fno-trapping-math change no value (no FMA, no reassociation: the
+# tensors are the same bit for bit as with -O2, checked in session 9), they let sqrtf inline and
+# selects replace branches so the loops vectorise
+_FLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno", "-fno-trapping-math"]
 _state: dict = {"lib": None, "tried": False, "build_s": 0.0}
 
 
@@ -91,6 +95,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_fixed_f.restype, lib.tb_fixed_f.argtypes = None, [i64, p, p, p, p, p, p]
     lib.tb_gather.restype, lib.tb_gather.argtypes = None, [i64, p, i32, p, p, p]
     lib.tb_mixture.restype, lib.tb_mixture.argtypes = None, [i64, p, p, f32, f32, f32, f32, p, p, p, p]
+    lib.tb_sincos.restype, lib.tb_sincos.argtypes = None, [i64, p, p, p]
     lib.tb_advance.restype = i64
     lib.tb_advance.argtypes = [i64, p, p, p, p, i32, p, p, i32, p, p, p, p, p, i64, p, i64, p, f32, p, p, p]
     lib.tb_vis_fans.restype = i64

@@ -7,7 +7,8 @@ the shading frame, an area light's next-event sample and its shadow ray, the lig
 the local frame, the band slots and quotients of the editable objects, the direction mixture and
 the path's advance. They compute what the torch steps of :meth:`~.tracer._Tracer.run` compute
 with the same formulas, in the same precision and order, and draw the same random numbers, but
-with the C library's scalar ``sqrtf``/``atan2f``/``powf``/... rather than torch's vectorised
+with the C library's scalar ``sqrtf``/``atan2f``/``powf``/... and, in the mixture, the
+kernel's own vectorised cos/sin (``sincos_fd``, <= 0.5 ulp) rather than torch's vectorised
 ones, so values may differ in the last ulp (``tests/transport/test_vertex.py`` compares both
 with tolerances; the exactness oracles re-evaluate the paths this code traced). What the kernel
 does not know stays torch: fixed objects' BRDFs (their rows are filled in by torch), quotients
