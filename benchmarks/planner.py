@@ -398,6 +398,9 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 MANIFOLD_DEFAULTS = (2, 5)
 #: the manifold plans' fit settings (those of tests/planner/test_manifold.py)
 MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
+#: pool materials per family draw (materials 80 to 80 + pool - 1 of the draw; the planner's
+#: prediction scatters with the pool's size, see ``torch_brdf/planner/manifold.py``)
+MANIFOLD_POOL = 40
 #: held-out materials per family draw (the analytic family makes as many as asked): the achieved
 #: statistic's own scatter between sets of materials must stay well inside 1.5x
 MANIFOLD_HELDOUT = 240
@@ -443,6 +446,7 @@ def run_manifold(
     heldout: int = MANIFOLD_HELDOUT,
     statistic: str = "trimmed",
     scores_path: str | None = None,
+    pool_size: int = MANIFOLD_POOL,
 ) -> dict:
     """Plan q and the training materials of the GPLVM for a held-out log-RMSE ``error`` (its
     ``statistic`` over the materials) on the analytic family (per ``families`` seed, 120 +
@@ -467,15 +471,23 @@ def run_manifold(
     runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
         obs, _ = analytic_observations(
-            40 + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
+            pool_size + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
         )
         names = list(obs.names)
-        test, pool = names[:80] + names[120:], names[80:120]
+        test, pool = names[:80] + names[80 + pool_size :], names[80 : 80 + pool_size]
+        assert not set(test) & set(pool)
         for q in MANIFOLD_DEFAULTS:
             scores, secs = carry_out(obs, pool, test, q)
             saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
             defaults.append(
-                {"family": fam, "q": q, "n": len(pool), "achieved_error": float(stat(scores)), "cpu_s": secs}
+                {
+                    "family": fam,
+                    "q": q,
+                    "n": len(pool),
+                    "achieved_error": float(stat(scores)),
+                    "achieved_mean": float(scores.mean()),
+                    "cpu_s": secs,
+                }
             )
         for order in orders:
             t0 = time.process_time()
@@ -511,6 +523,7 @@ def run_manifold(
                     "achieved_error": a,
                     "achieved_interval": bootstrap_interval(scores, stat),
                     "achieved_first_80": float(stat(scores[:80])),
+                    "achieved_mean": float(scores.mean()),
                     "ratio": r,
                     "cpu_s": secs,
                     "plan_cpu_s": plan_s,
@@ -528,17 +541,26 @@ def run_manifold(
             scores_path,
             saved,
             "manifold-planner-scores",
-            meta={"families": list(families), "orders": list(orders), "heldout": len(test), "statistic": statistic},
+            meta={
+                "families": list(families),
+                "orders": list(orders),
+                "pool": len(pool),
+                "heldout": len(test),
+                "statistic": statistic,
+            },
         )
     first = runs[0]
     out = {
-        "data": f"analytic family ({len(families)} draws): 40 pool, {len(test)} held-out materials; 9 x 9 x 18 grid",
+        "data": f"analytic family ({len(families)} draws): {len(pool)} pool, {len(test)} held-out materials; "
+        "9 x 9 x 18 grid",
+        "pool": len(pool),
         "error": error,
         "statistic": statistic,
         "heldout": len(test),
         "families": list(families),
         "orders": runs,
-        "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error")} | {"seconds": first["cpu_s"]},
+        "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error", "achieved_mean")}
+        | {"seconds": first["cpu_s"], "statistic": statistic, "heldout": len(test)},
         "defaults": defaults,
         "prediction_ratio": max(max(o["ratio"], 1 / o["ratio"]) for o in runs),
         "achieved_over_predicted": [min(o["ratio"] for o in runs), max(o["ratio"] for o in runs)],
@@ -576,6 +598,9 @@ def main() -> None:
     ap.add_argument(
         "--statistic", default="trimmed", choices=sorted(STATISTICS), help="manifold: the planned statistic (trimmed)"
     )
+    ap.add_argument(
+        "--pool", type=int, default=MANIFOLD_POOL, help=f"manifold: pool materials (default {MANIFOLD_POOL})"
+    )
     ap.add_argument("--scores", default=None, help="manifold: save the per-material scores to this .npz")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
@@ -596,7 +621,7 @@ def main() -> None:
     if "manifold" in caps:
         families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11, 13)
         orders = tuple(range(args.orders or (2 if q else 8)))
-        out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores)
+        out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores, args.pool)
     out["load_end"] = os.getloadavg()[0]
     others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
     if not out["scenes"]:

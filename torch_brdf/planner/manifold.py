@@ -191,7 +191,7 @@ def plan_manifold(
     error: float | None = 0.05,
     seconds: float | None = None,
     qs: Sequence[int] = (1, 2, 3),
-    validation: int = 6,
+    validation: int | None = None,
     generator: torch.Generator | None = None,
     statistic: str = "trimmed",
     confident: bool = True,
@@ -206,7 +206,8 @@ def plan_manifold(
         error: budget on the held-out log-RMSE (its ``statistic``); seconds: budget on fit + projection.
         qs: candidate latent dimensions.
         validation: materials of ``train`` set aside (never trained on by a plan's model; they
-            set the cross-fit's chunk size).
+            set the cross-fit's chunk size). Default: 15% of ``train``, at least 6 (6 of 40, 12 of 80), so the
+            cross-fit makes the same number of fits at every pool size.
         generator: seeds the order of the pool (and the fits).
         statistic: a name of :data:`STATISTICS`: ``"trimmed"`` (default: the interquartile mean
             of the log errors), ``"geomean"``, ``"median"`` or ``"mean"`` of the per-material
@@ -228,6 +229,8 @@ def plan_manifold(
         raise ValueRangeError(f"statistic must be one of {', '.join(STATISTICS)}; got {statistic!r}")
     g = generator if generator is not None else torch.Generator().manual_seed(0)
     names = list(train)
+    if validation is None:
+        validation = max(6, round(3 * len(names) / 20))
     if len(names) < validation + 8:
         raise ValueRangeError(f"need at least {validation + 8} training materials; got {len(names)}")
     order = [names[i] for i in torch.randperm(len(names), generator=g).tolist()]
