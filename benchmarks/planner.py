@@ -2,7 +2,8 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11,13] [--orders 8] [--heldout 240] [--statistic trimmed] [--scores FILE]
+        [--psnr 50] [--families 7,11,13] [--orders 8] [--pool 40] [--heldout 240] [--statistic trimmed]
+        [--scores FILE]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -45,13 +46,15 @@ cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
 Manifold (``manifold``): q and the training materials for a held-out log-RMSE of 0.01 -- its
 ``--statistic`` over the materials, by default the interquartile mean of the log errors (see
-``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80-119
-the pool of 40, the rest ``--heldout`` (240) held out: the first 80 and 160 more of the same draw;
-family seeds 7, 11 and 13, ``--quick`` 7 only, or ``--families``), for pool orders 0-7 (quick
-0-1, or ``--orders N``): per plan (``orders``) its q, n, predicted error with its 90% interval
-and achieved error (the statistic over the held-out materials of the plan carried out;
-``achieved_first_80``: over the first 80, the former set) and their ratio, CPU seconds of the
-fit + placements, ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
+``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80 to
+80 + ``--pool`` - 1 the pool (40: 80-119), the rest ``--heldout`` (240) held out: the first 80 and
+160 more of the same draw, never in the pool; family seeds 7, 11 and 13, ``--quick`` 7 only,
+or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan (``orders``)
+its q, n, predicted error with its 90% interval and achieved error (the statistic over the
+held-out materials of the plan carried out; ``achieved_first_80``: over the first 80, the former
+set; ``achieved_mean``: the mean over the held-out materials, the manifold benchmark's
+statistic) and their ratio, CPU seconds of the fit + placements and of the planning
+(``plan_cpu_s``), ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
 how far another set of materials would move it); ``planned`` is the first; ``defaults``: the
 seed's q = 2 and 5 trained on the whole pool, measured alike; ``prediction_ratio`` (worst over
 the plans), ``achieved_over_predicted`` (range), ``within_1_5`` (share of plans within 1.5x both

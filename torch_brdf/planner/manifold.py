@@ -207,7 +207,8 @@ def plan_manifold(
         qs: candidate latent dimensions.
         validation: materials of ``train`` set aside (never trained on by a plan's model; they
             set the cross-fit's chunk size). Default: 15% of ``train``, at least 6 (6 of 40, 12 of 80), so the
-            cross-fit makes the same number of fits at every pool size.
+            ladder's sizes and the cross-fit's chunks keep their proportions at every pool size
+            (5, 7, 7 fits at 40; 7, 7, 7 at 80).
         generator: seeds the order of the pool (and the fits).
         statistic: a name of :data:`STATISTICS`: ``"trimmed"`` (default: the interquartile mean
             of the log errors), ``"geomean"``, ``"median"`` or ``"mean"`` of the per-material
