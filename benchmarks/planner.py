@@ -2,7 +2,7 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11,13] [--orders 8] [--pool 40] [--heldout 240] [--statistic trimmed]
+        [--psnr 50] [--families 7,11,13] [--orders 8] [--pool 80] [--heldout 240] [--statistic trimmed]
         [--scores FILE]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
@@ -403,7 +403,7 @@ MANIFOLD_DEFAULTS = (2, 5)
 MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
 #: pool materials per family draw (materials 80 to 80 + pool - 1 of the draw; the planner's
 #: prediction scatters with the pool's size, see ``torch_brdf/planner/manifold.py``)
-MANIFOLD_POOL = 40
+MANIFOLD_POOL = 80
 #: held-out materials per family draw (the analytic family makes as many as asked): the achieved
 #: statistic's own scatter between sets of materials must stay well inside 1.5x
 MANIFOLD_HELDOUT = 240
