@@ -47,7 +47,7 @@ cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 Manifold (``manifold``): q and the training materials for a held-out log-RMSE of 0.01 -- its
 ``--statistic`` over the materials, by default the interquartile mean of the log errors (see
 ``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80 to
-80 + ``--pool`` - 1 the pool (40: 80-119), the rest ``--heldout`` (240) held out: the first 80 and
+80 + ``--pool`` - 1 the pool (default 80: 80-159), the rest ``--heldout`` (240) held out: the first 80 and
 160 more of the same draw, never in the pool; family seeds 7, 11 and 13, ``--quick`` 7 only,
 or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan (``orders``)
 its q, n, predicted error with its 90% interval and achieved error (the statistic over the
