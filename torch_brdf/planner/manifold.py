@@ -60,9 +60,10 @@ scores 240 (it scored 80 before: the two halves of 80 gave medians of 0.0081 and
 model) -- but the prediction's side is the pool's size: by the 1/sqrt(S) of a mean, 80 pool
 materials would bring its scatter to ~0.17. Measured (session 9, four family draws x 8 pool
 orders, ``benchmarks/planner.py --pool 80``, the fourth draw new): every one of the 32 plans
-within 1.5x both ways (0.78-1.29), RMS log ratio 0.05-0.14 per draw against 0.27 at 40; the
+within 1.5x both ways (0.78-1.29), RMS log ratio 0.05-0.17 per draw against 0.27 at 40; the
 plans choose smaller models (n 17 or 34, q 2-3), since the tighter interval lets a cheaper
-option pass. The default validation share (15%) keeps the ladder and the cross-fit's chunks in
+option pass; planning costs about twice the CPU seconds of a pool of 40 (interleaved A/B). The
+default validation share (15%) keeps the ladder and the cross-fit's chunks in
 proportion at any pool size. The printed 90% interval is the honest reading of a plan's
 prediction.
 
