@@ -2,7 +2,8 @@
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]
-        [--psnr 50] [--families 7,11,13] [--orders 8] [--heldout 240] [--statistic trimmed] [--scores FILE]
+        [--psnr 50] [--families 7,11,13] [--orders 8] [--pool 80] [--heldout 240] [--statistic trimmed]
+        [--scores FILE]
 
 GI editing, on two scenes: the glossy Cornell box (Blinn-Phong n = 100 back wall, area light)
 and ``teatray`` (Blinn-Phong n = 200 tray, Lambertian teapot, procedural sky with a sun). The
@@ -45,13 +46,15 @@ cheapest default that reaches the PSNR, ``planner_cost_ratio_vs_cli_default``.
 
 Manifold (``manifold``): q and the training materials for a held-out log-RMSE of 0.01 -- its
 ``--statistic`` over the materials, by default the interquartile mean of the log errors (see
-``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80-119
-the pool of 40, the rest ``--heldout`` (240) held out: the first 80 and 160 more of the same draw;
-family seeds 7, 11 and 13, ``--quick`` 7 only, or ``--families``), for pool orders 0-7 (quick
-0-1, or ``--orders N``): per plan (``orders``) its q, n, predicted error with its 90% interval
-and achieved error (the statistic over the held-out materials of the plan carried out;
-``achieved_first_80``: over the first 80, the former set) and their ratio, CPU seconds of the
-fit + placements, ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
+``torch_brdf/planner/manifold.py``) -- on the analytic family (9 x 9 x 18 grid: materials 80 to
+80 + ``--pool`` - 1 the pool (default 80: 80-159), the rest ``--heldout`` (240) held out: the first 80 and
+160 more of the same draw, never in the pool; family seeds 7, 11 and 13, ``--quick`` 7 only,
+or ``--families``), for pool orders 0-7 (quick 0-1, or ``--orders N``): per plan (``orders``)
+its q, n, predicted error with its 90% interval and achieved error (the statistic over the
+held-out materials of the plan carried out; ``achieved_first_80``: over the first 80, the former
+set; ``achieved_mean``: the mean over the held-out materials, the manifold benchmark's
+statistic) and their ratio, CPU seconds of the fit + placements and of the planning
+(``plan_cpu_s``), ``achieved_interval`` (the achieved statistic's own 90% bootstrap interval:
 how far another set of materials would move it); ``planned`` is the first; ``defaults``: the
 seed's q = 2 and 5 trained on the whole pool, measured alike; ``prediction_ratio`` (worst over
 the plans), ``achieved_over_predicted`` (range), ``within_1_5`` (share of plans within 1.5x both
@@ -398,6 +401,9 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 MANIFOLD_DEFAULTS = (2, 5)
 #: the manifold plans' fit settings (those of tests/planner/test_manifold.py)
 MANIFOLD_FIT = {"metric": "weighted", "max_iter": 100}
+#: pool materials per family draw (materials 80 to 80 + pool - 1 of the draw; the planner's
+#: prediction scatters with the pool's size, see ``torch_brdf/planner/manifold.py``)
+MANIFOLD_POOL = 80
 #: held-out materials per family draw (the analytic family makes as many as asked): the achieved
 #: statistic's own scatter between sets of materials must stay well inside 1.5x
 MANIFOLD_HELDOUT = 240
@@ -443,6 +449,7 @@ def run_manifold(
     heldout: int = MANIFOLD_HELDOUT,
     statistic: str = "trimmed",
     scores_path: str | None = None,
+    pool_size: int = MANIFOLD_POOL,
 ) -> dict:
     """Plan q and the training materials of the GPLVM for a held-out log-RMSE ``error`` (its
     ``statistic`` over the materials) on the analytic family (per ``families`` seed, 120 +
@@ -467,15 +474,23 @@ def run_manifold(
     runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
         obs, _ = analytic_observations(
-            40 + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
+            pool_size + max(heldout, 80), MERLGrid.strided(9, 9, 18), generator=torch.Generator().manual_seed(fam)
         )
         names = list(obs.names)
-        test, pool = names[:80] + names[120:], names[80:120]
+        test, pool = names[:80] + names[80 + pool_size :], names[80 : 80 + pool_size]
+        assert not set(test) & set(pool)
         for q in MANIFOLD_DEFAULTS:
             scores, secs = carry_out(obs, pool, test, q)
             saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
             defaults.append(
-                {"family": fam, "q": q, "n": len(pool), "achieved_error": float(stat(scores)), "cpu_s": secs}
+                {
+                    "family": fam,
+                    "q": q,
+                    "n": len(pool),
+                    "achieved_error": float(stat(scores)),
+                    "achieved_mean": float(scores.mean()),
+                    "cpu_s": secs,
+                }
             )
         for order in orders:
             t0 = time.process_time()
@@ -511,6 +526,7 @@ def run_manifold(
                     "achieved_error": a,
                     "achieved_interval": bootstrap_interval(scores, stat),
                     "achieved_first_80": float(stat(scores[:80])),
+                    "achieved_mean": float(scores.mean()),
                     "ratio": r,
                     "cpu_s": secs,
                     "plan_cpu_s": plan_s,
@@ -528,17 +544,26 @@ def run_manifold(
             scores_path,
             saved,
             "manifold-planner-scores",
-            meta={"families": list(families), "orders": list(orders), "heldout": len(test), "statistic": statistic},
+            meta={
+                "families": list(families),
+                "orders": list(orders),
+                "pool": len(pool),
+                "heldout": len(test),
+                "statistic": statistic,
+            },
         )
     first = runs[0]
     out = {
-        "data": f"analytic family ({len(families)} draws): 40 pool, {len(test)} held-out materials; 9 x 9 x 18 grid",
+        "data": f"analytic family ({len(families)} draws): {len(pool)} pool, {len(test)} held-out materials; "
+        "9 x 9 x 18 grid",
+        "pool": len(pool),
         "error": error,
         "statistic": statistic,
         "heldout": len(test),
         "families": list(families),
         "orders": runs,
-        "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error")} | {"seconds": first["cpu_s"]},
+        "planned": {k: first[k] for k in ("q", "n", "predicted_error", "achieved_error", "achieved_mean")}
+        | {"seconds": first["cpu_s"], "statistic": statistic, "heldout": len(test)},
         "defaults": defaults,
         "prediction_ratio": max(max(o["ratio"], 1 / o["ratio"]) for o in runs),
         "achieved_over_predicted": [min(o["ratio"] for o in runs), max(o["ratio"] for o in runs)],
@@ -576,6 +601,9 @@ def main() -> None:
     ap.add_argument(
         "--statistic", default="trimmed", choices=sorted(STATISTICS), help="manifold: the planned statistic (trimmed)"
     )
+    ap.add_argument(
+        "--pool", type=int, default=MANIFOLD_POOL, help=f"manifold: pool materials (default {MANIFOLD_POOL})"
+    )
     ap.add_argument("--scores", default=None, help="manifold: save the per-material scores to this .npz")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
@@ -596,7 +624,7 @@ def main() -> None:
     if "manifold" in caps:
         families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11, 13)
         orders = tuple(range(args.orders or (2 if q else 8)))
-        out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores)
+        out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores, args.pool)
     out["load_end"] = os.getloadavg()[0]
     others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
     if not out["scenes"]:

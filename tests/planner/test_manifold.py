@@ -113,6 +113,32 @@ def test_crossfit_scores_every_pool_material_once_with_models_of_size_n(monkeypa
         assert len(held) <= chunk and len(set(train) & set(ladder[:n])) == n - len(held)
 
 
+@pytest.mark.parametrize("pool", [40, 80])
+def test_validation_set_grows_with_the_pool(monkeypatch, pool):
+    """15% of the pool (6 of 40, 12 of 80) is the validation set, so a larger pool keeps the
+    ladder's sizes in proportion (8, 17, 34 of 40; 17, 34, 68 of 80) and the cross-fit's fits (5, 7,
+    7 of 40; 7, 7, 7 of 80: each shares ~5/6 of the plan's training set at every pool size)."""
+    calls = []
+
+    def fake(obs, train, held, q, **kw):
+        calls.append((len(train), len(held)))
+        # errors falling with n, all above the budget: the most accurate option, the whole ladder
+        # (extrapolated lowest), is measured whatever the timings (ties would be broken by them)
+        return SimpleNamespace(gplvm_logrmse=torch.full((len(held),), 1.0 / len(train)))
+
+    monkeypatch.setattr(planner_manifold, "heldout_reconstruction", fake)
+    names = [f"m{i}" for i in range(pool)]
+    scores: dict = {}
+    plan_manifold(SimpleNamespace(z=torch.zeros(pool, 5)), names, error=1e-4, qs=(2,), scores=scores)
+    ladder = pool - pool * 3 // 20
+    assert sorted(n for _, n in scores) == [ladder // 4, ladder // 2, ladder]
+    assert len(calls) == {40: 5 + 7 + 7, 80: 7 + 7 + 7}[pool] and {t for t, _ in calls} == {
+        ladder // 4,
+        ladder // 2,
+        ladder,
+    }
+
+
 def test_statistics_are_what_they_claim():
     """Each statistic on a sample with a wild tail: the trimmed one is exp of the mean of the
     middle half of the logs (40 scores: the 11th to 30th smallest), so the tails do not move it."""

@@ -170,6 +170,29 @@ def test_missing_keys_and_grown_planner_json_degrade_gracefully():
     assert len(sections({})) == len(CAPABILITIES)  # nothing ran: every section, no figure, no error
 
 
+def test_manifold_figure_puts_the_plan_on_the_curves_statistic():
+    """The held-out curves are means over materials; the planner plans an interquartile mean of
+    the logs: its ★ sits at the plan's mean, its planned statistic is a separate, labelled point
+    (and an older run without the mean shows no ★ at all)."""
+    manifold = {"data": "NBRDF", "heldout_logrmse_mean": {"2": 0.39, "5": 0.35}}
+    planned = {"q": 3, "n": 34, "achieved_error": 0.004, "achieved_mean": 0.02, "statistic": "trimmed", "heldout": 240}
+    planner = {"manifold": {"planned": planned}}
+
+    def heldout(planner: dict) -> dict:
+        recs = {"manifold": {"result": manifold}, "planner": {"result": planner}}
+        fig = next(f for f in {s.key: s for s in sections(recs)}["manifold"].figures if f.key == "manifold_heldout")
+        return {s.label: (s.style, s.points) for s in fig.series if s.points}
+
+    got = heldout(planner)
+    stars = [(label, p) for label, (style, p) in got.items() if style == "planner"]
+    assert stars == [(stars[0][0], [(3.0, 0.02)])] and "mean" in stars[0][0]
+    assert [label for label, (_, p) in got.items() if p == [(3.0, 0.004)]] == [
+        "the same plan, trimmed (what it plans for)"
+    ]
+    old = {k: v for k, v in planned.items() if k not in ("achieved_mean", "statistic")}
+    assert [s for s, _ in heldout({"manifold": {"planned": old}}).values()].count("planner") == 0
+
+
 def test_a_skipped_ray_start_is_a_cell_not_a_crash():
     """scaleout.py prints ``ray_skipped`` (and its local figures) when Ray does not start in its
     time: the section says so in a cell, draws the local point and lists no Ray key as missing."""
