@@ -56,9 +56,10 @@ from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
 from .driver import plan_polynomial, precompute_polynomial, spp_map_of
 from .plan import ObjectBasis, Series, plan_bases
-from .sampler import Mixture
+from .sampler import LobeMixture, Mixture
 
 __all__ = [
+    "LobeMixture",
     "Mixture",
     "ObjectBasis",
     "PointLights",
