@@ -31,9 +31,10 @@ frozen on the edited object and rendered by four methods:
   the prefix sums of a term's bands are box-lobe images OIDN can read; the bands are their
   differences again), the other records and silhouette pixels by ``selected``'s pick, on the
   same mean record of the halves (its own part ``cumulative``, reusing the half records cached
-  as record files, which ``benchmarks/denoise_tune.py`` shares), averaged with ``selected``
-  (``CUMULATIVE_MIX``); ``oidn_cumulative_mix0`` ``{spp: [default, edited]}`` is OIDN's share
-  alone (exact: the frame is linear in the denoised bases).
+  as record files, which ``benchmarks/denoise_tune.py`` shares), with the class's default ``mix``
+  (0: OIDN's share alone; session 8 reported the average with ``selected``, no better);
+  ``oidn_cumulative_mix_half`` ``{spp: [default, edited]}`` is that average (exact: the frame is
+  linear in the denoised bases).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -95,15 +96,13 @@ from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import LobeMixture, precompute_polynomial
 
 METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression", "selected", "oidn_cumulative")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
 EXTRA = ("regression",)  # computed in the "extra" part
 HALVES = ("selected",)  # computed in the "halves" part
 CUMULATIVE = ("oidn_cumulative",)  # computed in the "cumulative" part
-#: the weight of ``selected`` in ``oidn_cumulative`` (CumulativeOIDN's ``mix``): the plain average
-CUMULATIVE_MIX = 0.5
 SCENES = {
     "cornell_box_glossy": (
         cornell_box_glossy,
@@ -117,6 +116,9 @@ SCENES = {
     ),
 }
 KIND = "benchmark-denoise"
+#: extra precompute_polynomial options of every precompute (``--lobe-mixture``), and their key
+PRECOMPUTE: dict = {}
+PRECOMPUTE_KEY: dict = {}
 
 
 def _load() -> float:
@@ -186,7 +188,7 @@ def _interleaved_frame_times(renderers: dict, obj: str, repeat: int = 7) -> dict
 def _unit(scene, obj, mats, edited, series, spp, seed, full: bool, keep: dict | None = None):
     """One precompute at (spp, seed): its frames per method (only ``none`` unless ``full``);
     a full unit's record is left in ``keep["T"]`` for the extra part of the same run."""
-    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False, **PRECOMPUTE))
     if full and keep is not None:
         keep["T"] = T
     R = PolynomialRenderer(T, mats)
@@ -224,7 +226,7 @@ def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy, T=None):
     frames, denoise seconds and frame seconds timed in turns with the noisy frozen frame of
     this run (the ratio's baseline)."""
     if T is None:
-        T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False))
+        T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False, **PRECOMPUTE))
     else:
         pre_s = 0.0  # reused: same_as_cached_unit is then 0 by construction
     R = PolynomialRenderer(T, mats)
@@ -256,7 +258,9 @@ def _halves_unit(scene, obj, mats, edited, series, spp, seed):
     halves, secs = [], 0.0
     for k in range(2):
         T, t = _secs(
-            lambda k=k: precompute_polynomial(scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False)
+            lambda k=k: precompute_polynomial(
+                scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False, **PRECOMPUTE
+            )
         )
         halves.append(T)
         secs += t
@@ -289,13 +293,13 @@ def half_records(scene, series: str, spp: int, seed: int, folder: Path) -> list:
     records), each cached as a record file under ``folder``."""
     out = []
     for k in range(2):
-        s = {"what": "half_record", "series": series, "spp": spp // 2, "seed": 1000 + 2 * seed + k}
+        s = {"what": "half_record", "series": series, "spp": spp // 2, "seed": 1000 + 2 * seed + k, **PRECOMPUTE_KEY}
         key = settings_key(s, scene)
         ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
         T = ck.load_record(PolynomialTensors)
         if T is None:
             print(f"[{scene.name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
-            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False)
+            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False, **PRECOMPUTE)
             ck.save_record(T)
         else:
             print(f"[{scene.name}] half record {k}: cached", flush=True)
@@ -319,15 +323,12 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
     )
     print(f"[{scene.name}] oidn_cumulative at {spp} spp ...", flush=True)
     D = PolynomialRenderer(T, mats)
-    den = CumulativeOIDN(T.guides, A, mix=CUMULATIVE_MIX)
+    den = CumulativeOIDN(T.guides, A)  # the class's default mix (0)
     _, secs = _secs(lambda: D.freeze(obj, denoiser=den))
     arrays = dict(zip(("oidn_cumulative", "oidn_cumulative_e"), _frames(D, obj, mats, edited), strict=True))
-    # the frames are linear in the denoised bases: OIDN's share alone (mix 0) from the same run
+    # the frames are linear in the denoised bases: the average with selected (session 8's mix 1/2)
     for suf in ("", "_e"):
-        sel = h["selected" + suf]
-        arrays["oidn_cumulative_mix0" + suf] = (arrays["oidn_cumulative" + suf] - CUMULATIVE_MIX * sel) / (
-            1 - CUMULATIVE_MIX
-        )
+        arrays["oidn_cumulative_mix_half" + suf] = (arrays["oidn_cumulative" + suf] + h["selected" + suf]) / 2
     meta = {
         "denoise_s": {"oidn_cumulative": max(secs - freeze_s, 0.0) + pick_s},
         "oidn_calls": den.calls,
@@ -402,6 +403,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         for spp, seed in reversed([r for r in runs if r[1] >= len(spps)]):
             print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
             settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": False}
+            settings.update(PRECOMPUTE_KEY)
             _cached(
                 folder,
                 "unit",
@@ -417,6 +419,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         full = seed < len(spps)
         print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
         settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": full}
+        settings.update(PRECOMPUTE_KEY)
         keep.clear()
         a, meta = _cached(
             folder,
@@ -453,7 +456,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             "cumulative",
             {
                 **settings,
-                "methods": [CumulativeOIDN.__name__, CUMULATIVE_MIX, SelectedRegressionFilter.__name__]
+                "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
                 + [repr(SelectionSettings())],
             },
             scene,
@@ -464,9 +467,9 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
         out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
         out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
-        out.setdefault("oidn_cumulative_mix0", {})[str(spp)] = [
-            relative_rmse(c["oidn_cumulative_mix0"], ref, a["emitter_free"].bool()),
-            relative_rmse(c["oidn_cumulative_mix0_e"], ref_e, a["emitter_free"].bool()),
+        out.setdefault("oidn_cumulative_mix_half", {})[str(spp)] = [
+            relative_rmse(c["oidn_cumulative_mix_half"], ref, a["emitter_free"].bool()),
+            relative_rmse(c["oidn_cumulative_mix_half_e"], ref_e, a["emitter_free"].bool()),
         ]
         for m in ("none", "regression", "selected"):
             k = m if m == "selected" else m + "_h"
@@ -671,6 +674,12 @@ def main() -> None:
         help="compute only the hi-spp runs, from the last (a second process beside a full run; no JSON)",
     )
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma-separated subset of " + ",".join(SCENES))
+    ap.add_argument(
+        "--lobe-mixture",
+        action="store_true",
+        help="precompute with LobeMixture() (a defensive mixture of lobe widths and MIS on the glossy objects); "
+        "every precompute, the hi-spp runs included",
+    )
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
     args = ap.parse_args()
     if args.quick:
@@ -695,6 +704,10 @@ def main() -> None:
         "ref_spp": args.ref_spp,
         "ref_spp_ours": max(64, args.ref_spp // 8),
     }
+    if args.lobe_mixture:
+        PRECOMPUTE["mixture"] = LobeMixture()
+        PRECOMPUTE_KEY["mixture"] = LobeMixture().spec()  # absent for the default (cached parts stay)
+    cfg["lobe_mixture"] = args.lobe_mixture
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
     result: dict = {"quick": args.quick, "settings": cfg, "load_start": _load(), "scenes": {}}
     t0 = time.perf_counter()

@@ -24,6 +24,7 @@ from torch_brdf.denoise import (
     denoise,
     denoise_tensors,
     guide_buffers,
+    make_denoiser,
     mean_tensors,
     oidn_available,
     oidn_frame,
@@ -273,6 +274,21 @@ def test_denoise_uses_the_guides_the_precomputation_attached(setup, gen):
     # the regression filter by name: the record's own guides and banded objects
     _, Q = _frozen_frames(tensors, mats, "back", torch.Generator(), n=0, den="regression")
     assert Q.frozen_denoiser == RegressionFilter.for_tensors(tensors).description
+
+
+def test_cumulative_oidn_by_name(setup):
+    """``freeze(obj, denoiser="cumulative")``'s denoiser: (d) over the regression filter of the
+    record's guides and banded objects (no OIDN is run to build it)."""
+    _, tensors, _, g = setup
+    den = make_denoiser(g, "cumulative", _glossy(tensors), RegressionSettings(radius=3))
+    assert isinstance(den, CumulativeOIDN) and den.mix == 0.0
+    assert isinstance(den.fallback, RegressionFilter)
+    assert (
+        den.fallback.description
+        == RegressionFilter(g, RegressionSettings(radius=3), glossy=_glossy(tensors)).description
+    )
+    with pytest.raises(ValueRangeError, match="'cumulative'"):
+        make_denoiser(g, "cumulative_oidn")
 
 
 def test_precompute_without_guides(setup):

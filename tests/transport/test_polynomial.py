@@ -88,9 +88,14 @@ def test_tensors_equal_explicit_path_tracer_on_the_same_paths(series, fresnel, g
         sc, series, spp=spp, seed=3, bases=over, tile_rows=sc.camera.height, progress=False, paths=paths
     )
     assert T.bases[T.object_id("back")].fresnel == fresnel
+    check_oracle(sc, T, paths, spp, gen)
+
+
+def check_oracle(sc, T, paths, spp, gen, repeats=3):
+    """The tensors at ``repeats`` random coefficients equal :func:`_oracle` on the same paths."""
     assert paths["rows"]
     R = PolynomialRenderer(T, dtype=torch.float64)
-    for _ in range(3):  # coefficients that were not known at precomputation
+    for _ in range(repeats):  # coefficients that were not known at precomputation
         c, c_hat, d = {}, {}, torch.zeros(len(sc.objects), 3, dtype=torch.float64)
         for m, b in enumerate(T.bases):
             if b is None:

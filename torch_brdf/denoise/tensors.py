@@ -244,12 +244,15 @@ def make_denoiser(guides, method: str = "linear", glossy=(), settings=None, qual
     """The denoiser ``method`` of a view: ``"linear"`` (:class:`~.atrous.EdgeAwareFilter`,
     ``settings`` an :class:`~.atrous.AtrousSettings`), ``"regression"``
     (:class:`~.regression.RegressionFilter`, ``settings`` a
-    :class:`~.regression.RegressionSettings`) or ``"oidn"`` (:class:`~.oidn.OIDNBasis` over
-    the à-trous filter; needs the ``denoise`` extra).
+    :class:`~.regression.RegressionSettings`), ``"oidn"`` (:class:`~.oidn.OIDNBasis` over
+    the à-trous filter; needs the ``denoise`` extra) or ``"cumulative"``
+    (:class:`~.oidn.CumulativeOIDN`, OIDN per cumulative band sum, over the regression filter
+    (``settings`` its :class:`~.regression.RegressionSettings`); needs the ``denoise`` extra;
+    with two half-spp records, pass ``CumulativeOIDN(guides, SelectedRegressionFilter(...))``).
 
     Args:
         guides: the view's :class:`~torch_brdf.scene.guides.GuideBuffers`.
-        method: ``"linear"``, ``"regression"`` or ``"oidn"``.
+        method: ``"linear"``, ``"regression"``, ``"oidn"`` or ``"cumulative"``.
         glossy: object ids with more than one band (the half-vector guide applies there).
         settings: the linear filter's settings (default: its settings class's defaults).
         quality: OIDN quality.
@@ -257,13 +260,15 @@ def make_denoiser(guides, method: str = "linear", glossy=(), settings=None, qual
         ValueRangeError: an unknown method.
     """
     from .atrous import EdgeAwareFilter
-    from .oidn import OIDNBasis
+    from .oidn import CumulativeOIDN, OIDNBasis
     from .regression import RegressionFilter
 
-    if method not in ("linear", "regression", "oidn"):
-        raise ValueRangeError(f"method must be 'linear', 'regression' or 'oidn'; got {method!r}")
+    if method not in ("linear", "regression", "oidn", "cumulative"):
+        raise ValueRangeError(f"method must be 'linear', 'regression', 'oidn' or 'cumulative'; got {method!r}")
     if method == "regression":
         return RegressionFilter(guides, settings, glossy=glossy)
+    if method == "cumulative":
+        return CumulativeOIDN(guides, RegressionFilter(guides, settings, glossy=glossy), quality=quality)
     linear = EdgeAwareFilter(guides, settings, glossy=glossy)
     return linear if method == "linear" else OIDNBasis(guides, linear, quality=quality)
 
@@ -276,7 +281,8 @@ def denoise(
 
     Args:
         tensors: the precomputed tensors (with ``tensors.guides``).
-        method: ``"linear"``, ``"regression"``, ``"oidn"`` (see :func:`make_denoiser`) or a denoiser.
+        method: ``"linear"``, ``"regression"``, ``"oidn"``, ``"cumulative"`` (see :func:`make_denoiser`)
+            or a denoiser.
         settings: the linear filter's settings (see :func:`make_denoiser`).
         **options: passed to :func:`denoise_tensors` (``chunk``, ``max_entries``).
     Returns:

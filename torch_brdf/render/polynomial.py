@@ -321,8 +321,8 @@ class PolynomialRenderer(nn.Module):
         Args:
             obj: the object whose material will change (name or index).
             denoiser: also denoise every basis image of the frozen tensor once
-                (:func:`torch_brdf.denoise.denoise_frozen`): ``"linear"``, ``"regression"`` or ``"oidn"`` with the
-                guides the tensors carry (:func:`torch_brdf.denoise.make_denoiser`), or any
+                (:func:`torch_brdf.denoise.denoise_frozen`): ``"linear"``, ``"regression"``, ``"oidn"``
+                or ``"cumulative"`` with the guides the tensors carry (:func:`torch_brdf.denoise.make_denoiser`), or any
                 denoiser callable. Every later frame of ``obj``'s edits is exact in the denoised
                 bases and costs what a noisy frame costs; :attr:`frozen_denoiser` names it.
                 The denoising lasts as long as the frozen state (changing another object's

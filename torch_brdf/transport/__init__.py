@@ -4,6 +4,7 @@ differential block visibility of all-frequency relighting."""
 from ..records.visibility_codec import BlockVisibility
 from .pathtrace import path_trace, reference_path_trace
 from .polynomial import (
+    LobeMixture,
     Mixture,
     ObjectBasis,
     PolynomialTensors,
@@ -17,6 +18,7 @@ from .visibility import SceneVertices, VertexVisibility, precompute_visibility, 
 
 __all__ = [
     "BlockVisibility",
+    "LobeMixture",
     "Mixture",
     "ObjectBasis",
     "PolynomialTensors",

@@ -20,6 +20,9 @@ Estimator (Sec. 5.1). A batched (wavefront) path tracer from the eye on embree:
 
 * directions are sampled independently of the final BRDF, from a mixture of a cosine lobe
   (70%) and a Blinn lobe of exponent 200 about the mirror direction (30%) (:class:`Mixture`);
+  opt-in, :class:`LobeMixture` samples glossy objects from several lobe widths and combines
+  next-event estimation at their eye vertex with its samples by MIS (edits sharper than the
+  material; the weights depend on pdfs only, so the polynomial stays exact);
 * next-event estimation at every vertex to every light of the scene (area lights, the
   environment, directional lights; or the environment's median-cut point lights,
   ``env_point_lights=K``, as the seed does);
@@ -56,9 +59,10 @@ from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
 from .driver import plan_polynomial, precompute_polynomial, spp_map_of
 from .plan import ObjectBasis, Series, plan_bases
-from .sampler import Mixture
+from .sampler import LobeMixture, Mixture
 
 __all__ = [
+    "LobeMixture",
     "Mixture",
     "ObjectBasis",
     "PointLights",

@@ -37,7 +37,7 @@ from .reduce import (
     native_local_blocks,
     tile_accumulator,
 )
-from .sampler import Mixture
+from .sampler import LobeMixture, Mixture
 from .tracer import _Tracer
 
 __all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
@@ -287,7 +287,7 @@ def precompute_polynomial(
     spp: int | torch.Tensor = 64,
     seed: int = 0,
     bases: list[ObjectBasis | None] | dict[str, dict[str, Any]] | None = None,
-    mixture: Mixture | None = None,
+    mixture: Mixture | LobeMixture | None = None,
     env_point_lights: int | None = None,
     light_samples: int = 1,
     tile_rows: int | None = None,
@@ -316,7 +316,10 @@ def precompute_polynomial(
             see :func:`_tiles`).
         seed: the result is a deterministic function of (scene, settings, seed).
         bases: per-object :class:`ObjectBasis` list, or overrides for :func:`plan_bases`.
-        mixture: direction sampling (default 70% cosine, 30% Blinn 200).
+        mixture: direction sampling (default 70% cosine, 30% Blinn 200); a
+            :class:`LobeMixture` samples its objects (the glossy ones by default) from a
+            defensive mixture of lobe widths, for edits sharper than the material (the torch
+            steps run then, not the compiled vertex kernel).
         env_point_lights: replace the environment by its K median-cut point lights for NEE.
         light_samples: next-event samples per light at the eye vertex, each weighted 1/k
             (the same polynomial with less direct-light noise for k - 1 more shadow rays per
@@ -404,6 +407,8 @@ def precompute_polynomial(
     else:
         plan = plan_bases(scene, series, bases)
     mixture = mixture or Mixture()
+    if isinstance(mixture, LobeMixture):  # its object names -> ids
+        mixture = mixture.resolve(scene, plan)
     lights = _lights(scene, env_point_lights)
     if paths is not None and executor != "local":
         raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
@@ -429,7 +434,7 @@ def precompute_polynomial(
         "spp": int(spp_map.flatten()[0]) if uniform else float(spp_map.double().mean()),
         "seed": seed,
         "bases": [None if b is None else b.spec() for b in plan],
-        "mixture": [mixture.diffuse, mixture.exponent],
+        "mixture": mixture.spec(),
         "env_point_lights": env_point_lights,
         "tile_rows": tile_rows,
         "group": group_of[0] if uniform else group,

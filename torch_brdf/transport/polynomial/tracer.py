@@ -14,7 +14,7 @@ import math
 import time
 from collections import defaultdict
 from contextlib import contextmanager
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 
@@ -24,7 +24,16 @@ from ...records.polynomial import ObjectBasis, Series
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import library
-from ..pathtrace import emission_seen, material_brdfs, rows_by_object, sample_light, shading_frame
+from ..pathtrace import (
+    _mis_lights,
+    emission_and_light_pdf,
+    emission_seen,
+    material_brdfs,
+    power_heuristic,
+    rows_by_object,
+    sample_light,
+    shading_frame,
+)
 from ..rays import NativeRays
 from .sampler import Mixture
 from .vertex import VertexKernel, Wavefront
@@ -246,6 +255,12 @@ class _Tracer:
         # pi^-k by the number k of earlier diffuse-equivalent vertices (one table for both the
         # torch and the compiled entries, so they agree bit for bit)
         self.pi_powers = math.pi ** -(torch.arange(series.bounces + 2).double()).float()
+        # a LobeMixture with mis: its objects' eye vertices combine next-event estimation and
+        # the mixture's own samples by MIS (the power heuristic; weights from the two pdfs only,
+        # so every edit stays exact), for the lights a sampled ray can find
+        ids = getattr(mixture, "ids", None) if getattr(mixture, "mis", False) else None
+        self.mis_ids = None if not ids else torch.tensor(ids, dtype=torch.long)
+        self.mis_lights = _mis_lights(scene) & {id(li) for li in lights} if self.mis_ids is not None else set()
 
     def _trace(self, o, d):
         """Closest hits of the rays (:meth:`Scene.trace <torch_brdf.scene.scene.Scene.trace>`; by the
@@ -314,14 +329,20 @@ class _Tracer:
                     if kk.numel() == 0:
                         continue
                     wl = frame.to_local(ls.direction)[kk]
-                    hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], ls.weight[kk] * cos[kk, None] / reps)
+                    lw = ls.weight[kk] * cos[kk, None] / reps
+                    if v == 1 and id(light) in self.mis_lights:  # the mixture's sample may find it too
+                        mine = torch.isin(oid[kk], self.mis_ids)
+                        p_m = self.mixture.pdf(wl, wo[kk], oid[kk])
+                        w_l = power_heuristic(reps * ls.pdf[kk], p_m)
+                        lw = lw * torch.where(mine, w_l, torch.ones_like(w_l))[:, None]
+                    hit = LightHit(kk, wl, wo[kk], oid[kk], ed[kk], lw)
                 with clock("bookkeeping"):
                     self._emit(ent, st, v, hit, paths, rec)
             if v == nb:
                 break
             with clock("sampling"):
                 u = torch.rand(st.idx.numel(), 3, generator=gen)
-                wi, pdf = self.mixture.sample(wo, u)
+                wi, pdf = self.mixture.sample(wo, u, oid)
                 ok = (pdf > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
                 cosw = torch.where(ok, wi[:, 2] / pdf.clamp_min(1e-30), torch.zeros_like(pdf))
             rec_p = st.oracle
@@ -350,6 +371,8 @@ class _Tracer:
                 a = torch.nonzero(alive).squeeze(1)
                 origins = scene.spawn(pos[a], ng[a], wworld[a])
             sub = self._trace(origins, wworld[a])
+            if v == 1 and self.mis_lights:
+                self._emit_found(ent, st, sub, a, pos, wworld, wi, wo, oid, ed, pdf, cosw, paths, rec)
             with clock("bookkeeping"):
                 keep = a[sub.hit]
                 st, d_in = st.keep(keep), wworld[keep]
@@ -547,6 +570,34 @@ class _Tracer:
             ent.add(rec[st.idx[kk]], st.m1[kk], bounce, j, w, cnt, wt)
         if paths is not None:
             self._record(paths, st, v, hit, rec, extra)
+
+    def _emit_found(self, ent, st, sub, a, pos, wworld, wi, wo, oid, ed, pdf, cosw, paths, rec):
+        """Eye-vertex entries of what the mixture's samples ``wi`` of the paths ``a`` find on
+        the lights (``sub``: their hits), on the objects of a :class:`LobeMixture` with
+        ``mis``, weighted by the power heuristic against next-event estimation (which the
+        light loop weights the other way): light radiance times cos / pdf, the band of
+        (``wi``, ``wo``) as for a light sample."""
+        with self.clock("sampling"):
+            le, pdf_l = emission_and_light_pdf(self.scene, pos[a], wworld[a], sub)
+            # only the lights next-event estimation samples as they are (not an environment
+            # replaced by its median-cut point lights, which NEE alone reaches)
+            env = self.scene.environment
+            if env is not None and id(env) not in self.mis_lights:
+                le[~sub.hit] = 0.0
+            for o, light in self.scene.area_lights.items():
+                if id(light) not in self.mis_lights:
+                    le[sub.object_id == o] = 0.0
+            reps = self.eye_light_samples
+            w_m = power_heuristic(pdf[a], reps * pdf_l)
+            rows = torch.nonzero(torch.isin(oid[a], self.mis_ids) & (le.amax(-1) > 0) & (w_m > 0)).squeeze(1)
+            if rows.numel() == 0:
+                return
+            kk = a[rows]
+            lw = le[rows] * (w_m[rows] * cosw[kk])[:, None]
+            hit = LightHit(kk, wi[kk], wo[kk], oid[kk], ed[kk], lw)
+        with self.clock("bookkeeping"):
+            # the eye vertex's entries take no path throughput (raw is 1 before the vertex)
+            self._emit(ent, replace(st, raw=torch.ones_like(st.raw)), 1, hit, paths, rec)
 
     def _banded(self, v: int) -> bool:
         """Vertex ``v`` > 1 uses the second-bounce band basis (else a diffuse equivalent)."""
