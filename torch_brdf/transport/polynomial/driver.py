@@ -442,10 +442,10 @@ def precompute_polynomial(
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
-    if processes is None:  # paths of the largest tile (k light samples: k x the eye entries)
-        pairs = zip(tiles, tile_spp, strict=True)
-        tile_paths = max(t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in pairs)
-        processes = _default_processes(tile_paths * light_samples)
+    # paths per tile: its expected cost (the executor starts the longest first) and memory
+    tile_paths = [t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in zip(tiles, tile_spp, strict=True)]
+    if processes is None:  # the largest tile's paths (k light samples: k x the eye entries)
+        processes = _default_processes(max(tile_paths) * light_samples)
     # Ray tasks and forked tile processes trace in their own process (one per CPU)
     ray_work = _TileWork(
         single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
@@ -506,6 +506,7 @@ def precompute_polynomial(
         processes=1 if paths is not None else processes,
         steps_per_tile=[work.steps(k) for k in range(num_tiles)],
         idle=make_guides,
+        cost=tile_paths,
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
