@@ -167,6 +167,34 @@ def test_forked_tiles_in_order_and_errors_raised_here():
         run_tiles(_tile_or_fail, -2, 5, cache, progress=False, processes=2)
 
 
+def test_forked_tiles_start_longest_first(scene, local, monkeypatch):
+    """With ``cost``, forked processes are handed the tiles in decreasing cost (ties in tile
+    order) and the result is still in tile order; the precompute gives its tiles' paths, so an
+    adaptive run starts its most sampled rows first and equals one process bit for bit."""
+    started = []
+    real = executor._run_forked
+
+    def recording(fn, ctx, todo, *args):
+        started.append(list(todo))
+        return real(fn, ctx, todo, *args)
+
+    monkeypatch.setattr(executor, "_run_forked", recording)
+    cache = TileCache(None, "t", "k")
+    tiles = run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2, cost=[1, 5, 3, 5, 0])
+    assert started[-1] == [1, 3, 2, 0, 4]
+    assert [m["k"] for _, m in tiles] == list(range(5))
+    run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2)
+    assert started[-1] == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueRangeError, match="cost has 2 numbers for 5 tiles"):
+        run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2, cost=[1, 2])
+    spp = torch.full((16, 16), 2, dtype=torch.long)
+    spp[8:12] = 6  # tile 2 (rows 8-11) takes the most paths, then the uniform ones in tile order
+    kw = {**SETTINGS, "spp": spp}
+    two = precompute_polynomial(scene, **kw, processes=2)
+    assert started[-1] == [2, 0, 1, 3]
+    _assert_identical(two, precompute_polynomial(scene, **kw, processes=1))
+
+
 def _ticking_tile(ctx, k):
     for _ in range(ctx):  # one more tick than the tile's units when ctx = 4: capped
         tile_tick()

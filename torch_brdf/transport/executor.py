@@ -189,6 +189,7 @@ def run_tiles(
     processes: int | None = None,
     steps_per_tile: Sequence[int] | None = None,
     idle: Callable[[], None] | None = None,
+    cost: Sequence[float] | None = None,
 ) -> Tiles:
     """Every tile's (arrays, meta), in tile order, computing those not in ``cache``.
 
@@ -221,6 +222,11 @@ def run_tiles(
             buffers), called once: while forked processes or Ray tasks compute the tiles (so it
             is not serial after them), else after the tiles; always, even when every tile was
             cached.
+        cost: the expected cost of each tile (``num_tiles`` numbers in any unit, e.g. its paths):
+            tiles computed by forked processes or Ray tasks start in decreasing order of it (ties
+            in tile order), so that the last ones to start, which decide whether the workers run
+            out of work together, are the short ones; None: in tile order. Only the order of the
+            work changes, never a tile's arrays (``consume`` still sees the tiles in tile order).
     Returns:
         :class:`Tiles`, ``num_tiles`` (arrays, meta), None where consumed; ``meta["cached"]``
         is True for loaded tiles.
@@ -241,6 +247,10 @@ def run_tiles(
             out[k] = (done[0], {**done[1], "cached": True})
     if max_new is not None:
         todo = todo[: max(0, max_new)]
+    if cost is not None and len(cost) != num_tiles:
+        raise ValueRangeError(f"cost has {len(cost)} numbers for {num_tiles} tiles")
+    # the order in which workers start them (one process computes them in tile order instead)
+    start = todo if cost is None else sorted(todo, key=lambda k: -float(cost[k]))  # ties: tile order
     steps = [1] * num_tiles if steps_per_tile is None else [max(1, int(n)) for n in steps_per_tile]
     if len(steps) != num_tiles:
         raise ValueRangeError(f"steps_per_tile has {len(steps)} counts for {num_tiles} tiles")
@@ -293,13 +303,13 @@ def run_tiles(
                     work()
 
         if executor == "local" and nproc > 1:
-            _run_forked(fn, ray_context, todo, finish, advance, nproc, cache, meta or {}, run_idle)
+            _run_forked(fn, ray_context, start, finish, advance, nproc, cache, meta or {}, run_idle)
         elif executor == "local":
             with single_thread():
                 for k in todo:
                     finish(k, _ticking(lambda n, k=k: advance(k, n), fn, context, k))
         elif todo:
-            _run_ray(fn, ray_context, todo, finish, address, max_retries, out.nodes, cache, meta or {}, run_idle)
+            _run_ray(fn, ray_context, start, finish, address, max_retries, out.nodes, cache, meta or {}, run_idle)
         run_idle()
     finally:
         bar.close()

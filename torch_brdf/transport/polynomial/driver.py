@@ -40,13 +40,20 @@ from .reduce import (
 from .sampler import LobeMixture, Mixture
 from .tracer import _Tracer
 
-__all__ = ["TILE_KIND", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
+__all__ = ["TILE_KIND", "TILE_PIXELS", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
 
 TILE_KIND = "multibounce-tile"
 
 #: peak memory of a tile per path (bytes): its transient entries set it (measured 0.6-0.9 kB
 #: on the 128² box at 64-1024 spp, ../shared/FACTS.md); bounds the tiles run at once.
 TILE_BYTES_PER_PATH = 1024
+
+#: pixels of a default tile (whole rows: ``TILE_PIXELS // width`` of them, at least one). Small
+#: enough that the processes pulling tiles run out of work nearly together and the last tile's
+#: hand-back and assembly (serial after the tiles) are short: 16 tiles of 16 rows at 256²
+#: (until session 9: 16384 pixels, 4 tiles of 64 rows, which left one of two processes waiting
+#: for the last tile). Part of the random stream (each tile is seeded by its index).
+TILE_PIXELS = 4096
 
 
 def _default_processes(tile_paths: int) -> int:
@@ -324,7 +331,7 @@ def precompute_polynomial(
         light_samples: next-event samples per light at the eye vertex, each weighted 1/k
             (the same polynomial with less direct-light noise for k - 1 more shadow rays per
             path; later vertices take one).
-        tile_rows: image rows per tile (default: about 16k pixels per tile).
+        tile_rows: image rows per tile (default: about :data:`TILE_PIXELS` pixels per tile).
         group: passes traced together (default: enough for >= 64k rays per batch, which
             lets embree use both cores).
         checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
@@ -414,7 +421,7 @@ def precompute_polynomial(
         raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
     cam = scene.camera
     h, w = cam.height, cam.width
-    tile_rows = tile_rows or max(1, min(h, 16384 // w))
+    tile_rows = tile_rows or max(1, min(h, TILE_PIXELS // w))
     tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
     uniform = bool((spp_map == spp_map.flatten()[0]).all())
     # passes traced together: >= 64k rays per batch; a tile of equal spp counts tile_rows x
@@ -447,10 +454,10 @@ def precompute_polynomial(
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
     key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
     cache = TileCache(checkpoint, TILE_KIND, key)
-    if processes is None:  # paths of the largest tile (k light samples: k x the eye entries)
-        pairs = zip(tiles, tile_spp, strict=True)
-        tile_paths = max(t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in pairs)
-        processes = _default_processes(tile_paths * light_samples)
+    # paths per tile: its expected cost (the executor starts the longest first) and memory
+    tile_paths = [t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in zip(tiles, tile_spp, strict=True)]
+    if processes is None:  # the largest tile's paths (k light samples: k x the eye entries)
+        processes = _default_processes(max(tile_paths) * light_samples)
     # Ray tasks and forked tile processes trace in their own process (one per CPU)
     ray_work = _TileWork(
         single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
@@ -511,6 +518,7 @@ def precompute_polynomial(
         processes=1 if paths is not None else processes,
         steps_per_tile=[work.steps(k) for k in range(num_tiles)],
         idle=make_guides,
+        cost=tile_paths,
     )
     terms = _term_tables(term_index, len(scene.objects), series.bounces)
     split["write"] = results.write_seconds
