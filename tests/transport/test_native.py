@@ -289,3 +289,42 @@ def test_area_light_samples_equal_torch(monkeypatch):
     b = sample_light(sc, light, pos, ng, ns, torch.Generator().manual_seed(4))
     assert torch.equal(a[1], b[1]) and torch.equal(a[3], b[3]) and a[2] == b[2]
     assert _native.area_light_sample(light, pos.double(), ng.double(), ns.double(), g) is None  # float64: torch
+
+
+@needs_cc
+def test_eye_rays_equal_camera_rays_bit_for_bit():
+    """The compiled eye rays (session 10) are Camera.rays_through's, bit for bit, on rotated
+    cameras and image sizes that are not powers of two; NaN offsets are refused by name."""
+    from torch_brdf.errors import ValueRangeError
+    from torch_brdf.scene.camera import Camera
+
+    g = torch.Generator().manual_seed(7)
+    cams = [
+        cornell_box_glossy(64).camera,
+        Camera((0.3, 1.2, -2.0), (0.1, 0.2, 0.7), (0.1, 1.0, 0.2), 47.0, 300, 170),
+        Camera((5.0, -3.0, 2.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 12.5, 97, 311),
+    ]
+    for cam in cams:
+        P = cam.width * cam.height
+        pixels = torch.randperm(P, generator=g)[:3000].sort().values
+        rec = torch.randint(0, 3000, (50000,), generator=g)
+        off = torch.rand(50000, 2, generator=g, dtype=torch.float64)
+        pix = pixels[rec]
+        o0, d0 = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
+        o1, d1 = driver.eye_rays(cam, pixels, rec, off)
+        assert o1.dtype == d1.dtype == torch.float32
+        assert torch.equal(o0, o1) and torch.equal(d0, d1)
+        # the float64 raster step too (float32 rounding would hide its last bits)
+        x, y = (pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0]
+        tan_half = math.tan(math.radians(cam.fov_deg) / 2)
+        sx = (2 * x / cam.width - 1) * tan_half * (cam.width / cam.height)
+        sy = (1 - 2 * y / cam.height) * tan_half
+        local = torch.empty(rec.numel(), 3, dtype=torch.float64)
+        assert LIB.tb_camera_local(
+            rec.numel(), rec.data_ptr(), pixels.data_ptr(), cam.width, cam.height, off.data_ptr(), tan_half,
+            cam.width / cam.height, local.data_ptr(),
+        ) == 0  # fmt: skip
+        assert torch.equal(local, torch.stack((sx, sy, torch.ones_like(sx)), -1))
+    off[123, 1] = float("nan")
+    with pytest.raises(ValueRangeError, match="raster position 123 "):
+        driver.eye_rays(cams[1], pixels, rec, off)

@@ -113,6 +113,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tb_tile_add.restype, lib.tb_tile_add.argtypes = i32, [p, p]
     lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, p, p]
     lib.tb_tile_blocks.restype, lib.tb_tile_blocks.argtypes = i64, [p, p, i64, i64, p, p, p, p, p, p, p]
+    # a pass group's eye rays (polynomial/driver.py eye_rays)
+    lib.tb_camera_local.restype, lib.tb_camera_local.argtypes = (
+        i64,
+        [i64, p, p, i64, i64, p, ctypes.c_double, ctypes.c_double, p],
+    )
+    lib.tb_camera_finish.restype, lib.tb_camera_finish.argtypes = None, [i64, p, p, p, p, p]
     # the GI tracer's wavefront in reused buffers (polynomial/vertex.py Wavefront)
     lib.tb_rand.restype, lib.tb_rand.argtypes = None, [p, i64, i32, p]
     lib.tb_wf_start.restype, lib.tb_wf_start.argtypes = i64, [i64, p, p, p, p, p, p, i64, i64, i64]

@@ -18,11 +18,13 @@ from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
+from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import Accumulator, TileSums, library
+from .._native import ptr as _p
 from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
@@ -84,6 +86,45 @@ def _pass_groups(counts: torch.Tensor, group: int | None) -> list[tuple[int, int
     return out
 
 
+def eye_rays(cam, pixels: torch.Tensor, rec: torch.Tensor, off: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A pass group's eye rays: ``cam.rays_through`` at the raster positions of ``pixels[rec]``
+    (flat indices) plus ``off`` (row, column) offsets. For a plain
+    :class:`~torch_brdf.scene.camera.Camera` with the compiled kernel (session 10): its
+    ``tb_camera_local`` and ``tb_camera_finish`` around the product with the camera frame and the
+    row norms, which stay torch's (their rounding is BLAS's and torch's own), so the same rays bit
+    for bit with a fraction of the passes over memory.
+
+    Args:
+        cam: the scene's camera.
+        pixels: (P,) int64 flat pixel indices of the tile.
+        rec: (n,) int64 indices into ``pixels``, one per ray.
+        off: (n, 2) float64 offsets in [0, 1): row, column.
+    Returns:
+        origins (n, 3), unit directions (n, 3), float32.
+    Raises:
+        ValueRangeError: NaN or Inf raster positions.
+    """
+    lib = library()
+    if lib is None or type(cam) is not Camera:
+        pix = pixels[rec]
+        return cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
+    n = rec.numel()
+    rec, pixels, off = rec.to(torch.int64).contiguous(), pixels.to(torch.int64).contiguous(), off.double().contiguous()
+    local = torch.empty(n, 3, dtype=torch.float64)
+    tan_half = math.tan(math.radians(cam.fov_deg) / 2)
+    bad = lib.tb_camera_local(
+        n, _p(rec), _p(pixels), cam.width, cam.height, _p(off), tan_half, cam.width / cam.height, _p(local)
+    )
+    if bad < 0:
+        raise ValueRangeError(f"raster position {-1 - bad} of {n} is NaN or Inf")
+    d = local @ cam.frame
+    norm = d.norm(dim=-1)
+    o, out = torch.empty(n, 3, dtype=torch.float32), torch.empty(n, 3, dtype=torch.float32)
+    origin = torch.tensor(cam.origin, dtype=torch.float64)
+    lib.tb_camera_finish(n, _p(d), _p(norm), _p(origin), _p(o), _p(out))
+    return o, out
+
+
 def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, tick=None, native=None):
     """Trace a tile whose pixel ``i`` takes ``counts[i]`` paths and reduce its entries to (sum,
     sum of per-path squares) per key; ``tick()`` (if given) after each pass group.
@@ -125,8 +166,7 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             gen = seeded_generator(seed, tile, gi)
             off = torch.rand(rec.numel(), 2, generator=gen, dtype=torch.float64)
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
-            pix = pixels[rec]
-            o, d = cam.rays_through((pix % cam.width).double() + off[:, 1], (pix // cam.width).double() + off[:, 0])
+            o, d = eye_rays(cam, pixels, rec, off)
         if group_ent is not None:  # one group's entries at a time: the accumulator (and its memory) reused
             group_ent.acc.clear()
         ent = group_ent
