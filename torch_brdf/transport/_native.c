@@ -1812,14 +1812,22 @@ static void wf_copy_row(const tb_wf *s, int64_t to, int64_t from) {
     for (int64_t l = 0; l < M; l++) s->counts[M * to + l] = s->counts[M * from + l];
 }
 
-static void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, const int64_t *obj, const float *hpos,
-                      const float *hng, const float *hns) {
+/* the vertex of ray i (its hit) into row h; its frame comes after, in wf_frames */
+static inline void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *d, const int64_t *obj,
+                             const float *hpos, const float *hng, const float *hns) {
     for (int c = 0; c < 3; c++) {
         s->d_in[3 * h + c] = d[3 * i + c], s->pos[3 * h + c] = hpos[3 * i + c];
         s->ng[3 * h + c] = hng[3 * i + c], s->ns[3 * h + c] = hns[3 * i + c];
     }
     s->oid[h] = obj[i];
-    frame_row(s->d_in + 3 * h, s->ng + 3 * h, s->ns + 3 * h, s->frame + 9 * h, s->wo + 3 * h);
+}
+
+/* (session 10) the frames of rows 0..h-1 in a pass of their own, after the rows are in place:
+ * no branch on which rays hit, so the loop runs without mispredictions (and GCC's AVX2 copy
+ * vectorises what it can); tb_frame's operations, so the same bits */
+TB_SIMD static void wf_frames(int64_t h, const float *restrict d, float *restrict ng, float *restrict ns,
+                              float *restrict fr, float *restrict wo) {
+    for (int64_t i = 0; i < h; i++) frame_row(d + 3 * i, ng + 3 * i, ns + 3 * i, fr + 9 * i, wo + 3 * i);
 }
 
 static tb_wf wf_make(void *const *p, int64_t La, int64_t Lb, int64_t M) {
@@ -1850,6 +1858,7 @@ int64_t tb_wf_start(int64_t n, const float *d, const int64_t *obj, const float *
         wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
         h++;
     }
+    wf_frames(h, s.d_in, s.ng, s.ns, s.frame, s.wo);
     return h;
 }
 
@@ -1868,6 +1877,7 @@ int64_t tb_wf_compact(int64_t n, const int64_t *a, const float *d, const int64_t
         wf_vertex(&s, h, i, d, obj, hpos, hng, hns);
         h++;
     }
+    wf_frames(h, s.d_in, s.ng, s.ns, s.frame, s.wo);
     return h;
 }
 
