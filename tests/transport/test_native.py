@@ -328,3 +328,14 @@ def test_eye_rays_equal_camera_rays_bit_for_bit():
     off[123, 1] = float("nan")
     with pytest.raises(ValueRangeError, match="raster position 123 "):
         driver.eye_rays(cams[1], pixels, rec, off)
+
+
+@needs_cc
+def test_pixel_offsets_are_torch_rand():
+    """The eye rays' offsets drawn by the kernel (session 10) are torch.rand's numbers, and the
+    generator goes on as torch's would (the paths draw from it next)."""
+    for n in (1, 311, 70000):
+        g1, g2 = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)
+        torch.rand(5, generator=g1), torch.rand(5, generator=g2)
+        assert torch.equal(driver._offsets(n, g1), torch.rand(n, 2, generator=g2, dtype=torch.float64))
+        assert torch.equal(torch.rand(9, generator=g1), torch.rand(9, generator=g2))
