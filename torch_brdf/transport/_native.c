@@ -52,6 +52,8 @@ typedef struct {
     int nruns, run_room, run_fwd;
     void *scratch; /* the sorts' item arrays, kept for the next reduction (no fresh pages per call) */
     size_t scratch_bytes;
+    void *samples; /* tb_emit's per-sample rows, kept for the next call (session 10: likewise) */
+    int64_t samples_room;
 } tb_acc;
 
 static u128 field_mask(int b) { return (((u128)1) << b) - 1; }
@@ -75,7 +77,7 @@ tb_acc *tb_new(int M, int V, const int32_t *bits) {
 
 void tb_free(tb_acc *a) {
     if (!a) return;
-    free(a->key), free(a->val), free(a->run_at), free(a->scratch), free(a);
+    free(a->key), free(a->val), free(a->run_at), free(a->scratch), free(a->samples), free(a);
 }
 
 /* Empty the accumulator for reuse (its memory kept). */
@@ -162,11 +164,12 @@ int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, 
         float base[3];
         int bad, maxc;
     } sample;
-    sample *sm = (sample *)malloc(sizeof(sample) * (n ? n : 1));
-    if (!sm || reserve(a, n * La * Lb)) {
-        free(sm);
-        return -1;
+    if (a->samples_room < n) {
+        free(a->samples);
+        a->samples = malloc(sizeof(sample) * n), a->samples_room = a->samples ? n : 0;
     }
+    sample *sm = (sample *)a->samples;
+    if ((n && !sm) || reserve(a, n * La * Lb)) return -1;
     if (n) a->nruns = -1;
     const int low = M * a->bc + a->bp;
     for (int64_t i = 0; i < n; i++) {
@@ -180,10 +183,7 @@ int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, 
         if (scale) {
             int64_t e = 0;
             for (int m = 0; m < M; m++) e += counts[r * M + m];
-            if (e < 0 || e >= nscale) {
-                free(sm);
-                return -2;
-            }
+            if (e < 0 || e >= nscale) return -2;
             for (int c = 0; c < 3; c++) q->base[c] = q->base[c] * scale[e];
         }
         int64_t ray = rec[idx[r]];
@@ -223,7 +223,6 @@ int tb_emit(tb_acc *a, int64_t n, int64_t bounce, int64_t p, const int64_t *kk, 
                 for (int c = 0; c < 3; c++) v[c] = (double)w3[c];
                 a->n++;
             }
-    free(sm);
     return bad ? -2 : 0;
 }
 
