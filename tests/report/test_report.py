@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from torch_brdf.cli import app
 from torch_brdf.errors import FileFormatError, ValueRangeError
 from torch_brdf.report import make_report
-from torch_brdf.report.run import find_benchmarks, load_results, run_benchmark
+from torch_brdf.report.run import BENCHMARKS, QUICK_ARGS, find_benchmarks, load_results, run_benchmark
 from torch_brdf.report.sections import CAPABILITIES, planner_choices, sections
 
 pytest.importorskip("matplotlib")
@@ -236,3 +236,20 @@ def test_cli_report_refuses_a_malformed_extremes_file(tmp_path, text):
     (line,) = res.output.strip().splitlines()  # one line, no traceback
     assert line.startswith("error: ") and "extremes.json" in line
     assert not (tmp_path / "o" / "report.html").exists()
+
+
+def test_quick_report_passes_its_options_to_the_scripts(tmp_path):
+    """``torch-brdf report --quick`` runs each script with ``--quick`` and that script's
+    ``QUICK_ARGS`` (then any explicit ``args``), shows them in the command, and every option
+    there is one the real script declares; the full report passes none of them."""
+    (tmp_path / "manifold.py").write_text("import json, sys\nprint(json.dumps({'argv': sys.argv[1:]}))\n")
+    rec = run_benchmark("manifold", tmp_path, True, timeout=60, args=["--no-peer"])
+    assert rec["error"] is None, rec
+    assert rec["result"]["argv"] == ["--quick", *QUICK_ARGS["manifold"], "--no-peer"]
+    assert rec["command"] == " ".join(["python benchmarks/manifold.py --quick", *QUICK_ARGS["manifold"], "--no-peer"])
+    assert run_benchmark("manifold", tmp_path, False, timeout=60)["result"]["argv"] == []
+    for name, opts in QUICK_ARGS.items():
+        assert name in BENCHMARKS and opts
+        text = (REPO / "benchmarks" / f"{name}.py").read_text()
+        for opt in (o for o in opts if o.startswith("--")):
+            assert f'add_argument("{opt}"' in text or f'add_argument(\n        "{opt}"' in text, (name, opt)

@@ -48,6 +48,25 @@ BENCHMARKS = (
 #: extra environment per benchmark (as its docstring asks)
 ENV = {"manifold": {"OPENBLAS_NUM_THREADS": "1"}}
 
+#: options the report adds to a benchmark's ``--quick`` (``torch-brdf report --quick``), so that
+#: the whole quick report takes minutes: fewer repeats, rounds, frames, splits and peer seconds,
+#: never other keys or another meaning. A benchmark run by hand with ``--quick`` alone keeps its
+#: own quick sizes (the README cites figures of those runs).
+QUICK_ARGS: dict[str, list[str]] = {
+    # one round of precompute vs embree alone (the embreex variants on two chunks, scaled), the
+    # first of the three frames, a 16-quad plane: the same keys on a smaller scene
+    "triple_product": "--rounds 1 --frames 1 --plane-quads 16 --embree-chunks 2".split(),
+    # two random 80/20 splits instead of five (mean and std need two)
+    "manifold": "--splits 2".split(),
+    # the manifold planner: one pool order (one plan) and the first 80 held-out materials
+    "planner": "--orders 1 --heldout 80".split(),
+    # one quiet/loaded alternation per stage instead of two
+    "load": "--rounds 1".split(),
+    # Ray's start bounded at 120 s instead of 300 (a busy machine's retries; the page then shows
+    # the skip in a cell and the local figures)
+    "scaleout": "--ray-start-s 120".split(),
+}
+
 # Runs a script as __main__ and reports the peak RSS of itself and its waited-for children on
 # stderr at exit (the sibling-module imports of the scripts work as with ``python script``).
 _WRAPPER = """
@@ -105,14 +124,16 @@ def run_benchmark(
     timeout: float | None = None,
     args: Iterable[str] = (),
 ) -> dict[str, Any]:
-    """Run ``bench_dir/<name>.py`` (``--quick`` if asked) and return its run record.
+    """Run ``bench_dir/<name>.py`` (``--quick`` and its :data:`QUICK_ARGS` if asked, then
+    ``args``) and return its run record.
 
     A failure (non-zero exit, timeout, no JSON on the last line) is recorded in ``error``, never
     raised: the report shows it. With ``out_dir`` the record is written to ``<name>.json`` and
     the full output to ``<name>.log``.
     """
     script = Path(bench_dir) / f"{name}.py"
-    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick"] if quick else []), *args]
+    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick", *QUICK_ARGS.get(name, ())] if quick else [])]
+    cmd += list(args)
     shown = " ".join(["python", f"benchmarks/{name}.py", *cmd[4:]])
     env = dict(os.environ)
     root = str(Path(bench_dir).resolve().parent)
