@@ -88,7 +88,7 @@ def test_the_live_extremes_run_is_recorded(quick_report):
     cells = rec["result"]["cells"]
     assert len(cells) == 3 and all(c["ok"] for c in cells)
     assert {c["status"] for c in cells} == {"finite", "InfeasibleError"}
-    assert rec["peak_rss_mb"] > 10 and rec["seconds"] > 0
+    assert rec["peak_rss_mb"] > 10 and rec["seconds"] > 0 and 0 < rec["cpu_s"]
 
 
 def test_page_is_well_formed(quick_report):

@@ -3,8 +3,9 @@
 Each script in ``benchmarks/`` prints progress and then one JSON object as its LAST line. A
 run record (:func:`run_benchmark`) keeps that object under ``result`` with what the report
 needs beside it: the command, the seconds, the load average before and after, the peak
-resident memory of the process (and of the children it waited for), the return code, and,
-when the run failed, the error and the tail of its output. Records are plain JSON files,
+resident memory and the CPU seconds of the process (and of the children it waited for: forked
+tiles, not Ray's workers), the return code, and, when the run failed, the error and the tail
+of its output. Records are plain JSON files,
 ``<folder>/<name>.json``; :func:`load_results` reads a folder of them back, and also accepts a
 benchmark's bare JSON object or its captured stdout (``<name>.out``, last line JSON).
 """
@@ -67,15 +68,17 @@ QUICK_ARGS: dict[str, list[str]] = {
     "scaleout": "--ray-start-s 120".split(),
 }
 
-# Runs a script as __main__ and reports the peak RSS of itself and its waited-for children on
-# stderr at exit (the sibling-module imports of the scripts work as with ``python script``).
+# Runs a script as __main__ and reports the peak RSS and the CPU seconds (user + system) of
+# itself and its waited-for children on stderr at exit (the sibling-module imports of the
+# scripts work as with ``python script``).
 _WRAPPER = """
 import atexit, os, resource, runpy, sys
 path = sys.argv[1]
 sys.argv = sys.argv[1:]
 def _peak():
-    kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
-    sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % kb)
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % max(me.ru_maxrss, kids.ru_maxrss))
+    sys.stderr.write("__cpu_s__ %.3f\\n" % (me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime))
 atexit.register(_peak)
 sys.path.insert(0, os.path.dirname(os.path.abspath(path)))
 runpy.run_path(path, run_name="__main__")
@@ -155,7 +158,9 @@ def run_benchmark(
     rec["returncode"] = rc
     peak = [ln for ln in err.splitlines() if ln.startswith("__peak_rss_kb__")]
     rec["peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
-    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith("__peak_rss_kb__"))
+    cpu = [ln for ln in err.splitlines() if ln.startswith("__cpu_s__")]
+    rec["cpu_s"] = float(cpu[-1].split()[1]) if cpu else None
+    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith(("__peak_rss_kb__", "__cpu_s__")))
     rec["result"] = last_json(out) if rc == 0 else None
     rec["error"] = None
     if rc != 0:
