@@ -193,6 +193,18 @@ def test_manifold_figure_puts_the_plan_on_the_curves_statistic():
     assert [s for s, _ in heldout({"manifold": {"planned": old}}).values()].count("planner") == 0
 
 
+def test_manifold_caption_says_how_many_splits():
+    """The quick report runs the held-out study on two splits: the caption says the count the
+    benchmark printed (and no count when an older run did not print one)."""
+
+    def caption(result: dict) -> str:
+        sec = {s.key: s for s in sections({"manifold": {"result": result}})}["manifold"]
+        return next(f for f in sec.figures if f.key == "manifold_heldout").caption
+
+    assert "averaged over 2 random 80/20 splits" in caption({"splits": 2, "data": "NBRDF"})
+    assert "averaged over the random 80/20 splits" in caption({"data": "NBRDF"})
+
+
 def test_a_skipped_ray_start_is_a_cell_not_a_crash():
     """scaleout.py prints ``ray_skipped`` (and its local figures) when Ray does not start in its
     time: the section says so in a cell, draws the local point and lists no Ray key as missing."""
