@@ -39,7 +39,8 @@ Prints progress lines, then one JSON object as the LAST line:
   seed's configuration (mu 1e-6, interpolant exact at the latents) is reported beside it.
 * held-out study: ``heldout_logrmse_mean`` / ``_std``, ``pca_heldout_logrmse_mean`` / ``_std``,
   ``nearest_heldout_logrmse_mean`` / ``_std`` (dicts by q = 2, 3, 5): mean over the held-out
-  materials, then mean and std over 5 random 80/20 splits (seeds 0..4); the GPLVM is fitted on
+  materials, then mean and std over 5 random 80/20 splits (seeds 0..4; ``--splits``, printed as
+  ``splits``); the GPLVM is fitted on
   the training rows and each held-out material placed at its best manifold point in the log
   mapping of the score (``heldout_reconstruction(metric="log")``; the prediction stays
   b(x*)ᵀZ), PCA of the same dimension (cosine weights, orthogonal projection), and the nearest
@@ -603,6 +604,7 @@ def main(argv=None) -> dict:
     max_iter = args.max_iter or (200 if quick else 1000)
     out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
     out["settings"] = {"max_iter": max_iter, **stop, **place}
+    out["splits"] = args.splits  # random 80/20 splits of the held-out study
     obs, desc = load_data(quick, args.cache)
     out["data"] = desc
     out["n_materials"], out["d"] = obs.z.shape

@@ -1,16 +1,17 @@
 """All-frequency relighting with locally adaptive triple products: speed, accuracy, storage.
 
     python benchmarks/triple_product.py [--quick] [--checkpoint DIR] [--precompute-only] [--baseline] [--rounds N]
-        [--split] [--compare-numpy] [--embree-chunks N] [--processes N]
+        [--split] [--compare-numpy] [--embree-chunks N] [--processes N] [--frames N] [--plane-quads N]
 
 Scene: ``bunny_relight`` (Inger et al.'s test: the Stanford bunny, Phong exponent 200, on a
 96x96-quad plane with Phong exponent 20) under a sun-like map (the shared HDR
 ``quarry_01_sun``, a sunny quarry with a very small, very bright sun; the procedural sun and
 sky when the data is absent), 64x64x6
 binary visibility (``--quick``: the procedural stand-in bunny, a 32x32-quad plane, a
-smaller image). Three frames: the scene camera; the map turned by 2 rad about +y; the camera
-moved around the bunny. Every figure compares methods run in this process on the same
-culled vertices. Prints progress, then one JSON object as the last line:
+smaller image; ``--plane-quads`` sets the plane's quads a side). Three frames (``--frames N``:
+the first N): the scene camera; the map turned by 2 rad about +y; the camera moved around the
+bunny. Every figure compares methods run in this process on the same culled vertices. Prints
+progress, then one JSON object as the last line:
 
 * ``vertices`` (all), ``shaded_vertices`` (per frame, after culling), ``precompute_s`` (the
   visibility cubemaps; a ``--checkpoint`` folder resumes) beside ``rays_s``, embree alone on
@@ -220,14 +221,16 @@ def main() -> None:
     )
     ap.add_argument("--processes", type=int, default=None, help="processes for both (default: usable cores)")
     ap.add_argument("--haar-fraction", type=float, default=0.01)
+    ap.add_argument("--frames", type=int, default=3, choices=(1, 2, 3), help="frames shaded (the first N of three)")
+    ap.add_argument("--plane-quads", type=int, default=None, help="plane quads a side (default 96; quick 32)")
     args = ap.parse_args()
     torch.manual_seed(0)
     sun = None if args.quick else data_path("envmaps", "quarry_01_sun_512x256.exr", required=False)
     env = EnvironmentMap.from_exr(sun) if sun is not None else None  # else the procedural sun and sky
     if args.quick:
-        scene = bunny_relight((160, 120), plane_quads=32, use_data=False)
+        scene = bunny_relight((160, 120), plane_quads=args.plane_quads or 32, use_data=False)
     else:
-        scene = bunny_relight((320, 240), envmap=env)
+        scene = bunny_relight((320, 240), plane_quads=args.plane_quads or 96, envmap=env)
     res = 64
     print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
 
@@ -353,7 +356,7 @@ def main() -> None:
         ("camera", scene.camera, 0.0),
         ("rotated_map", scene.camera, 2.0),
         ("orbit", _orbit(scene.camera, 0.7), 0.0),
-    ]
+    ][: args.frames]
     out: dict = {
         "scene": scene.name,
         "quick": args.quick,

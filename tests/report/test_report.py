@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from torch_brdf.cli import app
 from torch_brdf.errors import FileFormatError, ValueRangeError
 from torch_brdf.report import make_report
-from torch_brdf.report.run import find_benchmarks, load_results, run_benchmark
+from torch_brdf.report.run import BENCHMARKS, QUICK_ARGS, find_benchmarks, load_results, run_benchmark
 from torch_brdf.report.sections import CAPABILITIES, planner_choices, sections
 
 pytest.importorskip("matplotlib")
@@ -88,7 +88,7 @@ def test_the_live_extremes_run_is_recorded(quick_report):
     cells = rec["result"]["cells"]
     assert len(cells) == 3 and all(c["ok"] for c in cells)
     assert {c["status"] for c in cells} == {"finite", "InfeasibleError"}
-    assert rec["peak_rss_mb"] > 10 and rec["seconds"] > 0
+    assert rec["peak_rss_mb"] > 10 and rec["seconds"] > 0 and 0 < rec["cpu_s"]
 
 
 def test_page_is_well_formed(quick_report):
@@ -193,6 +193,18 @@ def test_manifold_figure_puts_the_plan_on_the_curves_statistic():
     assert [s for s, _ in heldout({"manifold": {"planned": old}}).values()].count("planner") == 0
 
 
+def test_manifold_caption_says_how_many_splits():
+    """The quick report runs the held-out study on two splits: the caption says the count the
+    benchmark printed (and no count when an older run did not print one)."""
+
+    def caption(result: dict) -> str:
+        sec = {s.key: s for s in sections({"manifold": {"result": result}})}["manifold"]
+        return next(f for f in sec.figures if f.key == "manifold_heldout").caption
+
+    assert "averaged over 2 random 80/20 splits" in caption({"splits": 2, "data": "NBRDF"})
+    assert "averaged over the random 80/20 splits" in caption({"data": "NBRDF"})
+
+
 def test_a_skipped_ray_start_is_a_cell_not_a_crash():
     """scaleout.py prints ``ray_skipped`` (and its local figures) when Ray does not start in its
     time: the section says so in a cell, draws the local point and lists no Ray key as missing."""
@@ -236,3 +248,20 @@ def test_cli_report_refuses_a_malformed_extremes_file(tmp_path, text):
     (line,) = res.output.strip().splitlines()  # one line, no traceback
     assert line.startswith("error: ") and "extremes.json" in line
     assert not (tmp_path / "o" / "report.html").exists()
+
+
+def test_quick_report_passes_its_options_to_the_scripts(tmp_path):
+    """``torch-brdf report --quick`` runs each script with ``--quick`` and that script's
+    ``QUICK_ARGS`` (then any explicit ``args``), shows them in the command, and every option
+    there is one the real script declares; the full report passes none of them."""
+    (tmp_path / "manifold.py").write_text("import json, sys\nprint(json.dumps({'argv': sys.argv[1:]}))\n")
+    rec = run_benchmark("manifold", tmp_path, True, timeout=60, args=["--no-peer"])
+    assert rec["error"] is None, rec
+    assert rec["result"]["argv"] == ["--quick", *QUICK_ARGS["manifold"], "--no-peer"]
+    assert rec["command"] == " ".join(["python benchmarks/manifold.py --quick", *QUICK_ARGS["manifold"], "--no-peer"])
+    assert run_benchmark("manifold", tmp_path, False, timeout=60)["result"]["argv"] == []
+    for name, opts in QUICK_ARGS.items():
+        assert name in BENCHMARKS and opts
+        text = (REPO / "benchmarks" / f"{name}.py").read_text()
+        for opt in (o for o in opts if o.startswith("--")):
+            assert f'add_argument("{opt}"' in text or f'add_argument(\n        "{opt}"' in text, (name, opt)

@@ -106,6 +106,7 @@ def _run_rows(results: dict[str, dict]) -> list[list[str]]:
                 fmt(rec.get("quick", (rec.get("result") or {}).get("quick"))),
                 status,
                 fmt(rec.get("seconds")),
+                fmt(rec.get("cpu_s")),
                 f"{fmt(rec.get('load_before'))} / {fmt(rec.get('load_after'))}",
                 fmt(rec.get("peak_rss_mb")),
             ]
@@ -241,7 +242,7 @@ def write_page(
     parts.append(
         _table(
             _run_rows(results),
-            ["benchmark", "command", "quick", "status", "seconds", "load 1-min before / after", "peak RSS MB"],
+            ["benchmark", "command", "quick", "status", "seconds", "CPU s", "load 1-min before / after", "peak RSS MB"],
         )
     )
     head = f"<meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style>"

@@ -3,8 +3,9 @@
 Each script in ``benchmarks/`` prints progress and then one JSON object as its LAST line. A
 run record (:func:`run_benchmark`) keeps that object under ``result`` with what the report
 needs beside it: the command, the seconds, the load average before and after, the peak
-resident memory of the process (and of the children it waited for), the return code, and,
-when the run failed, the error and the tail of its output. Records are plain JSON files,
+resident memory and the CPU seconds of the process (and of the children it waited for: forked
+tiles, not Ray's workers), the return code, and, when the run failed, the error and the tail
+of its output. Records are plain JSON files,
 ``<folder>/<name>.json``; :func:`load_results` reads a folder of them back, and also accepts a
 benchmark's bare JSON object or its captured stdout (``<name>.out``, last line JSON).
 """
@@ -48,15 +49,36 @@ BENCHMARKS = (
 #: extra environment per benchmark (as its docstring asks)
 ENV = {"manifold": {"OPENBLAS_NUM_THREADS": "1"}}
 
-# Runs a script as __main__ and reports the peak RSS of itself and its waited-for children on
-# stderr at exit (the sibling-module imports of the scripts work as with ``python script``).
+#: options the report adds to a benchmark's ``--quick`` (``torch-brdf report --quick``), so that
+#: the whole quick report takes minutes: fewer repeats, rounds, frames, splits and peer seconds,
+#: never other keys or another meaning. A benchmark run by hand with ``--quick`` alone keeps its
+#: own quick sizes (the README cites figures of those runs).
+QUICK_ARGS: dict[str, list[str]] = {
+    # one round of precompute vs embree alone (the embreex variants on two chunks, scaled), the
+    # first of the three frames, a 16-quad plane: the same keys on a smaller scene
+    "triple_product": "--rounds 1 --frames 1 --plane-quads 16 --embree-chunks 2".split(),
+    # two random 80/20 splits instead of five (mean and std need two)
+    "manifold": "--splits 2".split(),
+    # the manifold planner: one pool order (one plan) and the first 80 held-out materials
+    "planner": "--orders 1 --heldout 80".split(),
+    # one quiet/loaded alternation per stage instead of two
+    "load": "--rounds 1".split(),
+    # Ray's start bounded at 120 s instead of 300 (a busy machine's retries; the page then shows
+    # the skip in a cell and the local figures)
+    "scaleout": "--ray-start-s 120".split(),
+}
+
+# Runs a script as __main__ and reports the peak RSS and the CPU seconds (user + system) of
+# itself and its waited-for children on stderr at exit (the sibling-module imports of the
+# scripts work as with ``python script``).
 _WRAPPER = """
 import atexit, os, resource, runpy, sys
 path = sys.argv[1]
 sys.argv = sys.argv[1:]
 def _peak():
-    kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
-    sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % kb)
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % max(me.ru_maxrss, kids.ru_maxrss))
+    sys.stderr.write("__cpu_s__ %.3f\\n" % (me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime))
 atexit.register(_peak)
 sys.path.insert(0, os.path.dirname(os.path.abspath(path)))
 runpy.run_path(path, run_name="__main__")
@@ -105,14 +127,16 @@ def run_benchmark(
     timeout: float | None = None,
     args: Iterable[str] = (),
 ) -> dict[str, Any]:
-    """Run ``bench_dir/<name>.py`` (``--quick`` if asked) and return its run record.
+    """Run ``bench_dir/<name>.py`` (``--quick`` and its :data:`QUICK_ARGS` if asked, then
+    ``args``) and return its run record.
 
     A failure (non-zero exit, timeout, no JSON on the last line) is recorded in ``error``, never
     raised: the report shows it. With ``out_dir`` the record is written to ``<name>.json`` and
     the full output to ``<name>.log``.
     """
     script = Path(bench_dir) / f"{name}.py"
-    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick"] if quick else []), *args]
+    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick", *QUICK_ARGS.get(name, ())] if quick else [])]
+    cmd += list(args)
     shown = " ".join(["python", f"benchmarks/{name}.py", *cmd[4:]])
     env = dict(os.environ)
     root = str(Path(bench_dir).resolve().parent)
@@ -134,7 +158,9 @@ def run_benchmark(
     rec["returncode"] = rc
     peak = [ln for ln in err.splitlines() if ln.startswith("__peak_rss_kb__")]
     rec["peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
-    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith("__peak_rss_kb__"))
+    cpu = [ln for ln in err.splitlines() if ln.startswith("__cpu_s__")]
+    rec["cpu_s"] = float(cpu[-1].split()[1]) if cpu else None
+    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith(("__peak_rss_kb__", "__cpu_s__")))
     rec["result"] = last_json(out) if rc == 0 else None
     rec["error"] = None
     if rc != 0:

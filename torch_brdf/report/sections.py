@@ -500,9 +500,10 @@ def manifold(results: dict) -> Section:
         "latent dimension q (model size)",
         "held-out log-RMSE: mean over materials",
         held,
-        "curves: the mean over held-out materials of the per-material log-RMSE, averaged over 5 random "
-        f"80/20 splits of {r('data') or 'the benchmark data'}; ★ the manifold planner's plan on its own data "
-        "(the analytic family, benchmarks/planner.py), scored by the same mean over its held-out materials; "
+        "curves: the mean over held-out materials of the per-material log-RMSE, averaged over "
+        f"{get(r.res, 'splits') or 'the'} random 80/20 splits of {r('data') or 'the benchmark data'}; "
+        "★ the manifold planner's plan on its own data (the analytic family, benchmarks/planner.py), "
+        "scored by the same mean over its held-out materials; "
         "○ the same plan by the statistic it plans for (the interquartile mean of the log errors)",
     )
     return _finish(
