@@ -1215,23 +1215,36 @@ static inline void tb_rayhit_init(tb_rayhit *r, const float *o, const float *d, 
 int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const float *d, const float *table,
                       const int64_t *offsets, const uint8_t *flat, float *t, int64_t *obj, int64_t *prim, float *bary,
                       float *pos, float *ng, float *ns) {
+    /* Session 11: two passes, the same values. The embree calls first (t, obj, prim, bary), then
+     * the interpolation of every ray from those: the rows' arithmetic (and its sqrtf's latency)
+     * no longer sits between one embree call and the next, and the second loop has no call. */
     tb_intersect1 intersect = (tb_intersect1)fn;
-    int64_t hits = 0;
+    int64_t hits = 0, cast = n, rc = 0;
     tb_rayhit r;
     for (int64_t i = 0; i < n; i++) {
-        if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * i)) return -1 - i; /* the outputs are then partial */
+        if (!tb_finite3(o + 3 * i) || !tb_finite3(d + 3 * i)) { /* the outputs are then partial */
+            cast = i, rc = -1 - i;
+            break;
+        }
         tb_rayhit_init(&r, o + 3 * i, d + 3 * i, INFINITY);
         intersect(scene, &r, NULL);
-        float *p = pos + 3 * i, *g = ng + 3 * i, *s = ns + 3 * i;
+        t[i] = r.ray.tfar;
         if (r.geomID == TB_INVALID_ID) {
-            t[i] = r.ray.tfar, obj[i] = -1, prim[i] = -1, bary[2 * i] = 0.0f, bary[2 * i + 1] = 0.0f;
-            for (int c = 0; c < 3; c++) p[c] = 0.0f, g[c] = 0.0f, s[c] = 0.0f;
+            obj[i] = -1, prim[i] = -1, bary[2 * i] = 0.0f, bary[2 * i + 1] = 0.0f;
             continue;
         }
         hits++;
-        const int64_t face = (offsets ? offsets[r.geomID] : 0) + (int64_t)r.primID;
+        obj[i] = r.geomID, prim[i] = r.primID, bary[2 * i] = r.u, bary[2 * i + 1] = r.v;
+    }
+    for (int64_t i = 0; i < cast; i++) {
+        float *p = pos + 3 * i, *g = ng + 3 * i, *s = ns + 3 * i;
+        if (obj[i] < 0) {
+            for (int c = 0; c < 3; c++) p[c] = 0.0f, g[c] = 0.0f, s[c] = 0.0f;
+            continue;
+        }
+        const int64_t face = (offsets ? offsets[obj[i]] : 0) + prim[i];
         const float *row = table + 21 * face;
-        const float w1 = r.u, w2 = r.v, w0 = (1.0f - w1) - w2;
+        const float w1 = bary[2 * i], w2 = bary[2 * i + 1], w0 = (1.0f - w1) - w2;
         float q[6];
         for (int c = 0; c < 6; c++) q[c] = (w0 * row[c] + w1 * row[6 + c]) + w2 * row[12 + c];
         float len = q[3] * q[3];
@@ -1239,14 +1252,13 @@ int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const fl
         len += q[5] * q[5];
         len = sqrtf(len);
         if (!(len >= 1e-12f)) len = 1e-12f;
-        const int is_flat = flat && flat[r.geomID];
+        const int is_flat = flat && flat[obj[i]];
         for (int c = 0; c < 3; c++) {
             p[c] = q[c], g[c] = row[18 + c];
             s[c] = is_flat ? row[18 + c] : q[3 + c] / len;
         }
-        t[i] = r.ray.tfar, obj[i] = r.geomID, prim[i] = r.primID, bary[2 * i] = w1, bary[2 * i + 1] = w2;
     }
-    return hits;
+    return rc ? rc : hits;
 }
 
 /* tb_occluded_rays: whether anything lies on ray i within (0, min(tmax[i], 1e37)) (origins o
@@ -1304,6 +1316,7 @@ int64_t tb_intersect_only(void *scene, void *fn, int64_t n, const float *o, cons
  * tb_blocks does not depend on their order (it sorts by keys unique per row). */
 
 #define TT_EMPTY (~(u128)0)   /* a free hash slot: no key has all 128 bits set (keys have <= 127) */
+#define TT_AHEAD 32           /* rows prefetched ahead in the gathers of tb_tile_add and tb_tile_blocks */
 #define TT_MAX_BUCKET_BITS 22 /* record + path bits of a group: its counting sort's buckets (16 MB) */
 
 typedef struct __attribute__((aligned(16))) {
@@ -1398,7 +1411,10 @@ int tb_tile_add(tb_tile *t, const tb_acc *a) {
     tt_row *out = t->rows;
     for (int64_t at = 0; at < n; at++) {
         int64_t i = t->perm[at], b = TT_BUCKET(a->key[i]);
-        if (at + 8 < n) __builtin_prefetch(a->key + t->perm[at + 8]), __builtin_prefetch(a->val + 3 * t->perm[at + 8]);
+        if (at + TT_AHEAD < n) { /* the entry TT_AHEAD ahead: its key and both lines its 24 bytes may touch */
+            const int64_t j = t->perm[at + TT_AHEAD];
+            __builtin_prefetch(a->key + j), __builtin_prefetch(a->val + 3 * j), __builtin_prefetch(a->val + 3 * j + 2);
+        }
         if (b != cur) {
             for (int64_t r = b >> bp; r0 <= r; r0++) st[r0] = t->nrows; /* records up to b's start here */
             cur = b, first = t->nrows;
@@ -1681,6 +1697,10 @@ int64_t tb_tile_blocks(tb_tile *t, const int64_t *spp_rec, int64_t spp, int64_t 
         for (int64_t e = 0; e < E; e++) {
             int64_t i = ord2[i0 + e];
             const tt_sum *s = S + ord[i];
+            if (e + TT_AHEAD < E) { /* the sums TT_AHEAD entries ahead (64 bytes: up to two lines) */
+                const char *ahead = (const char *)(S + ord[ord2[i0 + e + TT_AHEAD]]);
+                __builtin_prefetch(ahead), __builtin_prefetch(ahead + sizeof(tt_sum) - 1);
+            }
             int64_t n = spp_rec ? spp_rec[(int64_t)(s->k >> s_r)] : spp;
             double dn = (double)n, dof = (double)(n - 1 < 1 ? 1 : n - 1);
             for (int c = 0; c < 3; c++) {
