@@ -156,11 +156,16 @@ def run_benchmark(
     rec["seconds"] = time.perf_counter() - t0
     rec["load_after"] = os.getloadavg()[0]
     rec["returncode"] = rc
-    peak = [ln for ln in err.splitlines() if ln.startswith("__peak_rss_kb__")]
-    rec["peak_rss_mb"] = int(peak[-1].split()[1]) / 1024 if peak else None
-    cpu = [ln for ln in err.splitlines() if ln.startswith("__cpu_s__")]
-    rec["cpu_s"] = float(cpu[-1].split()[1]) if cpu else None
-    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith(("__peak_rss_kb__", "__cpu_s__")))
+    marks, kept = {}, []  # the wrapper's lines (the last of each wins), the rest of stderr kept
+    for ln in err.splitlines():
+        key, _, value = ln.partition(" ")
+        if key in ("__peak_rss_kb__", "__cpu_s__"):
+            marks[key] = float(value)
+        else:
+            kept.append(ln)
+    err = "\n".join(kept)
+    rec["peak_rss_mb"] = marks["__peak_rss_kb__"] / 1024 if "__peak_rss_kb__" in marks else None
+    rec["cpu_s"] = marks.get("__cpu_s__")
     rec["result"] = last_json(out) if rc == 0 else None
     rec["error"] = None
     if rc != 0:

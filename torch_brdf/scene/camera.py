@@ -99,6 +99,11 @@ class Camera:
             r, c = r + 0.5, c + 0.5
         return self.rays_through(c, r, dtype)
 
+    @property
+    def tan_half(self) -> float:
+        """tan(fov / 2): the half-height of the image plane at distance 1."""
+        return math.tan(math.radians(self.fov_deg) / 2)
+
     def rays_through(self, x, y, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through raster positions ``x`` (column, may be fractional) and ``y`` (row).
 
@@ -111,7 +116,7 @@ class Camera:
         """
         x = check_finite(as_float_tensor(x, "x", torch.float64), "raster x")
         y = check_finite(as_float_tensor(y, "y", torch.float64), "raster y")
-        tan_half = math.tan(math.radians(self.fov_deg) / 2)
+        tan_half = self.tan_half
         aspect = self.width / self.height
         sx = (2 * x / self.width - 1) * tan_half * aspect
         sy = (1 - 2 * y / self.height) * tan_half
@@ -126,7 +131,7 @@ class Camera:
         p = check_vectors(points, "points").to(torch.float64) - torch.tensor(self.origin, dtype=torch.float64)
         local = p @ self.frame.T
         z = local[:, 2]
-        tan_half = math.tan(math.radians(self.fov_deg) / 2)
+        tan_half = self.tan_half
         aspect = self.width / self.height
         safe = torch.where(z > 0, z, torch.ones_like(z))
         x = (local[:, 0] / safe / (tan_half * aspect) + 1) * self.width / 2

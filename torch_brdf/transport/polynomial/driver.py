@@ -125,9 +125,8 @@ def eye_rays(cam, pixels: torch.Tensor, rec: torch.Tensor, off: torch.Tensor) ->
     n = rec.numel()
     rec, pixels, off = rec.to(torch.int64).contiguous(), pixels.to(torch.int64).contiguous(), off.double().contiguous()
     local = torch.empty(n, 3, dtype=torch.float64)
-    tan_half = math.tan(math.radians(cam.fov_deg) / 2)
     bad = lib.tb_camera_local(
-        n, _p(rec), _p(pixels), cam.width, cam.height, _p(off), tan_half, cam.width / cam.height, _p(local)
+        n, _p(rec), _p(pixels), cam.width, cam.height, _p(off), cam.tan_half, cam.width / cam.height, _p(local)
     )
     if bad < 0:
         raise ValueRangeError(f"raster position {-1 - bad} of {n} is NaN or Inf")
