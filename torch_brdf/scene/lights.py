@@ -271,9 +271,12 @@ class AreaLight(Light):
         self.register_buffer("radiance", torch.tensor(check_rgb(radiance, "radiance"), dtype=torch.float32))
         self.object_id = int(object_id)
 
-    def sample_points(self, n: int, generator=None, dtype=torch.float32):
-        """Uniform points on the emitter: (n, 3) positions and (n, 3) normals."""
-        u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+    def sample_points(self, n: int, generator=None, dtype=torch.float32, u: torch.Tensor | None = None):
+        """Uniform points on the emitter: (n, 3) positions and (n, 3) normals. ``u`` (n, 3)
+        float64: the uniforms to use (column 0 picks the triangle by area, 1 and 2 the point on
+        it) instead of drawing them from ``generator``."""
+        if u is None:
+            u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
         idx = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp_max(len(self.cdf) - 1)
         s = u[:, 1].sqrt()
         b1, b2 = 1 - s, u[:, 2] * s  # uniform barycentrics
@@ -281,8 +284,9 @@ class AreaLight(Light):
         p = tri[:, 0] + b1[:, None] * (tri[:, 1] - tri[:, 0]) + b2[:, None] * (tri[:, 2] - tri[:, 0])
         return p.to(dtype), self.normals[idx].to(dtype)
 
-    def sample(self, points, generator=None):
-        y, n_l = self.sample_points(points.shape[0], generator, dtype=points.dtype)
+    def sample(self, points, generator=None, u: torch.Tensor | None = None):
+        """:meth:`Light.sample`; ``u`` as for :meth:`sample_points`."""
+        y, n_l = self.sample_points(points.shape[0], generator, dtype=points.dtype, u=u)
         d = y - points
         dist2 = (d * d).sum(-1)
         dist = dist2.sqrt()

@@ -374,13 +374,15 @@ class TileSums:
         return keys, vals
 
 
-def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor, gen):
+def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor, gen, u: torch.Tensor | None = None):
     """Next-event samples of an :class:`~torch_brdf.scene.lights.AreaLight` in the kernel: the
     same uniforms (one ``torch.rand``), the same float64/float32 arithmetic in the same order
     as ``AreaLight.sample`` and the cosines of ``sample_light``, so the same bits.
 
     Args:
         pos, ng, ns: (n, 3) float32 points, geometric and shading normals.
+        u: (n, 3) float64 uniforms to use instead of drawing them from ``gen``
+            (``AreaLight.sample_points``'s ``u``).
     Returns:
         (:class:`LightSample`, cos (n,) at the shading normal, ok (n,) bool: cos > 0, the light
         in front of ``ng`` and pdf > 0), or None (another light, another dtype, no kernel): use
@@ -390,7 +392,9 @@ def area_light_sample(light, pos: torch.Tensor, ng: torch.Tensor, ns: torch.Tens
     if lib is None or type(light) is not AreaLight or pos.dtype != torch.float32:
         return None
     n = pos.shape[0]
-    u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
+    if u is None:
+        u = torch.rand(n, 3, generator=gen, dtype=torch.float64)  # as AreaLight.sample_points draws them
+    u = u.to(torch.float64).contiguous()
     sq = u[:, 1].sqrt()  # square roots in torch: its vectorised sqrt decides the last bit
     tri, nrm = light.triangles.contiguous(), light.normals.contiguous()
     cdf, rad = light.cdf.contiguous(), light.radiance.to(torch.float32).contiguous()

@@ -112,19 +112,21 @@ def shading_frame(d_in: torch.Tensor, ng: torch.Tensor, ns: torch.Tensor):
     return ng, ns, frame, frame.to_local(-d_in)
 
 
-def sample_light(scene: Scene, light, pos, ng, ns, gen):
-    """Next-event estimation towards ``light`` from every vertex.
+def sample_light(scene: Scene, light, pos, ng, ns, gen, u: torch.Tensor | None = None):
+    """Next-event estimation towards ``light`` from every vertex; ``u`` (n, 3) float64: the
+    uniforms of an :class:`~torch_brdf.scene.lights.AreaLight` (e.g. stratified), instead of
+    drawing them from ``gen``.
 
     Returns:
         (ls, cos, candidates, visible): the :class:`~torch_brdf.scene.lights.LightSample`, the
         cosine at the shading normal (n,), how many shadow rays were cast, and the rows (long)
         that see the light.
     """
-    fast = area_light_sample(light, pos, ng, ns, gen)  # the same bits in the compiled kernel
+    fast = area_light_sample(light, pos, ng, ns, gen, u)  # the same bits in the compiled kernel
     if fast is not None:
         ls, cos, ok = fast
     else:
-        ls = light.sample(pos, gen)
+        ls = light.sample(pos, gen) if u is None else light.sample(pos, gen, u=u)
         cos = (ls.direction * ns).sum(-1)
         ok = (cos > 0) & ((ls.direction * ng).sum(-1) > 0) & (ls.pdf > 0)
     k = torch.nonzero(ok).squeeze(1)

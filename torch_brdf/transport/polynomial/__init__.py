@@ -59,9 +59,10 @@ from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
 from .driver import plan_polynomial, precompute_polynomial, spp_map_of
 from .plan import ObjectBasis, Series, plan_bases
-from .sampler import LobeMixture, Mixture
+from .sampler import EyeStrata, LobeMixture, Mixture
 
 __all__ = [
+    "EyeStrata",
     "LobeMixture",
     "Mixture",
     "ObjectBasis",

@@ -39,7 +39,7 @@ from .reduce import (
     native_local_blocks,
     tile_accumulator,
 )
-from .sampler import LobeMixture, Mixture
+from .sampler import EyeStrata, LobeMixture, Mixture
 from .tracer import _Tracer
 from .vertex import c_rand_matches
 
@@ -184,7 +184,10 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             group_ent.acc.clear()
         ent = group_ent
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
-        e, ent = tracer.run(o, d, ray, gen, paths, ent)  # entries carry the ray id as "path"
+        strata = None
+        if getattr(tracer.mixture, "stratified", False):  # path s0 + pas of its pixel's counts
+            strata = EyeStrata(s0 + pas, counts[rec], pixels[rec])
+        e, ent = tracer.run(o, d, ray, gen, paths, ent, strata)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
             for r in paths.get("rows", [])[n_rows:]:
                 r["rec"] = pixels[r["rec"] % p]

@@ -15,7 +15,76 @@ from ...sphere.warps import (
     square_to_cosine_power_hemisphere,
 )
 
-__all__ = ["LobeMixture", "Mixture"]
+__all__ = ["EyeStrata", "LobeMixture", "Mixture"]
+
+
+_BELOW_ONE = {torch.float32: 1.0 - 2.0**-24, torch.float64: 1.0 - 2.0**-53}
+
+
+def _hash31(x: torch.Tensor) -> torch.Tensor:
+    """A 31-bit integer hash of int64 ``x`` (two LCG + xorshift rounds on 31 bits: no overflow)."""
+    x = x & 0x7FFFFFFF
+    for _ in range(2):
+        x = (x * 1103515245 + 12345) & 0x7FFFFFFF
+        x = x ^ (x >> 13)
+    return x
+
+
+def _rescale(x: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, dtype) -> torch.Tensor:
+    """``x`` in [lo, hi) mapped to [0, 1) (float64 arithmetic, then ``dtype``, kept below 1)."""
+    r = (x.double() - lo) / (hi - lo).clamp_min(1e-300)
+    return r.to(dtype).clamp(0.0, _BELOW_ONE[dtype])
+
+
+@dataclass(frozen=True)
+class EyeStrata:
+    r"""Where each path's eye-vertex samples fall among its pixel's paths: path ``sample``
+    (0-based) of the ``count`` paths of pixel ``key`` (a flat pixel index).
+
+    :meth:`square` places the paths of a pixel one per cell of an m x n grid of the unit
+    square, m = floor(sqrt(count)), n = floor(count / m) (jittered sampling, e.g. 8 x 8 at
+    64 spp), each pixel visiting the cells in its own order (a rotation by a hash of the pixel
+    and ``salt``, so the light's and the mixture's cells are not paired alike everywhere); the
+    paths beyond m x n keep their uniforms. Every path's point is still uniform on the square,
+    so every estimate stays unbiased, and the tensors stay exact polynomials (the sample
+    positions never depend on a BRDF); what changes is that a pixel's paths cover the square
+    evenly, which removes most of the noise of a smooth integrand, e.g. an area light's
+    sharp highlight on a glossy wall.
+    """
+
+    sample: torch.Tensor
+    count: torch.Tensor
+    key: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> EyeStrata:
+        """The strata of ``rows``."""
+        return EyeStrata(self.sample[rows], self.count[rows], self.key[rows])
+
+    def square(self, ux: torch.Tensor, uy: torch.Tensor, salt: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Uniforms ``ux``, ``uy`` (n,) -> the jittered points (x, y) (n,) float64 in [0, 1)."""
+        c = self.count.clamp_min(1)
+        m = torch.sqrt(c.double()).floor().long().clamp_min(1)  # exact for counts < 2**52
+        n = c // m
+        cells = m * n
+        t = (self.sample + _hash31(self.key * 64 + salt)) % cells
+        inside = self.sample < cells
+        x = torch.where(inside, ((t % m).double() + ux.double()) / m.double(), ux.double())
+        y = torch.where(inside, ((t // m).double() + uy.double()) / n.double(), uy.double())
+        below = _BELOW_ONE[torch.float64]
+        return x.clamp(0.0, below), y.clamp(0.0, below)
+
+    def light_uniforms(self, light, u: torch.Tensor, salt: int) -> torch.Tensor:
+        """An :class:`~torch_brdf.scene.lights.AreaLight`'s uniforms ``u`` (n, 3) float64 (column 0
+        picks the triangle by area, 1 and 2 the point on it) stratified: the jittered point (x,
+        y) of columns 1 and 2 picks the triangle by x, and x's place inside that triangle's share
+        of [0, 1) and y place the point, so the cells cover the whole light evenly."""
+        x, y = self.square(u[:, 1], u[:, 2], salt)
+        cdf = light.cdf.to(torch.float64)
+        last = cdf.numel() - 1
+        k = torch.searchsorted(cdf, x.contiguous(), right=True).clamp_max(last)
+        lo = torch.where(k > 0, cdf[(k - 1).clamp_min(0)], torch.zeros_like(x))
+        hi = torch.where(k == last, torch.clamp_min(cdf[last], 1.0), cdf[k])
+        return torch.stack([x, _rescale(x, lo, hi, torch.float64), y], 1)
 
 
 @dataclass(frozen=True)
@@ -82,6 +151,11 @@ class LobeMixture:
     highlight of an area light rests on next-event samples alone, which the lobe mixture
     cannot help (the reflected light's noise on the Cornell box's edited wall). The weights
     depend on the two pdfs only, never on the BRDF, so the tensors stay exact polynomials.
+
+    ``stratified``: the eye vertex's next-event sample of each area light and its mixture
+    sample are stratified over the pixel's paths (:class:`EyeStrata`, e.g. 8 x 8 cells of the
+    light and of the mixture's square at 64 spp; the component is picked by the cell's x, so
+    each lobe gets its share of the cells in order). Unbiased, the same random numbers drawn.
     """
 
     diffuse: float = 0.5
@@ -90,6 +164,7 @@ class LobeMixture:
     base: Mixture = Mixture()
     mis: bool = True
     ids: tuple[int, ...] | None = None
+    stratified: bool = False
 
     def __post_init__(self):
         lobes = tuple((float(w), float(n)) for w, n in self.lobes)
@@ -127,7 +202,40 @@ class LobeMixture:
     def spec(self) -> list:
         """The settings-key form (the precompute's resume key and ``meta``)."""
         ids = None if self.ids is None else list(self.ids)
-        return [self.diffuse, [list(x) for x in self.lobes], ids, self.base.spec(), self.mis]
+        out = [self.diffuse, [list(x) for x in self.lobes], ids, self.base.spec(), self.mis]
+        return out + ["stratified"] if self.stratified else out  # (unstratified keys as before)
+
+    def _intervals(self, x: torch.Tensor, oid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lo, hi) (n,) float64: the share of [0, 1) of the component :meth:`sample` picks
+        for ``u[:, 0] = x`` (its float value) at each vertex's object."""
+        mine = self._mask(oid, x.device)
+        xd = x.double()
+        ends = [self.diffuse + sum(w for w, _ in self.lobes[: k + 1]) for k in range(len(self.lobes))]  # as sample()
+        edges = torch.tensor([0.0, self.diffuse, *ends[:-1], 1.0], dtype=torch.float64)
+        inner = torch.tensor(ends[:-1], dtype=x.dtype)
+        # sample(): cosine when x < diffuse, else lobe k = #(lobe ends <= x), clamped to the last
+        k = torch.where(
+            x < self.diffuse,
+            torch.zeros_like(oid),
+            1 + torch.searchsorted(inner, x.contiguous(), right=True),
+        )
+        lo, hi = edges[k], edges[k + 1]
+        b = self.base.diffuse
+        base_glossy = x >= b
+        lo_b = torch.where(base_glossy, torch.full_like(xd, b), torch.zeros_like(xd))
+        hi_b = torch.where(base_glossy, torch.ones_like(xd), torch.full_like(xd, b))
+        return torch.where(mine, lo, lo_b), torch.where(mine, hi, hi_b)
+
+    def stratify(self, u: torch.Tensor, strata: EyeStrata, oid: torch.Tensor, salt: int = 1) -> torch.Tensor:
+        """The eye vertex's uniforms ``u`` (n, 3) stratified (:class:`EyeStrata`): the jittered
+        point (x, y) of columns 1 and 2 picks the component by x, and x's place inside that
+        component's share of [0, 1) and y warp its lobe, so each component's samples cover
+        its lobe evenly."""
+        x, y = strata.square(u[:, 1], u[:, 2], salt)
+        below = _BELOW_ONE[u.dtype]
+        x = x.to(u.dtype).clamp_max(below)  # the value sample() compares
+        lo, hi = self._intervals(x, oid)
+        return torch.stack([x, _rescale(x, lo, hi, u.dtype), y.to(u.dtype).clamp_max(below)], 1)
 
     def _mask(self, oid: torch.Tensor | None, device) -> torch.Tensor:
         if self.ids is None:

@@ -21,7 +21,7 @@ import torch
 from ...brdf import BRDF
 from ...brdf.bands import BandBasis, Quotient
 from ...records.polynomial import ObjectBasis, Series
-from ...scene.lights import Light
+from ...scene.lights import AreaLight, Light
 from ...scene.scene import Scene
 from .._native import library
 from ..pathtrace import (
@@ -295,8 +295,10 @@ class _Tracer:
             return out
 
     @torch.no_grad()
-    def run(self, origins, directions, rec, gen, paths: dict | None = None, ent=None):
-        """Trace one path per ray. ``rec`` (n,) is the path's pixel record id.
+    def run(self, origins, directions, rec, gen, paths: dict | None = None, ent=None, strata=None):
+        """Trace one path per ray. ``rec`` (n,) is the path's pixel record id; ``strata``
+        (:class:`~.sampler.EyeStrata` of the rays) stratifies the eye vertex's samples when the
+        mixture asks for it (a :class:`~.sampler.LobeMixture` with ``stratified``).
 
         Returns the emission seen directly (n, 3) and the entries: ``ent`` (anything with
         :meth:`_Entries.add`, e.g. the compiled :class:`~.reduce.NativeEntries`) or a new
@@ -315,6 +317,9 @@ class _Tracer:
         if vk is not None:
             return self._run_fused(vk, origins, directions, rec, gen, paths, ent)
         emis, st, d_in, pos, ng, ns, oid = self._start(origins, directions, paths)
+        if strata is not None and not getattr(self.mixture, "stratified", False):
+            strata = None
+        eye = strata.take(st.idx) if strata is not None else None  # the eye vertices' strata
         for v in range(1, nb + 1):
             if st.idx.numel() == 0:
                 break
@@ -322,9 +327,13 @@ class _Tracer:
                 ng, ns, frame, wo = shading_frame(d_in, ng, ns)
                 ed = self.editable[oid]
             reps = self.eye_light_samples if v == 1 else 1
-            for light in [li for li in self.lights for _ in range(reps)]:
+            for i, light in enumerate([li for li in self.lights for _ in range(reps)]):
                 with clock("sampling"):
-                    ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen)
+                    u = None
+                    if v == 1 and eye is not None and isinstance(light, AreaLight):
+                        u = torch.rand(st.idx.numel(), 3, generator=gen, dtype=torch.float64)  # as drawn inside
+                        u = eye.light_uniforms(light, u, salt=2 + i)
+                    ls, cos, cast, kk = sample_light(scene, light, pos, ng, ns, gen, u)
                     self.rays["shadow"] += cast
                     if kk.numel() == 0:
                         continue
@@ -342,6 +351,8 @@ class _Tracer:
                 break
             with clock("sampling"):
                 u = torch.rand(st.idx.numel(), 3, generator=gen)
+                if v == 1 and eye is not None:
+                    u = self.mixture.stratify(u, eye, oid)
                 wi, pdf = self.mixture.sample(wo, u, oid)
                 ok = (pdf > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
                 cosw = torch.where(ok, wi[:, 2] / pdf.clamp_min(1e-30), torch.zeros_like(pdf))
