@@ -2,6 +2,7 @@
 
     python benchmarks/denoise.py [--quick] [--res 256] [--series 64,1,1,1] [--spp 16,64,256]
         [--hi-spp 1024] [--ref-spp 4096] [--figure docs/denoise_cornell.png] [--cache DIR]
+        [--lobe-mixture | --stratified] [--scenes cornell,teatray] [--skip-spp 16,256] [--only-hi]
 
 For the glossy Cornell box (back wall Blinn-Phong n = 100; frozen object: the back wall) and
 the teatray (glossy tray under sun and sky; frozen object: the tray), tensors of ``--series``
@@ -116,7 +117,7 @@ SCENES = {
     ),
 }
 KIND = "benchmark-denoise"
-#: extra precompute_polynomial options of every precompute (``--lobe-mixture``), and their key
+#: extra precompute_polynomial options of every precompute (``--lobe-mixture``, ``--stratified``), and their key
 PRECOMPUTE: dict = {}
 PRECOMPUTE_KEY: dict = {}
 
@@ -680,6 +681,12 @@ def main() -> None:
         help="precompute with LobeMixture() (a defensive mixture of lobe widths and MIS on the glossy objects); "
         "every precompute, the hi-spp runs included",
     )
+    ap.add_argument(
+        "--stratified",
+        action="store_true",
+        help="precompute with LobeMixture(stratified=True): --lobe-mixture with the eye vertex's light and mixture "
+        "samples stratified over each pixel's paths (EyeStrata)",
+    )
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
     args = ap.parse_args()
     if args.quick:
@@ -704,10 +711,12 @@ def main() -> None:
         "ref_spp": args.ref_spp,
         "ref_spp_ours": max(64, args.ref_spp // 8),
     }
-    if args.lobe_mixture:
-        PRECOMPUTE["mixture"] = LobeMixture()
-        PRECOMPUTE_KEY["mixture"] = LobeMixture().spec()  # absent for the default (cached parts stay)
-    cfg["lobe_mixture"] = args.lobe_mixture
+    if args.lobe_mixture or args.stratified:
+        mix = LobeMixture(stratified=args.stratified)
+        PRECOMPUTE["mixture"] = mix
+        PRECOMPUTE_KEY["mixture"] = mix.spec()  # absent for the default (cached parts stay)
+    cfg["lobe_mixture"] = args.lobe_mixture or args.stratified
+    cfg["stratified"] = args.stratified
     folder = Path(args.cache) if args.cache else cache_path("benchmarks", "denoise")
     result: dict = {"quick": args.quick, "settings": cfg, "load_start": _load(), "scenes": {}}
     t0 = time.perf_counter()
