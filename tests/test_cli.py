@@ -86,6 +86,24 @@ def test_precompute_writes_loadable_tensors(tmp_path):
     assert bad.exit_code == 2
 
 
+def test_precompute_sampler_option(tmp_path):
+    from torch_brdf.transport.polynomial import PolynomialTensors
+
+    out = tmp_path / "t.npz"
+    args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--spp", "4", "--series", "4,1", "--out", str(out)]
+    metas = {}
+    for name in ("default", "lobes", "stratified"):
+        res = runner.invoke(app, [*args, "--sampler", name])
+        assert res.exit_code == 0, res.output
+        metas[name] = PolynomialTensors.load(out).meta["mixture"]
+    assert len(metas["default"]) == 2  # Mixture: [diffuse, exponent]
+    assert metas["lobes"][-1] is True and metas["stratified"][-1] == "stratified"
+    bad = runner.invoke(app, [*args, "--sampler", "sobol"])
+    want = "--sampler must be one of ('default', 'lobes', 'stratified'); got 'sobol'"
+    assert bad.exit_code == 2 and want in bad.output
+    assert "Traceback" not in bad.output
+
+
 def test_edit_checks_its_scene_and_changes_models(tmp_path):
     out = tmp_path / "t.npz"
     args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--spp", "1", "--series", "2,1", "--out", str(out)]

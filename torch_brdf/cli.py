@@ -342,14 +342,23 @@ def precompute(
         None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
     ),
     ray: str = RAY,
+    sampler: str = typer.Option(
+        "default",
+        help="Direction sampling: 'default' (70% cosine + Blinn 200, compiled), 'lobes' (LobeMixture: lobe "
+        "widths + MIS on the glossy objects, for sharp edits) or 'stratified' (lobes, the eye vertex's light "
+        "and direction samples stratified over each pixel's paths).",
+    ),
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
     from .records.cache import remove_cache
-    from .transport.polynomial import Series, precompute_polynomial
+    from .transport.polynomial import LobeMixture, Series, precompute_polynomial
     from .transport.polynomial.plan import check_basis_overrides
 
     # every option is checked before the scene is loaded and the precompute starts
+    samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
+    if sampler not in samplers:
+        raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
     parsed = Series.parse(series)
     check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
     if storage not in _STORAGES:
@@ -364,6 +373,7 @@ def precompute(
         spp=spp,
         seed=seed,
         bases=overrides,
+        mixture=samplers[sampler],
         env_point_lights=env_point_lights,
         checkpoint=tiles,
         progress=progress,

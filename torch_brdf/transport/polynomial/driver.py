@@ -382,7 +382,9 @@ def precompute_polynomial(
         mixture: direction sampling (default 70% cosine, 30% Blinn 200); a
             :class:`LobeMixture` samples its objects (the glossy ones by default) from a
             defensive mixture of lobe widths, for edits sharper than the material (the torch
-            steps run then, not the compiled vertex kernel).
+            steps run then, not the compiled vertex kernel); ``LobeMixture(stratified=True)``
+            also stratifies the eye vertex's light and direction samples over each pixel's
+            paths (:class:`~.sampler.EyeStrata`).
         env_point_lights: replace the environment by its K median-cut point lights for NEE.
         light_samples: next-event samples per light at the eye vertex, each weighted 1/k
             (the same polynomial with less direct-light noise for k - 1 more shadow rays per
