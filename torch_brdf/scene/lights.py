@@ -277,12 +277,17 @@ class AreaLight(Light):
         it) instead of drawing them from ``generator``."""
         if u is None:
             u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
-        idx = torch.searchsorted(self.cdf, u[:, 0].contiguous(), right=True).clamp_max(len(self.cdf) - 1)
+        idx = self.triangle_of(u[:, 0])
         s = u[:, 1].sqrt()
         b1, b2 = 1 - s, u[:, 2] * s  # uniform barycentrics
         tri = self.triangles[idx].to(torch.float64)
         p = tri[:, 0] + b1[:, None] * (tri[:, 1] - tri[:, 0]) + b2[:, None] * (tri[:, 2] - tri[:, 0])
         return p.to(dtype), self.normals[idx].to(dtype)
+
+    def triangle_of(self, u0: torch.Tensor) -> torch.Tensor:
+        """The triangle (n,) int64 that uniforms ``u0`` (n,) float64 pick by area (the last one
+        also takes any rounding gap of the cdf below 1)."""
+        return torch.searchsorted(self.cdf, u0.contiguous(), right=True).clamp_max(len(self.cdf) - 1)
 
     def sample(self, points, generator=None, u: torch.Tensor | None = None):
         """:meth:`Light.sample`; ``u`` as for :meth:`sample_points`."""

@@ -81,7 +81,7 @@ class EyeStrata:
         x, y = self.square(u[:, 1], u[:, 2], salt)
         cdf = light.cdf.to(torch.float64)
         last = cdf.numel() - 1
-        k = torch.searchsorted(cdf, x.contiguous(), right=True).clamp_max(last)
+        k = light.triangle_of(x)
         lo = torch.where(k > 0, cdf[(k - 1).clamp_min(0)], torch.zeros_like(x))
         hi = torch.where(k == last, torch.clamp_min(cdf[last], 1.0), cdf[k])
         return torch.stack([x, _rescale(x, lo, hi, torch.float64), y], 1)
