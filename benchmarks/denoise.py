@@ -35,7 +35,9 @@ frozen on the edited object and rendered by four methods:
   as record files, which ``benchmarks/denoise_tune.py`` shares), with the class's default ``mix``
   (0: OIDN's share alone; session 8 reported the average with ``selected``, no better);
   ``oidn_cumulative_mix_half`` ``{spp: [default, edited]}`` is that average (exact: the frame is
-  linear in the denoised bases).
+  linear in the denoised bases). The class keeps each denoised prefix sum's local mean
+  (``keep_mean``, session 13); ``oidn_cumulative_raw`` ``{spp: [default, edited]}`` is the same
+  part without it (``keep_mean=0``, the method as sessions 8-12 measured it).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -80,6 +82,7 @@ import torch
 
 from torch_brdf.data import cache_path
 from torch_brdf.denoise import (
+    KEEP_MEAN_SIGMA,
     CumulativeOIDN,
     EdgeAwareFilter,
     RegressionFilter,
@@ -324,9 +327,13 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
     )
     print(f"[{scene.name}] oidn_cumulative at {spp} spp ...", flush=True)
     D = PolynomialRenderer(T, mats)
-    den = CumulativeOIDN(T.guides, A)  # the class's default mix (0)
+    den = CumulativeOIDN(T.guides, A)  # the class's defaults (mix 0, keep_mean)
     _, secs = _secs(lambda: D.freeze(obj, denoiser=den))
     arrays = dict(zip(("oidn_cumulative", "oidn_cumulative_e"), _frames(D, obj, mats, edited), strict=True))
+    print(f"[{scene.name}] oidn_cumulative without keep_mean at {spp} spp ...", flush=True)
+    D0 = PolynomialRenderer(T, mats)
+    D0.freeze(obj, denoiser=CumulativeOIDN(T.guides, A, keep_mean=0))
+    arrays["oidn_cumulative_raw"], arrays["oidn_cumulative_raw_e"] = _frames(D0, obj, mats, edited)
     # the frames are linear in the denoised bases: the average with selected (session 8's mix 1/2)
     for suf in ("", "_e"):
         arrays["oidn_cumulative_mix_half" + suf] = (arrays["oidn_cumulative" + suf] + h["selected" + suf]) / 2
@@ -458,7 +465,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             {
                 **settings,
                 "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
-                + [repr(SelectionSettings())],
+                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}"],
             },
             scene,
             lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
@@ -468,10 +475,11 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
         out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
         out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
-        out.setdefault("oidn_cumulative_mix_half", {})[str(spp)] = [
-            relative_rmse(c["oidn_cumulative_mix_half"], ref, a["emitter_free"].bool()),
-            relative_rmse(c["oidn_cumulative_mix_half_e"], ref_e, a["emitter_free"].bool()),
-        ]
+        for key in ("oidn_cumulative_mix_half", "oidn_cumulative_raw"):
+            out.setdefault(key, {})[str(spp)] = [
+                relative_rmse(c[key], ref, a["emitter_free"].bool()),
+                relative_rmse(c[key + "_e"], ref_e, a["emitter_free"].bool()),
+            ]
         for m in ("none", "regression", "selected"):
             k = m if m == "selected" else m + "_h"
             pair = [

@@ -6,6 +6,7 @@ guide buffers and their file round trip, HDR-FLIP."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -351,7 +352,7 @@ def test_cumulative_oidn_denoises_the_prefix_sums_of_each_group(setup, gen):
     def squash(img):  # non-linear and not the identity, so a per-band or a total-only use fails
         return img / (1 + img) + 0.1 * img.roll(1, 0)
 
-    den = CumulativeOIDN(g, fallback, image_denoiser=squash)
+    den = CumulativeOIDN(g, fallback, image_denoiser=squash, keep_mean=0)
     out = den(imgs, groups)
     assert den.calls == 3
     keep = fallback.interior & (imgs[:3] != 0).any(0).any(0)
@@ -361,15 +362,68 @@ def test_cumulative_oidn_denoises_the_prefix_sums_of_each_group(setup, gen):
         torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out[:3][..., ~keep], lin[:3][..., ~keep], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out[3:], lin[3:], rtol=0, atol=0)
-    same = CumulativeOIDN(g, fallback, image_denoiser=lambda img: img)(imgs, groups)
+    same = CumulativeOIDN(g, fallback, image_denoiser=lambda img: img, keep_mean=0)(imgs, groups)
     torch.testing.assert_close(same[:3][..., keep], imgs[:3][..., keep], rtol=1e-12, atol=1e-12)
     assert float((out[:3][..., keep] - imgs[:3][..., keep]).abs().max()) > 1e-3
-    mixed = CumulativeOIDN(g, fallback, image_denoiser=squash, mix=0.25)(imgs, groups)
+    mixed = CumulativeOIDN(g, fallback, image_denoiser=squash, mix=0.25, keep_mean=0)(imgs, groups)
     torch.testing.assert_close(mixed, 0.75 * out + 0.25 * lin, rtol=1e-12, atol=1e-12)
     with pytest.raises(ShapeError):
         den(imgs, groups[:3])
     with pytest.raises(ValueRangeError):
         CumulativeOIDN(g, mix=1.5)
+
+
+def _gaussian_within_brute(x, mask, sigma):
+    """Oracle: per pixel, the Gaussian-weighted mean of ``x`` (C, H, W) over the ``mask``
+    pixels within 3 sigma in x and y, one pixel at a time."""
+    r = max(int(3 * sigma + 0.5), 1)
+    h, w = mask.shape
+    out = torch.zeros_like(x)
+    for y in range(h):
+        for xx in range(w):
+            acc, wsum = torch.zeros(x.shape[0], dtype=x.dtype), 0.0
+            for yy in range(max(y - r, 0), min(y + r + 1, h)):
+                for xq in range(max(xx - r, 0), min(xx + r + 1, w)):
+                    if mask[yy, xq]:
+                        wt = math.exp(-0.5 * ((yy - y) ** 2 + (xq - xx) ** 2) / sigma**2)
+                        acc += wt * x[:, yy, xq]
+                        wsum += wt
+            out[:, y, xx] = acc / wsum if wsum > 0 else 0.0
+    return out
+
+
+def test_cumulative_oidn_keeps_the_local_mean_of_each_prefix_sum(setup, gen):
+    """``keep_mean``: each denoised prefix sum is rescaled to the noisy sum's Gaussian-window
+    mean, so a denoiser that loses energy uniformly is undone exactly, and one that flattens
+    the sum to its global mean (right total, wrong local means) gives the noisy sum's local
+    mean: a brute-force Gaussian over the denoised pixels. Off (0), the denoiser's output is kept."""
+    g = setup[3]
+    fallback = EdgeAwareFilter(g, glossy=_glossy(setup[1]))
+    occupied = torch.rand(3, 1, SIZE, SIZE, generator=gen) < 0.5
+    imgs = torch.rand(3, 3, SIZE, SIZE, generator=gen, dtype=torch.float64) * occupied * (g.object_id >= 0)
+    groups = torch.zeros(3, dtype=torch.long)
+    keep = fallback.interior & (imgs != 0).any(0).any(0)
+    sums = imgs.cumsum(0)
+
+    def half(img):
+        return 0.5 * img
+
+    out = CumulativeOIDN(g, fallback, image_denoiser=half, keep_mean=2.0)(imgs, groups)
+    torch.testing.assert_close(out[..., keep], imgs[..., keep], rtol=1e-12, atol=1e-12)
+    off = CumulativeOIDN(g, fallback, image_denoiser=half, keep_mean=0)(imgs, groups)
+    torch.testing.assert_close(off[..., keep], 0.5 * imgs[..., keep], rtol=1e-12, atol=1e-12)
+
+    def flat(img):  # (H, W, 3): every denoised pixel set to the sum's mean over them
+        return torch.where(keep[..., None], img[keep].mean(0), img)
+
+    sigma = 1.5
+    out = CumulativeOIDN(g, fallback, image_denoiser=flat, keep_mean=sigma)(imgs, groups)
+    for k in range(3):
+        want = _gaussian_within_brute(sums[k], keep, sigma)
+        torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-9, atol=1e-12)
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueRangeError, match="keep_mean"):
+            CumulativeOIDN(g, keep_mean=bad)
 
 
 @needs_oidn

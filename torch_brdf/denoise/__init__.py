@@ -14,12 +14,13 @@ HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.
 
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
 from .guides import GuideBuffers, guide_buffers
-from .oidn import CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
+from .oidn import KEEP_MEAN_SIGMA, CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
 from .tensors import denoise, denoise_frozen, denoise_planes, denoise_tensors, make_denoiser, mean_tensors
 
 __all__ = [
+    "KEEP_MEAN_SIGMA",
     "AtrousSettings",
     "CumulativeOIDN",
     "EdgeAwareFilter",
