@@ -36,8 +36,11 @@ frozen on the edited object and rendered by four methods:
   (0: OIDN's share alone; session 8 reported the average with ``selected``, no better);
   ``oidn_cumulative_mix_half`` ``{spp: [default, edited]}`` is that average (exact: the frame is
   linear in the denoised bases). The class keeps each denoised prefix sum's local mean
-  (``keep_mean``, session 13); ``oidn_cumulative_raw`` ``{spp: [default, edited]}`` is the same
-  part without it (``keep_mean=0``, the method as sessions 8-12 measured it).
+  (``keep_mean``, session 13) and divides each prefix sum of the frozen object by its area
+  lights' noise-free light lobe (``lobes``: :func:`light_lobe_images`, session 13; its seconds
+  are in ``denoise_s`` and ``lobes_s``); in the same part, ``oidn_cumulative_no_lobes`` and
+  ``oidn_cumulative_raw`` (neither: the method as sessions 8-12 measured it) ``{spp: [default,
+  edited]}`` (without an area light, as the teatray, ``no_lobes`` is ``oidn_cumulative`` itself).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
 per scene under ``scenes``: ``rel_rmse`` / ``rel_rmse_edited`` / ``flip`` / ``flip_edited`` as
@@ -99,6 +102,7 @@ from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
+from torch_brdf.transport.guides import light_lobe_images
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import LobeMixture, precompute_polynomial
 
@@ -326,19 +330,31 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
         float((a - b).abs().max() / b.abs().max()) for a, b in zip(noisy, (h["none_h"], h["none_h_e"]), strict=True)
     )
     print(f"[{scene.name}] oidn_cumulative at {spp} spp ...", flush=True)
+    lobes, lobes_s = _secs(lambda: light_lobe_images(scene, T.bases[T.object_id(obj)], obj))
     D = PolynomialRenderer(T, mats)
-    den = CumulativeOIDN(T.guides, A)  # the class's defaults (mix 0, keep_mean)
+    den = CumulativeOIDN(T.guides, A, lobes=lobes)  # the class's defaults (mix 0, keep_mean)
     _, secs = _secs(lambda: D.freeze(obj, denoiser=den))
     arrays = dict(zip(("oidn_cumulative", "oidn_cumulative_e"), _frames(D, obj, mats, edited), strict=True))
-    print(f"[{scene.name}] oidn_cumulative without keep_mean at {spp} spp ...", flush=True)
-    D0 = PolynomialRenderer(T, mats)
-    D0.freeze(obj, denoiser=CumulativeOIDN(T.guides, A, keep_mean=0))
-    arrays["oidn_cumulative_raw"], arrays["oidn_cumulative_raw_e"] = _frames(D0, obj, mats, edited)
+    # the same without the light lobes (none without an area light: the same frames) and without both
+    variants = {"oidn_cumulative_raw": {"keep_mean": 0}}
+    if lobes is not None:
+        variants["oidn_cumulative_no_lobes"] = {}
+    for key, kw in variants.items():
+        print(f"[{scene.name}] {key} at {spp} spp ...", flush=True)
+        V = PolynomialRenderer(T, mats)
+        V.freeze(obj, denoiser=CumulativeOIDN(T.guides, A, **kw))
+        arrays[key], arrays[key + "_e"] = _frames(V, obj, mats, edited)
+    if lobes is None:
+        arrays["oidn_cumulative_no_lobes"], arrays["oidn_cumulative_no_lobes_e"] = (
+            arrays["oidn_cumulative"],
+            arrays["oidn_cumulative_e"],
+        )
     # the frames are linear in the denoised bases: the average with selected (session 8's mix 1/2)
     for suf in ("", "_e"):
         arrays["oidn_cumulative_mix_half" + suf] = (arrays["oidn_cumulative" + suf] + h["selected" + suf]) / 2
     meta = {
-        "denoise_s": {"oidn_cumulative": max(secs - freeze_s, 0.0) + pick_s},
+        "denoise_s": {"oidn_cumulative": max(secs - freeze_s, 0.0) + pick_s + lobes_s},
+        "lobes_s": lobes_s,
         "oidn_calls": den.calls,
         "settings_oidn_cumulative": den.description,
         "same_as_halves_part": same,
@@ -465,7 +481,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             {
                 **settings,
                 "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
-                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}"],
+                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16"],
             },
             scene,
             lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
@@ -475,7 +491,8 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
         out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
         out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
-        for key in ("oidn_cumulative_mix_half", "oidn_cumulative_raw"):
+        out.setdefault("lobes_s", {})[str(spp)] = cmeta["lobes_s"]
+        for key in ("oidn_cumulative_mix_half", "oidn_cumulative_raw", "oidn_cumulative_no_lobes"):
             out.setdefault(key, {})[str(spp)] = [
                 relative_rmse(c[key], ref, a["emitter_free"].bool()),
                 relative_rmse(c[key + "_e"], ref_e, a["emitter_free"].bool()),

@@ -37,6 +37,7 @@ from torch_brdf.records import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.guides import GUIDE_NAMES, GUIDE_VERSION
+from torch_brdf.transport.guides import light_lobe_images
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
@@ -299,13 +300,20 @@ def test_precompute_without_guides(setup):
 
 
 @needs_oidn
-@pytest.mark.parametrize("cls", [OIDNBasis, CumulativeOIDN])
-def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen, cls):
+@pytest.mark.parametrize("kind", ["basis", "cumulative", "cumulative_lobes"])
+def test_oidn_basis_edits_are_exact_given_the_denoised_bases(setup, gen, kind):
     """(b) OIDN is not linear, but it runs once on fixed basis images: afterwards the frozen
     tensor is fixed data (no OIDN per edit) and every frame is linear in the edited
-    coefficients: frame(c1 + c2) = frame(c1) + frame(c2) - frame(0) at fixed d."""
-    _, tensors, mats, g = setup
-    ob = cls(g)
+    coefficients: frame(c1 + c2) = frame(c1) + frame(c2) - frame(0) at fixed d. Likewise (d),
+    with and without the back wall's light lobes."""
+    sc, tensors, mats, g = setup
+    if kind == "basis":
+        ob = OIDNBasis(g)
+    elif kind == "cumulative":
+        ob = CumulativeOIDN(g)
+    else:
+        lobes = light_lobe_images(sc, tensors.bases[tensors.object_id("back")], "back")
+        ob = CumulativeOIDN(g, lobes=lobes)
     _, R = _frozen_frames(tensors, mats, "back", gen, n=0, den=ob)
     calls, fz = ob.calls, R._frozen
     assert calls > 0

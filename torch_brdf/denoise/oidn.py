@@ -40,6 +40,18 @@ with :math:`G` a Gaussian of ``keep_mean`` pixels normalised over the pixels the
 denoised on: the detail is OIDN's, the mean over a few pixels is the samples' own (its noise
 is that of a :math:`\sim 2\pi\sigma^2`-pixel average). It is a fixed function of each fixed
 sum, so edits stay exact as above.
+
+Light lobes (``lobes``). What is left of the dark ring is OIDN guessing where an area light's
+reflection ends in a narrow sum: the box lobe cuts the light's image sharply, and the guides
+(one plane, one normal) do not show that edge. Without visibility that part of :math:`S_k` is a
+plain integral over the lights, :math:`U_k`
+(:func:`~torch_brdf.transport.guides.light_lobe_images`, by quadrature: noise-free). So each sum
+is demodulated, as renderers divide out a texture before denoising: OIDN denoises
+:math:`S_k / M_k` with :math:`M_k = U_k + G(S_k)` (:math:`G` the Gaussian mean above, ``lobe_floor``
+pixels, so that :math:`M_k > 0` wherever the sum has samples, e.g. in indirect light) and the
+result is multiplied by :math:`M_k` again. The sharp shape comes from :math:`U_k`; OIDN sees the
+smooth remainder (visibility, indirect light, the ratio of the two). :math:`M_k` is a fixed
+function of the fixed sum and of geometry, so edits stay exact as above.
 """
 
 from __future__ import annotations
@@ -224,8 +236,17 @@ class CumulativeOIDN:
             exact; their errors are partly independent: see the README's measurements).
         keep_mean: sigma (pixels) of the Gaussian window within which each denoised prefix
             sum is rescaled to the noisy sum's mean (module docstring); 0 turns it off.
+        lobes: (J, 3, H, W) prefix images of the frozen object's light lobes
+            (:func:`~torch_brdf.transport.guides.light_lobe_images`, None: none): every banded
+            group must then have J images (freeze the object they were computed for), and
+            each prefix sum is demodulated by its lobe (module docstring).
+        lobe_floor: sigma (pixels) of the Gaussian mean of the sum added to the lobe image
+            in the demodulating image.
     Raises:
-        ValueRangeError: ``mix`` outside [0, 1]; ``keep_mean`` negative or not finite.
+        ValueRangeError: ``mix`` outside [0, 1]; ``keep_mean`` or ``lobe_floor`` negative
+            or not finite (``lobe_floor`` must be > 0).
+        ShapeError: ``lobes`` not (J, 3, H, W) with finite values >= 0; at call time, a banded
+            group whose length or image size differs from the lobes'.
     """
 
     def __init__(
@@ -236,13 +257,24 @@ class CumulativeOIDN:
         image_denoiser: Callable[[torch.Tensor], torch.Tensor] | None = None,
         mix: float = 0.0,
         keep_mean: float = KEEP_MEAN_SIGMA,
+        lobes: torch.Tensor | None = None,
+        lobe_floor: float = KEEP_MEAN_SIGMA,
     ):
         if not 0.0 <= mix <= 1.0:
             raise ValueRangeError(f"mix must be in [0, 1]; got {mix}")
         if not (np.isfinite(keep_mean) and keep_mean >= 0):
             raise ValueRangeError(f"keep_mean must be a finite sigma >= 0 (pixels); got {keep_mean}")
+        if not (np.isfinite(lobe_floor) and lobe_floor > 0):
+            raise ValueRangeError(f"lobe_floor must be a finite sigma > 0 (pixels); got {lobe_floor}")
+        if lobes is not None:
+            if lobes.ndim != 4 or lobes.shape[1] != 3:
+                raise ShapeError(f"lobes must be (J, 3, H, W); got {tuple(lobes.shape)}")
+            if not bool(torch.isfinite(lobes).all()) or float(lobes.min()) < 0:
+                raise ShapeError("lobes must be finite and >= 0")
         self.mix = float(mix)
         self.keep_mean = float(keep_mean)
+        self.lobes = lobes
+        self.lobe_floor = float(lobe_floor)
         self.guides = guides
         self.fallback = fallback or EdgeAwareFilter(guides)
         self.quality = quality
@@ -254,8 +286,19 @@ class CumulativeOIDN:
         fb = getattr(self.fallback, "description", type(self.fallback).__name__)
         return (
             f"oidn per cumulative band sum (quality {self.quality}, mix {self.mix}, "
-            f"local mean {f'kept over {self.keep_mean} px' if self.keep_mean > 0 else 'not kept'}; else {fb})"
+            f"local mean {f'kept over {self.keep_mean} px' if self.keep_mean > 0 else 'not kept'}"
+            + (f", light lobes {tuple(self.lobes.shape)} + {self.lobe_floor} px mean" if self.lobes is not None else "")
+            + f"; else {fb})"
         )
+
+    def _denoise(self, s: torch.Tensor, keep: torch.Tensor, k: int) -> torch.Tensor:
+        r"""The image denoiser on prefix sum ``s`` (3, H, W), through its light lobe ``k`` when
+        there are lobes: :math:`M\,D(S/M)` with :math:`M = U_k + G(S)`."""
+        if self.lobes is None:
+            return self.image_denoiser(s.permute(1, 2, 0)).permute(2, 0, 1).to(s.dtype)
+        m = self.lobes[k].to(s.dtype) + _gaussian_within(s, keep, self.lobe_floor)
+        ratio = torch.where(m > 0, s / torch.where(m > 0, m, 1.0), 0.0)
+        return self.image_denoiser(ratio.permute(1, 2, 0)).permute(2, 0, 1).to(s.dtype) * m
 
     def __call__(self, images: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
         """images (B, 3, H, W) -> (B, 3, H, W); ``groups`` (B,) as :mod:`.tensors`."""
@@ -272,9 +315,14 @@ class CumulativeOIDN:
             sums = images[a:b].cumsum(0)
             keep = inner & (images[a:b] != 0).any(0).any(0)  # (H, W)
             den = out[a:b].cumsum(0)  # the fallback's prefix sums where OIDN does not apply
+            if self.lobes is not None and (n, *images.shape[2:]) != (self.lobes.shape[0], *self.lobes.shape[2:]):
+                raise ShapeError(
+                    f"a banded group of {n} images {tuple(images.shape[2:])} but lobes {tuple(self.lobes.shape)}: "
+                    "the lobes are of another object (freeze the object they were computed for)"
+                )
             for k in range(n):
                 if bool((sums[k][:, keep] != 0).any()):
-                    d = self.image_denoiser(sums[k].permute(1, 2, 0)).permute(2, 0, 1).to(images.dtype)
+                    d = self._denoise(sums[k], keep, k)
                     if self.keep_mean > 0:
                         d = match_local_mean(sums[k], d, keep, self.keep_mean)
                     den[k] = torch.where(keep, d, den[k])

@@ -17,6 +17,16 @@ glossy lobe's highlight is a function of the half-vector angle to the light, the
 that angle for the scene's most powerful light (an area light's centroid, a directional
 light, an environment map's brightest texel), :math:`n\cdot h` with
 :math:`h = (v + l)/\lVert v + l\rVert`, is a guide too.
+
+Light lobes (:func:`light_lobe_images`). A glossy object's sharpest basis images are the area
+lights' reflections through its narrowest bands, and their edges are where the band's box
+cuts the light's image: no geometric guide shows them. Without visibility they are a plain
+integral over the lights, computed here by quadrature (no sampling noise): per pixel centre on
+the object, :math:`U_k = \sum_{j \le k} \int_{A} L_e\,\rho_q\,b_j\,\cos\theta_i\cos\theta_l
+/ r^2\,dA`, the unoccluded direct light through the prefix of bands up to :math:`k`. A denoiser
+may divide a prefix-sum image by it (:class:`~torch_brdf.denoise.CumulativeOIDN`'s ``lobes``) so that
+what it smooths is the smooth remainder (visibility, indirect light); like every guide it
+depends on geometry, lights and the basis, never on coefficients.
 """
 
 from __future__ import annotations
@@ -24,11 +34,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..errors import ValueRangeError
+from ..frame import orthonormal_basis
 from ..scene.gbuffer import trace_gbuffer
 from ..scene.guides import GuideBuffers, object_albedo_proxy
 from .pathtrace import emission_seen
 
-__all__ = ["GuideBuffers", "guide_buffers", "object_albedo_proxy"]
+__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy"]
 
 
 def guide_buffers(scene) -> GuideBuffers:
@@ -102,3 +114,81 @@ def _light_cos_h(scene, pos: torch.Tensor, n: torch.Tensor, wo: torch.Tensor) ->
         return torch.zeros(pos.shape[0])
     h = torch.nn.functional.normalize(l + wo, dim=-1)
     return (n * h).sum(-1)
+
+
+def light_lobe_images(scene, basis, obj, samples: int = 16, chunk: int = 256) -> torch.Tensor | None:
+    """The unoccluded direct light of ``scene``'s area lights through each prefix of the eye
+    bands of object ``obj`` (module docstring), at the pixel centres whose first hit is ``obj``.
+
+    Args:
+        scene: the scene.
+        basis: ``obj``'s :class:`~torch_brdf.records.polynomial.ObjectBasis` (``tensors.bases[m]``).
+        obj: object name or index.
+        samples: quadrature points per triangle side (``samples**2`` per emitter triangle, on
+            equal-area cells).
+        chunk: pixels per step (memory: ``chunk * samples**2`` pairs per triangle batch).
+    Returns:
+        (J, 3, H, W) float32, row ``k`` the sum over bands ``0..k`` (0 off the object), or None
+        when the scene has no area light.
+    Raises:
+        ValueRangeError: ``basis`` is None, anisotropic or two-layered (Fresnel), or
+            ``samples < 1``.
+    """
+    from ..scene.lights import AreaLight
+
+    if basis is None or basis.layers != 1:
+        raise ValueRangeError(f"light lobes need a one-layer banded basis; got {basis}")
+    bands = basis.band_basis()
+    if bands.anisotropic:
+        raise ValueRangeError("light lobes are not defined for an anisotropic basis (no tangent frame here)")
+    if samples < 1:
+        raise ValueRangeError(f"samples must be >= 1; got {samples}")
+    lights = [li for li in scene.lights if isinstance(li, AreaLight)]
+    if not lights:
+        return None
+    m = scene.object_id(obj) if isinstance(obj, str) else int(obj)
+    quotient = basis.quotients()[0]
+    cam = scene.camera
+    gb = trace_gbuffer(scene)
+    on = gb.object_id == m
+    pix = gb.pixels[on]
+    wo = gb.wo[on].double()
+    n = gb.normal[on].double()
+    n = torch.where(((n * wo).sum(-1) < 0)[:, None], -n, n)
+    pos = gb.position[on].double()
+    t1, t2 = orthonormal_basis(n)
+    frame = torch.stack([t1, t2, n], 1)  # (P, 3, 3): rows are the local axes
+    wo_l = torch.einsum("pij,pj->pi", frame, wo)
+    # equal-area cells of each triangle: a uniform grid through the square-to-triangle map
+    g = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples
+    u1, u2 = torch.meshgrid(g, g, indexing="ij")
+    s_ = u1.reshape(-1).sqrt()
+    b1, b2 = 1 - s_, u2.reshape(-1) * s_
+    J = bands.J
+    out = torch.zeros(pix.numel(), J, 3, dtype=torch.float64)
+    for light in lights:
+        tri = light.triangles.double()
+        area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
+        y = tri[:, None, 0] + b1[None, :, None] * (tri[:, None, 1] - tri[:, None, 0])
+        y = (y + b2[None, :, None] * (tri[:, None, 2] - tri[:, None, 0])).reshape(-1, 3)
+        ny = light.normals.double().repeat_interleave(b1.numel(), 0)
+        dA = (area / b1.numel()).repeat_interleave(b1.numel(), 0)
+        radiance = light.radiance.double()
+        for a in range(0, pix.numel(), chunk):
+            d = y[None] - pos[a : a + chunk, None]  # (p, Y, 3)
+            r2 = (d * d).sum(-1)
+            wi = d / r2.sqrt()[..., None]
+            wi_l = torch.einsum("pij,pyj->pyi", frame[a : a + chunk], wi)
+            cos_l = -(wi * ny[None]).sum(-1)
+            w_o = wo_l[a : a + chunk, None].expand_as(wi_l)
+            ok = (wi_l[..., 2] > 0) & (cos_l > 0)
+            q = quotient(wi_l, w_o)
+            q = q.mean(-1) if q.ndim == wi_l.ndim else q  # an RGB quotient: its mean (a guide)
+            w = torch.where(ok, q * wi_l[..., 2] * cos_l / r2 * dA[None], 0.0)
+            ja, jb = bands.membership(wi_l, w_o)
+            acc = torch.zeros(w.shape[0], J, dtype=torch.float64)
+            acc.scatter_add_(1, ja, 0.5 * w).scatter_add_(1, jb, 0.5 * w)  # a == b: one band
+            out[a : a + chunk] += acc[..., None] * radiance
+    img = torch.zeros(J, 3, cam.height * cam.width, dtype=torch.float32)
+    img[:, :, pix] = out.cumsum(1).permute(1, 2, 0).float()
+    return img.reshape(J, 3, cam.height, cam.width)
