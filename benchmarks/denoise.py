@@ -25,7 +25,9 @@ frozen on the edited object and rendered by four methods:
   NFOR's selection, linear once picked): the spp is spent as two half-spp precomputations
   (other seeds), whose frames at the default material pick the window per pixel (and, on
   silhouette pixels, the along-edge mean or the pixel itself: :class:`SelectionSettings`); the mean
-  record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. Its own
+  record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. With
+  ``--stratified`` the halves are complementary shares of one stratification
+  (``LobeMixture(share=(k, 2))``, session 13), so that mean samples as one stratified run does. Its own
   part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
   ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed;
 * ``oidn_cumulative``: OIDN once per cumulative band sum of each term (:class:`CumulativeOIDN`:
@@ -75,6 +77,7 @@ by its settings and the scene's content, so a rerun redoes only what is missing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -127,6 +130,23 @@ KIND = "benchmark-denoise"
 #: extra precompute_polynomial options of every precompute (``--lobe-mixture``, ``--stratified``), and their key
 PRECOMPUTE: dict = {}
 PRECOMPUTE_KEY: dict = {}
+
+
+def _half(k: int) -> tuple[dict, dict]:
+    """The precompute options and key of half ``k`` of a halves part: under stratified eye
+    samples the two halves are complementary shares of one stratification
+    (``LobeMixture(share=(k, 2))``: their mean samples as one stratified full-spp run), else
+    :data:`PRECOMPUTE` as it is."""
+    mix = PRECOMPUTE.get("mixture")
+    if mix is None or not mix.stratified:
+        return PRECOMPUTE, PRECOMPUTE_KEY
+    half = dataclasses.replace(mix, share=(k, 2))
+    return {**PRECOMPUTE, "mixture": half}, {**PRECOMPUTE_KEY, "mixture": half.spec()}
+
+
+def _shares() -> list[str]:
+    """What the halves parts' keys add when their halves are complementary shares."""
+    return ["complementary shares"] if _half(1)[0] is not PRECOMPUTE else []
 
 
 def _load() -> float:
@@ -267,7 +287,7 @@ def _halves_unit(scene, obj, mats, edited, series, spp, seed):
     for k in range(2):
         T, t = _secs(
             lambda k=k: precompute_polynomial(
-                scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False, **PRECOMPUTE
+                scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False, **_half(k)[0]
             )
         )
         halves.append(T)
@@ -301,13 +321,13 @@ def half_records(scene, series: str, spp: int, seed: int, folder: Path) -> list:
     records), each cached as a record file under ``folder``."""
     out = []
     for k in range(2):
-        s = {"what": "half_record", "series": series, "spp": spp // 2, "seed": 1000 + 2 * seed + k, **PRECOMPUTE_KEY}
+        s = {"what": "half_record", "series": series, "spp": spp // 2, "seed": 1000 + 2 * seed + k, **_half(k)[1]}
         key = settings_key(s, scene)
         ck = Checkpoint(folder / f"{scene.name}_half_record_{key}.npz", KIND, key, on_corrupt="recompute")
         T = ck.load_record(PolynomialTensors)
         if T is None:
             print(f"[{scene.name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
-            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False, **PRECOMPUTE)
+            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False, **_half(k)[0])
             ck.save_record(T)
         else:
             print(f"[{scene.name}] half record {k}: cached", flush=True)
@@ -471,7 +491,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         h, hmeta = _cached(
             folder,
             "halves",
-            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings())]},
+            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings()), *_shares()]},
             scene,
             lambda spp=spp, seed=seed: _halves_unit(scene, obj, mats, edited, series, spp, seed),
         )
@@ -481,7 +501,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             {
                 **settings,
                 "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
-                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16"],
+                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16", *_shares()],
             },
             scene,
             lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),

@@ -10,9 +10,11 @@ import math
 import pytest
 import torch
 
+from torch_brdf.errors import ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.lights import AreaLight
 from torch_brdf.transport.polynomial import EyeStrata, LobeMixture, precompute_polynomial
+from torch_brdf.transport.polynomial.driver import eye_strata
 
 from .test_polynomial import check_oracle, glossy_box
 
@@ -187,3 +189,42 @@ def test_stratified_spp_map_runs(gen):
     T = precompute_polynomial(sc, "4,1", spp=spp, seed=1, mixture=LobeMixture(stratified=True), progress=False)
     img = PolynomialRenderer(T, {o.name: sc.materials[o.material] for o in sc.objects if o.editable}).evaluate()
     assert bool(torch.isfinite(img).all()) and float(img.sum()) > 0
+
+
+def test_complementary_shares_cover_the_cells_of_one_stratification(gen):
+    """``share=(k, of)``: the paths of ``of`` shares of ``count`` paths each take every cell of
+    the ``of * count`` grid exactly once (two 32-spp shares: the 8 x 8 grid of 64 spp, not two
+    5 x 6 grids); a share's own paths are one per cell too."""
+    count, pixels, m = 32, 4, 8
+    cells: list[list[int]] = [[] for _ in range(pixels)]
+    for k in range(2):
+        mix = LobeMixture(stratified=True, share=(k, 2))
+        s = torch.arange(count).repeat(pixels)
+        key = torch.arange(pixels).repeat_interleave(count) * 7919 + 11
+        st = eye_strata(mix, s, torch.full_like(s, count), key)
+        u = torch.rand(2, s.numel(), generator=gen, dtype=torch.float64)
+        x, y = st.square(u[0], u[1], salt=5)
+        c = ((y * m).floor() * m + (x * m).floor()).long()
+        for p in range(pixels):
+            cells[p] += c[p * count : (p + 1) * count].tolist()
+    for p in range(pixels):
+        assert sorted(cells[p]) == list(range(64)), p
+    single = eye_strata(LobeMixture(stratified=True), s, torch.full_like(s, count), key)
+    assert torch.equal(single.count, torch.full_like(s, count)) and torch.equal(single.sample, s)
+
+
+def test_shares_reach_the_tracer_and_the_key():
+    """Two shares of the same seed trace different eye samples (the driver passes the share),
+    record it in the settings key, and a share needs stratification."""
+    sc = glossy_box(8)
+    out = []
+    for k in range(2):
+        mix = LobeMixture(stratified=True, share=(k, 2))
+        T = precompute_polynomial(sc, "4,1", spp=4, seed=9, mixture=mix, progress=False)
+        assert T.meta["mixture"][-1] == ["share", k, 2]
+        out.append(T)
+    assert not torch.equal(out[0].blocks[0].values, out[1].blocks[0].values)
+    assert LobeMixture(stratified=True).spec()[-1] == "stratified"  # one share: the key as before
+    for bad in ({"share": (1, 2)}, {"share": (2, 2), "stratified": True}, {"share": (0, 0), "stratified": True}):
+        with pytest.raises(ValueRangeError, match="share"):
+            LobeMixture(**bad)

@@ -138,6 +138,13 @@ def eye_rays(cam, pixels: torch.Tensor, rec: torch.Tensor, off: torch.Tensor) ->
     return o, out
 
 
+def eye_strata(mixture, sample: torch.Tensor, count: torch.Tensor, key: torch.Tensor) -> EyeStrata:
+    """The strata of paths ``sample`` of ``count`` at pixels ``key`` under a stratified mixture
+    that is share ``(k, of)`` of one stratification: paths ``k * count + sample`` of ``of * count``."""
+    k, of = getattr(mixture, "share", (0, 1))
+    return EyeStrata(sample + k * count, count * of, key)
+
+
 def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, tick=None, native=None):
     """Trace a tile whose pixel ``i`` takes ``counts[i]`` paths and reduce its entries to (sum,
     sum of per-path squares) per key; ``tick()`` (if given) after each pass group.
@@ -185,8 +192,8 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
         ent = group_ent
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
         strata = None
-        if getattr(tracer.mixture, "stratified", False):  # path s0 + pas of its pixel's counts
-            strata = EyeStrata(s0 + pas, counts[rec], pixels[rec])
+        if getattr(tracer.mixture, "stratified", False):
+            strata = eye_strata(tracer.mixture, s0 + pas, counts[rec], pixels[rec])
         e, ent = tracer.run(o, d, ray, gen, paths, ent, strata)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
             for r in paths.get("rows", [])[n_rows:]:

@@ -156,6 +156,15 @@ class LobeMixture:
     sample are stratified over the pixel's paths (:class:`EyeStrata`, e.g. 8 x 8 cells of the
     light and of the mixture's square at 64 spp; the component is picked by the cell's x, so
     each lobe gets its share of the cells in order). Unbiased, the same random numbers drawn.
+
+    ``share = (k, of)`` (stratified only): this precomputation is share ``k`` of ``of``
+    complementary shares of one stratification. With ``spp`` paths a pixel, its paths take the
+    strata of paths ``k * spp ... (k + 1) * spp - 1`` of ``of * spp`` (e.g. two 32-spp shares
+    take the two halves of an 8 x 8 grid), so the mean record of the ``of`` shares (any seeds)
+    samples exactly as one stratified ``of * spp`` precomputation does. A share alone covers
+    only its part of each pixel's cells (which part is set by the pixel's rotation), so only
+    that mean is unbiased pixel by pixel: for half-sample denoisers (two halves whose mean is
+    the image, their difference the noise estimate).
     """
 
     diffuse: float = 0.5
@@ -165,8 +174,16 @@ class LobeMixture:
     mis: bool = True
     ids: tuple[int, ...] | None = None
     stratified: bool = False
+    share: tuple[int, int] = (0, 1)
 
     def __post_init__(self):
+        k, of = (int(x) for x in self.share)
+        object.__setattr__(self, "share", (k, of))
+        if not (of >= 1 and 0 <= k < of) or (of > 1 and not self.stratified):
+            raise ValueRangeError(
+                f"share must be (k, of) with 0 <= k < of, and of > 1 only when stratified; "
+                f"got {self.share} (stratified {self.stratified})"
+            )
         lobes = tuple((float(w), float(n)) for w, n in self.lobes)
         object.__setattr__(self, "lobes", lobes)
         if self.objects is not None:
@@ -203,7 +220,9 @@ class LobeMixture:
         """The settings-key form (the precompute's resume key and ``meta``)."""
         ids = None if self.ids is None else list(self.ids)
         out = [self.diffuse, [list(x) for x in self.lobes], ids, self.base.spec(), self.mis]
-        return out + ["stratified"] if self.stratified else out  # (unstratified keys as before)
+        if self.stratified:  # (unstratified keys as before)
+            out = out + ["stratified"]
+        return out + [["share", *self.share]] if self.share[1] > 1 else out
 
     def _intervals(self, x: torch.Tensor, oid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(lo, hi) (n,) float64: the share of [0, 1) of the component :meth:`sample` picks
