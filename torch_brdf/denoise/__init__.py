@@ -1,6 +1,7 @@
 """Denoising precomputed basis images (every BRDF edit stays exact) and final frames.
 
-* :mod:`.guides`: per-pixel guide buffers from the camera's pixel-centre rays;
+* :mod:`.guides`: per-pixel guide buffers from the camera's pixel-centre rays, and the area
+  lights' noise-free light lobes through a glossy object's bands;
 * :mod:`.atrous`: a linear edge-aware à-trous filter with weights from the guides only;
 * :mod:`.regression`: a linear local polynomial regression (NFOR-style) with the same weights;
 * :mod:`.selection`: per pixel the regression window of lowest error, picked once from two
@@ -13,7 +14,7 @@ HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.
 """
 
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
-from .guides import GuideBuffers, guide_buffers
+from .guides import GuideBuffers, guide_buffers, light_lobe_images
 from .oidn import KEEP_MEAN_SIGMA, CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
@@ -38,6 +39,7 @@ __all__ = [
     "denoise_tensors",
     "glossy_objects",
     "guide_buffers",
+    "light_lobe_images",
     "make_denoiser",
     "mean_tensors",
     "oidn_available",
