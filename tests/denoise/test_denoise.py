@@ -381,7 +381,7 @@ def test_cumulative_oidn_denoises_the_prefix_sums_of_each_group(setup, gen):
         CumulativeOIDN(g, mix=1.5)
 
 
-def _gaussian_within_brute(x, mask, sigma):
+def gaussian_within_brute(x, mask, sigma):
     """Oracle: per pixel, the Gaussian-weighted mean of ``x`` (C, H, W) over the ``mask``
     pixels within 3 sigma in x and y, one pixel at a time."""
     r = max(int(3 * sigma + 0.5), 1)
@@ -427,7 +427,7 @@ def test_cumulative_oidn_keeps_the_local_mean_of_each_prefix_sum(setup, gen):
     sigma = 1.5
     out = CumulativeOIDN(g, fallback, image_denoiser=flat, keep_mean=sigma)(imgs, groups)
     for k in range(3):
-        want = _gaussian_within_brute(sums[k], keep, sigma)
+        want = gaussian_within_brute(sums[k], keep, sigma)
         torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-9, atol=1e-12)
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueRangeError, match="keep_mean"):

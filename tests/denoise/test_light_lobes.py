@@ -5,8 +5,6 @@ and ``CumulativeOIDN(lobes=...)``'s demodulation, checked with stand-in denoiser
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -16,6 +14,8 @@ from torch_brdf.records.polynomial import ObjectBasis
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.gbuffer import trace_gbuffer
 from torch_brdf.transport.guides import light_lobe_images
+
+from .test_denoise import gaussian_within_brute
 
 SIZE = 20
 
@@ -107,23 +107,6 @@ def test_light_lobes_refuse_what_they_cannot_model(box):
     assert light_lobe_images(dark, ObjectBasis(J=4), "back") is None  # nothing to demodulate
 
 
-def _gaussian_brute(x, mask, sigma):
-    r = max(int(3 * sigma + 0.5), 1)
-    h, w = mask.shape
-    out = torch.zeros_like(x)
-    for y in range(h):
-        for xx in range(w):
-            acc, ws = torch.zeros(x.shape[0], dtype=x.dtype), 0.0
-            for yy in range(max(y - r, 0), min(y + r + 1, h)):
-                for xq in range(max(xx - r, 0), min(xx + r + 1, w)):
-                    if mask[yy, xq]:
-                        wt = math.exp(-0.5 * ((yy - y) ** 2 + (xq - xx) ** 2) / sigma**2)
-                        acc += wt * x[:, yy, xq]
-                        ws += wt
-            out[:, y, xx] = acc / ws if ws > 0 else 0.0
-    return out
-
-
 def test_cumulative_oidn_demodulates_each_prefix_sum_by_its_lobe(box, gen):
     """With lobes U, the image denoiser sees S_k / M_k, M_k = U_k + G(S_k), and its output is
     multiplied by M_k: an identity denoiser returns the bands unchanged, one that flattens the
@@ -146,7 +129,7 @@ def test_cumulative_oidn_demodulates_each_prefix_sum_by_its_lobe(box, gen):
     out = CumulativeOIDN(g, fallback, image_denoiser=flat, keep_mean=0, lobes=lobes, lobe_floor=sigma)(imgs, groups)
     sums = imgs.cumsum(0)
     for k in range(4):
-        m = lobes[k].double() + _gaussian_brute(sums[k], keep, sigma)
+        m = lobes[k].double() + gaussian_within_brute(sums[k], keep, sigma)
         want = m * (sums[k] / m)[:, keep].mean(1)[:, None, None]
         torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-9, atol=1e-12)
     plain = CumulativeOIDN(g, fallback, image_denoiser=flat, keep_mean=0)(imgs, groups)
