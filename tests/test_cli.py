@@ -97,7 +97,7 @@ def test_precompute_sampler_option(tmp_path):
         assert res.exit_code == 0, res.output
         metas[name] = PolynomialTensors.load(out).meta["mixture"]
     assert len(metas["default"]) == 2  # Mixture: [diffuse, exponent]
-    assert metas["lobes"][-1] is True and metas["stratified"][-2:] == ["stratified", "pixels"]
+    assert metas["lobes"][-1] is True and metas["stratified"][-1] == "stratified"
     bad = runner.invoke(app, [*args, "--sampler", "sobol"])
     want = "--sampler must be one of ('default', 'lobes', 'stratified'); got 'sobol'"
     assert bad.exit_code == 2 and want in bad.output

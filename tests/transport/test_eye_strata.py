@@ -141,7 +141,7 @@ def test_tensors_equal_explicit_path_tracer_when_stratified(gen):
     T = precompute_polynomial(
         sc, "8,1,1,1", spp=spp, seed=3, mixture=mix, tile_rows=sc.camera.height, progress=False, paths=paths
     )
-    assert T.meta["mixture"][-2:] == ["stratified", "pixels"]
+    assert T.meta["mixture"][-1] == "stratified"
     check_oracle(sc, T, paths, spp, gen, repeats=2)
     plain = precompute_polynomial(
         sc, "8,1,1,1", spp=spp, seed=3, mixture=dataclasses.replace(mix, stratified=False), progress=False
@@ -221,34 +221,10 @@ def test_shares_reach_the_tracer_and_the_key():
     for k in range(2):
         mix = LobeMixture(stratified=True, share=(k, 2))
         T = precompute_polynomial(sc, "4,1", spp=4, seed=9, mixture=mix, progress=False)
-        assert T.meta["mixture"][-3:] == ["stratified", "pixels", ["share", k, 2]]
+        assert T.meta["mixture"][-1] == ["share", k, 2]
         out.append(T)
     assert not torch.equal(out[0].blocks[0].values, out[1].blocks[0].values)
-    assert LobeMixture(stratified=True).spec()[-1] == "pixels"  # one share: no share in the key
-    assert LobeMixture(stratified=True, pixel_strata=False).spec()[-1] == "stratified"  # session 12's key
+    assert LobeMixture(stratified=True).spec()[-1] == "stratified"  # one share: the key as before
     for bad in ({"share": (1, 2)}, {"share": (2, 2), "stratified": True}, {"share": (0, 0), "stratified": True}):
         with pytest.raises(ValueRangeError, match="share"):
             LobeMixture(**bad)
-
-
-def test_pixel_strata_cut_the_noise_of_what_a_pixel_covers():
-    """``pixel_strata``: the eye rays' offsets take one cell each of the pixel's grid, so the
-    emitter's share of the pixels on its silhouette (the emission term: the light seen
-    directly) scatters much less over seeds than with independent offsets, with the same mean."""
-    sc = glossy_box(32)
-    runs = {}
-    for strata in (False, True):
-        mix = LobeMixture(stratified=True, pixel_strata=strata)
-        runs[strata] = torch.stack(
-            [
-                precompute_polynomial(sc, "2,1", spp=16, seed=300 + s, mixture=mix, progress=False).emission[0]
-                for s in range(8)
-            ]
-        )
-    mean = (runs[False].mean(0) + runs[True].mean(0)) / 2
-    edge = (mean > 0.05 * mean.max()) & (mean < 0.95 * mean.max())  # partly covered pixels
-    assert int(edge.sum()) >= 4
-    spread = {k: float(((r[:, edge] - mean[edge]) ** 2).mean().sqrt()) for k, r in runs.items()}
-    assert spread[True] < 0.7 * spread[False], spread  # measured 0.53x at 4 x 4 cells
-    se = (runs[False][:, edge].sum(1).var() / 8 + runs[True][:, edge].sum(1).var() / 8).sqrt()
-    assert abs(float(runs[False][:, edge].sum(1).mean() - runs[True][:, edge].sum(1).mean())) < 4.5 * float(se)

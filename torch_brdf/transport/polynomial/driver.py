@@ -185,17 +185,15 @@ def _tile_entries(tracer, scene, pixels, counts, tile, group, seed, paths=None, 
             pas, rec = torch.nonzero(counts[None, :] > torch.arange(s0, s1)[:, None], as_tuple=True)
             gen = seeded_generator(seed, tile, gi)
             off = _offsets(rec.numel(), gen)
-            strata = None
-            if getattr(tracer.mixture, "stratified", False):
-                strata = eye_strata(tracer.mixture, s0 + pas, counts[rec], pixels[rec])
-                if tracer.mixture.pixel_strata:  # the pixel offsets too (salt 0; the light's 2+, the mixture's 1)
-                    off = torch.stack(strata.square(off[:, 0], off[:, 1], salt=0), 1)
             ray = pas * p + rec  # a ray's id: record id % p, path id // p (a uniform run's arange)
             o, d = eye_rays(cam, pixels, rec, off)
         if group_ent is not None:  # one group's entries at a time: the accumulator (and its memory) reused
             group_ent.acc.clear()
         ent = group_ent
         n_rows = len(paths.get("rows", ())) if paths is not None else 0
+        strata = None
+        if getattr(tracer.mixture, "stratified", False):
+            strata = eye_strata(tracer.mixture, s0 + pas, counts[rec], pixels[rec])
         e, ent = tracer.run(o, d, ray, gen, paths, ent, strata)  # entries carry the ray id as "path"
         if paths is not None:  # the oracle's rows: ray id -> flat pixel index
             for r in paths.get("rows", [])[n_rows:]:

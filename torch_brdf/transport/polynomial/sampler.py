@@ -157,11 +157,6 @@ class LobeMixture:
     light and of the mixture's square at 64 spp; the component is picked by the cell's x, so
     each lobe gets its share of the cells in order). Unbiased, the same random numbers drawn.
 
-    ``pixel_strata`` (stratified only, default True): the eye rays' offsets inside the pixel are
-    stratified the same way (their own cell order), so a pixel's paths also cover its footprint
-    evenly: what is left of the noise at silhouettes and contacts is mostly how much of the
-    pixel each object covers. ``pixel_strata=False`` is session 12's stratification (its key).
-
     ``share = (k, of)`` (stratified only): this precomputation is share ``k`` of ``of``
     complementary shares of one stratification. With ``spp`` paths a pixel, its paths take the
     strata of paths ``k * spp ... (k + 1) * spp - 1`` of ``of * spp`` (e.g. two 32-spp shares
@@ -180,7 +175,6 @@ class LobeMixture:
     ids: tuple[int, ...] | None = None
     stratified: bool = False
     share: tuple[int, int] = (0, 1)
-    pixel_strata: bool = True
 
     def __post_init__(self):
         k, of = (int(x) for x in self.share)
@@ -226,8 +220,8 @@ class LobeMixture:
         """The settings-key form (the precompute's resume key and ``meta``)."""
         ids = None if self.ids is None else list(self.ids)
         out = [self.diffuse, [list(x) for x in self.lobes], ids, self.base.spec(), self.mis]
-        if self.stratified:  # (unstratified keys as before; session 12's without pixel strata)
-            out = out + (["stratified", "pixels"] if self.pixel_strata else ["stratified"])
+        if self.stratified:  # (unstratified keys as before)
+            out = out + ["stratified"]
         return out + [["share", *self.share]] if self.share[1] > 1 else out
 
     def _intervals(self, x: torch.Tensor, oid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
