@@ -94,6 +94,12 @@ def test_each_band_matches_a_monte_carlo_histogram(box, gen):
     assert float(U[0].max()) < 0.9 * float(U[-1].max())  # the bands do split the light
 
 
+def test_light_lobes_do_not_depend_on_the_chunking(box):
+    sc, _ = box
+    whole = light_lobe_images(sc, ObjectBasis(J=8), "back", samples=8)
+    torch.testing.assert_close(light_lobe_images(sc, ObjectBasis(J=8), "back", samples=8, chunk=7), whole)
+
+
 def test_light_lobes_refuse_what_they_cannot_model(box):
     sc, _ = box
     with pytest.raises(ValueRangeError, match="one-layer"):

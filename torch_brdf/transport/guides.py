@@ -126,7 +126,8 @@ def light_lobe_images(scene, basis, obj, samples: int = 16, chunk: int = 256) ->
         obj: object name or index.
         samples: quadrature points per triangle side (``samples**2`` per emitter triangle, on
             equal-area cells).
-        chunk: pixels per step (memory: ``chunk * samples**2`` pairs per triangle batch).
+        chunk: at most this many pixels per step, fewer for large lights: a step holds at most
+            ``2**20`` (pixel, light point) pairs (a few tens of MB).
     Returns:
         (J, 3, H, W) float32, row ``k`` the sum over bands ``0..k`` (0 off the object), or None
         when the scene has no area light.
@@ -174,13 +175,14 @@ def light_lobe_images(scene, basis, obj, samples: int = 16, chunk: int = 256) ->
         ny = light.normals.double().repeat_interleave(b1.numel(), 0)
         dA = (area / b1.numel()).repeat_interleave(b1.numel(), 0)
         radiance = light.radiance.double()
-        for a in range(0, pix.numel(), chunk):
-            d = y[None] - pos[a : a + chunk, None]  # (p, Y, 3)
+        step = max(1, min(chunk, (1 << 20) // y.shape[0]))  # an emitter mesh of many triangles: fewer pixels
+        for a in range(0, pix.numel(), step):
+            d = y[None] - pos[a : a + step, None]  # (p, Y, 3)
             r2 = (d * d).sum(-1)
             wi = d / r2.sqrt()[..., None]
-            wi_l = torch.einsum("pij,pyj->pyi", frame[a : a + chunk], wi)
+            wi_l = torch.einsum("pij,pyj->pyi", frame[a : a + step], wi)
             cos_l = -(wi * ny[None]).sum(-1)
-            w_o = wo_l[a : a + chunk, None].expand_as(wi_l)
+            w_o = wo_l[a : a + step, None].expand_as(wi_l)
             ok = (wi_l[..., 2] > 0) & (cos_l > 0)
             q = quotient(wi_l, w_o)
             q = q.mean(-1) if q.ndim == wi_l.ndim else q  # an RGB quotient: its mean (a guide)
@@ -188,7 +190,7 @@ def light_lobe_images(scene, basis, obj, samples: int = 16, chunk: int = 256) ->
             ja, jb = bands.membership(wi_l, w_o)
             acc = torch.zeros(w.shape[0], J, dtype=torch.float64)
             acc.scatter_add_(1, ja, 0.5 * w).scatter_add_(1, jb, 0.5 * w)  # a == b: one band
-            out[a : a + chunk] += acc[..., None] * radiance
+            out[a : a + step] += acc[..., None] * radiance
     img = torch.zeros(J, 3, cam.height * cam.width, dtype=torch.float32)
     img[:, :, pix] = out.cumsum(1).permute(1, 2, 0).float()
     return img.reshape(J, 3, cam.height, cam.width)
