@@ -140,6 +140,15 @@ def test_cumulative_oidn_demodulates_each_prefix_sum_by_its_lobe(box, gen):
         torch.testing.assert_close(out[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-9, atol=1e-12)
     plain = CumulativeOIDN(g, fallback, image_denoiser=flat, keep_mean=0)(imgs, groups)
     assert float((plain - out)[..., keep].abs().max()) > 1e-3  # the lobes change what it sees
+    # lobes and the kept local mean at one sigma share the blur of S_k: the same as brute force
+    kw = {"keep_mean": sigma, "lobes": lobes, "lobe_floor": sigma}
+    both = CumulativeOIDN(g, fallback, image_denoiser=flat, **kw)(imgs, groups)
+    for k in range(4):
+        gs = gaussian_within_brute(sums[k], keep, sigma)
+        m = lobes[k].double() + gs
+        d = m * (sums[k] / m)[:, keep].mean(1)[:, None, None]
+        want = d * gs / gaussian_within_brute(d, keep, sigma)
+        torch.testing.assert_close(both[: k + 1].sum(0)[:, keep], want[:, keep], rtol=1e-9, atol=1e-12)
     with pytest.raises(ShapeError, match="another object"):
         CumulativeOIDN(g, fallback, lobes=lobes[:3])(imgs, groups)
     with pytest.raises(ShapeError, match=">= 0"):

@@ -206,11 +206,19 @@ def _gaussian_within(x: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch
     return out[:-1] / out[-1:].clamp_min(1e-12)
 
 
-def match_local_mean(noisy: torch.Tensor, denoised: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch.Tensor:
+def match_local_mean(
+    noisy: torch.Tensor,
+    denoised: torch.Tensor,
+    mask: torch.Tensor,
+    sigma: float,
+    noisy_mean: torch.Tensor | None = None,
+) -> torch.Tensor:
     r"""``denoised`` (C, H, W) rescaled per channel to the local mean of ``noisy``:
     :math:`D\,G(N)/G(D)` with :math:`G` a Gaussian of ``sigma`` pixels over the pixels of
-    ``mask`` (H, W); unchanged where :math:`G(D)` is 0."""
-    gn, gd = _gaussian_within(noisy, mask, sigma), _gaussian_within(denoised, mask, sigma)
+    ``mask`` (H, W); unchanged where :math:`G(D)` is 0. ``noisy_mean``: :math:`G(N)` when the
+    caller has it already (the same ``sigma`` and ``mask``)."""
+    gn = _gaussian_within(noisy, mask, sigma) if noisy_mean is None else noisy_mean
+    gd = _gaussian_within(denoised, mask, sigma)
     return torch.where(gd > 0, denoised * gn / torch.where(gd > 0, gd, 1.0), denoised)
 
 
@@ -291,12 +299,13 @@ class CumulativeOIDN:
             + f"; else {fb})"
         )
 
-    def _denoise(self, s: torch.Tensor, keep: torch.Tensor, k: int) -> torch.Tensor:
+    def _denoise(self, s: torch.Tensor, keep: torch.Tensor, k: int, mean: torch.Tensor | None) -> torch.Tensor:
         r"""The image denoiser on prefix sum ``s`` (3, H, W), through its light lobe ``k`` when
-        there are lobes: :math:`M\,D(S/M)` with :math:`M = U_k + G(S)`."""
+        there are lobes: :math:`M\,D(S/M)` with :math:`M = U_k + G(S)`; ``mean`` is
+        :math:`G(S)` when the caller has it (``lobe_floor`` equal to ``keep_mean``)."""
         if self.lobes is None:
             return self.image_denoiser(s.permute(1, 2, 0)).permute(2, 0, 1).to(s.dtype)
-        m = self.lobes[k].to(s.dtype) + _gaussian_within(s, keep, self.lobe_floor)
+        m = self.lobes[k].to(s.dtype) + (_gaussian_within(s, keep, self.lobe_floor) if mean is None else mean)
         ratio = torch.where(m > 0, s / torch.where(m > 0, m, 1.0), 0.0)
         return self.image_denoiser(ratio.permute(1, 2, 0)).permute(2, 0, 1).to(s.dtype) * m
 
@@ -322,9 +331,12 @@ class CumulativeOIDN:
                 )
             for k in range(n):
                 if bool((sums[k][:, keep] != 0).any()):
-                    d = self._denoise(sums[k], keep, k)
+                    # one blur of the sum where the demodulator and the kept mean share a sigma
+                    shared = self.lobes is not None and self.keep_mean == self.lobe_floor
+                    mean = _gaussian_within(sums[k], keep, self.keep_mean) if shared else None
+                    d = self._denoise(sums[k], keep, k, mean)
                     if self.keep_mean > 0:
-                        d = match_local_mean(sums[k], d, keep, self.keep_mean)
+                        d = match_local_mean(sums[k], d, keep, self.keep_mean, mean)
                     den[k] = torch.where(keep, d, den[k])
                     self.calls += 1
             bands = torch.diff(den, dim=0, prepend=torch.zeros_like(den[:1]))
