@@ -24,8 +24,10 @@ frozen on the edited object and rendered by four methods:
 * ``selected``: the per-pixel choice among local regressions (:class:`SelectedRegressionFilter`,
   NFOR's selection, linear once picked): the spp is spent as two half-spp precomputations
   (other seeds), whose frames at the default material pick the window per pixel (and, on
-  silhouette pixels, the along-edge mean or the pixel itself: :class:`SelectionSettings`); the mean
-  record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. With
+  silhouette pixels, the along-edge mean, the along-edge fit in the pixels' coverage
+  (:func:`pixel_coverage` at ``COVERAGE_SAMPLES`` x ``COVERAGE_SAMPLES`` rays, session 14; its
+  seconds are in the pick's and in ``coverage_s``) or the pixel itself: :class:`SelectionSettings`);
+  the mean record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. With
   ``--stratified`` the halves are complementary shares of one stratification
   (``LobeMixture(share=(k, 2))``, session 13), so that mean samples as one stratified run does. Its own
   part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
@@ -99,6 +101,7 @@ from torch_brdf.denoise import (
     guide_buffers,
     mean_tensors,
     oidn_frame,
+    pixel_coverage,
 )
 from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
@@ -147,6 +150,15 @@ def _half(k: int) -> tuple[dict, dict]:
 def _shares() -> list[str]:
     """What the halves parts' keys add when their halves are complementary shares."""
     return ["complementary shares"] if _half(1)[0] is not PRECOMPUTE else []
+
+
+#: subpixel rays per side of the pixel coverage the selecting filter's silhouette fits use
+#: (:func:`pixel_coverage`, session 14)
+COVERAGE_SAMPLES = 8
+
+
+def _cov() -> str:
+    return f"pixel coverage {COVERAGE_SAMPLES}"
 
 
 def _load() -> float:
@@ -295,11 +307,14 @@ def _halves_unit(scene, obj, mats, edited, series, spp, seed):
     pilots = [PolynomialRenderer(T, mats).evaluate() for T in halves]
     T = mean_tensors(halves)
     gl = glossy_objects(T)
+    cov, cov_s = _secs(lambda: pixel_coverage(scene, COVERAGE_SAMPLES, T.guides.object_id))
     A, pick_s = _secs(
-        lambda: SelectedRegressionFilter(T.guides, [tuple(p.permute(2, 0, 1) for p in pilots)], glossy=gl)
+        lambda: SelectedRegressionFilter(T.guides, [tuple(p.permute(2, 0, 1) for p in pilots)], glossy=gl, coverage=cov)
     )
+    pick_s += cov_s
     arrays = {"half_a": pilots[0], "half_b": pilots[1]}
-    meta = {"precompute_s": secs, "pick_s": pick_s, "settings_selected": A.description, "denoise_s": {}}
+    meta = {"precompute_s": secs, "pick_s": pick_s, "coverage_s": cov_s, "settings_selected": A.description}
+    meta["denoise_s"] = {}
     R = PolynomialRenderer(T, mats)
     _, freeze_s = _secs(lambda: R.freeze(obj))
     arrays["none_h"], arrays["none_h_e"] = _frames(R, obj, mats, edited)
@@ -342,7 +357,9 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
     T = mean_tensors(half_records(scene, series, spp, seed, folder))
     gl = glossy_objects(T)
     pilots = [(h["half_a"].permute(2, 0, 1), h["half_b"].permute(2, 0, 1))]
-    A, pick_s = _secs(lambda: SelectedRegressionFilter(T.guides, pilots, glossy=gl))
+    cov, cov_s = _secs(lambda: pixel_coverage(scene, COVERAGE_SAMPLES, T.guides.object_id))
+    A, pick_s = _secs(lambda: SelectedRegressionFilter(T.guides, pilots, glossy=gl, coverage=cov))
+    pick_s += cov_s
     R = PolynomialRenderer(T, mats)
     _, freeze_s = _secs(lambda: R.freeze(obj))
     noisy = _frames(R, obj, mats, edited)
@@ -491,7 +508,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         h, hmeta = _cached(
             folder,
             "halves",
-            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings()), *_shares()]},
+            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings()), *_shares(), _cov()]},
             scene,
             lambda spp=spp, seed=seed: _halves_unit(scene, obj, mats, edited, series, spp, seed),
         )
@@ -501,7 +518,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             {
                 **settings,
                 "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
-                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16", *_shares()],
+                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16", *_shares(), _cov()],
             },
             scene,
             lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
@@ -550,6 +567,7 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             out["regression_settings"] = xmeta["settings_regression"]
             out["selected_settings"] = hmeta["settings_selected"]
             out["selected_pick_s"] = hmeta["pick_s"]
+            out["coverage_s"] = hmeta["coverage_s"]
             out["frame_s_before"] = meta["frame_s"]["none"]
             for m in METHODS:
                 parts = {
@@ -608,7 +626,8 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     g, gl = guide_buffers(scene), mid_meta["glossy"]
     filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
     pilots = (at_mid["half_a"].permute(2, 0, 1), at_mid["half_b"].permute(2, 0, 1))
-    filters["selected"] = SelectedRegressionFilter(g, [pilots], glossy=gl)  # the mid unit's pick, rebuilt
+    cov = pixel_coverage(scene, COVERAGE_SAMPLES, g.object_id)
+    filters["selected"] = SelectedRegressionFilter(g, [pilots], glossy=gl, coverage=cov)  # the mid unit's pick
     out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
     return out
 

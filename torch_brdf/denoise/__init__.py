@@ -14,7 +14,7 @@ HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.
 """
 
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
-from .guides import GuideBuffers, guide_buffers, light_lobe_images
+from .guides import GuideBuffers, guide_buffers, light_lobe_images, pixel_coverage
 from .oidn import KEEP_MEAN_SIGMA, CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
@@ -45,5 +45,6 @@ __all__ = [
     "oidn_available",
     "oidn_frame",
     "oidn_image",
+    "pixel_coverage",
     "silhouette_signature",
 ]

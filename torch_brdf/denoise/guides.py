@@ -2,6 +2,6 @@
 where the precomputation attaches the guides to its record; re-exported here)."""
 
 from ..scene.guides import GuideBuffers, object_albedo_proxy
-from ..transport.guides import guide_buffers, light_lobe_images
+from ..transport.guides import guide_buffers, light_lobe_images, pixel_coverage
 
-__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy"]
+__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy", "pixel_coverage"]

@@ -71,6 +71,11 @@ class SelectionSettings(GuideSigmas):
             (``sigma_normal``); () leaves silhouette pixels as they are.
         silhouette_smooth: radius of the box that smooths the silhouette pixels' error
             estimates (over pixels of the same signature).
+        silhouette_regression: radii of the coverage regressions offered to silhouette pixels
+            when the filter is given the pixels' coverage (:func:`~torch_brdf.transport.guides.pixel_coverage`):
+            over the same taps as the silhouette means, a weighted least-squares fit of degree 1
+            in the tap's coverage and its offset along x and y, evaluated at the pixel (an edge's
+            pixels mix their objects in proportions that change along it; a mean blends them).
         relative: divide each pilot pair's error map by the image mean of its full buffer's
             square (summed over channels) before the pairs are summed, so that every pilot
             (e.g. each probe material of an edited object) counts as its relative squared
@@ -85,12 +90,13 @@ class SelectionSettings(GuideSigmas):
     silhouette: tuple[int, ...] = (1, 2, 4)
     silhouette_smooth: int = 6
     relative: bool = False
+    silhouette_regression: tuple[int, ...] = (1, 2, 3, 5)
 
     def __post_init__(self):
         super().__post_init__()
         if not self.candidates or self.smooth < 0:
             raise ValueRangeError(f"need at least one candidate and smooth >= 0; got {self}")
-        if any(r < 1 for r in self.silhouette) or self.silhouette_smooth < 0:
+        if any(r < 1 for r in self.silhouette + self.silhouette_regression) or self.silhouette_smooth < 0:
             raise ValueRangeError(f"need silhouette radii >= 1 and silhouette_smooth >= 0; got {self}")
         if self.silhouette and not self.identity:
             raise ValueRangeError("silhouette candidates need the identity (interior pixels' fallback)")
@@ -163,8 +169,14 @@ class SelectedRegressionFilter(GuideFilter):
         halves: Sequence[tuple[torch.Tensor, torch.Tensor]],
         settings: SelectionSettings | None = None,
         glossy=(),
+        coverage: torch.Tensor | None = None,
     ):
         self._setup(guides, settings, SelectionSettings, glossy)
+        if coverage is not None:
+            coverage = torch.as_tensor(coverage)
+            if tuple(coverage.shape) != self.shape or not bool(((coverage >= 0) & (coverage <= 1)).all()):
+                raise ShapeError(f"coverage must be {self.shape} fractions in [0, 1]; got {tuple(coverage.shape)}")
+        self.coverage = coverage
         pairs = []
         for a, b in halves:
             a, b = torch.as_tensor(a), torch.as_tensor(b)
@@ -193,6 +205,11 @@ class SelectedRegressionFilter(GuideFilter):
             self.signature = silhouette_signature(self.guides.object_id)
         sil = [_SilhouetteMean(self.guides, interior, self.signature, r, s.sigma_normal) for r in sil_radii]
         self.names += [f"silhouette_r{r}" for r in sil_radii]
+        if sil_radii and self.coverage is not None:
+            reg = s.silhouette_regression
+            sil += [_SilhouetteFit(self.guides, interior, self.signature, self.coverage, r, s) for r in reg]
+            self.names += [f"silhouette_fit_r{r}" for r in reg]
+            sil_radii = tuple(sil_radii) + tuple(reg)
         risks = []
         for A in [None] * s.identity + cands + sil:
             risk = torch.zeros(self.shape, dtype=torch.float64)
@@ -246,20 +263,7 @@ class _SilhouetteMean:
     ):
         self.shape, self.radius = (guides.height, guides.width), r
         self.offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
-        sig = signature.double()  # silhouette_signature of the guides' object ids
-        outer = (~interior).double()
-        mid = guides.mirror_id.double()
-        n = guides.normal.double().permute(2, 0, 1)
-        w = []
-        for dy, dx in self.offsets:
-            if not (dy or dx):  # the pixel itself, weight 1
-                w.append(torch.ones(self.shape, dtype=torch.float64))
-                continue
-            same = (_shift(sig, dy, dx, fill=-1.0) == sig) & (_shift(outer, dy, dx) > 0)
-            same &= _shift(mid, dy, dx, fill=-9.0) == mid
-            cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal
-            w.append(torch.where(same, cos, 0.0).double())
-        w = torch.stack(w)
+        w = _silhouette_taps(guides, interior, signature, self.offsets, sigma_normal)
         w = w / w.sum(0)
         centre = self.offsets.index((0, 0))
         w = torch.where(interior, 0.0, w)
@@ -271,3 +275,63 @@ class _SilhouetteMean:
 
     def __call__(self, images: torch.Tensor) -> torch.Tensor:
         return apply_hat(self, images)
+
+
+def _silhouette_taps(guides: GuideBuffers, interior, signature, offsets, sigma_normal: float) -> torch.Tensor:
+    """(len(offsets), H, W) float64 weights of a silhouette pixel's taps: the non-interior
+    pixels of the same signature and mirror object, ``max(0, n_p . n_q) ** sigma_normal``; the
+    pixel itself 1."""
+    shape = (guides.height, guides.width)
+    sig = signature.double()  # silhouette_signature of the guides' object ids
+    outer = (~interior).double()
+    mid = guides.mirror_id.double()
+    n = guides.normal.double().permute(2, 0, 1)
+    w = []
+    for dy, dx in offsets:
+        if not (dy or dx):  # the pixel itself, weight 1
+            w.append(torch.ones(shape, dtype=torch.float64))
+            continue
+        same = (_shift(sig, dy, dx, fill=-1.0) == sig) & (_shift(outer, dy, dx) > 0)
+        same &= _shift(mid, dy, dx, fill=-9.0) == mid
+        cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal
+        w.append(torch.where(same, cos, 0.0).double())
+    return torch.stack(w)
+
+
+class _SilhouetteFit(_SilhouetteMean):
+    r"""The silhouette candidate of radius ``r`` that fits, over :class:`_SilhouetteMean`'s
+    taps :math:`q` (weights :math:`w_q`), a plane in the tap's coverage and offset,
+    :math:`f_q = (1,\ c_q - c_p,\ \Delta x_q / r,\ \Delta y_q / r)`, by weighted least
+    squares with ``settings.ridge`` on the slopes (times :math:`\sum w_q`), and returns its
+    value at the pixel: hat weights :math:`w_q\, e_0^\top M^{-1} f_q`,
+    :math:`M = \sum_q w_q f_q f_q^\top + \text{ridge}`. It reproduces every image that is
+    such a plane over the taps exactly (the coverage regression's oracle). Interior pixels
+    keep their value."""
+
+    def __init__(self, guides, interior, signature, coverage, r: int, settings: SelectionSettings):
+        self.shape, self.radius = (guides.height, guides.width), r
+        self.offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+        w = _silhouette_taps(guides, interior, signature, self.offsets, settings.sigma_normal)
+        outer = ~interior
+        cov = coverage.double()[outer]  # only silhouette pixels are fitted
+        k = cov.numel()
+        wt = w[:, outer]  # (T, K)
+        ridge = max(settings.ridge, 1e-9) * wt.sum(0)  # on the slopes (keeps a lone pixel's M regular)
+        m = torch.diag_embed(ridge[:, None] * torch.tensor([0.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+        fs = []
+        for t, (dy, dx) in enumerate(self.offsets):
+            ct = _shift(coverage.double(), dy, dx)[outer] - cov
+            f = torch.stack(
+                [torch.ones(k, dtype=torch.float64), ct, torch.full_like(ct, dx / r), torch.full_like(ct, dy / r)], -1
+            )
+            m += wt[t, :, None, None] * f[:, :, None] * f[:, None, :]
+            fs.append(f)
+        e0 = torch.zeros(k, 4, 1, dtype=torch.float64)
+        e0[:, 0] = 1.0
+        sol = torch.linalg.solve(m, e0)[..., 0]  # (K, 4): row 0 of M^-1 (M symmetric)
+        hat = torch.zeros_like(w)
+        for t, f in enumerate(fs):
+            hat[t, outer] = wt[t] * (f * sol).sum(-1)
+        centre = self.offsets.index((0, 0))
+        hat[centre] = torch.where(interior, 1.0, hat[centre])
+        self.weights = hat.float()

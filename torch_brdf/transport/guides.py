@@ -34,13 +34,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..errors import ValueRangeError
+from ..errors import ShapeError, ValueRangeError
 from ..frame import orthonormal_basis
 from ..scene.gbuffer import trace_gbuffer
 from ..scene.guides import GuideBuffers, object_albedo_proxy
 from .pathtrace import emission_seen
 
-__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy"]
+__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy", "pixel_coverage"]
+
+#: the most subpixel rays :func:`pixel_coverage` casts per pixel (64 x 64)
+MAX_COVERAGE_SAMPLES = 64
 
 
 def guide_buffers(scene) -> GuideBuffers:
@@ -80,6 +83,50 @@ def guide_buffers(scene) -> GuideBuffers:
         light_cos_h=image(_light_cos_h(scene, pos, n, wo), 0.0),
         pixel_angle=2.0 * float(np.tan(np.radians(cam.fov_deg) / 2)) / h,
     )
+
+
+def pixel_coverage(scene, samples: int = 8, object_id: torch.Tensor | None = None) -> torch.Tensor:
+    """Per pixel, the fraction of its area whose first hit is the pixel centre's object (a
+    miss counts as object -1): ``samples`` x ``samples`` rays through the centres of a grid of
+    subpixel cells. Like every guide it depends on geometry and the camera only, never on a
+    material: where it is below 1, the pixel's record mixes two objects in that proportion,
+    which a silhouette filter can fit (:class:`~torch_brdf.denoise.SelectionSettings`'s
+    ``silhouette_regression``).
+
+    Args:
+        scene: the scene (its camera's view).
+        samples: cells per side, 1 to :data:`MAX_COVERAGE_SAMPLES` (1: the centre ray, all ones).
+        object_id: (H, W) the centre objects (default :func:`guide_buffers`'s, i.e. the
+            pixel-centre G-buffer's; pass ``T.guides.object_id`` to skip that trace).
+    Returns:
+        (H, W) float32 in [0, 1] (multiples of 1 / samples²).
+    Raises:
+        ValueRangeError: ``samples`` not an int in [1, MAX_COVERAGE_SAMPLES].
+        ShapeError: ``object_id`` not the camera's (H, W).
+    """
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_COVERAGE_SAMPLES:
+        raise ValueRangeError(f"samples must be an int in [1, {MAX_COVERAGE_SAMPLES}]; got {samples!r}")
+    cam = scene.camera
+    h, w = cam.height, cam.width
+    if object_id is None:
+        gb = trace_gbuffer(scene)
+        object_id = torch.full((h * w,), -1, dtype=torch.int64)
+        object_id[gb.pixels] = gb.object_id.long()
+        object_id = object_id.reshape(h, w)
+    elif tuple(object_id.shape) != (h, w):
+        raise ShapeError(f"object_id must be the camera's {(h, w)}; got {tuple(object_id.shape)}")
+    centre = object_id.reshape(-1).long()
+    rows, cols = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+    rows, cols = rows.reshape(-1), cols.reshape(-1)
+    same = torch.zeros(h * w, dtype=torch.int64)
+    for i in range(samples):
+        for j in range(samples):
+            o, d = cam.rays_through(cols + (j + 0.5) / samples, rows + (i + 0.5) / samples)
+            hits = scene.trace(o, d)
+            same += (torch.where(hits.hit, hits.object_id.long(), -1) == centre).long()
+    return (same.double() / samples**2).float().reshape(h, w)
 
 
 def _brightest_light_directions(scene, points: torch.Tensor) -> torch.Tensor | None:
