@@ -153,12 +153,17 @@ class SelectedRegressionFilter(GuideFilter):
             (e.g. the frames of two half-spp precomputations, permuted to (C, H, W)).
         settings: :class:`SelectionSettings`.
         glossy: object ids where the half-vector guide applies.
+        coverage: (H, W) fractions in [0, 1] of each pixel covered by its centre's object
+            (:func:`~torch_brdf.transport.guides.pixel_coverage`); given, silhouette pixels also
+            get the fits of ``settings.silhouette_regression``.
 
     Calling it on images (..., H, W) returns the filtered images; it is linear.
 
     Attributes:
         pick: (H, W) int64 index of each pixel's candidate in :attr:`names`.
-        names: the candidates, ``"identity"``, ``"r{radius}o{degree}"`` or ``"silhouette_r{radius}"``.
+        names: the candidates, ``"identity"``, ``"r{radius}o{degree}"``, ``"silhouette_r{radius}"`` or
+            ``"silhouette_fit_r{radius}"``.
+        coverage: the ``coverage`` given (None: none).
         interior: (H, W) bool pixels the regressions filter (the others: silhouette candidates).
         weights: ((2R + 1)², H, W) float32 hat weights (R the largest candidate radius).
     """
@@ -318,20 +323,21 @@ class _SilhouetteFit(_SilhouetteMean):
         wt = w[:, outer]  # (T, K)
         ridge = max(settings.ridge, 1e-9) * wt.sum(0)  # on the slopes (keeps a lone pixel's M regular)
         m = torch.diag_embed(ridge[:, None] * torch.tensor([0.0, 1.0, 1.0, 1.0], dtype=torch.float64))
-        fs = []
-        for t, (dy, dx) in enumerate(self.offsets):
+
+        def features(dy, dx):  # (K, 4) of the tap at (dy, dx), rebuilt rather than kept (T x K x 4)
             ct = _shift(coverage.double(), dy, dx)[outer] - cov
-            f = torch.stack(
-                [torch.ones(k, dtype=torch.float64), ct, torch.full_like(ct, dx / r), torch.full_like(ct, dy / r)], -1
-            )
+            return torch.stack([torch.ones_like(ct), ct, torch.full_like(ct, dx / r), torch.full_like(ct, dy / r)], -1)
+
+        for t, (dy, dx) in enumerate(self.offsets):
+            f = features(dy, dx)
             m += wt[t, :, None, None] * f[:, :, None] * f[:, None, :]
-            fs.append(f)
         e0 = torch.zeros(k, 4, 1, dtype=torch.float64)
         e0[:, 0] = 1.0
         sol = torch.linalg.solve(m, e0)[..., 0]  # (K, 4): row 0 of M^-1 (M symmetric)
-        hat = torch.zeros_like(w)
-        for t, f in enumerate(fs):
-            hat[t, outer] = wt[t] * (f * sol).sum(-1)
+        hat = torch.zeros(w.shape, dtype=torch.float32)
+        for t, (dy, dx) in enumerate(self.offsets):
+            hat[t, outer] = (wt[t] * (features(dy, dx) * sol).sum(-1)).float()
+        del w, wt
         centre = self.offsets.index((0, 0))
         hat[centre] = torch.where(interior, 1.0, hat[centre])
-        self.weights = hat.float()
+        self.weights = hat
