@@ -317,6 +317,8 @@ class CumulativeOIDN:
             )
         out = self.fallback(images)
         inner = self.fallback.interior
+        # one blur of each sum where the demodulator and the kept mean share a sigma
+        shared = self.lobes is not None and self.keep_mean == self.lobe_floor
         for a, b in _runs(groups):
             n = b - a
             if n == 1:
@@ -331,8 +333,6 @@ class CumulativeOIDN:
                 )
             for k in range(n):
                 if bool((sums[k][:, keep] != 0).any()):
-                    # one blur of the sum where the demodulator and the kept mean share a sigma
-                    shared = self.lobes is not None and self.keep_mean == self.lobe_floor
                     mean = _gaussian_within(sums[k], keep, self.keep_mean) if shared else None
                     d = self._denoise(sums[k], keep, k, mean)
                     if self.keep_mean > 0:

@@ -96,8 +96,8 @@ def pixel_coverage(scene, samples: int = 8, object_id: torch.Tensor | None = Non
     Args:
         scene: the scene (its camera's view).
         samples: cells per side, 1 to :data:`MAX_COVERAGE_SAMPLES` (1: the centre ray, all ones).
-        object_id: (H, W) the centre objects (default :func:`guide_buffers`'s, i.e. the
-            pixel-centre G-buffer's; pass ``T.guides.object_id`` to skip that trace).
+        object_id: (H, W) the centre objects (default: traced through the pixel centres, as
+            :func:`guide_buffers` does; pass ``T.guides.object_id`` to skip that trace).
     Returns:
         (H, W) float32 in [0, 1] (multiples of 1 / samples²).
     Raises:
@@ -108,24 +108,22 @@ def pixel_coverage(scene, samples: int = 8, object_id: torch.Tensor | None = Non
         raise ValueRangeError(f"samples must be an int in [1, {MAX_COVERAGE_SAMPLES}]; got {samples!r}")
     cam = scene.camera
     h, w = cam.height, cam.width
-    if object_id is None:
-        gb = trace_gbuffer(scene)
-        object_id = torch.full((h * w,), -1, dtype=torch.int64)
-        object_id[gb.pixels] = gb.object_id.long()
-        object_id = object_id.reshape(h, w)
-    elif tuple(object_id.shape) != (h, w):
+    if object_id is not None and tuple(object_id.shape) != (h, w):
         raise ShapeError(f"object_id must be the camera's {(h, w)}; got {tuple(object_id.shape)}")
-    centre = object_id.reshape(-1).long()
     rows, cols = torch.meshgrid(
         torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
     )
     rows, cols = rows.reshape(-1), cols.reshape(-1)
+
+    def first_hit(dy: float, dx: float) -> torch.Tensor:  # (H*W,) object ids at that raster offset
+        hits = scene.trace(*cam.rays_through(cols + dx, rows + dy))
+        return torch.where(hits.hit, hits.object_id.long(), -1)
+
+    centre = first_hit(0.5, 0.5) if object_id is None else object_id.reshape(-1).long()  # the G-buffer's rays
     same = torch.zeros(h * w, dtype=torch.int64)
     for i in range(samples):
         for j in range(samples):
-            o, d = cam.rays_through(cols + (j + 0.5) / samples, rows + (i + 0.5) / samples)
-            hits = scene.trace(o, d)
-            same += (torch.where(hits.hit, hits.object_id.long(), -1) == centre).long()
+            same += (first_hit((i + 0.5) / samples, (j + 0.5) / samples) == centre).long()
     return (same.double() / samples**2).float().reshape(h, w)
 
 
