@@ -284,13 +284,15 @@ class _SilhouetteMean:
 
 def _silhouette_taps(guides: GuideBuffers, interior, signature, offsets, sigma_normal: float) -> torch.Tensor:
     """(len(offsets), H, W) float64 weights of a silhouette pixel's taps: the non-interior
-    pixels of the same signature and mirror object, ``max(0, n_p . n_q) ** sigma_normal``; the
-    pixel itself 1."""
+    pixels of the same signature and mirror object, ``max(0, n_p . n_q) ** sigma_normal``, or 1
+    where the pixel's centre misses the scene (no normal: its taps, of the same signature, miss
+    too, and what it records is the part of it that an object covers); the pixel itself 1."""
     shape = (guides.height, guides.width)
     sig = signature.double()  # silhouette_signature of the guides' object ids
     outer = (~interior).double()
     mid = guides.mirror_id.double()
     n = guides.normal.double().permute(2, 0, 1)
+    miss = guides.object_id < 0
     w = []
     for dy, dx in offsets:
         if not (dy or dx):  # the pixel itself, weight 1
@@ -298,7 +300,7 @@ def _silhouette_taps(guides: GuideBuffers, interior, signature, offsets, sigma_n
             continue
         same = (_shift(sig, dy, dx, fill=-1.0) == sig) & (_shift(outer, dy, dx) > 0)
         same &= _shift(mid, dy, dx, fill=-9.0) == mid
-        cos = (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal
+        cos = torch.where(miss, 1.0, (n * _shift(n, dy, dx)).sum(0).clamp_min(0) ** sigma_normal)
         w.append(torch.where(same, cos, 0.0).double())
     return torch.stack(w)
 
