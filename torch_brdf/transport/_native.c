@@ -1934,19 +1934,96 @@ int64_t tb_wf_light_hits(int64_t m, const int64_t *k, const uint8_t *occ, const 
     return h;
 }
 
+/* tb_wf_area_sample works in chunks of this many vertices: their uniforms, triangles and
+ * candidate rows stay in the stack (L1) between its passes */
+enum { AS_CHUNK = 256 };
+
+/* area_sample_row's triangle: searchsorted(cdf, u0, right=True) clamped to T - 1, by halving
+ * with selects */
+static inline int64_t area_triangle(double u0, const double *cdf, int64_t T) {
+    int64_t a = 0, len = T;
+    while (len > 0) {
+        int64_t half = len >> 1, go = cdf[a + half] <= u0;
+        a = go ? a + half + 1 : a;
+        len = go ? len - half - 1 : half;
+    }
+    return a < T - 1 ? a : T - 1;
+}
+
+/* (session 16) the rest of area_sample_row's arithmetic for b vertices at once, given their
+ * points on the light lp (b, 3) and its normals there nl (b, 3) (area_light_point): dir, weight,
+ * cos per vertex as there, and per vertex (not yet compacted) whether it is a candidate, its
+ * shadow-ray origin and t_max. One straight loop of float operations with no branch and no
+ * loop-carried value, so GCC's AVX2 copy computes 8 vertices per instruction (the divisions and
+ * square roots were the row's latency); the same IEEE operations in the same order, so the same
+ * bits as area_sample_row. */
+TB_SIMD static void area_sample_math(int64_t b, const float *restrict lp, const float *restrict nl,
+                                     const float *restrict radiance, float area, const float *restrict pos,
+                                     const float *restrict ng, const float *restrict ns, float eps,
+                                     float *restrict dir, float *restrict weight, float *restrict cosv,
+                                     int32_t *restrict cand, float *restrict so, float *restrict tmax) {
+    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
+    const float r0 = radiance[0], r1 = radiance[1], r2 = radiance[2];
+    for (int64_t i = 0; i < b; i++) {
+        const float *p = pos + 3 * i, *n = nl + 3 * i, *g = ng + 3 * i, *s = ns + 3 * i;
+        float d0 = lp[3 * i] - p[0], d1 = lp[3 * i + 1] - p[1], d2_ = lp[3 * i + 2] - p[2];
+        float d2 = (d0 * d0 + d1 * d1) + d2_ * d2_, r = sqrtf(d2), den = r < tiny ? tiny : r;
+        float w0 = d0 / den, w1 = d1 / den, w2 = d2_ / den;
+        dir[3 * i] = w0, dir[3 * i + 1] = w1, dir[3 * i + 2] = w2;
+        float cl = -((w0 * n[0] + w1 * n[1]) + w2 * n[2]);
+        int valid = (cl > 0) & (r > 0);
+        float pv = d2 / ((cl < lo_cos ? lo_cos : cl) * area), pdf = valid ? pv : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
+        float q0 = r0 / pc, q1 = r1 / pc, q2 = r2 / pc;
+        weight[3 * i] = valid ? q0 : 0.0f, weight[3 * i + 1] = valid ? q1 : 0.0f, weight[3 * i + 2] = valid ? q2 : 0.0f;
+        float cs = (w0 * s[0] + w1 * s[1]) + w2 * s[2], cg = (w0 * g[0] + w1 * g[1]) + w2 * g[2];
+        cosv[i] = cs;
+        cand[i] = pdf > 0 ? (cs > 0) & (cg > 0) : 0; /* (cs > 0) & (cg > 0) & (pdf > 0): GCC 12 vectorises this form */
+        float side = cg >= 0 ? eps : -eps;
+        so[3 * i] = p[0] + side * g[0], so[3 * i + 1] = p[1] + side * g[1], so[3 * i + 2] = p[2] + side * g[2];
+        tmax[i] = r - 2 * eps;
+    }
+}
+
+/* area_sample_row's point on the light at uniforms (u0, u1, u2) into lp (3), the normal of its
+ * triangle into nl (3) */
+static inline void area_light_point(double u0, double u1, double u2, const double *cdf, int64_t T, const float *tri,
+                                    const float *nrm, float *lp, float *nl) {
+    double sq = sqrt(u1), b1 = 1 - sq, b2 = u2 * sq;
+    const int64_t kt = area_triangle(u0, cdf, T);
+    const float *t = tri + 9 * kt;
+    for (int c = 0; c < 3; c++) {
+        double t0 = t[c], t1 = t[3 + c], t2 = t[6 + c];
+        lp[c] = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)), nl[c] = nrm[3 * kt + c];
+    }
+}
+
 /* tb_area_sample with its uniforms drawn here, vertex after vertex, from the generator's state
- * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array. */
+ * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array.
+ * Chunk by chunk: the points on the light, area_sample_math, then the candidates compacted
+ * (the same values in the same rows as area_sample_row vertex after vertex). */
 int64_t tb_wf_area_sample(uint8_t *gs, int64_t n, const double *cdf, int64_t T, const float *tri, const float *nrm,
                           const float *radiance, float area, const float *pos, const float *ng, const float *ns,
                           float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd,
                           float *tmax) {
     tb_mt g;
     mt_load(&g, gs);
+    float lp[3 * AS_CHUNK], nl[3 * AS_CHUNK], so_c[3 * AS_CHUNK], tmax_c[AS_CHUNK];
+    int32_t cand[AS_CHUNK];
     int64_t m = 0;
-    for (int64_t i = 0; i < n; i++) {
-        double u0 = mt_f64(&g), u1 = mt_f64(&g), u2 = mt_f64(&g);
-        m = area_sample_row(i, u0, u1, u2, cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps, dir, weight, cosv, k, so,
-                            sd, tmax, m);
+    for (int64_t i0 = 0; i0 < n; i0 += AS_CHUNK) {
+        const int64_t b = n - i0 < AS_CHUNK ? n - i0 : AS_CHUNK;
+        for (int64_t j = 0; j < b; j++) {
+            double u0 = mt_f64(&g), u1 = mt_f64(&g), u2 = mt_f64(&g);
+            area_light_point(u0, u1, u2, cdf, T, tri, nrm, lp + 3 * j, nl + 3 * j);
+        }
+        area_sample_math(b, lp, nl, radiance, area, pos + 3 * i0, ng + 3 * i0, ns + 3 * i0, eps, dir + 3 * i0,
+                         weight + 3 * i0, cosv + i0, cand, so_c, tmax_c);
+        for (int64_t j = 0; j < b; j++) { /* every row written, kept by m += cand (no branch) */
+            const float *w = dir + 3 * (i0 + j);
+            for (int c = 0; c < 3; c++) so[3 * m + c] = so_c[3 * j + c], sd[3 * m + c] = w[c];
+            tmax[m] = tmax_c[j], k[m] = i0 + j;
+            m += cand[j];
+        }
     }
     mt_store(&g, gs);
     return m;
