@@ -562,7 +562,8 @@ def precompute_polynomial(
 
     def make_guides() -> None:  # independent of the tiles: computed while they run
         nonlocal view_guides
-        view_guides = guide_buffers(scene) if guides else None
+        # traced in this process (the tiles have the cores): no trace worker to start
+        view_guides = guide_buffers(ray_work.scene) if guides else None
 
     if executor == "local":
         library()  # build (or load) the compiled kernel once, before tiles fork
