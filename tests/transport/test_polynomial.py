@@ -198,6 +198,71 @@ def test_deterministic_and_tiling_independent_structure():
     assert a.meta["rays"]["closest"] > 0 and a.meta["rays"]["shadow"] > 0
 
 
+def _entries(T) -> dict:
+    """Every stored entry of a record by what it means: (object, bounce, pixel, j, the term's
+    (w, *counts)) -> (values, variances), independent of how the terms are numbered."""
+    out = {}
+    for blk in T.blocks:
+        tt = T.terms[blk.bounce]
+        terms = [(int(tt.w[t]), *tt.counts[t].tolist()) for t in blk.terms.tolist()]
+        Z, P = blk.terms.numel(), blk.pixels.numel()
+        for e, k in enumerate(blk.index.tolist()):
+            key = (blk.object_id, blk.bounce, int(blk.pixels[k % P]), k // (Z * P), terms[(k // P) % Z])
+            assert key not in out
+            out[key] = (blk.values[:, e].tolist(), blk.variance[:, e].tolist())
+    return out
+
+
+def test_terms_are_numbered_in_one_canonical_order_without_moving_entries():
+    """Session 16: each bounce's terms are numbered once every tile is in, ascending (w, c_M-1, ...,
+    c_0), the order the tiles' blocks already hold them in: every block's term ids and entry
+    indices are increasing as the tiles left them, whatever the tiling."""
+    sc = glossy_box(16)
+    a = precompute_polynomial(sc, "8,2,1,1", spp=3, seed=4, progress=False, tile_rows=3)
+    b = precompute_polynomial(sc, "8,2,1,1", spp=3, seed=4, progress=False, tile_rows=3, processes=1)
+    for n, tt in a.terms.items():
+        rows = [(w, *reversed(c)) for w, c in zip(tt.w.tolist(), tt.counts.tolist(), strict=True)]
+        assert rows == sorted(set(rows)), n  # canonical and distinct
+    assert len({blk.object_id for blk in a.blocks}) > 1 and max(blk.bounce for blk in a.blocks) == 4
+    for blk in a.blocks:
+        assert bool((blk.terms[1:] > blk.terms[:-1]).all()) and bool((blk.index[1:] > blk.index[:-1]).all())
+    assert _entries(a) == _entries(b)  # forked tiles or one process: the same record
+
+
+def test_numbering_re_sorts_a_block_whose_terms_are_out_of_canonical_order():
+    """A block in another order (multiset codes too wide for 62 bits keep the rows' own order)
+    gets increasing ids and its entries re-sorted with them, meaning unchanged."""
+    from torch_brdf.transport.polynomial.reduce import TermNumbering
+
+    tw = torch.tensor([-1, -1, 0])
+    tc = torch.tensor([[0, 1], [1, 0], [0, 0]], dtype=torch.int8)  # forward order: c_0 most significant
+    Z, P = 3, 2
+    key = torch.tensor([(j * Z + z) * P + p for j in range(2) for z in range(Z) for p in range(P)])
+    vals = torch.arange(3 * key.numel(), dtype=torch.float32).reshape(3, -1)
+    block = {"head": torch.tensor([0, 2, 2]), "upix": torch.tensor([0, 1]), "tw": tw, "tc": tc,
+             "key": key, "vals": vals, "var": vals + 0.5}  # fmt: skip
+    numbering = TermNumbering(2, 2)
+    numbering.add([block], torch.tensor([10, 11]))
+    terms, (blk,) = numbering.finish()
+    assert terms[1].size == 0 and terms[2].w.tolist() == [-1, -1, 0]
+    assert terms[2].counts.tolist() == [[1, 0], [0, 1], [0, 0]]  # c_1 most significant
+    assert blk.terms.tolist() == [0, 1, 2] and blk.pixels.tolist() == [10, 11]
+    assert bool((blk.terms[1:] > blk.terms[:-1]).all()) and bool((blk.index[1:] > blk.index[:-1]).all())
+    got = {}
+    for e, k in enumerate(blk.index.tolist()):
+        t = int(blk.terms[(k // P) % Z])
+        got[(k // (Z * P), (int(terms[2].w[t]), *terms[2].counts[t].tolist()), int(blk.pixels[k % P]))] = (
+            blk.values[:, e].tolist(), blk.variance[:, e].tolist())  # fmt: skip
+    want = {}
+    for e, k in enumerate(key.tolist()):
+        z = (k // P) % Z
+        want[(k // (Z * P), (int(tw[z]), *tc[z].tolist()), 10 + k % P)] = (
+            vals[:, e].tolist(),
+            (vals[:, e] + 0.5).tolist(),
+        )
+    assert got == want
+
+
 # -- series, plans, input errors -----------------------------------------------------------------
 def test_series_parsing_and_rules():
     assert Series.parse("64,1,1,1").bands == (64, 1, 1, 1)
@@ -322,3 +387,15 @@ def test_environment_lit_scene_bookkeeping_is_exact(points, gen):
         want = _oracle(sc, T, paths, c, c_hat, d, 2)
     assert float(want.sum()) > 0
     torch.testing.assert_close(R.evaluate(), want, rtol=1e-4, atol=1e-6 * float(want.abs().max()))
+
+
+@pytest.mark.parametrize("m", [3, 40])  # 40 objects of counts <= 3: codes too wide, unique(dim=0)
+def test_canonical_term_rows_by_code_and_by_rows_agree_with_a_sort(m, gen):
+    from torch_brdf.transport.polynomial.reduce import _canonical_rows
+
+    w = torch.randint(-1, 3, (200,), generator=gen)
+    c = torch.randint(0, 4, (200, m), generator=gen)
+    rows, inv = _canonical_rows(w, c)
+    want = sorted({(int(a), *reversed(b)) for a, b in zip(w.tolist(), c.tolist(), strict=True)})
+    assert [(r[0], *reversed(r[1:])) for r in rows.tolist()] == want
+    assert torch.equal(rows[inv], torch.cat([w[:, None], c], 1))

@@ -17,7 +17,7 @@ from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
-from ...records.polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock
+from ...records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
 from ...scene.guides import GUIDE_VERSION
@@ -31,10 +31,9 @@ from ..pathtrace import seeded_generator
 from .plan import plan_bases
 from .reduce import (
     NativeEntries,
-    _blocks_from_local,
+    TermNumbering,
     _local_blocks,
     _reduce,
-    _term_tables,
     native_bits,
     native_local_blocks,
     tile_accumulator,
@@ -527,8 +526,7 @@ def precompute_polynomial(
     ray_work = _TileWork(
         single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
     )
-    term_index: dict[int, dict] = {}
-    blocks: list[TensorBlock] = []
+    numbering = TermNumbering(len(scene.objects), series.bounces)
     emission = torch.zeros(3, h * w)
     rays = {"closest": 0, "shadow": 0}
     split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "blocks": 0.0}
@@ -537,7 +535,7 @@ def precompute_polynomial(
     timeline: list[list] = []
 
     def consume(ti: int, arrays: dict, meta: dict) -> None:
-        """Tile ``ti`` into the record (in tile order: term ids number in order of appearance)."""
+        """Tile ``ti`` into the record (in tile order; its terms are numbered once every tile is in)."""
         t = time.perf_counter()
         pix = work.pixels(ti)
         nblocks = sum(k.endswith("_head") for k in arrays)
@@ -555,7 +553,7 @@ def precompute_polynomial(
                 timeline.append([ti, int(pid), round(start - epoch0, 4), round(end - epoch0, 4), round(cpu, 4)])
         n = tile_spp[ti]
         emission[:, pix] = (emis / (n if isinstance(n, int) else n[:, None])).float().T
-        blocks.extend(_blocks_from_local(local, pix, term_index))
+        numbering.add(local, pix)
         split["assemble"] += time.perf_counter() - t
 
     view_guides = None
@@ -586,7 +584,9 @@ def precompute_polynomial(
         idle=make_guides,
         cost=tile_paths,
     )
-    terms = _term_tables(term_index, len(scene.objects), series.bounces)
+    t = time.perf_counter()
+    terms, blocks = numbering.finish()  # the global term ids, once every tile is in
+    split["assemble"] += time.perf_counter() - t
     split["write"] = results.write_seconds
     meta = {
         **settings,
