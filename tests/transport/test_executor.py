@@ -167,6 +167,33 @@ def test_forked_tiles_in_order_and_errors_raised_here():
         run_tiles(_tile_or_fail, -2, 5, cache, progress=False, processes=2)
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_tile_files_written_beside_the_assembly_before_run_tiles_returns(tmp_path, monkeypatch, processes):
+    """Session 16: the driver writes tile files in a background thread while it assembles; every
+    file is on disk when run_tiles returns, and a failed write is raised after the others."""
+    seen = []
+
+    def consume(k, arrays, meta):  # the assembly goes on while files are written
+        seen.append(k)
+
+    cache = TileCache(tmp_path, "t", "k")
+    tiles = run_tiles(_mixed_arrays, None, 6, cache, progress=False, processes=processes, consume=consume)
+    assert seen == list(range(6)) and tiles.write_seconds > 0
+    assert all(cache.load(k) is not None for k in range(6))
+    real = TileCache.save_encoded if processes == 2 else TileCache.save
+
+    def save(self, index, *args):
+        if index == 3:
+            raise OSError("disk full")
+        return real(self, index, *args)
+
+    monkeypatch.setattr(TileCache, "save_encoded" if processes == 2 else "save", save)
+    other = TileCache(tmp_path / "other", "t", "k")
+    with pytest.raises(OSError, match="disk full"):
+        run_tiles(_mixed_arrays, None, 6, other, progress=False, processes=processes)
+    assert [other.load(k) is not None for k in range(6)] == [True, True, True, False, True, True]
+
+
 def test_forked_tiles_start_longest_first(scene, local, monkeypatch):
     """With ``cost``, forked processes are handed the tiles in decreasing cost (ties in tile
     order) and the result is still in tile order; the precompute gives its tiles' paths, so an

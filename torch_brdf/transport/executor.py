@@ -40,7 +40,7 @@ import time
 import uuid
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from typing import Any
 
 import numpy as np
@@ -277,17 +277,15 @@ def run_tiles(
                 out[nxt[0]] = None
                 nxt[0] += 1
 
+    writer = _TileWriter(cache, meta or {})
+
     def finish(k: int, res: TileResult, encoded: bytes | None = None) -> None:
-        t0 = time.perf_counter()
-        if encoded is None:
-            cache.save(k, res[0], {**(meta or {}), **res[1]})
-        else:
-            cache.save_encoded(k, encoded)
-        out.write_seconds += time.perf_counter() - t0
+        writer.save(k, res, encoded)
         out[k] = (res[0], {**res[1], "cached": False})
         advance(k, steps[k])
         drain()
 
+    done = False
     try:
         drain()
         if ray_context is None:
@@ -311,9 +309,53 @@ def run_tiles(
         elif todo:
             _run_ray(fn, ray_context, start, finish, address, max_retries, out.nodes, cache, meta or {}, run_idle)
         run_idle()
+        done = True
     finally:
         bar.close()
+        # every finished tile's file is written before this returns (or raises), resumable
+        out.write_seconds = writer.close(raise_errors=done)
     return out
+
+
+class _TileWriter:
+    """The tile files of a run, written by one background thread in the order the tiles finish
+    (session 16): writing a file is mostly a system call that releases the GIL, so the driver
+    assembles tile k while tile k - 1 is written, and its serial work per tile is the larger of
+    the two rather than their sum. Nothing is started without a checkpoint folder. The thread
+    is made at the first write, after the forked tile processes have started."""
+
+    def __init__(self, cache: TileCache, meta: dict[str, Any]):
+        self.cache, self.meta = cache, meta
+        self.pool: ThreadPoolExecutor | None = None
+        self.futures: list = []
+
+    def save(self, k: int, res: TileResult, encoded: bytes | None) -> None:
+        """Write tile ``k`` (its encoded bytes, else its arrays and meta) in the thread."""
+        if self.cache.folder is None:
+            return
+        if self.pool is None:
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="torch_brdf-tile-writer")
+        self.futures.append(self.pool.submit(self._write, k, res, encoded))
+
+    def _write(self, k: int, res: TileResult, encoded: bytes | None) -> float:
+        t0 = time.perf_counter()
+        if encoded is None:
+            self.cache.save(k, res[0], {**self.meta, **res[1]})
+        else:
+            self.cache.save_encoded(k, encoded)
+        return time.perf_counter() - t0
+
+    def close(self, raise_errors: bool = True) -> float:
+        """Wait for every write: their seconds (a failed write's error is raised when
+        ``raise_errors``, after the others are done)."""
+        if self.pool is None:
+            return 0.0
+        self.pool.shutdown(wait=True)
+        self.pool, futures, self.futures = None, self.futures, []
+        errors = [f.exception() for f in futures if f.exception() is not None]
+        if errors and raise_errors:
+            raise errors[0]
+        return sum(f.result() for f in futures if f.exception() is None)
 
 
 def _ticking(report: Callable[[int], None], fn: TileFn, context: Any, k: int) -> TileResult:
