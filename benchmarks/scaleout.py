@@ -17,10 +17,13 @@ first runs). Prints progress, then one JSON object as the last line:
   return), measured over 50 tasks; ``result_mb_per_tile``: what a tile sends back through the
   object store; ``context_mb``: the pickled scene and settings, put once;
   ``transfer_s_per_tile``: ``ray.get`` of an object of ``result_mb_per_tile`` from the store.
-* ``tile_s``: worker seconds per tile (``ray1_s / tiles``), ``driver_s_per_tile``: the
-  driver's serial work per tile (assembling the record, from ``meta["split"]``, plus
-  ``write_s_per_tile``, writing the tile file a Ray worker encoded into the checkpoint folder
-  as the CLI does; ``local_write_s_per_tile``: encoding and writing it on the driver).
+* ``tile_s``: worker seconds per tile (``ray1_s / tiles``), ``assemble_s_per_tile``: the
+  driver's assembly of the record per tile (``meta["split"]``: taking each tile's blocks, then
+  numbering every term once all are in, spread over the tiles), ``write_s_per_tile``: writing
+  the tile file a Ray worker encoded into the checkpoint folder as the CLI does, in the driver's
+  writer thread (``local_write_s_per_tile``: encoding and writing it there), and
+  ``driver_s_per_tile`` the larger of the two (session 16: the writes run beside the assembly;
+  before, their sum).
 * the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
   nodes of 2 workers. Tile sizing for that scene: 16 rows (16k pixels, 16.8M paths, a few
   minutes of work) while there are at most 64 tiles per 2N workers, otherwise ``n = 4 * 2N``
@@ -30,8 +33,8 @@ first runs). Prints progress, then one JSON object as the last line:
   ``c = t_tile + task_overhead + transfer`` one task (the driver numbers the terms of tile k,
   in tile order, while later tiles compute; it starts when the first tile arrives), with
   ``t_tile`` the measured worker seconds per path times the paths of a tile and ``t_driver``
-  the measured driver seconds per tile (numbering the tile's terms, re-sorting its blocks when
-  needed, writing it) scaled by the entries of a tile (entries per pixel grow as spp^0.54:
+  the measured driver seconds per tile (``driver_s_per_tile``: assembly or writing, whichever
+  is longer) scaled by the entries of a tile (entries per pixel grow as spp^0.54:
   11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md) and ``transfer``
   the measured ``ray.get`` of a tile's result scaled the same way;
   ``predicted_speedup_N = T(1) / T(N)`` for N = 8 and 64, and ``predicted_s_*``; the
@@ -184,7 +187,9 @@ def main() -> None:
     # -- the model ---------------------------------------------------------------------------
     paths = res * res * spp
     out["tile_s"] = out["ray1_s"] / tiles
-    out["driver_s_per_tile"] = split["assemble"] / tiles + out["write_s_per_tile"]
+    out["assemble_s_per_tile"] = split["assemble"] / tiles
+    # the writer thread writes tile k - 1 while the driver assembles tile k
+    out["driver_s_per_tile"] = max(out["assemble_s_per_tile"], out["write_s_per_tile"])
     worker_s_per_path = (out["ray1_s"] - split["assemble"] - out["task_overhead_s"] * tiles) / paths
     big_res, big_spp, tile_px = 1024, 1024, 16 * 1024
     entries_scale = (tile_px / (res * res / tiles)) * (big_spp / spp) ** 0.54
