@@ -69,7 +69,8 @@ TileFn = Callable[[Any, int], TileResult]
 
 
 class Tiles(list):
-    """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles;
+    """The (arrays, meta) of every tile in tile order; ``write_seconds``: time spent saving tiles (in
+    the writer thread, beside the assembly);
     ``nodes``: the Ray node ids that computed tiles in this call (empty for ``local``);
     ``processes``: local processes that computed tiles at once (0 for Ray)."""
 
