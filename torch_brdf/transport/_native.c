@@ -684,77 +684,6 @@ void tb_frame(int64_t n, const float *d_in, float *ng, float *ns, float *frame, 
     for (int64_t i = 0; i < n; i++) frame_row(d_in + 3 * i, ng + 3 * i, ns + 3 * i, frame + 9 * i, wo + 3 * i);
 }
 
-/* An area light's next-event samples from every vertex (lights.py AreaLight.sample_points and
- * sample, pathtrace.py sample_light and Scene.visible's shadow ray): u (n, 3) float64 uniforms
- * (drawn by torch, as the torch path draws them); cdf (T,) float64, tri (T, 3, 3), nrm (T, 3),
- * radiance (3,) float32; pos, ng, ns (n, 3). Out per vertex: dir (n, 3), weight (n, 3), cos (n,);
- * the candidates (cos > 0, light in front of ng, pdf > 0) compacted: rows k (m,), shadow-ray
- * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
- * t_max (m,) = dist - 2 eps.
- * Returns m. */
-/* vertex i's sample at uniforms (u0, u1, u2); a candidate goes to row m of k, so, sd, tmax.
- * Returns the candidates after it. */
-static inline int64_t area_sample_row(int64_t i, double u0, double u1, double u2, const double *cdf, int64_t T,
-                                      const float *tri, const float *nrm, const float *radiance, float area,
-                                      const float *pos, const float *ng, const float *ns, float eps, float *dir,
-                                      float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax,
-                                      int64_t m) {
-    /* Session 9: without a branch on the sample's values (the triangle's search, valid and the
-     * candidate test are selects; the candidate's row m is written whatever it is and kept by
-     * m += cand), so the divisions and square roots of successive vertices overlap instead of
-     * waiting for mispredicted branches (~45 -> ~20 ns per vertex). The same operations in the
-     * same order: the values are the same bit for bit. */
-    const float tiny = 1.17549435e-38f, lo_cos = (float)1e-12, lo_pdf = (float)1e-30;
-    double sq = sqrt(u1), b1 = 1 - sq, b2 = u2 * sq;
-    int64_t a = 0, len = T; /* searchsorted(cdf, u0, right=True), halving with selects */
-    while (len > 0) {
-        int64_t half = len >> 1, go = cdf[a + half] <= u0;
-        a = go ? a + half + 1 : a;
-        len = go ? len - half - 1 : half;
-    }
-    int64_t kt = a < T - 1 ? a : T - 1;
-    const float *t = tri + 9 * kt, *p = pos + 3 * i, *nl = nrm + 3 * kt;
-    float d0, d1, d2_;
-    {
-        double t0 = t[0], t1 = t[3], t2 = t[6];
-        d0 = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[0];
-        t0 = t[1], t1 = t[4], t2 = t[7];
-        d1 = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[1];
-        t0 = t[2], t1 = t[5], t2 = t[8];
-        d2_ = (float)((t0 + b1 * (t1 - t0)) + b2 * (t2 - t0)) - p[2];
-    }
-    float d2 = (d0 * d0 + d1 * d1) + d2_ * d2_, r = sqrtf(d2), den = r < tiny ? tiny : r;
-    float w0 = d0 / den, w1 = d1 / den, w2 = d2_ / den;
-    float *w = dir + 3 * i;
-    w[0] = w0, w[1] = w1, w[2] = w2;
-    float cl = -((w0 * nl[0] + w1 * nl[1]) + w2 * nl[2]);
-    int valid = cl > 0 && r > 0;
-    float pv = d2 / ((cl < lo_cos ? lo_cos : cl) * area), pdf = valid ? pv : 0.0f, pc = pdf < lo_pdf ? lo_pdf : pdf;
-    for (int c = 0; c < 3; c++) {
-        float q = radiance[c] / pc;
-        weight[3 * i + c] = valid ? q : 0.0f;
-    }
-    const float *g = ng + 3 * i, *s = ns + 3 * i;
-    float cs = (w0 * s[0] + w1 * s[1]) + w2 * s[2], cg = (w0 * g[0] + w1 * g[1]) + w2 * g[2];
-    cosv[i] = cs;
-    int cand = (cs > 0) & (cg > 0) & (pdf > 0);
-    float side = cg >= 0 ? eps : -eps;
-    so[3 * m] = p[0] + side * g[0], so[3 * m + 1] = p[1] + side * g[1], so[3 * m + 2] = p[2] + side * g[2];
-    sd[3 * m] = w0, sd[3 * m + 1] = w1, sd[3 * m + 2] = w2;
-    tmax[m] = r - 2 * eps;
-    k[m] = i;
-    return m + cand;
-}
-
-int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
-                       const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
-                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
-    int64_t m = 0;
-    for (int64_t i = 0; i < n; i++)
-        m = area_sample_row(i, u[3 * i], u[3 * i + 1], u[3 * i + 2], cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps,
-                            dir, weight, cosv, k, so, sd, tmax, m);
-    return m;
-}
 
 /* The rows k[i] (m,) whose shadow ray is not occluded (occ (m,) bool bytes), in order, into out;
  * returns their number (tracer.py: k[~occ]). */
@@ -1934,11 +1863,11 @@ int64_t tb_wf_light_hits(int64_t m, const int64_t *k, const uint8_t *occ, const 
     return h;
 }
 
-/* tb_wf_area_sample works in chunks of this many vertices: their uniforms, triangles and
- * candidate rows stay in the stack (L1) between its passes */
+/* the area-light samples work in chunks of this many vertices: their points on the light and
+ * candidate rows stay in the stack (L1) between the passes */
 enum { AS_CHUNK = 256 };
 
-/* area_sample_row's triangle: searchsorted(cdf, u0, right=True) clamped to T - 1, by halving
+/* the light's triangle at u0: searchsorted(cdf, u0, right=True) clamped to T - 1, by halving
  * with selects */
 static inline int64_t area_triangle(double u0, const double *cdf, int64_t T) {
     int64_t a = 0, len = T;
@@ -1950,13 +1879,14 @@ static inline int64_t area_triangle(double u0, const double *cdf, int64_t T) {
     return a < T - 1 ? a : T - 1;
 }
 
-/* (session 16) the rest of area_sample_row's arithmetic for b vertices at once, given their
- * points on the light lp (b, 3) and its normals there nl (b, 3) (area_light_point): dir, weight,
- * cos per vertex as there, and per vertex (not yet compacted) whether it is a candidate, its
- * shadow-ray origin and t_max. One straight loop of float operations with no branch and no
- * loop-carried value, so GCC's AVX2 copy computes 8 vertices per instruction (the divisions and
- * square roots were the row's latency); the same IEEE operations in the same order, so the same
- * bits as area_sample_row. */
+/* The samples' arithmetic for b vertices at once, given their points on the light lp (b, 3) and
+ * its normals there nl (b, 3) (area_light_point): dir, weight, cos per vertex, and per vertex
+ * (not yet compacted) whether it is a candidate, its shadow-ray origin and t_max. Session 9
+ * removed the branches on the sample's values (~45 -> ~20 ns per vertex); session 16 moved the
+ * uniforms and the point on the light to their own pass, which leaves one straight loop of
+ * float operations with no loop-carried value: GCC's AVX2 copy computes 8 vertices per
+ * instruction (the divisions and square roots were the latency). The same IEEE operations in
+ * the same order as before, so the same bits. */
 TB_SIMD static void area_sample_math(int64_t b, const float *restrict lp, const float *restrict nl,
                                      const float *restrict radiance, float area, const float *restrict pos,
                                      const float *restrict ng, const float *restrict ns, float eps,
@@ -1984,8 +1914,8 @@ TB_SIMD static void area_sample_math(int64_t b, const float *restrict lp, const 
     }
 }
 
-/* area_sample_row's point on the light at uniforms (u0, u1, u2) into lp (3), the normal of its
- * triangle into nl (3) */
+/* the point on the light at uniforms (u0, u1, u2) into lp (3), the normal of its triangle into
+ * nl (3) */
 static inline void area_light_point(double u0, double u1, double u2, const double *cdf, int64_t T, const float *tri,
                                     const float *nrm, float *lp, float *nl) {
     double sq = sqrt(u1), b1 = 1 - sq, b2 = u2 * sq;
@@ -1997,34 +1927,60 @@ static inline void area_light_point(double u0, double u1, double u2, const doubl
     }
 }
 
-/* tb_area_sample with its uniforms drawn here, vertex after vertex, from the generator's state
- * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array.
- * Chunk by chunk: the points on the light, area_sample_math, then the candidates compacted
- * (the same values in the same rows as area_sample_row vertex after vertex). */
-int64_t tb_wf_area_sample(uint8_t *gs, int64_t n, const double *cdf, int64_t T, const float *tri, const float *nrm,
-                          const float *radiance, float area, const float *pos, const float *ng, const float *ns,
-                          float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd,
-                          float *tmax) {
-    tb_mt g;
-    mt_load(&g, gs);
+/* The samples of tb_area_sample / tb_wf_area_sample, their uniforms read from u (n, 3) or, when
+ * g, drawn from it. Chunk by chunk: each vertex's point on the light, area_sample_math, then the
+ * candidates compacted (every row written, kept by m += cand: no branch). */
+static int64_t area_samples(tb_mt *g, const double *u, int64_t n, const double *cdf, int64_t T, const float *tri,
+                            const float *nrm, const float *radiance, float area, const float *pos, const float *ng,
+                            const float *ns, float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so,
+                            float *sd, float *tmax) {
     float lp[3 * AS_CHUNK], nl[3 * AS_CHUNK], so_c[3 * AS_CHUNK], tmax_c[AS_CHUNK];
     int32_t cand[AS_CHUNK];
     int64_t m = 0;
     for (int64_t i0 = 0; i0 < n; i0 += AS_CHUNK) {
         const int64_t b = n - i0 < AS_CHUNK ? n - i0 : AS_CHUNK;
         for (int64_t j = 0; j < b; j++) {
-            double u0 = mt_f64(&g), u1 = mt_f64(&g), u2 = mt_f64(&g);
+            const double *ui = u ? u + 3 * (i0 + j) : NULL;
+            double u0 = g ? mt_f64(g) : ui[0], u1 = g ? mt_f64(g) : ui[1], u2 = g ? mt_f64(g) : ui[2];
             area_light_point(u0, u1, u2, cdf, T, tri, nrm, lp + 3 * j, nl + 3 * j);
         }
         area_sample_math(b, lp, nl, radiance, area, pos + 3 * i0, ng + 3 * i0, ns + 3 * i0, eps, dir + 3 * i0,
                          weight + 3 * i0, cosv + i0, cand, so_c, tmax_c);
-        for (int64_t j = 0; j < b; j++) { /* every row written, kept by m += cand (no branch) */
+        for (int64_t j = 0; j < b; j++) {
             const float *w = dir + 3 * (i0 + j);
             for (int c = 0; c < 3; c++) so[3 * m + c] = so_c[3 * j + c], sd[3 * m + c] = w[c];
             tmax[m] = tmax_c[j], k[m] = i0 + j;
             m += cand[j];
         }
     }
+    return m;
+}
+
+/* An area light's next-event samples from every vertex (lights.py AreaLight.sample_points and
+ * sample, pathtrace.py sample_light and Scene.visible's shadow ray): u (n, 3) float64 uniforms
+ * (drawn by torch, as the torch path draws them); cdf (T,) float64, tri (T, 3, 3), nrm (T, 3),
+ * radiance (3,) float32; pos, ng, ns (n, 3). Out per vertex: dir (n, 3), weight (n, 3), cos (n,);
+ * the candidates (cos > 0, light in front of ng, pdf > 0) compacted: rows k (m,), shadow-ray
+ * origins so (m, 3) (spawned off the surface by eps), directions sd (m, 3) = dir[k] and
+ * t_max (m,) = dist - 2 eps.
+ * Returns m. */
+int64_t tb_area_sample(int64_t n, const double *u, const double *cdf, int64_t T, const float *tri, const float *nrm,
+                       const float *radiance, float area, const float *pos, const float *ng, const float *ns, float eps,
+                       float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd, float *tmax) {
+    return area_samples(NULL, u, n, cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps, dir, weight, cosv, k, so, sd,
+                        tmax);
+}
+
+/* tb_area_sample with its uniforms drawn here, vertex after vertex, from the generator's state
+ * bytes gs (torch.rand(n, 3, dtype=float64)'s numbers in its order), not read from an array. */
+int64_t tb_wf_area_sample(uint8_t *gs, int64_t n, const double *cdf, int64_t T, const float *tri, const float *nrm,
+                          const float *radiance, float area, const float *pos, const float *ng, const float *ns,
+                          float eps, float *dir, float *weight, float *cosv, int64_t *k, float *so, float *sd,
+                          float *tmax) {
+    tb_mt g;
+    mt_load(&g, gs);
+    int64_t m = area_samples(&g, NULL, n, cdf, T, tri, nrm, radiance, area, pos, ng, ns, eps, dir, weight, cosv, k, so,
+                             sd, tmax);
     mt_store(&g, gs);
     return m;
 }
