@@ -353,7 +353,7 @@ class _TileWriter:
             return 0.0
         self.pool.shutdown(wait=True)
         self.pool, futures, self.futures = None, self.futures, []
-        errors = [f.exception() for f in futures if f.exception() is not None]
+        errors = [e for f in futures if (e := f.exception()) is not None]
         if errors and raise_errors:
             raise errors[0]
         return sum(f.result() for f in futures if f.exception() is None)

@@ -34,6 +34,14 @@ def _code_fits(m: int, max_count: int) -> bool:
     return m * math.log2(max(max_count + 1, 2)) < 62
 
 
+def _first_rows(inv: torch.Tensor, u: int) -> torch.Tensor:
+    """(u,) the first row of each of ``u`` distinct values, given each row's index ``inv`` among
+    them (``torch.unique(..., return_inverse=True)``)."""
+    return torch.full((u,), inv.numel(), dtype=torch.long).scatter_reduce(
+        0, inv, torch.arange(inv.numel()), reduce="amin"
+    )
+
+
 def _multiset_ids(counts: torch.Tensor) -> tuple[torch.Tensor, int]:
     """Dense ids of the distinct rows of ``counts`` (n, M) int8: one exact int64 code per row
     (base = max count + 1) when it fits in 62 bits, else ``unique(dim=0)``."""
@@ -69,9 +77,7 @@ def _reduce(d: dict[str, torch.Tensor], sizes: dict[str, int], by_path: bool) ->
     key = _radix_key(cols)
     uniq, inv = torch.unique(key, return_inverse=True)
     u = uniq.numel()
-    first = torch.full((u,), key.numel(), dtype=torch.long).scatter_reduce(
-        0, inv, torch.arange(key.numel()), reduce="amin"
-    )
+    first = _first_rows(inv, u)
     w = d["weight"].double()
     s = torch.zeros(u, 3, dtype=torch.float64).index_add_(0, inv, w)
     out = {k: d[k][first] for k in ("rec", "obj", "bounce", "j", "w", "counts")}
@@ -185,9 +191,7 @@ def _local_blocks(red: dict[str, torch.Tensor], bases, spp: int | torch.Tensor) 
         tw, tc = red["w"][m], red["counts"][m]
         zid, nz = _multiset_ids(tc)
         upid, pinv = torch.unique((tw + 1) * nz + zid, return_inverse=True)
-        first = torch.full((upid.numel(),), pinv.numel(), dtype=torch.long).scatter_reduce(
-            0, pinv, torch.arange(pinv.numel()), reduce="amin"
-        )
+        first = _first_rows(pinv, upid.numel())
         J = 1 if bases[obj] is None else bases[obj].size
         key, perm = torch.sort((red["j"][m] * upid.numel() + pinv) * upix.numel() + prow)
         out.append(
@@ -317,7 +321,7 @@ class TermNumbering:
         by_bounce: dict[int, list[int]] = {}
         for i, (b, _) in enumerate(self.pending):
             by_bounce.setdefault(int(b["head"][1]), []).append(i)
-        terms, gids = {}, [torch.zeros(0, dtype=torch.long)] * len(self.pending)
+        terms, gids = {}, {}
         for n in range(1, self.bounces + 1):
             members = by_bounce.get(n, [])
             if not members:
@@ -331,7 +335,7 @@ class TermNumbering:
             for i in members:
                 z = self.pending[i][0]["tw"].numel()
                 gids[i], at = inv[at : at + z], at + z
-        blocks = [_global_block(b, pixels, g) for (b, pixels), g in zip(self.pending, gids, strict=True)]
+        blocks = [_global_block(b, pixels, gids[i]) for i, (b, pixels) in enumerate(self.pending)]
         self.pending = []
         return terms, blocks
 
@@ -347,12 +351,8 @@ def _canonical_rows(w: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, tor
     if span * base**m < 2**62:
         code = (w + 1) * base**m + (c * base ** torch.arange(m, dtype=torch.long)).sum(-1)
         ucode, inv = torch.unique(code, return_inverse=True)
-        rows = torch.empty(ucode.numel(), 1 + m, dtype=torch.long)
-        rest = ucode
-        for k in range(m):
-            rest, rows[:, 1 + k] = torch.div(rest, base, rounding_mode="floor"), rest % base
-        rows[:, 0] = rest - 1
-        return rows, inv
+        first = _first_rows(inv, ucode.numel())
+        return torch.cat([w[first, None], c[first]], 1), inv
     uniq, inv = torch.unique(torch.cat([w[:, None], c.flip(1)], 1), dim=0, return_inverse=True)
     return torch.cat([uniq[:, :1], uniq[:, 1:].flip(1)], 1), inv
 
