@@ -249,6 +249,15 @@ def test_block_lighting_representations_agree():
     torch.testing.assert_close(lit.texels.sum((0, 1)), env.integral().double(), rtol=0.02, atol=0)
 
 
+@pytest.mark.parametrize("samples", [4, 16])
+def test_block_lighting_carries_the_maps_power(samples):
+    """The cube texels (solid-angle means of the map's own lookup) sum to the map's integral,
+    even for a 1.5 deg sun smaller than a cube texel: within 0.05% from 4 x 4 samples."""
+    env = EnvironmentMap.sky(height=64)
+    lit = block_lighting(env, CubemapBlocks(32), samples, torch.float64)
+    torch.testing.assert_close(lit.texels.sum((0, 1)), env.integral(), rtol=5e-4, atol=0.0)
+
+
 def test_haar_baseline_is_exact_with_every_coefficient(scene, vis):
     r = renderer(scene, vis, box="phong", floor="phong")
     view = r.all_vertices(EYE)
