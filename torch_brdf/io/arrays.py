@@ -66,10 +66,18 @@ _READ_ERRORS = (
 )  # fmt: skip
 
 
+def _materialise(v) -> np.ndarray:
+    """An array, or the array a deferred entry (a callable, see :func:`save_arrays`) makes."""
+    a = np.asarray(v() if callable(v) else v)
+    if a.dtype == object:
+        raise FileFormatError("an array of object dtype cannot be stored")
+    return a
+
+
 def _checksum(arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
+        a = np.ascontiguousarray(_materialise(arrays[name]))
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
         h.update(a.reshape(-1).view(np.uint8).data if a.size else b"")  # the bytes, not a copy
     return h.hexdigest()
@@ -87,7 +95,9 @@ def save_arrays(
 
     Args:
         path: destination (``.npz``).
-        arrays: name -> numeric array (no object dtype).
+        arrays: name -> numeric array (no object dtype), or a callable that returns one: a
+            converted copy (``lambda: a.astype(np.int32)``) is then made once for the checksum
+            and once for the write, and freed in between, instead of held with all the others.
         kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
         meta: JSON-serialisable metadata (settings, progress).
         compress: zip-deflate the arrays (stored instead when an array would inflate more
@@ -111,9 +121,9 @@ def save_arrays(
 
 def _prepare(arrays, kind: str, meta, kind_version: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The arrays (views, not copies) and the header blob with their checksum."""
-    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    arrays = {k: v if callable(v) else np.asarray(v) for k, v in arrays.items()}
     for k, a in arrays.items():
-        if a.dtype == object or k == _HEADER:
+        if k == _HEADER or (not callable(a) and a.dtype == object):
             raise FileFormatError(f"array {k!r} cannot be stored (object dtype or reserved name)")
     header = {"format": FORMAT, "kind": kind, "version": VERSION, "meta": meta or {}, "checksum": _checksum(arrays)}
     header["file_digest"] = True  # the zip comment holds the whole-file digest
@@ -129,7 +139,7 @@ def _write_zip(f, arrays: dict[str, np.ndarray], blob: np.ndarray, compress: boo
     with zipfile.ZipFile(f, mode="w", compression=method, allowZip64=True) as z:
         for name, a in [*arrays.items(), (_HEADER, blob)]:
             with z.open(name + ".npy", "w", force_zip64=True) as out:
-                _write_npy(out, a)
+                _write_npy(out, _materialise(a))
 
 
 def _write_npy(out, a: np.ndarray) -> None:

@@ -351,13 +351,19 @@ class PolynomialTensors(Record):
         return BasisImage(vals, pix, self.height, self.width, None, var, basis, {"object": self.object_names[m]})
 
     # -- files ------------------------------------------------------------------------------
-    def to_arrays(self, storage: str = "float32") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def arrays_to_save(self, storage: str = "float32") -> tuple[dict[str, Any], dict[str, Any]]:
+        """:meth:`to_arrays` with the conversions of the entries deferred to the write."""
+        return self.to_arrays(storage, deferred=True)
+
+    def to_arrays(self, storage: str = "float32", deferred: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
         """Arrays and metadata for :meth:`save` (``save(path, storage=...)``).
 
         Args:
             storage: ``"float32"`` or ``"float16"`` (half the bytes; relative rounding error
                 <= 2^-11 = 4.9e-4 per entry; entries below ~6e-8 flush towards zero and
                 above 65504 overflow, which is checked: use float32 then).
+            deferred: converted arrays as callables that make them (what :meth:`save` passes);
+                arrays already of the stored dtype are views either way.
         """
         dt = {"float32": np.float32, "float16": np.float16}.get(storage)
         if dt is None:
@@ -371,13 +377,14 @@ class PolynomialTensors(Record):
             v = b.values.numpy()
             if dt is np.float16 and np.abs(v).max(initial=0) > 65504:
                 raise ValueRangeError("tensor entries exceed the float16 range; save with storage='float32'")
-            arrays[f"b{i}_values"] = v.astype(dt)
+            # conversions are deferred (made while saving, one array at a time), views passed as they are
+            arrays[f"b{i}_values"] = _stored(v, dt, deferred)
             small = math.prod(b.shape[1:]) < 2**31
-            arrays[f"b{i}_index"] = b.index.numpy().astype(np.int32 if small else np.int64)
+            arrays[f"b{i}_index"] = _stored(b.index.numpy(), np.int32 if small else np.int64, deferred)
             arrays[f"b{i}_pixels"] = b.pixels.numpy()
             arrays[f"b{i}_terms"] = b.terms.numpy()
             if b.variance is not None:
-                arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
+                arrays[f"b{i}_variance"] = _stored(b.variance.numpy(), dt, deferred)
             index.append([b.object_id, b.bounce, b.J])
         if self.guides is not None:
             arrays.update(self.guides.to_arrays())
@@ -434,3 +441,11 @@ class PolynomialTensors(Record):
             dict(meta.get("meta", {})),
             GuideBuffers.from_arrays(arrays),
         )
+
+
+def _stored(a: np.ndarray, dtype, deferred: bool):
+    """``a`` itself when it has ``dtype``, else its conversion, made now or (``deferred``) by a
+    callable while the file is written (see ``save_arrays``)."""
+    if a.dtype == dtype:
+        return a
+    return (lambda: a.astype(dtype)) if deferred else a.astype(dtype)
