@@ -24,8 +24,9 @@ LAYERS = (
     {"errors", "_checks", "_threads", "data", "io", "sphere", "frame", "metrics", "linalg"},
     {"brdf", "scene"},
     {"records"},
-    {"transport", "manifold", "inverse", "denoise", "planner"},
+    {"transport", "manifold", "inverse", "denoise"},
     {"render"},
+    {"planner"},
     {"cli", "editor", "report", "__main__"},
 )
 

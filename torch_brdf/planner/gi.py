@@ -51,16 +51,19 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
+from .._checks import check_count
 from ..brdf import create
 from ..brdf.bands import BandBasis, Factored1D, equivalent_albedo, project, projection_error
 from ..brdf.bands.projection import PairQuadrature
 from ..errors import SceneError, ValueRangeError
 from ..records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ..scene.scene import Scene
+from ..transport.polynomial import PolynomialSettings, precompute_polynomial, with_fixed
 
 __all__ = [
     "GIPlan",
@@ -68,7 +71,9 @@ __all__ = [
     "choose_bands",
     "pilot_images",
     "plan_from_pilots",
+    "plan_polynomial",
     "planned_bases",
+    "precompute_planned",
     "unlit_mask",
     "with_fixed",
 ]
@@ -174,14 +179,6 @@ def planned_bases(
         bases.append(_basis(mat, J))
         errors[o.name] = e
     return bases, errors, tuple(fixed)
-
-
-def with_fixed(scene: Scene, fixed: tuple[str, ...]) -> Scene:
-    """A copy of ``scene`` whose objects named in ``fixed`` are not editable (same tracer)."""
-    if not fixed:
-        return scene
-    objs = [dataclasses.replace(o, editable=False) if o.name in fixed else o for o in scene.objects]
-    return dataclasses.replace(scene, objects=objs)
 
 
 def _coefficients(material: dict[str, Any], basis: ObjectBasis) -> tuple[torch.Tensor, torch.Tensor]:
@@ -409,10 +406,15 @@ class GIPlan:
             lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
         return "\n".join(lines)
 
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
+    def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
+        """The :class:`~torch_brdf.transport.polynomial.PolynomialSettings` that carry out the
+        plan: ``base`` (sampler, tiles, guides, storage; None: the defaults) with the plan's
+        series, spp (or spp map), bases, light samples and fixed objects."""
         spp = self.spp_map if self.spp_map is not None else self.spp
-        return {"series": self.series, "spp": spp, "bases": list(self.bases), "light_samples": self.light_samples}
+        base = PolynomialSettings() if base is None else base
+        return base.replace(
+            series=self.series, spp=spp, bases=self.bases, light_samples=self.light_samples, fixed=self.fixed
+        )
 
 
 def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
@@ -625,3 +627,127 @@ def plan_from_pilots(
         light_samples=light_samples,
         eye_light_share=shares[bounces],
     )
+
+
+def plan_polynomial(
+    scene: Scene,
+    error: float | None = 0.03,
+    seconds: float | None = None,
+    edit: list[str] | None = None,
+    pilot_spp: int = 4,
+    pilot_bounces: int = 8,
+    seed: int = 0,
+    env_point_lights: int | None = None,
+    progress: bool | None = None,
+    pilot_runs: int = 4,
+    adaptive: bool = True,
+    max_light_samples: int = 16,
+) -> GIPlan:
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
+
+    Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
+    runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
+    independent of ``seed``'s final run) measure the bounce tail, glossy-to-glossy transport,
+    the per-pixel Monte Carlo noise and the cost; the decisions are :func:`plan_from_pilots`'s.
+    The pilots are :func:`~torch_brdf.transport.polynomial.precompute_polynomial` runs; the
+    plan's :meth:`GIPlan.settings` carry it out.
+
+    Args:
+        scene: the scene.
+        error: relative RMSE budget (against the converged polynomial model).
+        seconds: precompute time budget.
+        edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :class:`~torch_brdf.transport.polynomial.PolynomialSettings` (the
+            pilots light the scene the same way).
+        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
+        pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
+        adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
+        max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
+            two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
+    Returns:
+        :class:`GIPlan` (``print(plan)`` shows choices, cost and error).
+    """
+    if check_count(pilot_runs, "pilot_runs") < 2:
+        raise ValueRangeError(f"the planner needs at least two pilot runs; got {pilot_runs}")
+    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
+    scene = with_fixed(scene, fixed)
+    eye = max([1] + [b.J for b in bases if b is not None])
+    pilot = PolynomialSettings(
+        series=Series((eye,) + (1,) * (pilot_bounces - 1)), bases=bases, env_point_lights=env_point_lights
+    )
+    pilots = [
+        precompute_polynomial(
+            scene, pilot.replace(spp=pilot_spp * (1, 2, 2, 4)[k % 4]), seed=seed + 7919 * (k + 1), progress=progress
+        )
+        for k in range(pilot_runs)
+    ]
+    split = []
+    if check_count(max_light_samples, "max_light_samples") > 1:
+        split = [
+            precompute_polynomial(
+                scene,
+                pilot.replace(spp=pilot_spp * (k + 1), light_samples=4),
+                seed=seed + 7919 * (pilot_runs + k + 1),
+                progress=progress,
+            )
+            for k in range(2)
+        ]
+    return plan_from_pilots(
+        scene,
+        bases,
+        errors,
+        fixed,
+        pilots,
+        error=error,
+        seconds=seconds,
+        adaptive=adaptive,
+        split_pilots=split,
+        max_light_samples=max_light_samples,
+    )
+
+
+def precompute_planned(
+    scene: Scene,
+    settings: PolynomialSettings | None = None,
+    *,
+    plan: GIPlan | None = None,
+    error: float | None = None,
+    seconds: float | None = None,
+    seed: int = 0,
+    progress: bool | None = None,
+    checkpoint: str | Path | None = None,
+    **run: Any,
+) -> PolynomialTensors:
+    """Plan the multibounce precomputation for ``error`` and/or ``seconds`` and carry it out.
+
+    Args:
+        scene: the scene.
+        settings: :class:`~torch_brdf.transport.polynomial.PolynomialSettings` whose sampler,
+            environment point lights, tiles, guides and storage the run keeps (the plan
+            decides series, spp, bases, light samples and fixed objects; the pilots use the
+            same environment point lights); None: the defaults.
+        plan: a :class:`GIPlan` to carry out instead of planning (``error`` and ``seconds``
+            are then not used).
+        error: relative RMSE budget; seconds: precompute time budget (see :func:`plan_polynomial`).
+        seed: the final run's seed (the pilots take seeds derived from it).
+        progress: tqdm bars (None: on when attached to a terminal or notebook).
+        checkpoint: the final run's tile folder (see
+            :func:`~torch_brdf.transport.polynomial.precompute_polynomial`).
+        run: the rest of ``precompute_polynomial``'s keywords (``executor``, ``processes``...).
+    Returns:
+        :class:`~torch_brdf.records.polynomial.PolynomialTensors` whose ``meta["plan"]`` prints the plan.
+    """
+    base = PolynomialSettings() if settings is None else settings
+    if not isinstance(base, PolynomialSettings):
+        raise ValueRangeError(f"settings must be a PolynomialSettings; got {settings!r}")
+    if plan is None:
+        plan = plan_polynomial(
+            scene, error=error, seconds=seconds, seed=seed, env_point_lights=base.env_point_lights, progress=progress
+        )
+    elif not isinstance(plan, GIPlan):
+        raise ValueRangeError(f"plan must be a GIPlan; got {plan!r}")
+    out = precompute_polynomial(scene, plan.settings(base), seed=seed, progress=progress, checkpoint=checkpoint, **run)
+    out.meta["plan"] = str(plan)
+    return out
