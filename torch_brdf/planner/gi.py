@@ -450,6 +450,95 @@ def _path_cost(pilots: list[PolynomialTensors], n_max: int) -> torch.Tensor:
     return (1 + 2 * reached.double().cumsum(0)).reshape(n_max + 1, h, w)
 
 
+def _check_pilots(error: float | None, seconds: float | None, pilots: list[PolynomialTensors]) -> None:
+    if error is None and seconds is None:
+        raise ValueRangeError("plan for an error, a time or both; got neither")
+    if error is not None and not error > 0:
+        raise ValueRangeError(f"error must be > 0; got {error}")
+    if len(pilots) < 2:
+        raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
+    if any(p.meta.get("spp_map") is not None for p in pilots):
+        raise ValueRangeError("pilot runs take one spp for every pixel")
+
+
+def _pilot_stats(bases, projection_errors: dict[str, float], pilots: list[PolynomialTensors], mats: dict):
+    """What the pilots measure (see the module): the counted pixels, the image's norm, the
+    bounces, the bounce tails, the per-object light by eye vertex, the
+    glossy-to-glossy light, the per-pixel noise and its relative sigma per bounce count, the
+    path cost per pixel, and the cost fit (seconds per spp, fixed seconds)."""
+    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
+    imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
+    s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
+    mean = (s[:, None, None, None, None] * imgs).sum(0) / s.sum()
+    norm = float((mean.sum(0)[keep] ** 2).sum()) ** 0.5
+    if norm == 0:
+        raise ValueRangeError("the pilot image is black: nothing to plan for")
+    n_max = pilots[0].series.bounces
+    # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
+    # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
+    tails = []
+    for n in range(n_max + 1):
+        noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
+        tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
+    names = list(pilots[0].object_names)
+    # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
+    # (cumulated over bounces 1..n: index n - 1)
+    eye_parts = {
+        name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
+    }
+    # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
+    glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
+    g2g = 0.0
+    if glossy and n_max >= 2:
+        part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
+        g2g = float((part**2).sum()) ** 0.5 / norm
+    # per-pixel noise of one path with the first n bounces (pooled over the pilots), 0 where
+    # the budget does not count; sigmas: the relative noise of the image at one spp
+    cum = imgs.cumsum(1)
+    pixvar = [_pooled_variance(cum[:, n], s) * keep for n in range(n_max + 1)]
+    sigmas = [float(v.sum()) ** 0.5 / norm for v in pixvar]
+    cost = _path_cost(pilots, n_max)
+    # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
+    # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
+    t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
+    rate_max = _slope(s, t)
+    fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
+
+    return keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s
+
+
+def _light_sample_ratios(split_pilots, mats: dict, pixvar: list, keep, n_max: int, max_light_samples: int):
+    """Per bounce count n: {k: V(k) / V(1)} for the light samples k a plan may take, and the
+    share B / V(1) of a path's variance the eye vertex's next-event estimate makes (from
+    ``split_pilots`` at K light samples; without them only k = 1, share 0)."""
+    ratios = {n: {1: 1.0} for n in range(n_max + 1)}
+    shares = [0.0] * (n_max + 1)
+    if split_pilots:
+        k_p = int(split_pilots[0].meta.get("light_samples", 1))
+        if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
+            raise ValueRangeError("split_pilots: at least two runs, all with the same light_samples >= 2")
+        s_k = torch.tensor([float(p.meta["spp"]) for p in split_pilots], dtype=torch.float64)
+        cum_k = torch.stack([pilot_images(p, mats) for p in split_pilots]).cumsum(1)
+        for n in range(1, n_max + 1):
+            v1, vk = float(pixvar[n].sum()), float((_pooled_variance(cum_k[:, n], s_k) * keep).sum())
+            b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
+            shares[n] = b / v1 if v1 > 0 else 0.0
+            ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
+    return ratios, shares
+
+
+def _planned_series(bases, bounces: int, g2g: float, budget: float) -> tuple[Series, list]:
+    """The series of ``bounces`` (a low-frequency second bounce where the glossy-to-glossy light
+    ``g2g`` exceeds its share of the budget) and the bases with its second-bounce bands."""
+    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
+    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
+        series_bands[1] = min(16, series_bands[0])
+    series = Series(tuple(series_bands))
+    if series.two_level:
+        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
+    return series, bases
+
+
 def plan_from_pilots(
     scene: Scene,
     bases: list[ObjectBasis | None],
@@ -479,36 +568,13 @@ def plan_from_pilots(
     Returns:
         :class:`GIPlan`.
     """
-    if error is None and seconds is None:
-        raise ValueRangeError("plan for an error, a time or both; got neither")
-    if error is not None and not error > 0:
-        raise ValueRangeError(f"error must be > 0; got {error}")
-    if len(pilots) < 2:
-        raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
-    if any(p.meta.get("spp_map") is not None for p in pilots):
-        raise ValueRangeError("pilot runs take one spp for every pixel")
+    _check_pilots(error, seconds, pilots)
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
-    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
-    imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
-    s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
-    mean = (s[:, None, None, None, None] * imgs).sum(0) / s.sum()
-    norm = float((mean.sum(0)[keep] ** 2).sum()) ** 0.5
-    if norm == 0:
-        raise ValueRangeError("the pilot image is black: nothing to plan for")
-    n_max = pilots[0].series.bounces
-    # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
-    # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
-    tails = []
-    for n in range(n_max + 1):
-        noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
-        tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
+    keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
+        bases, projection_errors, pilots, mats
+    )
     budget = error if error is not None else 1.0
     names = list(pilots[0].object_names)
-    # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
-    # (cumulated over bounces 1..n: index n - 1)
-    eye_parts = {
-        name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
-    }
 
     def band_error_at(n: int) -> float:
         # the projection error weighted by the light whose eye vertex is on the object
@@ -517,44 +583,14 @@ def plan_from_pilots(
             / norm
         )
 
-    # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
-    glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
-    g2g = 0.0
-    if glossy and n_max >= 2:
-        part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
-        g2g = float((part**2).sum()) ** 0.5 / norm
-    # per-pixel noise of one path with the first n bounces (pooled over the pilots), 0 where
-    # the budget does not count; sigmas: the relative noise of the image at one spp
-    cum = imgs.cumsum(1)
-    pixvar = [_pooled_variance(cum[:, n], s) * keep for n in range(n_max + 1)]
-    sigmas = [float(v.sum()) ** 0.5 / norm for v in pixvar]
-    cost = _path_cost(pilots, n_max)
-    # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
-    # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
-    t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
-    rate_max = _slope(s, t)
-    fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
-
     # light splitting at the eye vertex: a path's variance is V(k) = A + B / k with k light
     # samples (B: the variance of the eye vertex's next-event estimate), from the variance at
     # k = 1 (the pilots) and at k = K (``split_pilots``); each extra sample costs a path
     # EXTRA_SAMPLE_COST ray units per light where the eye ray hits something (the pilots'
     # seconds are too short to measure it on a loaded machine)
-    ratios = {n: {1: 1.0} for n in range(n_max + 1)}
-    shares = [0.0] * (n_max + 1)
+    ratios, shares = _light_sample_ratios(split_pilots, mats, pixvar, keep, n_max, max_light_samples)
     hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
     extra = EXTRA_SAMPLE_COST * len(scene.lights)
-    if split_pilots:
-        k_p = int(split_pilots[0].meta.get("light_samples", 1))
-        if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
-            raise ValueRangeError("split_pilots: at least two runs, all with the same light_samples >= 2")
-        s_k = torch.tensor([float(p.meta["spp"]) for p in split_pilots], dtype=torch.float64)
-        cum_k = torch.stack([pilot_images(p, mats) for p in split_pilots]).cumsum(1)
-        for n in range(1, n_max + 1):
-            v1, vk = float(pixvar[n].sum()), float((_pooled_variance(cum_k[:, n], s_k) * keep).sum())
-            b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
-            shares[n] = b / v1 if v1 > 0 else 0.0
-            ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
 
     def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float, float]:
         # the cheapest spp (map) with n bounces and k eye light samples for the error within the
@@ -601,12 +637,7 @@ def plan_from_pilots(
         bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
-    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
-    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
-        series_bands[1] = min(16, series_bands[0])
-    series = Series(tuple(series_bands))
-    if series.two_level:
-        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
+    series, bases = _planned_series(bases, bounces, g2g, budget)
     bias2 = band_error**2 + tails[bounces] ** 2
     return GIPlan(
         series=series,

@@ -497,16 +497,13 @@ def precompute_polynomial(
             local executor only).
     Returns:
         :class:`PolynomialTensors`; ``meta`` holds the resolved settings (series, spp, bases,
-        sampler, tiles...), ``meta["split"]`` the profile split in seconds
-        (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
-        computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver),
-        ``meta["timeline"]`` the tiles computed in this call as [tile, process id, start, end
-        (wall seconds after the call began), CPU seconds], ``meta["tiles_cached"]`` the tiles
-        loaded from ``checkpoint``, ``meta["ray_nodes"]`` the Ray nodes that computed tiles (0
-        for ``local``), ``meta["processes"]`` the local processes that computed tiles at once
-        (0 for Ray) and ``meta["guides"]`` the guides' version (:func:`~torch_brdf.transport.guides.guide_buffers`:
-        one pixel-centre ray and its mirror ray per pixel, saved with the record, so that
-        :func:`torch_brdf.denoise.denoise` needs nothing else; None without guides).
+        sampler, tiles...), ``meta["split"]`` the profile split in seconds (``rays``,
+        ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles computed in
+        this call; ``assemble`` and ``write`` on the driver), ``meta["timeline"]`` those tiles
+        as [tile, process id, start, end (wall seconds after the call began), CPU seconds],
+        ``meta["tiles_cached"]``, ``meta["ray_nodes"]``, ``meta["processes"]`` and
+        ``meta["guides"]`` the version of the view's denoiser guides
+        (:func:`~torch_brdf.transport.guides.guide_buffers`; None without guides).
     Raises:
         TypeError: settings given one by one (``spp=``, ``series=``...) or a plan (``plan=``).
     """
