@@ -81,7 +81,7 @@ from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
 from torch_brdf.transport.executor import wait_tile_processes
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.rays import NativeRays
 
 
@@ -232,7 +232,7 @@ def main() -> None:
     sc = cornell_box_glossy(res)
     t0 = time.perf_counter()
     forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
-    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
+    T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
     tl = T.meta["timeline"]  # [tile, process, start, end, CPU s] of each tile, s after the call began
@@ -246,7 +246,7 @@ def main() -> None:
     def again(**kw):
         """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
         t0, c0 = time.perf_counter(), _cpu_seconds()
-        T_ = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **kw)
+        T_ = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **kw)
         cpu[0] = _cpu_seconds() - c0
         return T_, time.perf_counter() - t0
 
@@ -279,7 +279,9 @@ def main() -> None:
     rec_spp = max(1, spp // 8)
     rsc = cornell_box_glossy(res)
     with _recording_rays(rsc, limit=1 << 20 if q else 1 << 22) as log:
-        precompute_polynomial(rsc, "64,1,1,1", spp=rec_spp, seed=1, progress=False, processes=1, guides=False)
+        precompute_polynomial(
+            rsc, PolynomialSettings("64,1,1,1", spp=rec_spp, guides=False), seed=1, progress=False, processes=1
+        )
     out["precompute_resolution"], out["precompute_spp"] = res, spp
     out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
     out["rays"] = T.meta["rays"]
@@ -308,7 +310,7 @@ def main() -> None:
     # -- freezing and frames at 512^2 ------------------------------------------------------------
     fres, fspp = (128, 2) if q else (512, 4)
     sc5 = cornell_box_glossy(fres)
-    T5 = precompute_polynomial(sc5, "64,1,1,1", spp=fspp, seed=1, progress=True)
+    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
     R = PolynomialRenderer(T5, _materials(sc5))
     out["freeze_resolution"], out["freeze_spp"] = fres, fspp
     out["freeze_entries"] = T5.num_entries
@@ -364,7 +366,7 @@ def main() -> None:
     runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
     for series, n, key in runs:
         t0 = time.perf_counter()
-        Tk = precompute_polynomial(sca, series, spp=n, seed=2, progress=False)
+        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
         secs = time.perf_counter() - t0
         img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
         bounces = Tk.series.bounces

@@ -61,7 +61,7 @@ import numpy as np
 from torch_brdf.errors import TorchBRDFError
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport.executor import connect_ray
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _timing import best_of
@@ -119,7 +119,7 @@ def main() -> None:
 
     res, spp, rows = (64, 8, 8) if args.quick else (128, 16, 8)
     sc = cornell_box_glossy(res)
-    kw = {"series": "64,1,1,1", "spp": spp, "seed": 0, "tile_rows": rows, "progress": False}
+    kw = {"settings": PolynomialSettings(series="64,1,1,1", spp=spp, tile_rows=rows), "seed": 0, "progress": False}
     tiles = -(-res // rows)
     out: dict = {"quick": args.quick, "resolution": res, "spp": spp, "tiles": tiles, "cpus": os.cpu_count()}
     out["load_avg_start"] = os.getloadavg()[0]

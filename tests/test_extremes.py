@@ -46,7 +46,7 @@ from torch_brdf.scene import Camera, Scene, SceneObject
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.lights import AreaLight
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.visibility import precompute_visibility
 
 F32, F64 = torch.float32, torch.float64
@@ -92,7 +92,9 @@ def _max_rel(a: torch.Tensor, b: torch.Tensor) -> float:
 @cache
 def _box_tensors():
     """The 8x8 glossy Cornell box (every object editable), series 8,1,1 at 2 spp."""
-    return precompute_polynomial(glossy_box(8, fixed_box=False), "8,1,1", spp=2, seed=0, progress=False)
+    return precompute_polynomial(
+        glossy_box(8, fixed_box=False), PolynomialSettings("8,1,1", spp=2), seed=0, progress=False
+    )
 
 
 def _poly(materials: dict, dtype: torch.dtype, tensors=None) -> torch.Tensor:
@@ -144,7 +146,9 @@ def _scaled(sc: Scene, s: float) -> Scene:
 
 
 def poly_scale(s: float) -> Outcome:
-    T = precompute_polynomial(_scaled(glossy_box(8, fixed_box=False), s), "8,1,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(
+        _scaled(glossy_box(8, fixed_box=False), s), PolynomialSettings("8,1,1", spp=2), seed=0, progress=False
+    )
     a, b = _poly({}, F64, T), _poly({}, F64)
     mask = emitter_mask(_box_tensors())
     return Outcome([a], _rel(a, b, mask), 0.05, f"scale {s:g} vs scale 1, same seed (relative RMSE)")
@@ -160,7 +164,7 @@ def _bright_sky() -> EnvironmentMap:
 def poly_bright_sun() -> Outcome:
     sc = ball_on_plane(quads=4).with_resolution(12, 9)
     sc.lights[:] = [_bright_sky()]
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "sun 1e6 x sky, box on plane; float32 vs float64")
 
 
@@ -169,14 +173,14 @@ def poly_grazing_view() -> Outcome:
     sc = glossy_box(8, fixed_box=False)
     c = sc.camera
     sc.camera = Camera((278.0, 1.0, -800.0), (278.0, 1.0, 559.0), c.up, c.fov_deg, c.width, c.height)
-    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("8,1,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "eye 1 unit above the floor; float32 vs float64")
 
 
 def poly_grazing_light() -> Outcome:
     sc = ball_on_plane(quads=4).with_resolution(12, 9)
     sc.lights[:] = [EnvironmentMap.sky(height=32, sun_direction=(1.0, 0.01, 0.0), sun_angular_radius_deg=2.0)]
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "sun 0.6 deg above the horizon; float32 vs float64")
 
 

@@ -29,10 +29,8 @@ from pathlib import Path
 import typer
 
 from ._checks import (
-    MAX_BANDS,
     MAX_CUBEMAP_RESOLUTION,
     MAX_IMAGE_SIDE,
-    check_count,
     check_image_size,
     check_int,
     check_real,
@@ -183,6 +181,26 @@ def load_scene(
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
 
 
+#: options of ``precompute`` named otherwise than their settings field
+_SETTING_OPTIONS = {"mixture": "--sampler"}
+
+
+def _polynomial_settings(**options):
+    """:class:`~torch_brdf.transport.polynomial.PolynomialSettings` from command-line options
+    (their one check); a refused value is named as its option (``--series ...``)."""
+    from .errors import TorchBRDFError
+    from .transport.polynomial import PolynomialSettings
+
+    try:
+        return PolynomialSettings(**options)
+    except TorchBRDFError as exc:
+        name = getattr(exc, "setting", None)
+        if name is not None:
+            option, message = _SETTING_OPTIONS.get(name, "--" + name.replace("_", "-")), str(exc)
+            exc.args = ("--" + message if message.startswith(name + " ") else f"{option}: {message}",)
+        raise
+
+
 def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resolution, width, height):
     """SCENE, or ``--mesh FILE`` (:func:`torch_brdf.scene.mesh_scene`); ``--envmap FILE`` replaces
     the scene's lights by that lat-long map."""
@@ -313,7 +331,6 @@ def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML sc
     typer.echo(json.dumps(load_scene(scene).info(), indent=2))
 
 
-_STORAGES = ("float32", "float16")
 #: ``--ray`` of the three precomputations (their tiles run as Ray tasks; default: this process)
 RAY = typer.Option(
     None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
@@ -351,41 +368,35 @@ def precompute(
 ):
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
+    from .planner.gi import precompute_planned
     from .records.cache import remove_cache
-    from .transport.polynomial import LobeMixture, Series, precompute_polynomial
-    from .transport.polynomial.plan import check_basis_overrides
+    from .transport.polynomial import LobeMixture, precompute_polynomial
 
     # every option is checked before the scene is loaded and the precompute starts
     samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
     if sampler not in samplers:
         raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
-    parsed = Series.parse(series)
-    check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
-    if storage not in _STORAGES:
-        raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
-    overrides = check_basis_overrides(_json_object(bases, "--bases"), "--bases")
+    settings = _polynomial_settings(
+        series=series,
+        spp=spp,
+        bases=_json_object(bases, "--bases"),
+        mixture=samplers[sampler],
+        env_point_lights=env_point_lights,
+        storage=storage,
+    )
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
-    T = precompute_polynomial(
-        sc,
-        parsed,
-        spp=spp,
-        seed=seed,
-        bases=overrides,
-        mixture=samplers[sampler],
-        env_point_lights=env_point_lights,
-        checkpoint=tiles,
-        progress=progress,
-        plan="auto" if error is not None else None,
-        error=error,
-        executor="local" if ray is None else "ray",
-        address=ray,
-    )
+    run = {"seed": seed, "checkpoint": tiles, "progress": progress, "executor": "local" if ray is None else "ray"}
+    run["address"] = ray
+    if error is not None:  # the planner decides series, bases, spp and light samples
+        T = precompute_planned(sc, settings, error=error, **run)
+    else:
+        T = precompute_polynomial(sc, settings, **run)
     if "plan" in T.meta:
         typer.echo(T.meta["plan"], err=True)
     seconds = time.perf_counter() - t0
-    T.save(out, storage=storage)
+    T.save(out, storage=settings.storage)
     remove_cache(tiles)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": T.series.key, "spp": T.meta["spp"]}
@@ -710,7 +721,7 @@ def fit_image_cmd(
         sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
+        T = precompute_polynomial(sc, _polynomial_settings(series=series, spp=spp), seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
@@ -835,7 +846,7 @@ def relight(
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
     plan = None
     if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
-        from .render.relight_plan import plan_relighting, planned_renderer
+        from .planner.relight_pilots import plan_relighting, planned_renderer
 
         env = sc.environment.rotated(rotate) if rotate and sc.environment is not None else None
         plan = plan_relighting(sc, error=error, psnr=psnr, envmap=env)
@@ -877,9 +888,8 @@ def editor(
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
-    from .transport.polynomial import Series
 
-    check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
+    _polynomial_settings(series=series, spp=spp)  # checked before the server starts
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     if (relight is None) != (visibility is None):

@@ -138,9 +138,11 @@ def test_bad_edits_raise_readable_errors(session):
 
 
 def test_fresnel_layer_f0(small_scene):
-    from torch_brdf.transport import precompute_polynomial
+    from torch_brdf.transport import PolynomialSettings, precompute_polynomial
 
-    t = precompute_polynomial(small_scene, "8,1", spp=1, seed=0, bases={"back": {"fresnel": True}}, progress=False)
+    t = precompute_polynomial(
+        small_scene, PolynomialSettings("8,1", spp=1, bases={"back": {"fresnel": True}}), seed=0, progress=False
+    )
     s = EditorSession(t, small_scene)
     s.select("back")
     mat = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 50.0}

@@ -101,7 +101,7 @@ def test_damaged_render_checkpoint_is_moved_aside_and_recomputed(tmp_path):
 def test_precompute_tiles_after_scene_edit_equal_fresh_precompute(tmp_path, monkeypatch):
     from torch_brdf.scene.builtin import cornell_box
     from torch_brdf.scene.lights import AreaLight
-    from torch_brdf.transport.polynomial import driver, precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, driver, precompute_polynomial
 
     old = cornell_box(8)
     old.objects[old.object_id("short_box")].editable = False  # its albedo is baked into the tensors
@@ -115,7 +115,7 @@ def test_precompute_tiles_after_scene_edit_equal_fresh_precompute(tmp_path, monk
     )
     # processes=1: the interruption counts tile calls in this process (on a quiet machine tiles
     # would otherwise run in forked processes, which the monkeypatch does not count)
-    kw = dict(series="8,1", spp=2, seed=3, tile_rows=2, progress=False, processes=1)
+    kw = dict(settings=PolynomialSettings(series="8,1", spp=2, tile_rows=2), seed=3, progress=False, processes=1)
     _interrupt_after(driver, "_tile_entries", 3, monkeypatch)  # two tiles saved, then killed
     with pytest.raises(KeyboardInterrupt):
         precompute_polynomial(old, checkpoint=tmp_path, **kw)

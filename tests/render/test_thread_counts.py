@@ -13,7 +13,7 @@ from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.render.triple import PhongRule
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.envmap import EnvironmentMap
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.visibility import precompute_visibility
 
 COUNTS = (1, 2, 3)  # 3 > the cores of a 2-core machine: oversubscribed, still the same result
@@ -24,7 +24,7 @@ def polynomial():
     sc = cornell_box(32)  # large enough that the products and scatters run in parallel
     sc.materials["glossy"] = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 100.0}
     sc.objects[sc.object_id("back")].material = "glossy"
-    t = precompute_polynomial(sc, "8,4,1", spp=2, seed=5, progress=False)
+    t = precompute_polynomial(sc, PolynomialSettings("8,4,1", spp=2), seed=5, progress=False)
     return t, {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
 
 

@@ -166,13 +166,14 @@ def test_counts_and_seeds_are_checked_before_rendering(kwargs, name):
     [({"group": -1}, "group"), ({"tile_rows": -1}, "tile_rows"), ({"seed": -1}, "seed"), ({"spp": 0}, "spp")],
 )
 def test_precompute_counts_are_checked(kwargs, name):
-    from torch_brdf.transport.polynomial import precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
     scene = _closed_cube(0.5, 1.0, size=8)
     with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
-        precompute_polynomial(scene, "2,1", **{"spp": 1, "progress": False, **kwargs})
+        fields = {"spp": 1, **{k: v for k, v in kwargs.items() if k != "seed"}}
+        precompute_polynomial(scene, PolynomialSettings("2,1", **fields), seed=kwargs.get("seed", 0), progress=False)
     with pytest.raises(ValueRangeError, match="series bands per bounce must be <= 4096"):
-        precompute_polynomial(scene, "1000000000,1", spp=1, progress=False)
+        precompute_polynomial(scene, PolynomialSettings("1000000000,1", spp=1), progress=False)
 
 
 @pytest.mark.parametrize(

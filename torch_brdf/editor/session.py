@@ -37,7 +37,7 @@ from ..records import PolynomialTensors
 from ..render import PolynomialRenderer
 from ..render.polynomial import emitter_mask
 from ..scene import trace_gbuffer
-from ..transport import path_trace, precompute_polynomial
+from ..transport import PolynomialSettings, path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
@@ -223,7 +223,7 @@ def load_source(
             return PolynomialTensors.load(cached), sc, f"cached precomputation {cached.name}"
         if Path(cache_dir).exists() and not Path(cache_dir).is_dir():  # before the precompute
             raise FileFormatError(f"the cache folder {str(cache_dir)!r} is a file (set TORCH_BRDF_CACHE to a folder)")
-    tensors = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=progress)
+    tensors = precompute_polynomial(sc, PolynomialSettings(series, spp=spp), seed=seed, progress=progress)
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
         tensors.save(cached)

@@ -405,6 +405,41 @@ def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 25):
     return None
 
 
+def _normalised(H, f, G, h):
+    """Unit-norm rows, x in units of the largest right-hand side (so that h ~ 1 also for rho_d ->
+    1, where h = 1e-9 would otherwise sit below the absolute tolerances), ||H||_max = 1:
+    (row norms, x scale, objective scale, H, f, G, h normalised)."""
+    M = G.shape[0]
+    rn = G.norm(dim=1).clamp_min(1e-300)
+    Gs, hr = G / rn[:, None], h / rn
+    s_x = float(hr.max()) if M and float(hr.max()) > 0 else 1.0
+    s_obj = max(float(H.abs().max()) * s_x * s_x, float(f.abs().max()) * s_x, 1e-300)
+    return rn, s_x, s_obj, H * (s_x * s_x / s_obj), f * (s_x / s_obj), Gs, hr / s_x
+
+
+def _certified_infeasible(dy, lb, ub, E, Dinv, AbT) -> bool:
+    """OSQP's primal infeasibility certificate (Sec. 3.4) on the dual step ``dy`` projected onto
+    the recession cone of the box [lb, ub]."""
+    dy = torch.where(torch.isinf(ub), dy.clamp_max(0), dy)
+    dy = torch.where(torch.isinf(lb), dy.clamp_min(0), dy)
+    ndy = float((E * dy).abs().max())
+    if ndy <= 1e-12:
+        return False
+    supp = float(torch.where(dy > 0, torch.nan_to_num(ub, posinf=0.0) * dy, torch.zeros_like(dy)).sum())
+    supp += float(torch.where(dy < 0, torch.nan_to_num(lb, neginf=0.0) * dy, torch.zeros_like(dy)).sum())
+    return float((Dinv * (AbT @ dy)).abs().max()) <= 1e-9 * ndy and supp < -1e-9 * ndy
+
+
+def _residuals(x, y, z, Ab, AbT, P, q, Einv, Dinv, c, qn) -> tuple[float, float, float, float]:
+    """ADMM's unscaled primal and dual residuals and their norms (OSQP Sec. 3.4)."""
+    Ax, Px, Aty = Ab @ x, P @ x, AbT @ y
+    r_prim = float((Einv * (Ax - z)).abs().max())
+    r_dual = float((Dinv * (Px + q + Aty)).abs().max()) / c
+    n_prim = max(float((Einv * Ax).abs().max()), float((Einv * z).abs().max()))
+    n_dual = max(float((Dinv * Px).abs().max()) / c, float((Dinv * Aty).abs().max()) / c, qn)
+    return r_prim, r_dual, n_prim, n_dual
+
+
 def _solve_admm(
     H,
     f,
@@ -423,19 +458,11 @@ def _solve_admm(
 ) -> QPResult:
     H, f, G, h = _prepare(H, f, G, h)
     J, M = H.shape[0], G.shape[0]
-    # normalise: unit-norm rows, x in units of the largest right-hand side (so that h ~ 1 also for
-    # rho_d -> 1, where h = 1e-9 would otherwise sit below the absolute tolerances), ||H||_max = 1
-    rn = G.norm(dim=1).clamp_min(1e-300)
-    Gs, hr = G / rn[:, None], h / rn
-    s_x = float(hr.max()) if M and float(hr.max()) > 0 else 1.0
-    s_obj = max(float(H.abs().max()) * s_x * s_x, float(f.abs().max()) * s_x, 1e-300)
-    Hs, fs, hs = H * (s_x * s_x / s_obj), f * (s_x / s_obj), hr / s_x
+    rn, s_x, s_obj, Hs, fs, Gs, hs = _normalised(H, f, G, h)
     # constraints l <= A x <= u with A = [G; I], l = [-inf; 0], u = [h; +inf]
-    A = torch.cat((Gs, torch.eye(J, dtype=torch.float64)))
-    inf = torch.full((M,), math.inf, dtype=torch.float64)
-    lo = torch.cat((-inf, torch.zeros(J, dtype=torch.float64)))
+    lo = torch.cat((torch.full((M,), -math.inf, dtype=torch.float64), torch.zeros(J, dtype=torch.float64)))
     up = torch.cat((hs, torch.full((J,), math.inf, dtype=torch.float64)))
-    D, E, c, P, q, Ab = _ruiz(Hs, -fs, A)
+    D, E, c, P, q, Ab = _ruiz(Hs, -fs, torch.cat((Gs, torch.eye(J, dtype=torch.float64))))
     lb, ub = E * lo, E * up
     AbT = Ab.T.contiguous()
     AtA = AbT @ Ab
@@ -489,13 +516,7 @@ def _solve_admm(
         z = zn
         if it % check_every and it != max_iter:
             continue
-        Ax = Ab @ x
-        Px = P @ x
-        Aty = AbT @ y
-        r_prim = float((Einv * (Ax - z)).abs().max())
-        r_dual = float((Dinv * (Px + q + Aty)).abs().max()) / c
-        n_prim = max(float((Einv * Ax).abs().max()), float((Einv * z).abs().max()))
-        n_dual = max(float((Dinv * Px).abs().max()) / c, float((Dinv * Aty).abs().max()) / c, qn)
+        r_prim, r_dual, n_prim, n_dual = _residuals(x, y, z, Ab, AbT, P, q, Einv, Dinv, c, qn)
         if r_prim <= eps + eps * n_prim and r_dual <= eps + eps * n_dual:
             converged = True
             break
@@ -510,16 +531,9 @@ def _solve_admm(
             if early is not None:
                 break
         # primal infeasibility certificate (OSQP Sec. 3.4) on dy projected onto the recession cone
-        dy = y - y_prev
+        if r_prim > eps + eps * n_prim and _certified_infeasible(y - y_prev, lb, ub, E, Dinv, AbT):
+            raise InfeasibleError(f"ADMM: primal infeasibility certificate after {it} iterations")
         y_prev = y.clone()
-        dy = torch.where(torch.isinf(ub), dy.clamp_max(0), dy)
-        dy = torch.where(torch.isinf(lb), dy.clamp_min(0), dy)
-        ndy = float((E * dy).abs().max())
-        if ndy > 1e-12 and r_prim > eps + eps * n_prim:
-            supp = float(torch.where(dy > 0, torch.nan_to_num(ub, posinf=0.0) * dy, torch.zeros_like(dy)).sum())
-            supp += float(torch.where(dy < 0, torch.nan_to_num(lb, neginf=0.0) * dy, torch.zeros_like(dy)).sum())
-            if float((Dinv * (AbT @ dy)).abs().max()) <= 1e-9 * ndy and supp < -1e-9 * ndy:
-                raise InfeasibleError(f"ADMM: primal infeasibility certificate after {it} iterations")
         # adaptive rho (OSQP Sec. 5.2): balance the relative residuals, every rho_every iterations
         # (every 10 made rho oscillate and ADMM stall on the near-LP problems of rho_d -> 1)
         if it % rho_every:
