@@ -1,6 +1,7 @@
 """BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
 
     python benchmarks/polynomial.py [--quick] [--precompute-only] [--baseline] [--torch-path]
+    python benchmarks/polynomial.py --memory-only [--quick]
 
 Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
 coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
@@ -59,6 +60,15 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   ``seconds`` and ``rel_rmse`` against the same reference (the peer on the report's curve).
 * ``mitsuba_vs_reference_rel_rmse`` and ``reference_seed_rel_rmse`` (two seeds of our
   reference at the Mitsuba spp): agreement within noise means the first is about the second.
+* ``memory`` (with ``--memory`` or ``--memory-only``): peak RSS of precompute (with its save),
+  freeze and the denoised freeze (``freeze(obj, "linear")``), each in a fresh subprocess, at two
+  sizes (128² and 256², 8 spp; ``--quick``: 64² and 128²) of the glossy Cornell box
+  (``benchmarks/_memory.py``): per stage ``peak_mb``, ``above_start_mb``, ``bytes_per_pixel``,
+  ``bytes_per_pixel_sample`` and ``over_file`` at each size, and ``growth_over_file``: the growth
+  of the peak between the two sizes over the growth of the saved record (the multiple of the
+  record a stage holds on large scenes); ``fixed_mb``: the peak at the larger size less that
+  multiple of its record; ``predicted_gb``: fixed + multiple x record for a 512², 64-spp
+  (0.26 GB), a 1024², 64-spp (1.05 GB) and a 1024², 1024-spp (4.2 GB) record.
 """
 
 from __future__ import annotations
@@ -210,6 +220,29 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
     return {"image": img, "seconds": secs, "variant": variant}
 
 
+#: record sizes (GB) of the scenes the memory keys predict for (series 64,1,1,1; the 1024-spp
+#: size from the entries' growth with spp measured on the glossy Cornell box)
+RECORD_GB = {"512_spp64": 0.26, "1024_spp64": 1.05, "1024_spp1024": 4.2}
+
+
+def _memory_keys(quick: bool) -> dict:
+    from _memory import stage_peaks
+
+    small, large = (64, 128) if quick else (128, 256)
+    a, b = stage_peaks(small, 8), stage_peaks(large, 8)
+    out: dict = {"small": a, "large": b, "load": os.getloadavg()[0]}
+    grow_file = b["file_mb"] - a["file_mb"]
+    for stage in ("precompute", "freeze", "denoise"):
+        k = max(0.0, (b[stage]["peak_mb"] - a[stage]["peak_mb"]) / grow_file)
+        fixed = b[stage]["peak_mb"] - k * b["file_mb"]
+        out[stage] = {
+            "growth_over_file": round(k, 2),
+            "fixed_mb": round(fixed, 1),
+            "predicted_gb": {name: round((fixed / 1024 + k * gb), 2) for name, gb in RECORD_GB.items()},
+        }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
@@ -220,9 +253,16 @@ def main() -> None:
     ap.add_argument(
         "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
     )
+    ap.add_argument("--memory", action="store_true", help="also measure peak RSS per stage (subprocesses)")
+    ap.add_argument("--memory-only", action="store_true", help="only the peak RSS per stage")
     args = ap.parse_args()
     q = args.quick
     out: dict = {"quick": q}
+    if args.memory or args.memory_only:
+        out["memory"] = _memory_keys(q)
+        if args.memory_only:
+            print(json.dumps(out))
+            return
     t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
     out["native"] = _native.library() is not None
     out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()

@@ -342,8 +342,11 @@ RAY = typer.Option(
 def precompute(
     scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
     out: Path = typer.Option(Path("out/tensors.npz"), help="Output tensor file (.npz, versioned, checksummed)."),
-    series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
-    spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
+    series: str = typer.Option(
+        None,
+        help="A fixed BRDF series (J_N,...,J_1) from the eye, its length = bounces, instead of a plan (e.g. 64,16,1).",
+    ),
+    spp: int = typer.Option(None, **_SPP, help="Paths per pixel of a fixed series (default 64)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
     width: int = WIDTH,
     height: int = HEIGHT,
@@ -356,7 +359,10 @@ def precompute(
     ),
     progress: bool = PROGRESS,
     error: float = typer.Option(
-        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
+        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (default 0.03 when planning)."
+    ),
+    seconds: float = typer.Option(
+        None, min=0.0, help="The plan's precompute time budget in seconds (default 600 when planning)."
     ),
     ray: str = RAY,
     sampler: str = typer.Option(
@@ -366,9 +372,13 @@ def precompute(
         "and direction samples stratified over each pixel's paths).",
     ),
 ):
-    """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
+    """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008).
+
+    By default the planner chooses series, bases, spp and light samples for a relative RMSE of
+    0.03 within 600 s (--error, --seconds); --series (with --spp, --bases) runs a fixed series
+    instead. The plan is printed and saved in the record."""
     _file_out(out)
-    from .planner.gi import precompute_planned
+    from .planner.gi import DEFAULT_ERROR, DEFAULT_SECONDS, precompute_planned
     from .records.cache import remove_cache
     from .transport.polynomial import LobeMixture, precompute_polynomial
 
@@ -376,9 +386,12 @@ def precompute(
     samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
     if sampler not in samplers:
         raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
+    fixed_series = series is not None or spp is not None or bases is not None
+    if fixed_series and (error is not None or seconds is not None):
+        raise ValueRangeError("--error/--seconds plan the series; --series/--spp/--bases fix it: give one or the other")
     settings = _polynomial_settings(
-        series=series,
-        spp=spp,
+        series="64,1,1,1" if series is None else series,
+        spp=64 if spp is None else spp,
         bases=_json_object(bases, "--bases"),
         mixture=samplers[sampler],
         env_point_lights=env_point_lights,
@@ -389,8 +402,10 @@ def precompute(
     t0 = time.perf_counter()
     run = {"seed": seed, "checkpoint": tiles, "progress": progress, "executor": "local" if ray is None else "ray"}
     run["address"] = ray
-    if error is not None:  # the planner decides series, bases, spp and light samples
-        T = precompute_planned(sc, settings, error=error, **run)
+    if not fixed_series:  # the planner decides series, bases, spp and light samples
+        error = DEFAULT_ERROR if error is None else error
+        seconds = DEFAULT_SECONDS if seconds is None else seconds
+        T = precompute_planned(sc, settings, error=error, seconds=seconds, **run)
     else:
         T = precompute_polynomial(sc, settings, **run)
     if "plan" in T.meta:

@@ -66,6 +66,8 @@ from ..scene.scene import Scene
 from ..transport.polynomial import PolynomialSettings, precompute_polynomial, with_fixed
 
 __all__ = [
+    "DEFAULT_ERROR",
+    "DEFAULT_SECONDS",
     "GIPlan",
     "allocate_spp",
     "choose_bands",
@@ -106,6 +108,14 @@ LEVELS_PER_OCTAVE = 2
 #: 2.8-ray path per extra sample, ~1 ray; 1.5 leaves room for the bookkeeping of 32-band entries)
 LIGHT_SAMPLES = (1, 2, 4, 8, 16)
 EXTRA_SAMPLE_COST = 1.5
+#: what :func:`precompute_planned` and ``torch-brdf precompute`` plan for when told nothing: a
+#: relative RMSE of 3% against the converged model (edits inherit it) within 10 minutes of
+#: precompute (the time budget wins when both cannot be met: the plan then says its error)
+DEFAULT_ERROR = 0.03
+DEFAULT_SECONDS = 600.0
+#: the most paths per pixel (on average) a time budget alone may buy: a generous budget on a small
+#: view would otherwise ask for more memory than any machine has
+MAX_PLANNED_SPP = 1 << 14
 
 
 def _quadrature(basis: BandBasis) -> PairQuadrature:
@@ -406,6 +416,25 @@ class GIPlan:
             lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
         return "\n".join(lines)
 
+    def summary(self) -> dict[str, Any]:
+        """The plan as JSON-ready values (what a planned record saves in ``meta["plan_summary"]``)."""
+        return {
+            "error": self.error,
+            "seconds": self.seconds,
+            "series": self.series.key,
+            "spp": self.spp,
+            "adaptive": self.spp_map is not None,
+            "light_samples": self.light_samples,
+            "fixed": list(self.fixed),
+            "predicted_error": self.predicted_error,
+            "band_error": self.band_error,
+            "bounce_error": self.bounce_error,
+            "noise_error": self.noise_error,
+            "predicted_seconds": self.predicted_seconds,
+            "pilot_seconds": self.pilot_seconds,
+            "glossy_to_glossy": self.glossy_to_glossy,
+        }
+
     def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
         """The :class:`~torch_brdf.transport.polynomial.PolynomialSettings` that carry out the
         plan: ``base`` (sampler, tiles, guides, storage; None: the defaults) with the plan's
@@ -607,6 +636,8 @@ def plan_from_pilots(
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
         spp_time = None if seconds is None else max(1e-9, (seconds - fixed_s) / max(rate, 1e-12))
+        if spp_time is not None:
+            spp_time = min(spp_time, MAX_PLANNED_SPP)
         if adaptive:
             noise = None if share2 is None else share2 * norm**2
             shape = (_smoothed(var, keep) + DEFENSIVE * float(var[keep].mean())).sqrt() * keep
@@ -761,18 +792,22 @@ def precompute_planned(
             same environment point lights); None: the defaults.
         plan: a :class:`GIPlan` to carry out instead of planning (``error`` and ``seconds``
             are then not used).
-        error: relative RMSE budget; seconds: precompute time budget (see :func:`plan_polynomial`).
+        error: relative RMSE budget; seconds: precompute time budget (see :func:`plan_polynomial`);
+            when neither is given, :data:`DEFAULT_ERROR` within :data:`DEFAULT_SECONDS`.
         seed: the final run's seed (the pilots take seeds derived from it).
         progress: tqdm bars (None: on when attached to a terminal or notebook).
         checkpoint: the final run's tile folder (see
             :func:`~torch_brdf.transport.polynomial.precompute_polynomial`).
         run: the rest of ``precompute_polynomial``'s keywords (``executor``, ``processes``...).
     Returns:
-        :class:`~torch_brdf.records.polynomial.PolynomialTensors` whose ``meta["plan"]`` prints the plan.
+        :class:`~torch_brdf.records.polynomial.PolynomialTensors` whose ``meta["plan"]`` prints the
+        plan and ``meta["plan_summary"]`` holds it as values (:meth:`GIPlan.summary`).
     """
     base = PolynomialSettings() if settings is None else settings
     if not isinstance(base, PolynomialSettings):
         raise ValueRangeError(f"settings must be a PolynomialSettings; got {settings!r}")
+    if plan is None and error is None and seconds is None:
+        error, seconds = DEFAULT_ERROR, DEFAULT_SECONDS
     if plan is None:
         plan = plan_polynomial(
             scene, error=error, seconds=seconds, seed=seed, env_point_lights=base.env_point_lights, progress=progress
@@ -781,4 +816,5 @@ def precompute_planned(
         raise ValueRangeError(f"plan must be a GIPlan; got {plan!r}")
     out = precompute_polynomial(scene, plan.settings(base), seed=seed, progress=progress, checkpoint=checkpoint, **run)
     out.meta["plan"] = str(plan)
+    out.meta["plan_summary"] = plan.summary()
     return out
