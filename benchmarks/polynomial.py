@@ -64,11 +64,13 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   freeze and the denoised freeze (``freeze(obj, "linear")``), each in a fresh subprocess, at two
   sizes (128² and 256², 8 spp; ``--quick``: 64² and 128²) of the glossy Cornell box
   (``benchmarks/_memory.py``): per stage ``peak_mb``, ``above_start_mb``, ``bytes_per_pixel``,
-  ``bytes_per_pixel_sample`` and ``over_file`` at each size, and ``growth_over_file``: the growth
-  of the peak between the two sizes over the growth of the saved record (the multiple of the
-  record a stage holds on large scenes); ``fixed_mb``: the peak at the larger size less that
-  multiple of its record; ``predicted_gb``: fixed + multiple x record for a 512², 64-spp
-  (0.26 GB), a 1024², 64-spp (1.05 GB) and a 1024², 1024-spp (4.2 GB) record.
+  ``bytes_per_pixel_sample`` and ``over_file`` at each size; per stage ``growth_over_file`` (the
+  growth of the peak between the two sizes over the growth of the saved record: the multiple of
+  the record a stage holds on large scenes) and ``growth_bytes_per_pixel`` (the same growth per
+  pixel), and ``predicted_gb`` for a 512², 64-spp (0.26 GB record), a 1024², 64-spp (1.05 GB)
+  and a 1024², 1024-spp (4.2 GB) scene: the precompute scales with its record (entries grow with
+  spp), freezing and denoising with the pixels (the frozen object's dense basis images), each
+  as the peak at the larger size plus the growth.
 """
 
 from __future__ import annotations
@@ -229,17 +231,27 @@ def _memory_keys(quick: bool) -> dict:
     from _memory import stage_peaks
 
     small, large = (64, 128) if quick else (128, 256)
-    a, b = stage_peaks(small, 8), stage_peaks(large, 8)
-    out: dict = {"small": a, "large": b, "load": os.getloadavg()[0]}
+    return memory_model(stage_peaks(small, 8), stage_peaks(large, 8), os.getloadavg()[0])
+
+
+def memory_model(a: dict, b: dict, load: float) -> dict:
+    """The memory keys from two :func:`_memory.stage_peaks` results (see the module docstring)."""
+    out: dict = {"small": a, "large": b, "load": load}
     grow_file = b["file_mb"] - a["file_mb"]
+    grow_pixels = b["resolution"] ** 2 - a["resolution"] ** 2
     for stage in ("precompute", "freeze", "denoise"):
-        k = max(0.0, (b[stage]["peak_mb"] - a[stage]["peak_mb"]) / grow_file)
-        fixed = b[stage]["peak_mb"] - k * b["file_mb"]
-        out[stage] = {
-            "growth_over_file": round(k, 2),
-            "fixed_mb": round(fixed, 1),
-            "predicted_gb": {name: round((fixed / 1024 + k * gb), 2) for name, gb in RECORD_GB.items()},
-        }
+        grow = max(0.0, b[stage]["peak_mb"] - a[stage]["peak_mb"])
+        k, per_pixel = grow / grow_file, grow * 2**20 / grow_pixels
+        pred = {}
+        for name, gb in RECORD_GB.items():
+            pixels = int(name.split("_")[0]) ** 2
+            more = (
+                k * (gb * 1024 - b["file_mb"])
+                if stage == "precompute"
+                else per_pixel * (pixels - b["resolution"] ** 2) / 2**20
+            )
+            pred[name] = round((b[stage]["peak_mb"] + more) / 1024, 2)
+        out[stage] = {"growth_over_file": round(k, 2), "growth_bytes_per_pixel": round(per_pixel), "predicted_gb": pred}
     return out
 
 

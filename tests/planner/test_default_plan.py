@@ -59,6 +59,7 @@ def test_default_plan_is_the_default_budget_and_is_saved(default_run, tmp_path):
     assert s["error"] == DEFAULT_ERROR and s["seconds"] == DEFAULT_SECONDS
     assert T.series.key == s["series"] and "predicted error" in T.meta["plan"]
     assert T.series.two_level  # the glossy floor lights the ball: a banded second bounce
+    assert T.series.bounces <= s["needed_bounces"]  # never more bounces than the light needs
     T.save(tmp_path / "t.npz")
     assert PolynomialTensors.load(tmp_path / "t.npz").meta["plan_summary"] == s
 

@@ -124,6 +124,7 @@ def test_plan_models_only_what_the_scene_requires(planned):
     assert not plan.series.two_level  # a flat glossy wall cannot light itself
     assert plan.glossy_to_glossy == 0.0
     assert 1 < plan.series.bounces < 8 and plan.spp >= 1
+    assert plan.series.bounces <= plan.needed_bounces  # never more bounces than the light needs
     assert plan.predicted_error <= 0.2 * 1.001
     assert T.series == plan.series and "predicted error" in T.meta["plan"]
     # adaptive sampling: the record carries the plan's map; pixels that the budget does not

@@ -12,7 +12,9 @@ requires, from cheap measurements:
   band error and the noise of the first :math:`N` bounces; the spp that reach the budget with
   :math:`N` bounces follow, and the plan takes the :math:`N` of least cost in ray units
   (:func:`_path_cost` x spp: a shorter series is cheaper per path but leaves the noise less of
-  the budget), among those whose tail is at most :math:`0.6e`;
+  the budget), among those whose tail is at most :math:`0.6e` and never more than the light
+  needs: the last bounce whose own light (measured in the pilots, less their noise) exceeds
+  :math:`0.1e` (:data:`LAST_BOUNCE_SHARE`);
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
   weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
@@ -93,6 +95,8 @@ AIM = 0.95
 #: on the benchmark scenes (glossy Cornell box, teatray at 32^2)
 AIM_ADAPTIVE = 0.9
 SECOND_SHARE = 0.3
+#: a bounce whose own light is at most this share of the budget is not one the light needs
+LAST_BOUNCE_SHARE = 0.1
 MAX_BANDS = 128
 #: adaptive sampling: a pixel's noise estimate is averaged over the SMOOTH x SMOOTH window's
 #: counted pixels and DEFENSIVE x the image's mean is added (a pilot pixel has few paths and a
@@ -363,6 +367,9 @@ class GIPlan:
         light_samples: next-event samples per light at the eye vertex.
         eye_light_share: the share of a path's variance that the eye vertex's next-event
             estimate makes (what light samples divide), at the planned bounces.
+        needed_bounces: the bounces the light needs: the last whose own light (measured in the
+            pilots, less their noise) is above :data:`LAST_BOUNCE_SHARE` of the budget.
+        last_bounce_light: the planned last bounce's light (relative to the image).
     """
 
     series: Series
@@ -382,6 +389,8 @@ class GIPlan:
     spp_map: torch.Tensor | None = None
     light_samples: int = 1
     eye_light_share: float = 0.0
+    needed_bounces: int = 0
+    last_bounce_light: float = 0.0
 
     @property
     def predicted_error(self) -> float:
@@ -409,6 +418,10 @@ class GIPlan:
             lines.append(f"  {name}: {J} band{'s' if J > 1 else ''} (projection error {e:.4f})")
         lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
         lines.append(
+            f"  the light needs {self.needed_bounces} bounce{'s' if self.needed_bounces > 1 else ''}"
+            f" (the planned last bounce carries {self.last_bounce_light:.4f} of the image)"
+        )
+        lines.append(
             f"  {self.light_samples} light sample{'s' if self.light_samples > 1 else ''} per eye vertex"
             f" (its next-event estimate makes {self.eye_light_share:.0%} of a path's variance)"
         )
@@ -433,6 +446,8 @@ class GIPlan:
             "predicted_seconds": self.predicted_seconds,
             "pilot_seconds": self.pilot_seconds,
             "glossy_to_glossy": self.glossy_to_glossy,
+            "needed_bounces": self.needed_bounces,
+            "last_bounce_light": self.last_bounce_light,
         }
 
     def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
@@ -505,10 +520,13 @@ def _pilot_stats(bases, projection_errors: dict[str, float], pilots: list[Polyno
     n_max = pilots[0].series.bounces
     # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
     # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
-    tails = []
+    tails, lasts = [], [0.0]
     for n in range(n_max + 1):
         noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
         tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
+        if n >= 1:  # bounce n's own light, measured the same way
+            noise2 = float(_pooled_variance(imgs[:, n], s)[keep].sum()) / float(s.sum())
+            lasts.append(max(0.0, float((mean[n][keep] ** 2).sum()) - noise2) ** 0.5 / norm)
     names = list(pilots[0].object_names)
     # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
     # (cumulated over bounces 1..n: index n - 1)
@@ -533,7 +551,7 @@ def _pilot_stats(bases, projection_errors: dict[str, float], pilots: list[Polyno
     rate_max = _slope(s, t)
     fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
 
-    return keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s
+    return keep, norm, n_max, (tails, lasts), eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s
 
 
 def _light_sample_ratios(split_pilots, mats: dict, pixvar: list, keep, n_max: int, max_light_samples: int):
@@ -599,10 +617,15 @@ def plan_from_pilots(
     """
     _check_pilots(error, seconds, pilots)
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
-    keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
+    keep, norm, n_max, (tails, lasts), eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
         bases, projection_errors, pilots, mats
     )
     budget = error if error is not None else 1.0
+    # the bounces the light needs: up to the last one whose own light is above LAST_BOUNCE_SHARE
+    # of the budget (beyond it, more bounces only add cost: a longer series may still look
+    # cheaper, leaving the noise more of the budget, but the planner then models light that is
+    # not there)
+    needed = max([1] + [n for n in range(1, n_max + 1) if lasts[n] > LAST_BOUNCE_SHARE * budget])
     names = list(pilots[0].object_names)
 
     def band_error_at(n: int) -> float:
@@ -659,9 +682,10 @@ def plan_from_pilots(
     # number of bounces whose tail is at most BOUNCE_SHARE of the budget; for a time alone,
     # the most accurate
     options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
-    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [
-        nk for nk in options if nk[0] == n_max
-    ]
+    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget and nk[0] <= needed]
+    if not allowed:  # the tail at the needed bounces is still too large: the fewest whose tail fits
+        fits = [nk[0] for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [n_max]
+        allowed = [nk for nk in options if nk[0] == min(fits)]
     if error is not None:
         bounces, light_samples = min(allowed, key=lambda nk: (options[nk][4], nk))
     else:
@@ -688,6 +712,8 @@ def plan_from_pilots(
         spp_map=spp_map,
         light_samples=light_samples,
         eye_light_share=shares[bounces],
+        needed_bounces=needed,
+        last_bounce_light=lasts[bounces],
     )
 
 
