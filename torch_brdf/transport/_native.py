@@ -21,8 +21,8 @@ its test: ``docs/kernel.md``.
 ``TORCH_BRDF_NATIVE_SANITIZE=1`` builds the kernel with AddressSanitizer and
 UndefinedBehaviorSanitizer instead (:data:`SANITIZE_FLAGS`, a cache entry of its own); the
 process must have the ASan runtime loaded first (``LD_PRELOAD`` of :func:`sanitizer_runtime`,
-as ``.ci/sanitize`` does), and a sanitized kernel that cannot be built or loaded is an error,
-not a fallback.
+as ``.ci/sanitize`` does; without it :func:`library` raises instead of letting the loader abort
+the process).
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ __all__ = [
     "Accumulator",
     "TileSums",
     "area_light_sample",
+    "build_name",
     "build_seconds",
     "key_bits",
     "library",
@@ -128,19 +129,31 @@ def _asan_loaded() -> bool:
         return True
 
 
+def build_name(cc: list[str], flags: list[str], files: list[Path], sanitize: bool = False) -> str:
+    """The cache file name of a build: a hash of the compiler command, the flags and every
+    source file's name and bytes (``polynomial_sanitize_*`` for the sanitized build)."""
+    h = hashlib.sha256("\0".join(cc + flags).encode())
+    for f in files:
+        data = f.read_bytes()
+        h.update(f"\0{f.name}\0{len(data)}\0".encode() + data)
+    return f"polynomial_{'sanitize_' if sanitize else ''}{h.hexdigest()[:16]}.so"
+
+
 def _build(sanitize: bool = False) -> ctypes.CDLL:
     cc = _compiler()
     if cc is None:
         raise OSError("no C compiler found ($CC, Python's CC or cc)")
+    if sanitize and not _asan_loaded():
+        # loading the build would abort the process (ASan's runtime must be the first library)
+        raise TorchBRDFError(
+            f"{SANITIZE_ENV_VAR}=1 needs the AddressSanitizer runtime preloaded: "
+            f"LD_PRELOAD={sanitizer_runtime(cc) or 'libasan.so'} (see .ci/sanitize)"
+        )
     flags = [*_FLAGS, *SANITIZE_FLAGS] if sanitize else list(_FLAGS)
     files = sources()
     if not any(f.suffix == ".c" for f in files):
         raise OSError(f"no kernel sources in {_SOURCE_DIR}")
-    h = hashlib.sha256(" ".join(cc + flags).encode())
-    for f in files:  # every file's name and bytes: a change to any of them is another build
-        h.update(f"\0{f.name}\0{f.stat().st_size}\0".encode() + f.read_bytes())
-    name = f"polynomial_sanitize_{h.hexdigest()[:16]}.so" if sanitize else f"polynomial_{h.hexdigest()[:16]}.so"
-    out = cache_dir() / "native" / name
+    out = cache_dir() / "native" / build_name(cc, flags, files, sanitize)
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
@@ -152,29 +165,24 @@ def _build(sanitize: bool = False) -> ctypes.CDLL:
                 raise OSError(f"{cc[0]} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
             os.replace(part, out)  # atomic: concurrent builders leave one complete file
         _state["build_s"] = time.perf_counter() - t0
-    if sanitize and not _asan_loaded():
-        # loading it anyway would abort the process (ASan must be the first library loaded)
-        raise TorchBRDFError(
-            f"{SANITIZE_ENV_VAR}=1 needs the AddressSanitizer runtime preloaded: "
-            f"LD_PRELOAD={sanitizer_runtime(cc) or 'libasan.so'} (see .ci/sanitize)"
-        )
     return declare(ctypes.CDLL(str(out)), KERNEL)
 
 
 def library() -> ctypes.CDLL | None:
     """The loaded kernel, building it on first use; None (after one warning) without a compiler
-    or with ``TORCH_BRDF_NATIVE=0``. With ``TORCH_BRDF_NATIVE_SANITIZE=1``, the sanitized kernel,
-    or an error when it cannot be built or loaded."""
+    or with ``TORCH_BRDF_NATIVE=0``. With ``TORCH_BRDF_NATIVE_SANITIZE=1``, the sanitized kernel
+    (an error when the process lacks the preloaded ASan runtime it needs).
+
+    Raises:
+        TorchBRDFError: a sanitized kernel asked for in a process without the ASan runtime.
+    """
     if os.environ.get(ENV_VAR, "1") == "0":
         return None
     if not _state["tried"]:
         _state["tried"] = True
-        sanitize = _sanitize()
         try:
-            _state["lib"] = _build(sanitize)
+            _state["lib"] = _build(_sanitize())
         except (OSError, subprocess.SubprocessError) as e:
-            if sanitize:
-                raise TorchBRDFError(f"the sanitized kernel could not be built or loaded: {e}") from e
             warnings.warn(
                 f"torch_brdf: the compiled reduction kernel could not be built ({e}); "
                 "the precomputation uses its torch path (same tensors, slower)",

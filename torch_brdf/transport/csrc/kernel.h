@@ -232,8 +232,8 @@ TB_API void tb_light_gather(int64_t m, const int64_t *kk, const float *dir, cons
 TB_API void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float *edges, const float *lambert,
                       const int64_t *oid, const float *wi, const float *wo, int64_t *idx, float *w);
 TB_API void tb_sincos(int64_t n, const float *x, float *c, float *s);
-TB_API TB_SIMD void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float gloss, float exponent,
-                               float norm, float *wi, float *pdf, float *cosw, uint8_t *ok);
+TB_API TB_SIMD void tb_mixture(int64_t n, const float *u, const float *wo, float diffuse, float gloss,
+                               float exponent, float norm, float *wi, float *pdf, float *cosw, uint8_t *ok);
 TB_API int64_t tb_advance(int64_t n, const float *wi, const float *cosw, const uint8_t *ok, const float *f, int count,
                           const int64_t *oid, const uint8_t *editable, int M, int8_t *counts, float *raw,
                           const float *frame, const float *ng, const float *pos, int64_t La, const float *A_w,
