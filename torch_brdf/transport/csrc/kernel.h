@@ -23,7 +23,7 @@
  * is the torch code's order: the entries and sums equal the torch path's bit for bit.
  * -fno-math-errno and -fno-trapping-math change no value; they let sqrtf inline and let selects
  * replace branches so the loops vectorise. Only the entry points are exported (the build uses
- * -fvisibility=hidden); the helpers shared between files are hidden. */
+ * -fvisibility=hidden); the functions shared between files stay hidden. */
 #ifndef TORCH_BRDF_KERNEL_H
 #define TORCH_BRDF_KERNEL_H
 
