@@ -202,3 +202,33 @@ def test_sanitized_kernel_without_its_runtime_is_refused(monkeypatch, tmp_path):
     with pytest.raises(TorchBRDFError, match=r"LD_PRELOAD=/path/to/libasan\.so"):
         _native.library()
     assert not (tmp_path / "native").exists()
+
+
+def test_kernel_compiles_with_warnings_as_errors(monkeypatch, tmp_path):
+    """The project's compiler builds the kernel with -Wall -Wextra -Werror (a user's newer compiler
+    may fall back to a lenient build with a warning; here the strict build itself must succeed)."""
+    cc = _native._compiler()
+    if cc is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path))
+    assert {"-Wall", "-Wextra", "-Werror"} <= set(_native._FLAGS)
+    out = _native._compile(cc, list(_native._FLAGS), _native.sources(), False)
+    assert out.is_file()
+
+
+def test_a_compiler_warning_falls_back_to_a_lenient_build(monkeypatch, tmp_path):
+    """A strict build that fails is retried without -Werror, with a warning that says so."""
+    if _native._compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path))
+    real = _native._compile
+
+    def strict_fails(cc, flags, files, sanitize):
+        if "-Werror" in flags:
+            raise OSError("cc failed (1): error: a new warning [-Werror]")
+        return real(cc, flags, files, sanitize)
+
+    monkeypatch.setattr(_native, "_compile", strict_fails)
+    with pytest.warns(UserWarning, match="warnings allowed"):
+        lib = _native._build()
+    assert hasattr(lib, "tb_sincos")
