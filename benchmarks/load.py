@@ -31,7 +31,7 @@ alternations of quiet and loaded (after warm-up calls in each phase):
 The last line printed is one JSON object: per stage ``{quiet_s, loaded_s, slowdown}`` (and
 every timed run in ``quiet_runs`` / ``loaded_runs``) under ``stages``, ``slowdown`` (stage ->
 ratio), ``embree_slowdown``, ``mitsuba_slowdown``, ``max_slowdown`` (our stages), ``threads``
-(what ``torch_brdf._threads`` chose), the cores, ``OMP_WAIT_POLICY`` as torch's OpenMP read
+(what ``torch_brdf.parallel.threads`` chose), the cores, ``OMP_WAIT_POLICY`` as torch's OpenMP read
 it, and ``loadavg`` before and after: on a shared machine the other programs' load is part
 of every figure.
 """
@@ -53,7 +53,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from torch_brdf import _threads
+from torch_brdf.parallel import threads as _threads
 
 BUSY = "import time\nend = time.monotonic() + {s}\nwhile time.monotonic() < end:\n    pass\n"
 

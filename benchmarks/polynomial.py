@@ -74,12 +74,12 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
-from torch_brdf._threads import usable_cores
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.parallel.threads import usable_cores
+from torch_brdf.parallel.tiles import wait_tile_processes
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
-from torch_brdf.transport.executor import wait_tile_processes
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import precompute_polynomial
 from torch_brdf.transport.rays import NativeRays
@@ -142,7 +142,7 @@ def _embree_seconds(scene, log, totals) -> dict[str, float]:
     faster of the two, summed (the strictest baseline)."""
     from embreex import mesh_construction, rtcore_scene
 
-    from torch_brdf.scene.parallel import embree_entry, embree_function
+    from torch_brdf.scene.embree import embree_entry, embree_function
 
     es = rtcore_scene.EmbreeScene()
     for obj in scene.objects:

@@ -59,8 +59,8 @@ from pathlib import Path
 import numpy as np
 
 from torch_brdf.errors import TorchBRDFError
+from torch_brdf.parallel.tiles import connect_ray
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.executor import connect_ray
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 sys.path.insert(0, os.path.dirname(__file__))

@@ -70,17 +70,17 @@ import numpy as np
 import torch
 from _timing import best_of
 
-from torch_brdf._threads import single_thread, usable_cores
 from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
+from torch_brdf.parallel.threads import single_thread, usable_cores
+from torch_brdf.parallel.tiles import single_process
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
+from torch_brdf.scene.embree import CHUNK
 from torch_brdf.scene.envmap import EnvironmentMap
-from torch_brdf.scene.parallel import CHUNK
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native
-from torch_brdf.transport.executor import single_process
 from torch_brdf.transport.visibility import HORIZON_EPS, _chunk_entries, precompute_visibility, scene_vertices
 
 

@@ -34,11 +34,11 @@ import torch
 from torch import nn
 
 from .._checks import as_float_tensor, check_finite
-from .._threads import tuned_method
 from ..brdf import BRDF, Lambert, create
 from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..metrics import relative_rmse as relative_rmse  # re-exported; defined in torch_brdf.metrics
+from ..parallel.threads import tuned_method
 from ..records.polynomial import ObjectBasis, PolynomialTensors
 
 
@@ -73,7 +73,7 @@ class PolynomialRenderer(nn.Module):
         max_bounces: render only bounces 1..max_bounces (default all precomputed).
 
     ``threads``: torch threads of :meth:`freeze` and frozen frames; None (default) uses the
-    count measured fastest for their size (:func:`torch_brdf._threads.tuned`).
+    count measured fastest for their size (:func:`torch_brdf.parallel.threads.tuned`).
     """
 
     threads: int | None = None
