@@ -101,7 +101,8 @@ class MaterialProjector:
         """
         b = self.basis
         if b.fresnel and isinstance(brdf, FresnelFactored1D) and self.on_bands(brdf):
-            return torch.cat([lay.coefficients for lay in brdf.layers()], 0), self._exact(brdf.coefficients)
+            layers = torch.cat([lay.coefficients for lay in brdf.layers()], 0)
+            return self._exact(layers), self._exact(brdf.coefficients)
         base = self.curve(brdf)
         if not b.fresnel:
             if f0 is not None:
