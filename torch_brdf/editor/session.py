@@ -7,8 +7,10 @@ application (:mod:`torch_brdf.editor.app`) and the tests drive the same session.
 
 Projection at interactive rates. :func:`torch_brdf.brdf.project` is the float64
 cosine-weighted least squares on a ~410k-pair quadrature (about a second per call on two
-shared cores). The session keeps a :class:`~torch_brdf.brdf.Projector` per object (the
-quadrature, memberships and factorised normal matrix made once) on a coarser rule
+shared cores). The session gives each object the renderer's
+:class:`~torch_brdf.render.material.MaterialProjector` (the same exact cases and Fresnel split)
+with a :class:`~torch_brdf.brdf.Projector` (the quadrature, memberships and factorised normal
+matrix made once) on a coarser rule
 (:data:`FAST_QUADRATURE`, ~10k pairs; the :math:`\theta_h` cells keep the band edges, so band
 boxes are still integrated cell-exactly), so an edit evaluates the BRDF on the stored pairs and
 solves a factorised J x J system per channel. The coarse rule's difference from
