@@ -1,6 +1,6 @@
 """Peak resident memory of the GI stages, each measured in a fresh subprocess.
 
-A stage runs in ``python benchmarks/_memory.py STAGE RESOLUTION SPP FILE`` (one process, tiles
+A stage runs in ``python -m torch_brdf.report.benchmarks._memory STAGE RESOLUTION SPP FILE`` (one process, tiles
 in that process) and prints one JSON line: its peak RSS (``ru_maxrss``), the RSS before the
 stage's work (imports and scene) and the record's file size. :func:`stage_peaks` runs
 precompute (which saves FILE), freeze (the glossy back wall) and the denoised freeze
@@ -18,7 +18,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
 SERIES = "64,1,1,1"
 
 
@@ -58,7 +57,7 @@ def stage_peaks(resolution: int, spp: int) -> dict:
         path = str(Path(tmp) / "t.npz")
         for stage in ("precompute", "freeze", "denoise"):
             res = subprocess.run(
-                [sys.executable, str(HERE / "_memory.py"), stage, str(resolution), str(spp), path],
+                [sys.executable, "-m", "torch_brdf.report.benchmarks._memory", stage, str(resolution), str(spp), path],
                 capture_output=True,
                 text=True,
                 check=True,
