@@ -323,6 +323,8 @@ class _FolderStack:
             folder = parts[1] if parts[0] == "torch_brdf" and len(parts) > 1 else None
             if frame.f_code.co_name == "<module>":  # an import runs module code: not the call flow
                 folder = None
+            if folder == "parallel":  # an executor: it runs the callables (tiles) handed to it
+                folder = None
             self.stack.append(folder)
             if folder is not None:
                 path = self.path()

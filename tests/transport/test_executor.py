@@ -269,7 +269,8 @@ def test_precompute_bar_counts_pass_groups(scene, monkeypatch, processes):
     4 spp, one pass per group: 4 tiles x 4 groups), forked tiles included."""
     monkeypatch.setattr(executor, "tqdm", _Bar)
     _Bar.made.clear()
-    T = precompute_polynomial(scene, **{**SETTINGS, "progress": True}, group=1, processes=processes)
+    settings = SETTINGS["settings"].replace(group=1)
+    T = precompute_polynomial(scene, **{**SETTINGS, "settings": settings, "progress": True}, processes=processes)
     bar = _Bar.made[-1]
     assert bar.total == 16 and sum(bar.updates) == 16 and max(bar.updates) == 1, bar.updates
     assert T.meta["processes"] == processes

@@ -66,6 +66,21 @@ _READ_ERRORS = (
 )  # fmt: skip
 
 
+class Converted:
+    """An array to be saved in another dtype, converted only while it is checksummed and while
+    it is written (one converted array in memory at a time, see :func:`save_arrays`).
+
+    Args:
+        array: the array. dtype: the dtype it is saved in.
+    """
+
+    def __init__(self, array: np.ndarray, dtype):
+        self.array, self.dtype = array, np.dtype(dtype)
+
+    def __call__(self) -> np.ndarray:
+        return self.array.astype(self.dtype)
+
+
 def _materialise(v) -> np.ndarray:
     """An array, or the array a deferred entry (a callable, see :func:`save_arrays`) makes."""
     a = np.asarray(v() if callable(v) else v)
@@ -95,9 +110,9 @@ def save_arrays(
 
     Args:
         path: destination (``.npz``).
-        arrays: name -> numeric array (no object dtype), or a callable that returns one: a
-            converted copy (``lambda: a.astype(np.int32)``) is then made once for the checksum
-            and once for the write, and freed in between, instead of held with all the others.
+        arrays: name -> numeric array (no object dtype), or a callable that returns one (e.g.
+            :class:`Converted`): the converted copy is then made once for the checksum and once
+            for the write, and freed in between, instead of held with all the others.
         kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
         meta: JSON-serialisable metadata (settings, progress).
         compress: zip-deflate the arrays (stored instead when an array would inflate more

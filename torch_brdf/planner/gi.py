@@ -17,7 +17,11 @@ requires, from cheap measurements:
   :math:`0.1e` (:data:`LAST_BOUNCE_SHARE`);
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
-  weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
+  weighted by the diffuse equivalent's projection error, above :math:`0.3e`; its noise is
+  then measured with two pilots that have the banded second bounce (the 1-band pilots'
+  diffuse equivalent varies far less than the glossy lobe's bands: they under-predicted the
+  noise of glossy-to-glossy scenes) and the plan is made again with it
+  (:func:`banded_noise_scale`);
 * **spp**: from :math:`K \ge 2` independent pilot runs of :math:`s_k` spp (four by default:
   more paths make the estimate steadier where the variance is heavy-tailed, as under a sun),
   the per-pixel variance of one path is the pooled
@@ -370,6 +374,8 @@ class GIPlan:
         needed_bounces: the bounces the light needs: the last whose own light (measured in the
             pilots, less their noise) is above :data:`LAST_BOUNCE_SHARE` of the budget.
         last_bounce_light: the planned last bounce's light (relative to the image).
+        banded_noise: the factor a banded second bounce put on the predicted noise variance
+            (measured with banded pilots, :func:`banded_noise_scale`; 1 without one).
     """
 
     series: Series
@@ -391,6 +397,7 @@ class GIPlan:
     eye_light_share: float = 0.0
     needed_bounces: int = 0
     last_bounce_light: float = 0.0
+    banded_noise: float = 1.0
 
     @property
     def predicted_error(self) -> float:
@@ -417,6 +424,8 @@ class GIPlan:
         for name, J, e in self.projection_errors:
             lines.append(f"  {name}: {J} band{'s' if J > 1 else ''} (projection error {e:.4f})")
         lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
+        if self.series.two_level:
+            lines.append(f"  the banded second bounce multiplies the noise variance by {self.banded_noise:.2f}")
         lines.append(
             f"  the light needs {self.needed_bounces} bounce{'s' if self.needed_bounces > 1 else ''}"
             f" (the planned last bounce carries {self.last_bounce_light:.4f} of the image)"
@@ -448,6 +457,7 @@ class GIPlan:
             "glossy_to_glossy": self.glossy_to_glossy,
             "needed_bounces": self.needed_bounces,
             "last_bounce_light": self.last_bounce_light,
+            "banded_noise": self.banded_noise,
         }
 
     def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
@@ -574,6 +584,65 @@ def _light_sample_ratios(split_pilots, mats: dict, pixvar: list, keep, n_max: in
     return ratios, shares
 
 
+def _needed_bounces(lasts: list[float], budget: float) -> int:
+    """The bounces the light needs: up to the last one whose own light (``lasts[n]``) is above
+    LAST_BOUNCE_SHARE of the budget. Beyond it more bounces only add cost: a longer series may
+    still look cheaper (it leaves the noise more of the budget), but it models light that is not
+    there."""
+    return max([1] + [n for n in range(1, len(lasts)) if lasts[n] > LAST_BOUNCE_SHARE * budget])
+
+
+def _choose(options: dict, tails: list[float], needed: int, budget: float, for_error: bool) -> tuple[int, int]:
+    """(bounces, light samples) among ``options`` ((n, k) -> spp_for's tuple), never more bounces
+    than ``needed``: for an error the cheapest whose tail is at most BOUNCE_SHARE of the budget
+    (else the fewest bounces whose tail fits), for a time alone the most accurate."""
+    if not for_error:
+        capped = [nk for nk in options if nk[0] <= needed] or list(options)
+        return min(capped, key=lambda nk: (options[nk][3], nk))
+    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget and nk[0] <= needed]
+    if not allowed:  # the tail at the needed bounces is still too large: the fewest whose tail fits
+        fits = [nk[0] for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [max(n for n, _ in options)]
+        allowed = [nk for nk in options if nk[0] == min(fits)]
+    return min(allowed, key=lambda nk: (options[nk][4], nk))
+
+
+def _two_level(bases, bounces: int, g2g: float, budget: float) -> bool:
+    """Whether :func:`_planned_series` gives ``bounces`` a banded second bounce."""
+    return _planned_series(bases, bounces, g2g, budget)[0].two_level
+
+
+def banded_noise_scale(
+    banded: list[PolynomialTensors], pilots: list[PolynomialTensors], mats: dict[str, dict[str, Any]]
+) -> dict[int, float]:
+    r"""How much a banded second bounce multiplies the noise, per number of bounces n >= 2:
+    :math:`\sum_i \sigma_{i,n}^2` of the banded pilots (rendered at the scene's materials) over
+    the same of the 1-band pilots, both pooled per pixel (:func:`_pooled_variance`) over the
+    counted pixels; at least 1 (a banded vertex cannot make the estimate steadier than its
+    diffuse equivalent beyond the pilots' own noise)."""
+    from ..render.polynomial import PolynomialRenderer
+
+    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
+
+    def cumulative(records):
+        imgs = []
+        for t in records:
+            parts = PolynomialRenderer(t, mats, dtype=torch.float64).evaluate(per_bounce=True)
+            imgs.append(torch.stack([p.double() for p in parts]).cumsum(0))
+        return torch.stack(imgs), torch.tensor([float(t.meta["spp"]) for t in records], dtype=torch.float64)
+
+    a, sa = cumulative(banded)
+    b, sb = (
+        torch.stack([pilot_images(p, mats).cumsum(0) for p in pilots]),
+        torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64),
+    )
+    out = {}
+    for n in range(2, min(a.shape[1], b.shape[1])):
+        den = float(_pooled_variance(b[:, n], sb)[keep].sum())
+        if den > 0:
+            out[n] = max(1.0, float(_pooled_variance(a[:, n], sa)[keep].sum()) / den)
+    return out
+
+
 def _planned_series(bases, bounces: int, g2g: float, budget: float) -> tuple[Series, list]:
     """The series of ``bounces`` (a low-frequency second bounce where the glossy-to-glossy light
     ``g2g`` exceeds its share of the budget) and the bases with its second-bounce bands."""
@@ -597,6 +666,7 @@ def plan_from_pilots(
     adaptive: bool = True,
     split_pilots: list[PolynomialTensors] | None = None,
     max_light_samples: int = max(LIGHT_SAMPLES),
+    banded_noise: dict[int, float] | None = None,
 ) -> GIPlan:
     """Decide bounces, second bounce and spp from independent pilot records (see the module).
 
@@ -612,20 +682,19 @@ def plan_from_pilots(
             ``light_samples`` K >= 2: the plan then also chooses the light samples per eye vertex
             (one of :data:`LIGHT_SAMPLES`, at most ``max_light_samples``) from how much of the
             noise they take away.
+        banded_noise: bounces -> the factor a banded second bounce puts on the noise variance
+            of the first n bounces (:func:`banded_noise_scale`; absent: 1).
     Returns:
         :class:`GIPlan`.
     """
     _check_pilots(error, seconds, pilots)
+    banded_noise = banded_noise or {}
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
     keep, norm, n_max, (tails, lasts), eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
         bases, projection_errors, pilots, mats
     )
     budget = error if error is not None else 1.0
-    # the bounces the light needs: up to the last one whose own light is above LAST_BOUNCE_SHARE
-    # of the budget (beyond it, more bounces only add cost: a longer series may still look
-    # cheaper, leaving the noise more of the budget, but the planner then models light that is
-    # not there)
-    needed = max([1] + [n for n in range(1, n_max + 1) if lasts[n] > LAST_BOUNCE_SHARE * budget])
+    needed = _needed_bounces(lasts, budget)
     names = list(pilots[0].object_names)
 
     def band_error_at(n: int) -> float:
@@ -650,17 +719,16 @@ def plan_from_pilots(
         # plan minimises: the pilots' seconds are too short to rank options on a loaded machine)
         c = cost[n] + (k - 1) * extra * hit
         rate = rate_max * n / n_max * float(c.mean() / cost[n].mean())
-        var = pixvar[n] * ratios[n][k]
-        sigma = sigmas[n] * ratios[n][k] ** 0.5
+        scale = banded_noise.get(n, 1.0) if _two_level(bases, n, g2g, budget) else 1.0
+        var = pixvar[n] * ratios[n][k] * scale
+        sigma = sigmas[n] * (ratios[n][k] * scale) ** 0.5
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
         share2 = None
         if error is not None:
             share2 = ((AIM_ADAPTIVE if adaptive else AIM) * error) ** 2 - bias2
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
-        spp_time = None if seconds is None else max(1e-9, (seconds - fixed_s) / max(rate, 1e-12))
-        if spp_time is not None:
-            spp_time = min(spp_time, MAX_PLANNED_SPP)
+        spp_time = None if seconds is None else min(MAX_PLANNED_SPP, max(1e-9, (seconds - fixed_s) / max(rate, 1e-12)))
         if adaptive:
             noise = None if share2 is None else share2 * norm**2
             shape = (_smoothed(var, keep) + DEFENSIVE * float(var[keep].mean())).sqrt() * keep
@@ -677,19 +745,9 @@ def plan_from_pilots(
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
         return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp), float(c.mean()) * spp
 
-    # bounces, eye light samples and spp together (a shorter series is cheaper per path but
-    # needs more paths for what its tail takes from the budget): for an error, the cheapest
-    # number of bounces whose tail is at most BOUNCE_SHARE of the budget; for a time alone,
-    # the most accurate
+    # bounces, eye light samples and spp together (see _choose)
     options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
-    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget and nk[0] <= needed]
-    if not allowed:  # the tail at the needed bounces is still too large: the fewest whose tail fits
-        fits = [nk[0] for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [n_max]
-        allowed = [nk for nk in options if nk[0] == min(fits)]
-    if error is not None:
-        bounces, light_samples = min(allowed, key=lambda nk: (options[nk][4], nk))
-    else:
-        bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
+    bounces, light_samples = _choose(options, tails, needed, budget, error is not None)
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series, bases = _planned_series(bases, bounces, g2g, budget)
@@ -714,6 +772,7 @@ def plan_from_pilots(
         eye_light_share=shares[bounces],
         needed_bounces=needed,
         last_bounce_light=lasts[bounces],
+        banded_noise=banded_noise.get(bounces, 1.0) if series.two_level else 1.0,
     )
 
 
@@ -782,18 +841,27 @@ def plan_polynomial(
             )
             for k in range(2)
         ]
-    return plan_from_pilots(
-        scene,
-        bases,
-        errors,
-        fixed,
-        pilots,
-        error=error,
-        seconds=seconds,
-        adaptive=adaptive,
-        split_pilots=split,
-        max_light_samples=max_light_samples,
-    )
+    args = (scene, bases, errors, fixed, pilots)
+    kw = {"error": error, "seconds": seconds, "adaptive": adaptive, "split_pilots": split}
+    plan = plan_from_pilots(*args, **kw, max_light_samples=max_light_samples)
+    if not plan.series.two_level:
+        return plan
+    # a banded second bounce: its noise is measured with two pilots that have it (the 1-band
+    # pilots under-predict it), and the plan is made again with that noise
+    banded_series = Series((eye, plan.series.second) + (1,) * (pilot_bounces - 2))
+    second = [None if b is None else dataclasses.replace(b, second=min(plan.series.second, b.J)) for b in bases]
+    banded = [
+        precompute_polynomial(
+            scene,
+            pilot.replace(series=banded_series, bases=tuple(second), spp=pilot_spp * (k + 1)),
+            seed=seed + 7919 * (pilot_runs + 3 + k),
+            progress=progress,
+        )
+        for k in range(2)
+    ]
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    scale = banded_noise_scale(banded, pilots, mats)
+    return plan_from_pilots(*args, **kw, max_light_samples=max_light_samples, banded_noise=scale)
 
 
 def precompute_planned(

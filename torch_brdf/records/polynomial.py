@@ -23,6 +23,7 @@ import torch
 from .._checks import MAX_BANDS
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
+from ..io.arrays import Converted
 from .basis_image import BasisImage
 from .codec import Member, Record
 from .guides import GuideBuffers
@@ -448,4 +449,4 @@ def _stored(a: np.ndarray, dtype, deferred: bool):
     callable while the file is written (see ``save_arrays``)."""
     if a.dtype == dtype:
         return a
-    return (lambda: a.astype(dtype)) if deferred else a.astype(dtype)
+    return Converted(a, dtype) if deferred else a.astype(dtype)
