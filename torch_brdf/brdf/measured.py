@@ -134,8 +134,10 @@ class MERLTabulated(_IsotropicMeasured):
         table: (3, Th, Td, Tp) tensor/array (scale applied, RGB), or a path: a ``.binary``
             file (full table) or an ``.npz`` in the downsampled layout (with ``material``).
         material: material name (or position) in an ``.npz``; optional if it holds one.
-        theta_h_index, theta_d_index, phi_d_index: the MERL bin indices the table axes
+        theta_h_index: the MERL bin indices the table axes
             keep (strictly increasing); default all bins when the table is (90, 90, 180).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         interpolation: ``"nearest"`` or ``"trilinear"``.
         name: label for ``repr`` (default: file stem or material name).
         source: where the values come from, e.g. ``"merl-binary"`` or ``"nbrdf"``; an
@@ -234,7 +236,9 @@ class MERLTabulated(_IsotropicMeasured):
         r"""Table value at half/difference angles (no horizon test).
 
         Args:
-            theta_h, theta_d, phi_d: (*B,) radians (:math:`\phi_d \in (-\pi, \pi]`, folded here).
+            theta_h: (*B,) radians (:math:`\phi_d \in (-\pi, \pi]`, folded here).
+            theta_d: as ``theta_h``.
+            phi_d: as ``theta_h``.
         Returns:
             (*B, 3) in the dtype of ``theta_h``; missing bins handled as in the class docstring.
         """
@@ -379,7 +383,9 @@ class NBRDF(_IsotropicMeasured):
         r"""The network at half/difference angles, clamped to >= 0 (no horizon test).
 
         Args:
-            theta_h, theta_d, phi_d: (*B,) radians; :math:`\phi_d` is folded if ``fold_phi_d``.
+            theta_h: (*B,) radians; :math:`\phi_d` is folded if ``fold_phi_d``.
+            theta_d: as ``theta_h``.
+            phi_d: as ``theta_h``.
         Returns:
             (*B, 3) in the dtype of the angles.
         """
@@ -424,8 +430,10 @@ def tabulate_nbrdf(
     Args:
         model: the :class:`NBRDF` (its ``fold_phi_d`` is irrelevant: the grid has
             :math:`\phi_d \in [0, \pi)`).
-        theta_h_index, theta_d_index, phi_d_index: MERL bin indices to evaluate
+        theta_h_index: MERL bin indices to evaluate
             (default all: 90, 90, 180).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         mask_horizon: set below-horizon bins to -1.
         chunk: about this many bins per network call (memory only).
     Returns:

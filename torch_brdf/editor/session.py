@@ -195,7 +195,10 @@ def load_source(
             ``cache_dir`` where an earlier run with the same settings left them).
         scene: the scene of a tensors file (default: the built-in scene named in the file's
             settings, if there is one; else no scene: no reference, ids from the tensors).
-        resolution, series, spp, seed: precomputation settings for a scene.
+        resolution: precomputation settings for a scene.
+        series: as ``resolution``.
+        spp: as ``resolution``.
+        seed: as ``resolution``.
         progress: tqdm bar of the precomputation.
     Returns:
         (tensors, scene or None, note): ``note`` says where the tensors came from.

@@ -214,7 +214,9 @@ def merl_indices(
     """The three MERL bin indices of half/difference angles (see the module docstring).
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) radians.
+        theta_h: (*B,) radians.
+        theta_d: as ``theta_h``.
+        phi_d: as ``theta_h``.
     Returns:
         i_h, i_d, i_p: (*B,) int64 each.
     """
@@ -239,8 +241,10 @@ def merl_index_to_angles(
     robust way to address a bin (:func:`merl_indices` of a centre is the bin itself).
 
     Args:
-        i_h, i_d, i_p: (*B,) integer indices (tensors, arrays or sequences; any may be
+        i_h: (*B,) integer indices (tensors, arrays or sequences; any may be
             fractional too).
+        i_d: as ``i_h``.
+        i_p: as ``i_h``.
         at: ``"lower"`` or ``"centre"``.
         dtype: floating dtype of the result.
     Returns:
@@ -505,7 +509,9 @@ def write_merl_table(
         path: destination ``.npz``; its folder must exist.
         brdf: (N, 3, Th, Td, Tp) tensor or array, scale applied.
         names: N unique material names.
-        theta_h_index, theta_d_index, phi_d_index: the kept MERL bin indices (Th,), (Td,), (Tp,).
+        theta_h_index: the kept MERL bin indices (Th,), (Td,), (Tp,).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         source: ``"merl-binary"`` or ``"nbrdf"``.
     Returns:
         The path written (readable by :func:`load_merl_table`).

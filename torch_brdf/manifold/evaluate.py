@@ -233,8 +233,10 @@ def heldout_reconstruction(
         starts: starting points of the projection. fit_kwargs: passed to :func:`fit_gplvm`.
         continuous: predict with the smooth GP mean (:class:`GPLVM` ``continuous=True``).
         metric: ``"log"`` or ``"weighted"`` (see above).
-        negatives, negative_weight, max_columns: how :func:`project_perceptual` treats negative
+        negatives: how :func:`project_perceptual` treats negative
             predicted values and how many columns its search evaluates (``metric="log"`` only).
+        negative_weight: as ``negatives``.
+        max_columns: as ``negatives``.
     """
     if metric not in ("log", "weighted"):
         raise ValueRangeError(f"metric must be 'log' or 'weighted'; got {metric!r}")

@@ -280,7 +280,8 @@ def zh_shade(
     interpolation of :math:`\mu` in :math:`\theta_o`; 0 where the view is below the horizon.
 
     Args:
-        normals, views: (P, 3) world normals and directions towards the eye.
+        normals: (P, 3) world normals and directions towards the eye.
+        views: as ``normals``.
         lam: (T, (L'+1)^2, 3) a material's (or a blend's) ZH vector, L' >= order.
         theta_o: (T,) its view bins. e_lm: ((L''+1)^2, 3) lighting SH, L'' >= order.
         order: L, the shading order (<= both).

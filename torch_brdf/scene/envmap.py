@@ -160,7 +160,10 @@ class EnvironmentMap(Light):
             height: H (the map is H x 2H).
             sun_direction: 3 numbers, direction towards the sun (normalised here).
             sun_angular_radius_deg: angular radius of the sun disk in degrees.
-            sun_radiance, zenith_color, horizon_color, ground_color: RGB (scalar or 3 values).
+            sun_radiance: RGB (scalar or 3 values).
+            zenith_color: as ``sun_radiance``.
+            horizon_color: as ``sun_radiance``.
+            ground_color: as ``sun_radiance``.
             supersample: subsamples per texel side for the sun's coverage.
         """
         H, s = check_count(height, "sky: height", MAX_ENVMAP_HEIGHT), check_count(supersample, "sky: supersample", 64)

@@ -333,9 +333,12 @@ def reference_path_trace(
     measure what a BRDF series, diffuse equivalents and band projections cost.
 
     Args:
-        scene, spp, max_bounces, seed: as :func:`path_trace`; ``max_bounces`` counts surface
+        scene: as :func:`path_trace`; ``max_bounces`` counts surface
             vertices, so it matches a series of that length (Mitsuba's ``max_depth`` is
             ``max_bounces + 1``).
+        spp: as ``scene``.
+        max_bounces: as ``scene``.
+        seed: as ``scene``.
         mis: power-heuristic MIS of light and BRDF sampling (default ``True``); ``False``
             is next-event estimation alone (same expectation, more fireflies on glossy
             surfaces under large bright lights).

@@ -249,8 +249,10 @@ def precompute_visibility(
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
         keep_checkpoint: keep the finished chunks after success.
-        executor, address, max_retries: where the chunks run (``"local"`` or ``"ray"``), see
+        executor: where the chunks run (``"local"`` or ``"ray"``), see
             :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
+        address: as ``executor``.
+        max_retries: as ``executor``.
         processes: ``local`` only: chunks computed at once in forked processes (None: one per
             usable core; 1: one after another in this process, rays on ``scene.workers``).
     Returns:
