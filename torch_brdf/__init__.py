@@ -33,5 +33,5 @@ one; ``tests/test_layers.py`` keeps it so):
 from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
 from .errors import TorchBRDFError
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 __all__ = ["TorchBRDFError", "__version__", "errors"]
