@@ -313,6 +313,20 @@ def test_quoted_figure_is_the_saved_result(page, line, written, bench, path, sca
     assert matches(written, float(value), scale), f"{where}: {written} is written, {bench} {path} is {value}"
 
 
+# ---------------------------------------------------------------------------- architecture
+
+
+def test_architecture_lists_the_layers_the_layer_test_enforces():
+    from tests.test_layers import LAYERS
+
+    text = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
+    rows = re.findall(r"^\| (\d+) \| (`.*`) \|$", text, flags=re.M)
+    documented = [set(re.findall(r"`(\w+)`", names)) for _, names in rows]
+    assert documented == [set(layer) for layer in LAYERS], (
+        "docs/architecture.md's layer table is not tests/test_layers.py's"
+    )
+
+
 # ---------------------------------------------------------------------------- the TOML example
 
 
