@@ -1,4 +1,4 @@
-"""Inverse material design with global illumination (issue #16): fits through the polynomial tensors.
+"""Inverse material design with global illumination: fits through the polynomial tensors.
 
     python benchmarks/inverse_gi.py [--quick] [--no-mitsuba] [--sizes 128,256] [--spp 16,64,256] [--no-gi]
 

@@ -398,7 +398,7 @@ def main() -> None:
         out["mitsuba_vs_reference_rel_rmse"] = relative_rmse(mi["image"], ours_a, mask)
         out["reference_seed_rel_rmse"] = relative_rmse(ours_b, ours_a, mask)
         out["mitsuba_mean_ratio"] = float(mi["image"][mask].mean() / ours_a[mask].mean())
-        # the peer's point on the error-vs-time curve of ``rel_rmse`` (same reference, issue #17)
+        # the peer's point on the error-vs-time curve of ``rel_rmse`` (same reference)
         out["mitsuba_point"] = {"spp": n, "seconds": mi["seconds"], "rel_rmse": relative_rmse(mi["image"], ref, mask)}
     out = {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
     print(json.dumps(out))

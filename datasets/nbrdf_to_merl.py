@@ -15,7 +15,7 @@ set to -1 (missing) in both forms: a geometric mask, not MERL's missing-data pat
 Nothing is random (no seed needed); the output is deterministic. Writes are atomic
 (temporary file + rename), so the run is resumable: existing outputs that read back
 correctly are skipped (``--force`` recomputes them). The weights default to
-``$TORCH_BRDF_DATA/merl/nbrdf_merl100_weights.npz`` (or ``../shared/data``). Prints one
+``merl/nbrdf_merl100_weights.npz`` of the data folder (``$TORCH_BRDF_DATA``). Prints one
 line per material, then one JSON object.
 """
 

@@ -14,7 +14,7 @@ import torch
 
 from torch_brdf.data import REGISTRY, data_path, data_root
 
-# The developer layout keeps the data folder beside the checkout: <checkout>/../shared/data. The
+# The developer layout keeps the data folder beside the checkout, as shared/data in its parent. The
 # package itself looks only in $TORCH_BRDF_DATA and the cache, so the tests default the variable
 # to that folder when it exists (CONTRIBUTING.md, "Data").
 _SIBLING = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -1,4 +1,4 @@
-"""A new user's path through the command line (issue #19): the README's command table is the
+"""A new user's path through the command line: the command table is the
 typer app's real commands, options and defaults; the documented flows run end to end with the
 default file names; cheap argument checks come before expensive work; long commands print
 progress."""

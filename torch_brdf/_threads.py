@@ -13,7 +13,7 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
-  block (../shared/FACTS.md: OpenBLAS inside a torch loop is 5-6x slower per call when both
+  block (measured: OpenBLAS inside a torch loop is 5-6x slower per call when both
   run their own threads on 2 cores).
 - :func:`tuned`: the renderer's freeze and frame paths run with the thread count that was
   fastest for their (op, size class): each candidate is timed on real calls (no extra work),
@@ -278,7 +278,7 @@ def single_thread(enabled: bool = True):
 
     Small kernels (a 147 x 192 product, a 100 x 100 Cholesky) are up to ~10-40x slower with two
     threads on a shared 2-core machine (thread hand-off under load), and scipy's OpenBLAS inside
-    a torch loop 5-6x (../shared/FACTS.md). ``enabled=False`` leaves the settings alone.
+    a torch loop 5-6x (thread oversubscription). ``enabled=False`` leaves the settings alone.
     """
     if not enabled:
         yield

@@ -189,7 +189,7 @@ class OIDNBasis:
 #: the default ``keep_mean`` of :class:`CumulativeOIDN` (pixels): the first guess, kept. On the
 #: stratified 64-spp Cornell box, default / edited rel. RMSE was 0.0235 / 0.0297 at 1.5 px,
 #: 0.0230 / 0.0294 at 2.5, 0.0229 / 0.0301 at 4, 0.0230 / 0.0309 at 8 and 0.0230 / 0.0320 off
-#: (README, session 13); picking the edit's best would tune on the edit.
+#: (see the denoising guide); picking the edit's best would tune on the edit.
 KEEP_MEAN_SIGMA = 4.0
 
 

@@ -23,8 +23,8 @@ leaves ~1e-11 of the target energy; so it is then *polished*: the active set it 
 point is kept when its KKT conditions verify, it is feasible to 1e-12 and not worse.
 
 ``"admm"``: the fit "as a torch optimisation with projected constraints on the small normal
-equations" (issue #7; the design card: "the constrained inverse fits are autograd
-optimisations with projected constraints"), written as OSQP's ADMM (Stellato et al., "OSQP: an
+equations" ("the constrained inverse fits are autograd optimisations with projected
+constraints"), written as OSQP's ADMM (Stellato et al., "OSQP: an
 operator splitting solver for quadratic programs", Math. Prog. Comp. 12, 2020). The
 constraints are stacked as :math:`l \le Ax \le u` with :math:`A = [G; I]`,
 :math:`l = [-\infty; 0]`, :math:`u = [h; +\infty]`. Each iteration solves

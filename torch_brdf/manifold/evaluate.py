@@ -84,9 +84,9 @@ def _signed_logmap(v: torch.Tensor, c: torch.Tensor, eps: float = 1e-3, negative
 
 #: placement error options of :func:`project_perceptual`
 NEGATIVES = ("penalise", "free")
-#: default factor on mapped negative values in the placement (issue #20, second pass: 1 left
-#: held-out reconstructions with more negative values than PCA's on the family hold-outs; chosen
-#: after seeing the quick-grid hold-outs, README "BRDF manifold")
+#: default factor on mapped negative values in the placement (a factor of 1 left held-out
+#: reconstructions with more negative values than PCA's on the family hold-outs; chosen after
+#: seeing the quick-grid hold-outs, see the manifold guide)
 NEGATIVE_WEIGHT = 100.0
 
 
@@ -112,7 +112,7 @@ def project_perceptual(
       times as far below zero as their magnitude lands above it,
       :math:`m(v) = \operatorname{sign}(v)\log(1 + |v|\cos/\epsilon)` (times the weight where :math:`v < 0`)
       (the same error for non-negative values; :func:`_signed_logmap`), so among points that fit
-      equally well the search prefers one without negative values (issue #20: held-out
+      equally well the search prefers one without negative values (without it, held-out
       reconstructions were more often negative than PCA's). It is never smaller than the clamped
       error the results are scored with.
     * ``negatives="free"``: the clamped mapping (a negative value costs what 0 costs), searched on

@@ -1,6 +1,7 @@
 r"""Real spherical harmonics, rotated zonal harmonics, and ZH shading of interpolated BRDFs.
 
-Our own tested convention (not scipy's ``sph_harm``/``sph_harm_y``; see ../shared/FACTS.md).
+Our own tested convention (not scipy's: 1.17 removed ``sph_harm``, and ``sph_harm_y`` orders its
+angles differently).
 For a unit vector :math:`\omega = (x, y, z)` with polar angle :math:`\theta` from :math:`+z`
 and azimuth :math:`\phi = \operatorname{atan2}(y, x)`:
 

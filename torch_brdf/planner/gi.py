@@ -1,4 +1,4 @@
-r"""The error-budget planner of BRDF editing with global illumination (issue #17).
+r"""The error-budget planner of BRDF editing with global illumination.
 
 Given a relative-RMSE budget :math:`e` (and optionally seconds), choose the settings of
 :func:`~torch_brdf.transport.polynomial.precompute_polynomial` that model only what the scene

@@ -1,4 +1,4 @@
-r"""The error-budget planner of inverse BRDF design (issue #17): light samples S, SRBF count J
+r"""The error-budget planner of inverse BRDF design: light samples S, SRBF count J
 (hemicube resolution n, :math:`J = 3n^2`) and the visibility-cut tolerance for a fit-error target.
 
 The error is the relative RMSE, over the object's pixels, of the *design image* (the fitted

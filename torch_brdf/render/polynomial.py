@@ -15,7 +15,7 @@ a low-frequency second bounce, linear in :math:`\hat c_i`; the seed's :math:`F_{
 
 with :math:`g'_{(\varnothing, n)} = d_i^n` and :math:`g'_{(k, n)} = \hat c_{i,k} d_i^n`. ``F`` is
 stored ``(C, J, K'·P)`` with the coefficient axis first, so a frame is two batched matrix
-products that stream ``F`` once (../shared/FACTS.md: 16x faster than ``einsum('pjn,j->pn')``).
+products that stream ``F`` once (measured: 16x faster than ``einsum('pjn,j->pn')``).
 
 Materials: :meth:`PolynomialRenderer.set_material` accepts any BRDF of the library (or a
 scene material dict): ``c`` by cosine-weighted projection onto the object's bands

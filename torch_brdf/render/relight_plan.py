@@ -1,4 +1,4 @@
-r"""The relighting planner's pilots (issue #17): cubemap resolution, graded-visibility bits and
+r"""The relighting planner's pilots: cubemap resolution, graded-visibility bits and
 the BRDF-sampling rule for a PSNR target, measured on a sample of the seen vertices.
 
 The decision (the error metric, the cost model, the choice) is

@@ -1,4 +1,4 @@
-"""The speed/accuracy report (issue #17): every benchmark's trade in one page.
+"""The speed/accuracy report: every benchmark's trade in one page.
 
 :func:`make_report` runs the scripts in ``benchmarks/`` (or reads their saved JSON from a
 results folder), turns each capability's numbers into error-vs-cost figures

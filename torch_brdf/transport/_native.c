@@ -23,7 +23,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-/* Session 9: loops of the sampling side written to vectorise (branch-free passes over arrays)
+/* Loops of the sampling side written to vectorise (branch-free passes over arrays)
  * are built twice, for AVX2 and for the baseline x86-64 (SSE2), and the loader picks the copy
  * the CPU can run (GCC's target_clones: an ifunc resolved once). The two copies do the same
  * IEEE operations in the same order (no FMA: -ffp-contract=off), so they give the same bits:
@@ -52,7 +52,7 @@ typedef struct {
     int nruns, run_room, run_fwd;
     void *scratch; /* the sorts' item arrays, kept for the next reduction (no fresh pages per call) */
     size_t scratch_bytes;
-    void *samples; /* tb_emit's per-sample rows, kept for the next call (session 10: likewise) */
+    void *samples; /* tb_emit's per-sample rows, kept for the next call (likewise) */
     int64_t samples_room;
 } tb_acc;
 
@@ -416,7 +416,7 @@ int tb_reduce_into(tb_acc *a, int forward, tb_acc *into) {
     return reduce_impl(a, forward, NULL, NULL, &u, into);
 }
 
-/* ---- A tile's sparse blocks (reduce.py _local_blocks; #14, session 7) -----------------------
+/* ---- A tile's sparse blocks (reduce.py _local_blocks) -----------------------
  * From a tile's per-key sums (tb_reduce's output: fields (U, 5 + M) int64 rec, obj, bounce, j,
  * w, counts and values (U, 6) float64 sum, then sum of per-path squares), per (eye object,
  * bounce) block in ascending (object, bounce) order: the records that occur (upix, ascending),
@@ -609,7 +609,7 @@ void tb_area_finish(int64_t n, const float *d, const float *d2, const float *dis
     }
 }
 
-/* ---- A pass group's eye rays (session 10; polynomial/driver.py eye_rays) ----------------------
+/* ---- A pass group's eye rays (polynomial/driver.py eye_rays) ----------------------
  * camera.py Camera.rays_through at the raster positions driver.py _tile_entries makes, around the
  * two steps that stay torch's (the (n, 3) @ (3, 3) product and the row norms, whose BLAS and
  * vectorised reductions round their own way): the same float64 operations in the same order, so
@@ -642,13 +642,13 @@ void tb_camera_finish(int64_t n, const double *d, const double *norm, const doub
     }
 }
 
-/* ---- The per-vertex steps of the GI tracer (tracer.py _Tracer.run; #14, session 6) ----------
+/* ---- The per-vertex steps of the GI tracer (tracer.py _Tracer.run) ----------
  * One call per step and wavefront instead of ~40 torch ops: the shading frame, an area light's
  * next-event sample with its shadow ray, the light samples' local directions, the band slots
  * and quotients of the editable objects (_Layers), the direction mixture (sampler.py Mixture)
  * and the path's advance (throughput, counts, world direction, the next ray). Same formulas
  * and operation order as the torch code, in float32 (float64 where it uses float64), but libm's
- * scalar sqrtf/atan2f/powf/expm1f/logf (and, since session 9, the mixture's own cos/sin:
+ * scalar sqrtf/atan2f/powf/expm1f/logf (and the mixture's own cos/sin:
  * sincos_fd) instead of torch's vectorised ones: results
  * may differ from the torch path in the last ulp (and a path that then lands on a band edge or
  * grazes an edge of the geometry may take the other side), so the tests compare them with
@@ -773,7 +773,7 @@ void tb_layers(int64_t n, int L, int64_t fill, const int32_t *spec, const float 
             for (int c = 0; c < 3; c++) wr[c] = up ? rho[c] / (float)3.14159265358979323846 : 0.0f;
         }
         if (sp[0] != 1) continue;
-        /* the half vector and angle only where something reads them (session 8): a single band
+        /* the half vector and angle only where something reads them: a single band
          * (J = 1) needs no angle, and the one, distribution and microfacet quotients no h or
          * theta_d; the values written are the same */
         int need_h = sp[2] > 1;
@@ -814,7 +814,7 @@ static double ulp_quarter(float x) {
     return q;
 }
 
-/* cos and sin of float angles x (|x| < 2^20), rounded to float from float64 arithmetic (session 9):
+/* cos and sin of float angles x (|x| < 2^20), rounded to float from float64 arithmetic:
  * x - k pi/2 with k = nearest integer of x 2/pi (pi/2 as two doubles: the reduced angle r,
  * |r| <= pi/4 + 1e-9, is exact to ~1e-16 relative for these x), then Taylor polynomials of
  * sin r to r^15 and cos r to r^14 (truncation < 1e-15 relative at pi/4), the quadrant by
@@ -844,7 +844,7 @@ void tb_sincos(int64_t n, const float *x, float *c, float *s) { /* tests: sincos
  * wo (n, 3) local -> wi (n, 3), pdf (n,), cosw (n,) and ok (n,) uint8. The constants as torch
  * rounds them: diffuse, gloss = 1 - diffuse, exponent n and norm = (n + 1) / (2 pi) in float64,
  * then float32.
- * Session 9: in blocks of MIX_B rows, as passes over the block: the angles of the sampler drawn
+ * In blocks of MIX_B rows, as passes over the block: the angles of the sampler drawn
  * and their cos / sin (sincos_fd, no libm call), the lobe's sin^2 (logf, expm1f) on the lobe's
  * rows only, the directions and the pdf's diffuse term, the lobe's pdf term (powf) on the rows
  * that need it, then cos / pdf: no branch on the sample in the arithmetic passes, so they
@@ -856,7 +856,7 @@ TB_SIMD void tb_mixture(int64_t n, const float *u, const float *wo, float diffus
     const double PI = 3.14159265358979323846;
     const float tiny = 1.17549435e-38f, e = 1.1920929e-07f, q1 = (float)(PI / 4), q2 = (float)(PI / 2);
     const float two_pi = (float)(2 * PI), inv_pi = (float)(1 / PI);
-    /* Session 8: the lobe's pdf term gloss * norm * powf(ch, n) / (4 coh) (powf: ~40% of this
+    /* The lobe's pdf term gloss * norm * powf(ch, n) / (4 coh) (powf: ~40% of this
      * loop) is left out where it cannot change p: for ch <= c0 it is at most lobe_bound / coh
      * (c0^n in float64 with margins for powf's ulp and the four float32 roundings), and a
      * term below half an ulp of t1 > 0 leaves the rounded sum t1 + term at t1. */
@@ -1144,7 +1144,7 @@ static inline void tb_rayhit_init(tb_rayhit *r, const float *o, const float *d, 
 int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const float *d, const float *table,
                       const int64_t *offsets, const uint8_t *flat, float *t, int64_t *obj, int64_t *prim, float *bary,
                       float *pos, float *ng, float *ns) {
-    /* Session 11: two passes, the same values. The embree calls first (t, obj, prim, bary), then
+    /* Two passes, the same values. The embree calls first (t, obj, prim, bary), then
      * the interpolation of every ray from those: the rows' arithmetic (and its sqrtf's latency)
      * no longer sits between one embree call and the next, and the second loop has no call. */
     tb_intersect1 intersect = (tb_intersect1)fn;
@@ -1231,7 +1231,7 @@ int64_t tb_intersect_only(void *scene, void *fn, int64_t n, const float *o, cons
     return hits;
 }
 
-/* ==== A tile's sums per key, gathered record by record (#14, session 8, bookkeeping) ========
+/* ==== A tile's sums per key, gathered record by record (bookkeeping) ========
  * The twin of tb_reduce_into (a pass group's per-path sums appended as a sorted run) followed
  * by the tile's final merge (reduce_impl over the runs), without sorting keys: a pass group's
  * entries are bucketed by (record, path) with one stable counting sort (arrival order kept
@@ -1647,14 +1647,14 @@ done:
     return nb;
 }
 
-/* ---- The GI tracer's wavefront in reused buffers (tracer.py _Tracer._run_wavefront; #14, session 8)
+/* ---- The GI tracer's wavefront in reused buffers (tracer.py _Tracer._run_wavefront)
  *
  * The sampling side of a bounce without torch ops between the steps: the random numbers are drawn
  * here from the bytes of torch's CPU generator state (Generator.get_state(), written back after
  * the wavefront), the light samples that reach their vertex are gathered with their diffuse
  * factor, and the paths whose next ray hits are compacted in place into the wavefront's buffers
  * (allocated once per tracer, sized by the largest wavefront), instead of torch.rand, boolean
- * indexing and fresh tensors per step. The arithmetic is the session-6 steps' above (tb_frame,
+ * indexing and fresh tensors per step. The arithmetic is the per-vertex steps' above (tb_frame,
  * tb_area_sample, tb_layers, tb_mixture, tb_advance), called on those buffers, so the tensors
  * are the same bit for bit. */
 
@@ -1770,7 +1770,7 @@ static inline void wf_vertex(const tb_wf *s, int64_t h, int64_t i, const float *
     s->oid[h] = obj[i];
 }
 
-/* (session 10) the frames of rows 0..h-1 in a pass of their own, after the rows are in place:
+/* The frames of rows 0..h-1 in a pass of their own, after the rows are in place:
  * no branch on which rays hit, so the loop runs without mispredictions (and GCC's AVX2 copy
  * vectorises what it can); tb_frame's operations, so the same bits */
 TB_SIMD static void wf_frames(int64_t h, const float *restrict d, float *restrict ng, float *restrict ns,
@@ -1881,12 +1881,12 @@ static inline int64_t area_triangle(double u0, const double *cdf, int64_t T) {
 
 /* The samples' arithmetic for b vertices at once, given their points on the light lp (b, 3) and
  * its normals there nl (b, 3) (area_light_point): dir, weight, cos per vertex, and per vertex
- * (not yet compacted) whether it is a candidate, its shadow-ray origin and t_max. Session 9
- * removed the branches on the sample's values (~45 -> ~20 ns per vertex); session 16 moved the
- * uniforms and the point on the light to their own pass, which leaves one straight loop of
+ * (not yet compacted) whether it is a candidate, its shadow-ray origin and t_max. No
+ * branch on the sample's values (~20 ns per vertex, not ~45 with them), and the uniforms and
+ * the point on the light in their own pass, which leaves one straight loop of
  * float operations with no loop-carried value: GCC's AVX2 copy computes 8 vertices per
- * instruction (the divisions and square roots were the latency). The same IEEE operations in
- * the same order as before, so the same bits. */
+ * instruction (the divisions and square roots are the latency). The passes change no IEEE
+ * operation and no order, so the bits are those of one loop per vertex. */
 TB_SIMD static void area_sample_math(int64_t b, const float *restrict lp, const float *restrict nl,
                                      const float *restrict radiance, float area, const float *restrict pos,
                                      const float *restrict ng, const float *restrict ns, float eps,

@@ -54,7 +54,7 @@ ENV_VAR = "TORCH_BRDF_NATIVE"
 _SOURCE = Path(__file__).with_name("_native.c")
 # -O3 vectorises the sampling passes (the AVX2 copies of TB_SIMD functions in _native.c);
 # -fno-math-errno and -fno-trapping-math change no value (no FMA, no reassociation: the
-# tensors are the same bit for bit as with -O2, checked in session 9), they let sqrtf inline and
+# tensors are the same bit for bit as with -O2, checked by the tests), they let sqrtf inline and
 # selects replace branches so the loops vectorise
 _FLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno", "-fno-trapping-math"]
 _state: dict = {"lib": None, "tried": False, "build_s": 0.0}

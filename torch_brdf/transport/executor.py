@@ -319,8 +319,8 @@ def run_tiles(
 
 
 class _TileWriter:
-    """The tile files of a run, written by one background thread in the order the tiles finish
-    (session 16): writing a file is mostly a system call that releases the GIL, so the driver
+    """The tile files of a run, written by one background thread in the order the tiles finish:
+    writing a file is mostly a system call that releases the GIL, so the driver
     assembles tile k while tile k - 1 is written, and its serial work per tile is the larger of
     the two rather than their sum. Nothing is started without a checkpoint folder. The thread
     is made at the first write, after the forked tile processes have started."""

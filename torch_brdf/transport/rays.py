@@ -1,4 +1,4 @@
-r"""The GI precompute's rays cast straight into embree by the compiled kernel (#14).
+r"""The GI precompute's rays cast straight into embree by the compiled kernel.
 
 :class:`NativeRays` casts closest-hit rays and shadow rays of a scene's
 :class:`~torch_brdf.scene.raytrace.RayTracer` with ``tb_trace_hits`` and ``tb_occluded_rays`` of
