@@ -53,7 +53,8 @@ TILE_BYTES_PER_PATH = 1024
 #: pixels of a default tile (whole rows: ``TILE_PIXELS // width`` of them, at least one). Small
 #: enough that the processes pulling tiles run out of work nearly together and the last tile's
 #: hand-back and assembly (serial after the tiles) are short: 16 tiles of 16 rows at 256²
-#: (16384 pixels, 4 tiles of 64 rows, left one of two processes waiting for the last tile). Part of the random stream (each tile is seeded by its index).
+#: (16384 pixels, 4 tiles of 64 rows, left one of two processes waiting for the last tile).
+#: Part of the random stream (each tile is seeded by its index).
 TILE_PIXELS = 4096
 
 
