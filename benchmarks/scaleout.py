@@ -24,7 +24,7 @@ first runs). Prints progress, then one JSON object as the last line:
   writer thread (``local_write_s_per_tile``: encoding and writing it there), and
   ``driver_s_per_tile`` the larger of the two (the writes run beside the assembly, so not
   their sum).
-* the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
+* the model (stated in the cluster guide): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
   nodes of 2 workers. Tile sizing for that scene: 16 rows (16k pixels, 16.8M paths, a few
   minutes of work) while there are at most 64 tiles per 2N workers, otherwise ``n = 4 * 2N``
   tiles (at N = 64: 512 tiles of 2 rows, 2M paths each), so that each task runs for seconds

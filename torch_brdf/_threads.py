@@ -191,7 +191,7 @@ def tile_processes(processes: int | None = None, load: float | None = None) -> i
             :data:`BUSY_LOAD_PER_CORE` per usable core: beside other sessions a second process
             mostly splits the same CPU share (Linux groups a session's processes,
             ``sched_autogroup``) and costs extra CPU time and page faults (measured 0.79x at
-            load 13 on 2 cores, README "Where the precompute's time goes").
+            load 13 on 2 cores).
         load: the load average to judge by (default ``os.getloadavg()[0]``; tests pass one).
     """
     if processes is not None or _from_env(ENV_WORKERS) is not None:

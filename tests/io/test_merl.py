@@ -137,7 +137,7 @@ def test_bin_centres_address_their_bins_in_both_dtypes():
 
 
 def test_lower_edges_are_not_safe_lookup_points():
-    # The README's index -> angle map computed in float64 rounds some edges down a bin:
+    # MERL's index -> angle map computed in float64 rounds some edges down a bin:
     # documented in torch_brdf.io.merl; use centres to address bins.
     _, td, _ = merl_index_to_angles(torch.arange(90), torch.arange(90), torch.arange(180), at="lower")
     assert merl_theta_d_index(td[19]).item() == 18
@@ -379,7 +379,7 @@ def test_shared_sample_table_loads_without_pickle():
     assert d.phi_d_index.tolist() == list(range(0, 180, 4))
     assert d.source == "nbrdf" and d.is_approximation
     missing = d.brdf[:, 0] == -1
-    assert abs(missing.double().mean().item() - 0.233) < 0.001  # the README's 23.3 % horizon mask
+    assert abs(missing.double().mean().item() - 0.233) < 0.001  # the NBRDF table's 23.3 % horizon mask
 
 
 def test_nbrdf_weights_load_and_validate(tmp_path):

@@ -116,8 +116,8 @@ class MERLTabulated(_IsotropicMeasured):
       :func:`torch_brdf.io.merl.merl_coordinates` (square-root-mapped :math:`\theta_h`,
       linear :math:`\theta_d`, :math:`\phi_d`), with each value placed at its bin's
       **lower edge** — the angle a table made by :func:`tabulate_nbrdf` was evaluated at,
-      and the index -> angle map of the README — so the two lookups agree on the lower
-      edges. :math:`\phi_d` wraps with period :math:`\pi` (bin 179, or the last kept
+      and the index -> angle map of :func:`~torch_brdf.io.merl.merl_index_to_angles` — so the
+      two lookups agree on the lower edges. :math:`\phi_d` wraps with period :math:`\pi` (bin 179, or the last kept
       index, blends into bin 0); :math:`\theta_h, \theta_d` are held constant beyond the
       last kept index.
 

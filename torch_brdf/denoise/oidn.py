@@ -241,7 +241,7 @@ class CumulativeOIDN:
         image_denoiser: ``(H, W, 3) -> (H, W, 3)`` in place of OIDN (tests; other denoisers).
         mix: weight of the fallback filter's output in the banded groups' result,
             ``(1 - mix) D + mix A`` (two denoisers of the same fixed images, so edits stay
-            exact; their errors are partly independent: see the README's measurements).
+            exact; their errors are partly independent: see ``benchmarks/denoise.py``).
         keep_mean: sigma (pixels) of the Gaussian window within which each denoised prefix
             sum is rescaled to the noisy sum's mean (module docstring); 0 turns it off.
         lobes: (J, 3, H, W) prefix images of the frozen object's light lobes

@@ -52,7 +52,7 @@ Why the interior point method is the default: on the tests' set of fit QPs
 (``tests/inverse/qp_set.py``: partial masks, zero-residual targets, rank-deficient H, an
 out-of-family target, rho_d -> 1) it solves every problem to the reference optimum, in a
 fixed ~15-25 iterations; ADMM needs 50-3600 iterations and fails on two of them without the
-fallback. Timings and success counts: ``benchmarks/inverse.py`` (and the README).
+fallback. Timings and success counts: ``benchmarks/inverse.py`` (and the inverse-design guide).
 
 When :math:`f \le 0` and :math:`h \ge 0`, :math:`x = 0` is an exact KKT point and is returned
 without iterating (both methods). The report gives the iterations, the objective and the

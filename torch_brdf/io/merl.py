@@ -15,8 +15,7 @@ are the RGB BRDF in 1/sr; negative values mark bins without a measurement.
 kept negative (scaling by a positive factor keeps the sign); ``table < 0`` is the mask.
 One array instead of (values, mask) keeps the file's own convention and costs nothing.
 
-**Angle -> index** (MERL's lookup, ``BRDFRead.cpp``; the README of the shared data is the
-reference for the exact arithmetic):
+**Angle -> index** (MERL's lookup, ``BRDFRead.cpp``, whose arithmetic this follows exactly):
 
 * :math:`i_h = \lfloor \sqrt{\theta_h / (\pi/2)} \cdot 90 \rfloor` (0 for
   :math:`\theta_h \le 0`), clamped to 0..89 (square-root spacing: fine bins near the
@@ -231,7 +230,7 @@ def merl_flat_index(i_h: torch.Tensor, i_d: torch.Tensor, i_p: torch.Tensor) -> 
 def merl_index_to_angles(
     i_h, i_d, i_p, at: Literal["lower", "centre"] = "lower", dtype: torch.dtype = torch.float64
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    r"""Angles of MERL bins: their lower edges (the README's index -> angle map, used for the
+    r"""Angles of MERL bins: their lower edges (the index -> angle map used for the
     ``theta_h``, ``theta_d``, ``phi_d`` arrays of the npz layout) or their centres.
 
     With :math:`t = i` (lower) or :math:`t = i + 1/2` (centre):

@@ -124,15 +124,15 @@ def project_perceptual(
     columns (every k-th, evenly spread over the grid and the colour channels): its cost is
     :math:`O(N \cdot \text{columns})` per evaluation, 8x fewer columns on the full MERL grid
     (d = 63,339): a placement there took half the CPU time (the exact scoring of the candidates
-    stays O(N d)) with the same log-RMSE to 4 digits (README, "BRDF manifold").
+    stays O(N d)) with the same log-RMSE to 4 digits (``benchmarks/manifold.py``).
 
     Args:
         model: a fitted :class:`GPLVM`. z_train: (N, d) its raw rows. z_new: (d,) the new BRDF.
         cosine: (B,) or (d,) clipped cosine map. starts: starting points. max_iter: per start.
         negatives: ``"penalise"`` or ``"free"`` (above).
         negative_weight: with ``"penalise"``, the factor (>= 1) on the mapped negative values: a
-            larger weight trades a little log-RMSE for fewer negative values (default 100; README,
-            "BRDF manifold"). Near a training latent the smooth mean's weights are
+            larger weight trades a little log-RMSE for fewer negative values (default 100;
+            ``benchmarks/manifold.py``). Near a training latent the smooth mean's weights are
             :math:`e_j - \mu K^{-1} e_j`, with entries of both signs: the source of the negatives.
         max_columns: columns the L-BFGS search evaluates (None = all).
         train_map: optional (N, d) :func:`_logmap` of ``z_train`` (computed when None; pass it

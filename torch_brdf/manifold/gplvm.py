@@ -55,7 +55,7 @@ from .linesearch import strong_wolfe
 FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
 #: the default warm-up mu of :func:`fit_gplvm`: fits at a mu 100x smaller or less start there (chosen
-#: among 1e-6 ... 1e-4 on the MERL budget map of the README, "BRDF manifold": a selection, not a law)
+#: among 1e-6 ... 1e-4 on a MERL budget map of ``benchmarks/manifold.py``: a selection, not a law)
 WARMUP_MU = 3e-6
 #: the warm-up runs only when the fit's mu is at most this fraction of ``warmup_mu``
 WARMUP_RATIO = 1e-2
@@ -256,7 +256,7 @@ def fit_gplvm(
             start has a hugely negative L (near-coincident latents make K nearly singular) and
             the warm-up reached a higher final L than strong-Wolfe L-BFGS from the PCA start on the
             MERL data at budgets of 150 to 1000 iterations, not at 60 or 100 (both need ~60
-            iterations to leave the start's region; README, "BRDF manifold").
+            iterations to leave the start's region; ``benchmarks/manifold.py``).
         warmup_fraction: as ``warmup_mu``.
     Returns:
         :class:`GPLVMFit`.
