@@ -16,7 +16,7 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   ``precompute_over_rays``: the ratio (the goal is <= 1.5). ``precompute_processes``:
   processes that computed tiles at once (by default one per core unless the machine is busy;
   with ``--baseline`` one per core whatever the load), and with ``--baseline`` also
-  ``one_process_s`` (tiles one after another in this process, as before #14's parallel tiles),
+  ``one_process_s`` (tiles one after another in this process, without parallel tiles),
   ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
 * ``tile_timeline``: per tile of that precompute [tile, process id, start, end (wall seconds
   after the call began), CPU seconds]; ``serial_before_tiles_s`` / ``serial_after_tiles_s``

@@ -104,7 +104,7 @@ def test_floor_puts_exact_edges_in_the_upper_bin():
     assert merl_phi_d_index(t64(below(math.pi / 2))).item() == 89
     # One ulp below pi/8, MERL's own arithmetic (2025 - 2^-42, whose square root rounds to 45)
     # still says 45; sqrt(theta/(pi/2)) * 90 in float64 would say 44. MERL's lookup is the
-    # reference, and the answer no longer depends on the CPU's vectorised square root.
+    # reference, and the answer does not depend on the CPU's vectorised square root.
     assert merl_reference(below(math.pi / 8), 0.0, 0.0)[0] == 45
     assert merl_theta_h_index(t64(below(math.pi / 8))).item() == 45
     assert merl_indices(t64(0.0), t64(0.0), t64(0.0)) == (0, 0, 0)

@@ -1,4 +1,4 @@
-/* The entries of the multibounce precomputation, made and summed per key (torch_brdf, #14).
+/* The entries of the multibounce precomputation, made and summed per key (torch_brdf).
  *
  * The compiled twin of the tracer's _Tracer._emit + _Entries (tracer.py) and of reduce.py's
  * _reduce: each light sample at a vertex adds, per layer combination (a, b), one entry with
@@ -996,7 +996,7 @@ void tb_gather(int64_t m, const int64_t *rows, int k, char *const *src, char *co
     }
 }
 
-/* ---- visibility cubemaps (transport/visibility.py, #14) ------------------------------------
+/* ---- visibility cubemaps (transport/visibility.py) ----------------------------------------
  *
  * The rays go to embree's rtcOccluded1 directly: the caller passes the committed scene's
  * handle and the function's address (scene/parallel.py: embree_entry), so the query per ray is
@@ -1106,7 +1106,7 @@ int64_t tb_occluded_fans(void *scene, void *fn, int64_t m, const float *origins,
     return hits;
 }
 
-/* ---- GI ray casting (transport/rays.py, #14) -------------------------------------------------
+/* ---- GI ray casting (transport/rays.py) -----------------------------------------------------
  *
  * The GI tracer's closest-hit rays and shadow rays, cast straight into embree as the visibility
  * fans above are (the scene handle and rtcIntersect1 / rtcOccluded1 from the library embreex
@@ -1146,7 +1146,7 @@ int64_t tb_trace_hits(void *scene, void *fn, int64_t n, const float *o, const fl
                       float *pos, float *ng, float *ns) {
     /* Two passes, the same values. The embree calls first (t, obj, prim, bary), then
      * the interpolation of every ray from those: the rows' arithmetic (and its sqrtf's latency)
-     * no longer sits between one embree call and the next, and the second loop has no call. */
+     * does not sit between one embree call and the next, and the second loop has no call. */
     tb_intersect1 intersect = (tb_intersect1)fn;
     int64_t hits = 0, cast = n, rc = 0;
     tb_rayhit r;
