@@ -14,8 +14,8 @@ namespace, so a page can precompute with the command line and then load the file
   the environment this test runs in, so they are checked for form only (CI runs the README's
   test command itself, ``tests/test_repo.py``). A command that starts a server or needs the
   network (``torch-brdf editor``, ``torch-brdf fetch-data``, ``ray start``) must say
-  ``# not run: REASON``. Any other command fails the test: use ```console or ```text for
-  anything that must not run.
+  ``# not run: REASON``. Other lines (``mkdir -p out && printf ... > out/strokes.json``) run in
+  bash, in the same folder. Use ```console or ```text for anything that must not run.
 * A page stops, skipped with the reason, at the first block that needs the data folder
   (``DataNotFoundError``), since the blocks after it build on it.
 
@@ -34,6 +34,7 @@ import math
 import os
 import re
 import shlex
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -159,6 +160,14 @@ def test_setup_commands_are_only_setup():
     assert not SETUP.match("torch-brdf demo") and not SETUP.match("rm -rf out")
 
 
+def test_shell_lines_run_in_the_page_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run_bash("t", "mkdir -p out && printf '%s' '{\"a\": 1}' > out/a.json\n", monkeypatch)
+    assert json.loads((tmp_path / "out" / "a.json").read_text()) == {"a": 1}
+    with pytest.raises(AssertionError, match="failed"):
+        run_bash("t", "false\n", monkeypatch)
+
+
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     """One fresh cache for all pages, as a user's would be (band albedos computed once)."""
@@ -172,7 +181,9 @@ def run_bash(where: str, code: str, monkeypatch) -> None:
 
     for line in commands(code):
         cmd, kind, text = split_comment(line)
-        for part in (c.strip() for c in cmd.split("&&")):
+        # a line without torch-brdf or setup (mkdir, printf > file, ...) runs whole, in bash
+        split = "torch-brdf" in cmd or SETUP.match(cmd.split("&&")[0].strip())
+        for part in [c.strip() for c in cmd.split("&&")] if split else [cmd]:
             if SETUP.match(part):
                 continue
             if kind == "not run":
@@ -183,11 +194,11 @@ def run_bash(where: str, code: str, monkeypatch) -> None:
             if m:
                 monkeypatch.setenv(m[1], os.path.expandvars(m[2].strip("\"'")))
                 continue
+            if not part.startswith("torch-brdf "):
+                res = subprocess.run(["bash", "-c", part], capture_output=True, text=True, timeout=600)
+                assert res.returncode == 0, f"{where}: {part!r} failed:\n{res.stdout}{res.stderr}"
+                continue
             argv = shlex.split(part)
-            assert argv[0] == "torch-brdf", (
-                f"{where}: {part!r} is neither a torch-brdf command nor setup "
-                "(use ```console for commands that must not run)"
-            )
             args = apply_small(argv[1:], shlex.split(text)) if kind == "small" else argv[1:]
             res = CliRunner().invoke(app, ["--debug", *args], env={"TORCH_BRDF_PROGRESS": "0"})
             if isinstance(res.exception, DataNotFoundError) or "DataNotFoundError" in (res.output or ""):
