@@ -23,7 +23,7 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   the wall time before the first tile started and after the last ended (process start,
   assembly of the last tile, the record), ``tiles_cpu_s`` the tiles' CPU seconds and
   ``tiles_parallelism`` those over ``precompute_s`` (2 on two cores at perfect efficiency).
-* ``native``: whether the compiled entry kernel (``transport/_native.c``) ran;
+* ``native``: whether the compiled entry kernel (``transport/csrc``) ran;
   ``native_build_s``: seconds this process spent compiling it on first use (0 when the cached
   build was loaded), ``native_load_s`` building or loading it, both before and outside
   ``precompute_s``. With ``--torch-path`` also ``torch_path_s`` (the same precompute with the

@@ -19,7 +19,7 @@ stopped by :meth:`TracePool.close`, when it is garbage collected, or at interpre
 An exception or interrupt (Ctrl-C) in the parent during a call stops it too; the next call
 starts a fresh one. Children ignore SIGINT and exit when the parent goes away.
 
-Compiled loops (``transport/_native.c``) may call embree themselves: :func:`embree_entry`
+Compiled loops (``transport/csrc``) may call embree themselves: :func:`embree_entry`
 gives the committed scene's ``RTCScene`` handle and the address of ``rtcOccluded1`` from the
 very library instance embreex loaded (so the same BVH and the same per-ray query as
 ``EmbreeScene.run``), or None where that cannot be checked.
@@ -47,6 +47,7 @@ import numpy as np
 from embreex import rtcore, rtcore_scene
 
 from .._threads import configure_worker, prepare_fork, worker_count
+from ._bindings import EMBREE, declare
 
 #: rays per embree call; results do not depend on it being shared by every process.
 CHUNK = 1 << 14
@@ -256,7 +257,7 @@ def embree_function(name: str) -> int | None:
 class EmbreeHits:
     """What a compiled loop needs to cast a :class:`TraceKernel`'s closest-hit and shadow rays
     itself and to make :class:`HitArrays` as :meth:`TraceKernel.trace` does
-    (``tb_trace_hits`` / ``tb_occluded_rays`` in ``transport/_native.c``).
+    (``tb_trace_hits`` / ``tb_occluded_rays`` in ``transport/csrc/rays.c``).
 
     Attributes:
         scene: the committed ``RTCScene`` handle (:func:`embree_entry`).
@@ -302,8 +303,7 @@ def embree_entry(scene) -> tuple[int, int] | None:
         return None
     handle = ctypes.c_void_p.from_address(base + 2 * word).value
     rtc_device = ctypes.c_void_p.from_address(device + 2 * word).value
-    lib.rtcGetSceneDevice.restype, lib.rtcGetSceneDevice.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
-    lib.rtcReleaseDevice.restype, lib.rtcReleaseDevice.argtypes = None, [ctypes.c_void_p]
+    declare(lib, EMBREE)
     got = lib.rtcGetSceneDevice(handle)  # takes a reference to the device
     if got:
         lib.rtcReleaseDevice(got)
