@@ -284,7 +284,9 @@ def nbrdf_input(theta_h: torch.Tensor, theta_d: torch.Tensor, phi_d: torch.Tenso
     difference vector :math:`d = (\sin\theta_d\cos\phi_d, \sin\theta_d\sin\phi_d, \cos\theta_d)`.
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) radians (broadcastable).
+        theta_h: (*B,) radians (broadcastable with the others).
+        theta_d: (*B,) radians.
+        phi_d: (*B,) radians.
     Returns:
         (*B, 6) in the input dtype.
     """
@@ -308,7 +310,12 @@ def nbrdf_mlp(
 
     Args:
         x: (*B, 6) inputs (:func:`nbrdf_input`).
-        W1, b1, W2, b2, W3, b3: (6, H), (H,), (H, H), (H,), (H, 3), (3,) in the dtype of x.
+        W1: (6, H) in the dtype of x.
+        b1: (H,).
+        W2: (H, H).
+        b2: (H,).
+        W3: (H, 3).
+        b3: (3,).
     Returns:
         (*B, 3) RGB BRDF values (1/sr, MERL scale included); may be slightly negative.
     """

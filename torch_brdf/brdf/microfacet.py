@@ -143,8 +143,8 @@ def beckmann_d(h: torch.Tensor, alpha_x: torch.Tensor, alpha_y: torch.Tensor | N
 
     Args:
         h: (*B, 3) half vectors with :math:`h_z > 0`, any positive length.
-        alpha_x, alpha_y: () or (*B,) roughness along the tangent and bitangent
-            (``alpha_y=None``: isotropic).
+        alpha_x: () or (*B,) roughness along the tangent.
+        alpha_y: () or (*B,) roughness along the bitangent (None: ``alpha_x``, isotropic).
     Returns:
         (*B,).
     """

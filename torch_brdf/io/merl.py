@@ -96,7 +96,9 @@ def merl_coordinates(
     exact bins are :func:`merl_indices`); integer values sit on the lower bin edges.
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) angles in radians (broadcastable).
+        theta_h: (*B,) angles in radians (broadcastable with the others).
+        theta_d: (*B,) angles in radians.
+        phi_d: (*B,) angles in radians.
     Returns:
         u_h, u_d, u_p: (*B,) each.
     """

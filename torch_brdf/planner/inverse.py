@@ -98,7 +98,8 @@ def plan_inverse(
         environment: the lighting the light samples come from.
         target: the painted target over ``px``'s pixels.
         error: budget on the design image's relative RMSE; seconds: budget on precompute + fit.
-        kd, f0: diffuse albedo and Schlick F0 of the design.
+        kd: diffuse albedo of the design.
+        f0: Schlick F0 of the design.
         light_samples: candidate S (powers of two: cuts need them).
         hemicube: candidate hemicube resolutions n (J = 3 n^2); the largest is the reference.
         tolerances: candidate cut tolerances (0: dense, no cuts).

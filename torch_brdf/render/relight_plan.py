@@ -115,7 +115,9 @@ def shade_vertices(
 
     Args:
         scene: the scene; ids: (m,) its vertex ids; eye: (3,) the viewpoint.
-        resolution, supersample, bits: the visibility's settings.
+        resolution: the visibility's cubemap resolution.
+        supersample: the visibility's supersampling.
+        bits: the visibility's bits.
         rules: rule names (:func:`make_rule`); None for the dense standard-basis product.
         lighting_samples: as :class:`~torch_brdf.render.triple.TripleProductRenderer`.
         fraction: (m, NB, S^2) the undecoded visibility if already cast at (resolution, supersample).

@@ -202,7 +202,8 @@ def run_tiles(
         executor: ``"local"`` or ``"ray"``.
         address: Ray only, see :func:`connect_ray`.
         max_retries: Ray only: times a tile is run again after its worker died.
-        desc, progress: the tqdm bar over finished tiles.
+        desc: the label of the tqdm bar over finished tiles.
+        progress: whether that bar shows.
         ray_context: Ray only: the object shipped to workers instead of ``context`` (e.g. the
             scene without its forked trace workers); default ``context.for_ray()`` when
             ``context`` has it (:class:`TileWork`), else ``context``.

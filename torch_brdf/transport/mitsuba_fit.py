@@ -129,8 +129,11 @@ class MitsubaBlinnPhongFit:
             target: (H, W, 3) target image.
             weights: (H, W) painted-pixel weights >= 0 (default all ones); the loss is
                 :math:`\\sum_p w_p \\|I_p - T_p\\|^2 / (3\\sum_p w_p)`.
-            kd0, ks0: start (scalar or RGB).
-            steps, spp, lr: Adam steps, samples per pixel per step, learning rate.
+            kd0: start of ``kd`` (scalar or RGB).
+            ks0: start of ``ks`` (scalar or RGB).
+            steps: Adam steps.
+            spp: samples per pixel per step.
+            lr: learning rate.
             seed: step ``i`` renders with seed ``seed + i + 1``.
         Returns:
             :class:`MitsubaTrajectory`; the kernels are compiled by one untimed 1-spp

@@ -79,7 +79,8 @@ class NativeRays:
         dtypes go to the tracer itself).
 
         Args:
-            origins, directions: (P, 3) float32.
+            origins: (P, 3) float32.
+            directions: (P, 3) float32.
         Returns:
             :class:`~torch_brdf.scene.raytrace.Hits` (float32 and int64 views of reused buffers).
         Raises:

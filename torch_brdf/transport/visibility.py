@@ -70,7 +70,8 @@ def visibility_fraction(
     Args:
         scene: the scene (its tracer casts the rays).
         geom: cubemap layout.
-        pos, nrm: (m, 3) vertex positions and unit normals.
+        pos: (m, 3) vertex positions.
+        nrm: (m, 3) unit vertex normals.
         supersample: k, rays per texel side.
     Returns:
         (m, NB, S^2) float32; encode it with

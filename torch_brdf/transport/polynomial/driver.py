@@ -633,7 +633,8 @@ def plan_polynomial(
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
         progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
