@@ -2,7 +2,7 @@
 
 torch_brdf calls C code through :mod:`ctypes` in two places: its compiled kernel (the C files
 of ``transport/csrc``, built by :mod:`torch_brdf.transport._native`) and a few functions of the
-embree library that embreex loaded (:mod:`torch_brdf.scene.parallel`). Their signatures live
+embree library that embreex loaded (:mod:`torch_brdf.scene.embree`). Their signatures live
 here and only here: :data:`KERNEL` maps each kernel entry point to ``(restype, argtypes)``,
 :data:`EMBREE` does the same for embree, and :func:`declare` sets them on a loaded library.
 ``tests/transport/test_kernel_bindings.py`` fails on a ``.restype``/``.argtypes`` assignment or
@@ -86,7 +86,7 @@ KERNEL: dict[str, Signature] = {
     "tb_intersect_only": (I64, [P, P, I64, P, P, P, P]),
 }
 
-#: embree functions called directly (scene/parallel.py embree_entry) -> (restype, argtypes)
+#: embree functions called directly (scene/embree.py embree_entry) -> (restype, argtypes)
 EMBREE: dict[str, Signature] = {
     "rtcGetSceneDevice": (P, [P]),  # RTCDevice rtcGetSceneDevice(RTCScene): takes a reference
     "rtcReleaseDevice": (None, [P]),

@@ -464,7 +464,7 @@ def visibility_fans(
 
     Args:
         lib: :func:`library`'s kernel. entry: ``(RTCScene, rtcOccluded1)`` of
-            :func:`~torch_brdf.scene.parallel.embree_entry`.
+            :func:`~torch_brdf.scene.embree.embree_entry`.
         origins: (m, 3) float32 ray origins; normals: (m, 3) float64 unit normals.
         centres: (3, T) float64 texel-centre directions in block order (the horizon test
             ``n . c > eps``), blocks of ``side x side`` texels row by row on one cube face.
