@@ -346,23 +346,54 @@ def _envmap_bitmap(radiance: torch.Tensor, max_width: int = 2048) -> np.ndarray:
     return np.ascontiguousarray(rows, dtype=np.float32)
 
 
-def _mesh(mi, name: str, vertices, faces, normals, bsdf, emitter=None):
-    """An ``mi.Mesh`` with the given arrays: vertices (V, 3), faces (F, 3), normals (V, 3) or None."""
+def _mesh(mi, name: str, vertices, faces, normals, bsdf, emitter=None, uv=None):
+    """An ``mi.Mesh`` with the given arrays: vertices (V, 3), faces (F, 3), normals (V, 3) or
+    None, uv (V, 2) in our convention (v up) or None."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
     if emitter is not None:
         props["emitter"] = mi.load_dict(emitter)
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     f = np.ascontiguousarray(faces, dtype=np.uint32)
-    mesh = mi.Mesh(name, len(v), len(f), props=props, has_vertex_normals=normals is not None)
+    mesh = mi.Mesh(
+        name, len(v), len(f), props=props, has_vertex_normals=normals is not None, has_vertex_texcoords=uv is not None
+    )
     params = mi.traverse(mesh)
     vtype, ftype = type(params["vertex_positions"]), type(params["faces"])
     params["vertex_positions"] = vtype(v.ravel())
     params["faces"] = ftype(f.ravel())
     if normals is not None:
         params["vertex_normals"] = vtype(np.ascontiguousarray(normals, dtype=np.float32).ravel())
+    if uv is not None:  # Mitsuba's bitmap rows run down from v = 0: flip v
+        t = np.asarray(uv, dtype=np.float64)
+        t = np.stack([t[:, 0], 1.0 - t[:, 1]], -1)
+        params["vertex_texcoords"] = vtype(np.ascontiguousarray(t, dtype=np.float32).ravel())
     params.update()
     return mesh
+
+
+def _textured(mi, bsdf: dict[str, Any], material: dict[str, Any], texture) -> dict[str, Any]:
+    """``bsdf`` with its base colour replaced by ``texture`` times the material's factor: a
+    ``bitmap`` of the linear texels (``raw``: no second sRGB decoding), bilinear, repeating,
+    as :meth:`~torch_brdf.scene.textures.Texture.lookup`. The factor is multiplied into the
+    texels, which a bilinear lookup keeps exact."""
+    inner = dict(bsdf["bsdf"]) if bsdf.get("type") == "twosided" else dict(bsdf)
+    slot = {"diffuse": "reflectance", "principled": "base_color"}.get(inner["type"])
+    if slot is None:
+        raise SceneError(
+            f"material of type {material.get('type')!r} with a texture has no Mitsuba translation; "
+            "textured: lambert, metallic_roughness"
+        )
+    factor = np.asarray(inner[slot]["value"], dtype=np.float64).reshape(-1)
+    img = texture.image.double().numpy() * factor
+    inner[slot] = {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "repeat",
+    }
+    return {"type": "twosided", "bsdf": inner} if bsdf.get("type") == "twosided" else inner
 
 
 def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, variant: str | None = None) -> dict:
@@ -425,7 +456,11 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
         if i in area:
             emitter = {"type": "area", "radiance": _rgb(area[i].radiance)}
         normals = np.asarray(obj.mesh.vertex_normals) if obj.smooth else None
-        out[f"obj_{i}"] = _mesh(mi, obj.name, obj.mesh.vertices, obj.mesh.faces, normals, bsdfs[obj.material], emitter)
+        bsdf = bsdfs[obj.material]
+        if "base_color" in obj.textures:
+            bsdf = _textured(mi, bsdf, scene.materials[obj.material], obj.textures["base_color"])
+        uv = obj.uv if obj.textures else None
+        out[f"obj_{i}"] = _mesh(mi, obj.name, obj.mesh.vertices, obj.mesh.faces, normals, bsdf, emitter, uv)
     for k, light in enumerate(scene.lights):
         key = f"light_{k}"
         if isinstance(light, AreaLight):
