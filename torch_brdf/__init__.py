@@ -34,4 +34,13 @@ from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POL
 from .errors import TorchBRDFError
 
 __version__ = "0.1.0"
-__all__ = ["TorchBRDFError", "__version__", "errors"]
+__all__ = ["TorchBRDFError", "__version__", "errors", "load_scene"]
+
+
+def __getattr__(name: str):
+    # load_scene at the top level without importing the scene layer (embree, trimesh) eagerly
+    if name == "load_scene":
+        from .scene import load_scene
+
+        return load_scene
+    raise AttributeError(f"module 'torch_brdf' has no attribute {name!r}")

@@ -168,7 +168,7 @@ def _json_object(text: str | None, option: str) -> dict | None:
 def load_scene(
     spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None, make=None
 ):
-    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; or ``make(resolution)``) at
+    """:func:`torch_brdf.scene.load_scene` (built-in name or scene file; or ``make(resolution)``) at
     ``--width`` x ``--height``; ``--resolution`` N is the N x N shorthand; an unset side keeps
     ``resolution``, else the scene's."""
     from .scene import load_scene as load
@@ -192,11 +192,13 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
 
     if (spec is None) == (mesh is None):
         which = "not both" if mesh is not None else "neither was given"  # `render --envmap X` said "not both"
-        raise ValueRangeError(f"give a SCENE (built-in name or TOML file) or --mesh FILE; {which}")
+        raise ValueRangeError(
+            f"give a SCENE (built-in name or a .toml, .gltf, .glb, .xml or .obj file) or --mesh FILE; {which}"
+        )
     for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
         if path is not None and not path.is_file():
             raise SceneError(f"{option}: no such file: {path}")
-    env = EnvironmentMap.from_exr(envmap) if envmap is not None else None
+    env = EnvironmentMap.from_file(envmap) if envmap is not None else None
     if mesh is not None:
         sc = load_scene(f"mesh:{mesh}", resolution, width, height, lambda r: mesh_scene(mesh, r, env))
         return sc
@@ -283,7 +285,9 @@ def demo(
 @app.command()
 @_cli
 def render(
-    scene: str = typer.Argument(None, help="Built-in scene name or a TOML scene file (or --mesh)."),
+    scene: str = typer.Argument(
+        None, help="Built-in scene name or a scene file: .toml, .gltf, .glb, .xml, .obj (or --mesh)."
+    ),
     mesh: Path = typer.Option(None, help="Quick scene: this mesh file (OBJ, PLY, ...) on a plane, framed."),
     envmap: Path = typer.Option(None, help="Light the scene with this lat-long EXR instead of its own lights."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
@@ -308,7 +312,7 @@ def render(
 
 @app.command()
 @_cli
-def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file.")):
+def info(scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj.")):
     """Print scene statistics as JSON: objects, triangles, bounds, lights, camera."""
     typer.echo(json.dumps(load_scene(scene).info(), indent=2))
 
@@ -323,7 +327,7 @@ RAY = typer.Option(
 @app.command()
 @_cli
 def precompute(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     out: Path = typer.Option(Path("out/tensors.npz"), help="Output tensor file (.npz, versioned, checksummed)."),
     series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
     spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
@@ -636,7 +640,7 @@ def manifold(
 @app.command("fit-strokes")
 @_cli
 def fit_strokes(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     obj: str = typer.Option(..., "--object", help="Object whose BRDF is designed."),
     strokes: Path = typer.Option(..., help="Strokes JSON file (see torch_brdf.inverse.design)."),
     out: Path = typer.Option(Path("out/inverse"), help="Output folder."),
@@ -672,7 +676,7 @@ def fit_strokes(
 @app.command("fit-image")
 @_cli
 def fit_image_cmd(
-    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or scene file."),
     target: Path = typer.Option(None, help="Target image (.exr or .png) at the tensors' size."),
     strokes: Path = typer.Option(None, help="Strokes JSON (as fit-strokes) painted on the current render: the target."),
     keep_weight: float = typer.Option(1.0, min=0.0, help="With --strokes: weight of unpainted object pixels."),
@@ -748,7 +752,7 @@ def fit_image_cmd(
 @app.command("precompute-visibility")
 @_cli
 def precompute_visibility_cmd(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
     cubemap: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
     resolution: int = typer.Option(None, hidden=True, help="Deprecated here: the cubemap size (use --cubemap)."),
@@ -797,7 +801,9 @@ def precompute_visibility_cmd(
 @app.command()
 @_cli
 def relight(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
+    scene: str = typer.Argument(
+        ..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj (as precomputed)."
+    ),
     visibility: Path = typer.Option(Path("out/vis.npz"), help="Record written by precompute-visibility."),
     out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
@@ -862,7 +868,7 @@ def relight(
 @app.command()
 @_cli
 def editor(
-    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or scene file."),
     scene: str = typer.Option(None, help="The scene of a tensors file (default: the one named in the file)."),
     resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
     spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
@@ -871,7 +877,7 @@ def editor(
         None, help="Where precomputed tensors are kept for the next start (default $TORCH_BRDF_CACHE/editor)."
     ),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
-    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or TOML; with --visibility)."),
+    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or file; with --visibility)."),
     visibility: Path = typer.Option(None, help="Its record from precompute-visibility (the relighting tab)."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):

@@ -410,7 +410,7 @@ def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
     extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg", "radiance")}
     try:
         if "file" in d:
-            env = EnvironmentMap.from_exr(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
+            env = EnvironmentMap.from_file(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
         elif d.get("procedural") == "constant":
             env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
         elif d.get("procedural") == "sky":

@@ -28,7 +28,7 @@ import torch
 from .._checks import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE
 from ..errors import FileFormatError, SceneError
 
-__all__ = ["Texture", "hit_uv", "read_texture", "srgb_to_linear", "texture_at_hits"]
+__all__ = ["Texture", "hit_uv", "read_texture", "srgb_to_linear", "texture_at_hits", "texture_from_bytes"]
 
 #: image files a texture can be read from
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr")
@@ -107,7 +107,8 @@ class Texture:
         return [self.name, self.image.numpy()]
 
 
-def _read_8bit(path: Path, srgb: bool) -> np.ndarray:
+def _read_8bit(path, srgb: bool) -> np.ndarray:
+    """PNG/JPEG (a path or a binary file object) as (H, W, 3) float64, linear when ``srgb``."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -121,8 +122,8 @@ def _read_8bit(path: Path, srgb: bool) -> np.ndarray:
                 a = np.repeat(a[..., None], 3, -1)
             else:
                 a = np.asarray(im.convert("RGB"), dtype=np.float64) / 255.0
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise FileFormatError(f"cannot read texture {path}: {exc}") from exc
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise FileFormatError(f"cannot read texture {getattr(path, 'name', path)}: {exc}") from None
     return srgb_to_linear(a) if srgb else a
 
 
@@ -154,6 +155,23 @@ def read_texture(path: str | os.PathLike, srgb: bool = True, name: str | None = 
         raise FileFormatError(f"texture {path}: unknown image type {suffix!r}; known: {list(TEXTURE_SUFFIXES)}")
     try:
         return Texture(a, name or path.name, str(path))
+    except SceneError as exc:
+        raise FileFormatError(str(exc)) from None
+
+
+def texture_from_bytes(data: bytes, name: str, srgb: bool = True) -> Texture:
+    """A PNG or JPEG texture from its bytes (an image embedded in a glTF file).
+
+    Raises:
+        FileFormatError: not a readable PNG/JPEG, or beyond the size caps.
+    """
+    import io
+
+    buf = io.BytesIO(data)
+    buf.name = name
+    a = torch.from_numpy(_read_8bit(buf, srgb).astype(np.float32))
+    try:
+        return Texture(a, name, name)
     except SceneError as exc:
         raise FileFormatError(str(exc)) from None
 

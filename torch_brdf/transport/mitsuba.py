@@ -62,7 +62,7 @@ import torch
 from ..brdf import create
 from ..errors import SceneError, TorchBRDFError, ValueRangeError
 from ..scene.envmap import EnvironmentMap
-from ..scene.lights import AreaLight, DirectionalLight
+from ..scene.lights import AreaLight, DirectionalLight, PointLight
 from ..scene.scene import Scene
 
 __all__ = [
@@ -475,6 +475,12 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
                 "type": "directional",
                 "direction": [-float(c) for c in light.direction.tolist()],
                 "irradiance": _rgb(light.irradiance),
+            }
+        elif isinstance(light, PointLight):
+            out[key] = {
+                "type": "point",
+                "position": [float(c) for c in light.position.tolist()],
+                "intensity": _rgb(light.intensity),
             }
         elif isinstance(light, EnvironmentMap):
             out[key] = {
