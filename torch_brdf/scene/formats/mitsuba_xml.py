@@ -680,7 +680,12 @@ def _look_at(origin, target, up, reader, e) -> np.ndarray:
 
 
 def _load_file_mesh(file: SceneFile, path: Path, where: str):
-    """(vertices, faces, uv or None, has normals) of an OBJ/PLY file, parts concatenated."""
+    """(vertices, faces, uv or None, smooth) of an OBJ/PLY file, parts concatenated."""
+    if path.suffix.lower() == ".obj":
+        from .obj import obj_geometry
+
+        v, f, uv = obj_geometry(file, path, where)
+        return v, f, uv, True
     try:
         loaded = trimesh.load(path, process=False, force="mesh", maintain_order=True)
     except Exception as exc:  # trimesh raises many types on malformed files

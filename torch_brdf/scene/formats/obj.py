@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from ...errors import FileFormatError, MeshError
+from ...errors import FileFormatError, MeshError, SceneError
 from ..envmap import EnvironmentMap
 from ..lights import AreaLight
 from ..mesh import validate_mesh
@@ -146,6 +146,23 @@ def _parse_obj(file: SceneFile, text: str):
         elif key == "mtllib":
             libs.extend(rest)
     return np.array(pos, dtype=np.float64).reshape(-1, 3), np.array(uvs, dtype=np.float64).reshape(-1, 2), parts, libs
+
+
+def obj_geometry(file: SceneFile, path: Path, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """All faces of an OBJ file as one mesh (a Mitsuba ``obj`` shape): vertices (V, 3), faces
+    (F, 3) and per-vertex UVs (V, 2), or None when some face has no ``vt``."""
+    sub = SceneFile(path, file.options)
+    text = sub.read_bytes(path, MAX_BINARY_BYTES, where).decode("utf-8", errors="replace")
+    try:
+        pos, uvs, parts, _ = _parse_obj(sub, text)
+    except SceneError as exc:
+        raise file.error(where, str(exc)) from None
+    if not parts:
+        raise file.error(where, f"{path.name} has no faces")
+    corners = np.concatenate([np.array(t, dtype=np.int64).reshape(-1, 2) for t in parts.values()])
+    uniq, inverse = np.unique(corners, axis=0, return_inverse=True)
+    uv = None if (uniq[:, 1] < 0).any() else uvs[uniq[:, 1]]
+    return pos[uniq[:, 0]], inverse.reshape(-1, 3), uv
 
 
 def read_obj(file: SceneFile) -> Scene:
