@@ -116,8 +116,28 @@ def read_hdr(path: str | os.PathLike) -> torch.Tensor:
     return torch.from_numpy(rgb.astype(np.float32))
 
 
+def _encode_rows(rgbe: np.ndarray) -> bytes:
+    """Scanlines in the new run-length layout with literal runs only (readers recognise a
+    scanline by its header; a flat scanline whose first pixel is (2, 2, <128, .) would be
+    misread as run-length encoded, so widths 8..32767 are always written in this layout)."""
+    h, w = rgbe.shape[:2]
+    if not 8 <= w < 32768:
+        return rgbe.tobytes()
+    out = bytearray()
+    for y in range(h):
+        out += bytes([2, 2, w >> 8, w & 255])
+        for c in range(4):
+            ch = rgbe[y, :, c]
+            for x in range(0, w, 128):
+                chunk = ch[x : x + 128]
+                out.append(len(chunk))
+                out += chunk.tobytes()
+    return bytes(out)
+
+
 def write_hdr(path: str | os.PathLike, image) -> None:
-    """Write (H, W, 3) linear RGB (values >= 0) as a flat (not run-length encoded) RGBE file, atomically.
+    """Write (H, W, 3) linear RGB (values >= 0) as an RGBE file (RGBE keeps 8 bits of mantissa
+    of each pixel's largest channel), atomically.
 
     Args:
         path: the ``.hdr`` file.
@@ -136,4 +156,4 @@ def write_hdr(path: str | os.PathLike, image) -> None:
     rgbe[..., 3] = np.where(ok, exp + 128, 0).astype(np.uint8)
     head = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {a.shape[0]} +X {a.shape[1]}\n".encode()
     with replacing(os.fspath(path)) as tmp, open(tmp, "wb") as f:
-        f.write(head + rgbe.tobytes())
+        f.write(head + _encode_rows(rgbe))

@@ -24,6 +24,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -53,14 +54,22 @@ class _Gltf:
         data = file.read_bytes(file.path, MAX_BINARY_BYTES if file.path.suffix.lower() == ".glb" else MAX_TEXT_BYTES)
         self.blob = None
         if data[:4] == b"glTF":
-            g = pygltflib.GLTF2.load_from_bytes(data)
-            self.blob = g.binary_blob()
+            try:
+                g = pygltflib.GLTF2.load_from_bytes(data)
+                self.blob = g.binary_blob()
+            except Exception as exc:  # pygltflib's binary parser fails with struct, value, key ... errors
+                raise file.error("", f"malformed GLB ({type(exc).__name__}: {exc})") from None
         else:
             try:
                 json.loads(data.decode("utf-8"))
             except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
                 raise file.error("", f"not glTF JSON: {exc}") from None
-            g = pygltflib.GLTF2.from_json(data.decode("utf-8"))
+            try:
+                g = pygltflib.GLTF2.from_json(data.decode("utf-8"))
+            except Exception as exc:  # pygltflib's schema mapping fails with many error types
+                raise file.error("", f"malformed glTF JSON ({type(exc).__name__}: {exc})") from None
+        if g is None or not isinstance(getattr(g, "nodes", None), list):
+            raise file.error("", "not a glTF document")
         self.g = g
         required = set(g.extensionsRequired or []) - _SUPPORTED_EXTENSIONS
         if required:
@@ -372,6 +381,15 @@ def read_gltf(file: SceneFile) -> Scene:
         return _read(file)
     except SceneError:
         raise
-    except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
+    except (
+        KeyError,
+        IndexError,
+        TypeError,
+        ValueError,
+        AttributeError,
+        OverflowError,
+        RecursionError,
+        struct.error,
+    ) as exc:
         # a malformed document: pygltflib and numpy fail with these on missing or mistyped fields
         raise file.error("", f"malformed glTF ({type(exc).__name__}: {exc})") from None
