@@ -38,6 +38,25 @@ _DIFFUSE_ATTR = {
 TEXTURE_RULES: dict[str, Callable[[BRDF, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]] = {}
 
 
+def _affine_rule(brdf: BRDF, wi: torch.Tensor, wo: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    r"""Models whose f is affine in the base colour :math:`c` per channel (the metallic-roughness
+    model: its diffuse :math:`(1-m)c` and its :math:`f_0 = (1-m)\,0.04 + m\,c` both are):
+    :math:`f(c\,t) = f(0) + (f(c) - f(0))\,t`, exact."""
+    zero = getattr(brdf, "_zero_base_color", None)
+    if zero is None:
+        import copy
+
+        zero = copy.deepcopy(brdf)
+        with torch.no_grad():
+            zero.base_color = torch.zeros(3)
+        object.__setattr__(brdf, "_zero_base_color", zero)
+    f0 = zero.eval_local(wi, wo)
+    return f0 + (brdf.eval_local(wi, wo) - f0) * scale.to(wi.dtype)
+
+
+TEXTURE_RULES["metallic_roughness"] = _affine_rule
+
+
 def texturable(model: str) -> bool:
     """Whether a base-colour texture can scale materials of ``model``."""
     return model in _DIFFUSE_ATTR or model in TEXTURE_RULES

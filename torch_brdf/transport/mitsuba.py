@@ -296,6 +296,8 @@ def _metallic_roughness_class(mi):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             self.c = mi.Color3f(props["base_color"])
+            # an image texture of the base colour (texels times the factor), or None
+            self.c_tex = props["base_color_texture"] if props.has_property("base_color_texture") else None
             self.m = float(props["metallic"])
             self.alpha = max(float(props["roughness"]) ** 2, 1e-5)
             self.f0 = (1.0 - self.m) * 0.04 + self.m * self.c
@@ -306,8 +308,10 @@ def _metallic_roughness_class(mi):
             ]
             self.m_flags = self.m_components[0] | self.m_components[1]
 
-        def _f_cos(self, wi, wo):
+        def _f_cos(self, wi, wo, si=None):
             ci, co = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
+            c = self.c if self.c_tex is None or si is None else self.c_tex.eval(si)
+            f0 = (1.0 - self.m) * 0.04 + self.m * c
             h = dr.normalize(wi + wo)
             x = dr.power(1.0 - dr.clip(dr.dot(wi, h), 0.0, 1.0), 5.0)
             a2 = self.alpha * self.alpha
@@ -316,8 +320,8 @@ def _metallic_roughness_class(mi):
             vis = 0.5 / dr.maximum(
                 co * dr.safe_sqrt(ci * ci * (1.0 - a2) + a2) + ci * dr.safe_sqrt(co * co * (1.0 - a2) + a2), 1e-30
             )
-            fr = self.f0 + (1.0 - self.f0) * x
-            f = (1.0 - self.m) * (1.0 - (0.04 + 0.96 * x)) * self.c * dr.inv_pi + fr * d * vis
+            fr = f0 + (1.0 - f0) * x
+            f = (1.0 - self.m) * (1.0 - (0.04 + 0.96 * x)) * c * dr.inv_pi + fr * d * vis
             return dr.select((ci > 0) & (co > 0), f * co, 0.0)
 
         def _pdf(self, wi, wo):
@@ -342,17 +346,17 @@ def _metallic_roughness_class(mi):
             )
             bs.sampled_component = dr.select(spec, mi.UInt32(1), mi.UInt32(0))
             ok = active & (mi.Frame3f.cos_theta(wi) > 0) & (bs.pdf > 0)
-            weight = self._f_cos(wi, bs.wo) / dr.maximum(bs.pdf, 1e-30)
+            weight = self._f_cos(wi, bs.wo, si) / dr.maximum(bs.pdf, 1e-30)
             return bs, dr.select(ok, weight, 0.0)
 
         def eval(self, ctx, si, wo, active=True):
-            return dr.select(active, self._f_cos(si.wi, wo), 0.0)
+            return dr.select(active, self._f_cos(si.wi, wo, si), 0.0)
 
         def pdf(self, ctx, si, wo, active=True):
             return dr.select(active, self._pdf(si.wi, wo), 0.0)
 
         def eval_pdf(self, ctx, si, wo, active=True):
-            return dr.select(active, self._f_cos(si.wi, wo), 0.0), dr.select(active, self._pdf(si.wi, wo), 0.0)
+            return dr.select(active, self._f_cos(si.wi, wo, si), 0.0), dr.select(active, self._pdf(si.wi, wo), 0.0)
 
         def traverse(self, callback):
             pass
@@ -477,6 +481,19 @@ def _textured(mi, bsdf: dict[str, Any], material: dict[str, Any], texture) -> di
     as :meth:`~torch_brdf.scene.textures.Texture.lookup`. The factor is multiplied into the
     texels, which a bilinear lookup keeps exact."""
     inner = dict(bsdf["bsdf"]) if bsdf.get("type") == "twosided" else dict(bsdf)
+    if inner["type"] == METALLIC_ROUGHNESS_PLUGIN:
+        factor = np.asarray(list(inner["base_color"]), dtype=np.float64)
+        img = texture.image.double().numpy() * factor
+        inner["base_color_texture"] = mi.load_dict(
+            {
+                "type": "bitmap",
+                "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "repeat",
+            }
+        )
+        return {"type": "twosided", "bsdf": inner} if bsdf.get("type") == "twosided" else inner
     slot = {"diffuse": "reflectance", "principled": "base_color"}.get(inner["type"])
     if slot is None:
         raise SceneError(
