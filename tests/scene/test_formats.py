@@ -83,6 +83,11 @@ def test_xml_defaults_camera_and_fov_axis(tmp_path):
             '<rgb name="k" value="0"/></bsdf>',
             {"type": "cook_torrance", "distribution": "beckmann", "roughness": 0.3, "f0": [0.04] * 3, "kd": 0.0},
         ),
+        (
+            '<bsdf type="principled"><rgb name="base_color" value="0.8 0.5 0.2"/><float name="metallic" value="1"/>'
+            '<float name="roughness" value="0.3"/></bsdf>',
+            {"type": "metallic_roughness", "base_color": [0.8, 0.5, 0.2], "metallic": 1.0, "roughness": 0.3},
+        ),
     ],
 )
 def test_xml_bsdf_mapping(tmp_path, bsdf, want):
