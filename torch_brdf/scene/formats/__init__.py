@@ -42,7 +42,8 @@ def read_scene_file(path: str | Path, options: ImportOptions | None = None) -> S
     if suffix not in SCENE_SUFFIXES:
         raise SceneError(f"{path}: unknown scene file type {suffix or '(no suffix)'!r}; accepted: {accepted_formats()}")
     if not path.is_file():
-        raise SceneError(f"scene file not found: {path}" if not path.exists() else f"scene file {path} is not a file")
+        what = "is a directory" if path.is_dir() else "is not a file"
+        raise SceneError(f"scene file not found: {path}" if not path.exists() else f"scene file {path} {what}")
     file = SceneFile(path, options)
     if suffix == ".toml":
         scene = Scene.from_toml(path)
