@@ -462,7 +462,7 @@ def edit(
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
     from .records import PolynomialTensors
-    from .render import PolynomialRenderer
+    from .render import PolynomialRenderer, apply_scene_textures
 
     edits = [_parse_set(s) for s in sets]  # before loading anything
     if exposure is not None:
@@ -482,7 +482,9 @@ def edit(
         if param != "type":
             materials[obj][param] = value
     t0 = time.perf_counter()
-    image = PolynomialRenderer(T, materials)().detach()
+    renderer = PolynomialRenderer(T, materials)
+    apply_scene_textures(renderer, sc)  # textured objects: the texture at the eye vertex, its mean after
+    image = renderer().detach()
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
@@ -700,7 +702,7 @@ def fit_image_cmd(
     from .inverse.design import load_strokes
     from .io import read_exr, read_png, save_arrays, write_exr, write_png
     from .records.polynomial import PolynomialTensors
-    from .render import PolynomialRenderer, fit_image, object_mask, paint_image
+    from .render import PolynomialRenderer, apply_scene_textures, fit_image, object_mask, paint_image
     from .transport.polynomial import precompute_polynomial
 
     def read(path: Path):
@@ -718,6 +720,7 @@ def fit_image_cmd(
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
+    apply_scene_textures(R, sc)
     if mask is None:
         w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
     else:
@@ -737,6 +740,7 @@ def fit_image_cmd(
     arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
     save_arrays(out / "fit.npz", arrays, "gi-image-fit", {"objects": list(res.coefficients)})
     full = PolynomialRenderer(T, mats, dtype=torch.float64)
+    apply_scene_textures(full, sc)
     for k, v in res.coefficients.items():
         full.set_coefficients(k, v)
     image = full().detach().float()

@@ -28,7 +28,16 @@ import torch
 from .._checks import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE
 from ..errors import FileFormatError, SceneError
 
-__all__ = ["Texture", "hit_uv", "read_texture", "srgb_to_linear", "texture_at_hits", "texture_from_bytes"]
+__all__ = [
+    "Texture",
+    "hit_uv",
+    "read_texture",
+    "srgb_to_linear",
+    "surface_mean",
+    "texture_at_hits",
+    "texture_from_bytes",
+    "texture_weight_map",
+]
 
 #: image files a texture can be read from
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".hdr")
@@ -215,3 +224,61 @@ def texture_at_hits(scene, key: str, object_id: torch.Tensor, prim_id: torch.Ten
             o = scene.objects[i]
             out[rows] = o.textures[key].lookup(hit_uv(o.uv, o.mesh.faces, prim_id[rows], barycentrics[rows]))
     return out
+
+
+def texture_weight_map(scene, obj: str, samples: int = 16, seed: int = 0, key: str = "base_color") -> torch.Tensor:
+    r"""The texture as seen through the camera: the spatial weight map :math:`H^m(x)` of
+    Ben-Artzi et al. 2008, Sec. 5.3, for object ``obj``.
+
+    Each pixel averages the texel over ``samples`` jittered camera rays that hit the object
+    (the paths a precomputation stores for that object's pixels start there); pixels the object
+    does not cover get 1.
+
+    Args:
+        scene: the scene (its camera sets the size).
+        obj: a textured object's name.
+        samples: jittered rays per pixel.
+        seed: of the jitter.
+    Returns:
+        (H, W, 3) float32.
+    Raises:
+        SceneError: unknown object, or it has no texture ``key``.
+    """
+    from .._checks import check_count
+
+    samples = check_count(samples, "samples")
+    m = scene.object_id(obj)
+    o = scene.objects[m]
+    if key not in o.textures:
+        raise SceneError(f"object {obj!r} has no {key} texture")
+    cam = scene.camera
+    gen = torch.Generator().manual_seed(int(seed))
+    total = torch.zeros(cam.height * cam.width, 3, dtype=torch.float64)
+    count = torch.zeros(cam.height * cam.width, dtype=torch.float64)
+    for _ in range(samples):
+        origins, dirs = cam.generate_rays(jitter=True, generator=gen)
+        hits = scene.trace(origins, dirs)
+        rows = torch.nonzero(hits.object_id == m).squeeze(1)
+        if rows.numel():
+            uv = hit_uv(o.uv, o.mesh.faces, hits.prim_id[rows], hits.barycentrics[rows])
+            total[rows] += o.textures[key].lookup(uv).double()
+            count[rows] += 1
+    out = torch.where(count[:, None] > 0, total / count.clamp_min(1)[:, None], 1.0)
+    return out.to(torch.float32).reshape(cam.height, cam.width, 3)
+
+
+def surface_mean(scene, obj: str, n: int = 4096, seed: int = 0, key: str = "base_color") -> torch.Tensor:
+    """(3,) the texture's mean over the object's surface (area-weighted, ``n`` stratified-by-
+    triangle random points): the albedo scale of bounces after the eye vertex (Sec. 5.3)."""
+    o = scene.objects[scene.object_id(obj)]
+    if key not in o.textures:
+        raise SceneError(f"object {obj!r} has no {key} texture")
+    v = np.asarray(o.mesh.vertices, dtype=np.float64)
+    f = np.asarray(o.mesh.faces)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(f), size=n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    bary = torch.from_numpy(np.stack([(1 - r2) * r1, r2 * r1], -1))  # uniform on the triangle
+    uv = hit_uv(o.uv, f, torch.from_numpy(tri), bary)
+    return o.textures[key].lookup(uv).double().mean(0).to(torch.float32)

@@ -1,0 +1,84 @@
+"""Textures through the GI renderer (Ben-Artzi et al. 2008, Sec. 5.3): the weight map of a
+texture at the eye vertex, its surface mean at later bounces; the editor's tint and swap."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from torch_brdf.render import PolynomialRenderer, apply_scene_textures
+from torch_brdf.scene import Scene
+from torch_brdf.scene.builtin import cornell_box
+from torch_brdf.scene.textures import Texture, surface_mean, texture_weight_map
+from torch_brdf.transport.polynomial import precompute_polynomial
+
+
+def textured(sc: Scene, image: torch.Tensor) -> Scene:
+    i = sc.object_id("floor")
+    objects = list(sc.objects)
+    o = copy.copy(objects[i])
+    v = np.asarray(o.mesh.vertices)
+    o.uv = (v[:, [0, 2]] - v[:, [0, 2]].min(0)) / np.ptp(v[:, [0, 2]], 0)
+    o.textures = {"base_color": Texture(image)}
+    objects[i] = o
+    return Scene(objects, dict(sc.materials), sc.lights, sc.camera, name=sc.name, workers=1)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sc = cornell_box(8)
+    T = precompute_polynomial(sc, "4,1", spp=2, seed=1, progress=False)
+    mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
+    return sc, T, mats
+
+
+def test_constant_texture_equals_the_scaled_albedo(setup):
+    """A texture of constant c on a Lambert floor is the floor with albedo x c, exactly: the
+    eye vertex sees c, later bounces its mean c."""
+    sc, T, mats = setup
+    c = torch.tensor([0.3, 0.6, 0.9])
+    tsc = textured(sc, c.expand(4, 4, 3).clone())
+    R = PolynomialRenderer(T, mats, dtype=torch.float64)
+    assert apply_scene_textures(R, tsc) == ["floor"]
+    scaled = dict(mats)
+    scaled["floor"] = {"type": "lambert", "albedo": (torch.tensor(mats["floor"]["albedo"]) * c).tolist()}
+    want = PolynomialRenderer(T, scaled, dtype=torch.float64).evaluate()
+    torch.testing.assert_close(R.evaluate(), want, rtol=1e-6, atol=1e-9)
+    R.freeze("floor")
+    torch.testing.assert_close(R(), want, rtol=1e-6, atol=1e-9)
+
+
+def test_weight_map_and_surface_mean_of_a_split_texture(setup):
+    """Left half black, right half white: floor pixels see 0 or 1 (their mix on the seam),
+    the surface mean is 1/2."""
+    sc, _, _ = setup
+    img = torch.zeros(2, 2, 3)
+    img[:, 1] = 1.0
+    tsc = textured(sc.with_resolution(32), img)
+    w = texture_weight_map(tsc, "floor", samples=4)
+    floor = tsc.trace(*tsc.camera.generate_rays()).object_id.reshape(32, 32) == tsc.object_id("floor")
+    near = torch.nn.functional.max_pool2d(floor[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    assert bool((w[~near] == 1).all()) and float(w[floor].min()) < 0.3 and float(w[floor].max()) > 0.7
+    assert surface_mean(tsc, "floor").tolist() == pytest.approx([0.5] * 3, abs=0.03)
+
+
+def test_editor_tint_and_swap(setup):
+    from torch_brdf.editor.session import EditorSession
+
+    sc, T, _ = setup
+    img = torch.rand(4, 4, 3, generator=torch.Generator().manual_seed(0))
+    s = EditorSession(T, textured(sc, img))
+    assert s.textured == ["floor"]
+    before = s.render().clone()
+    s.set_texture("floor", tint=[0.5, 0.5, 0.5])
+    tinted = s.render()
+    assert not torch.allclose(before, tinted)
+    s.set_texture("floor", image=torch.ones(2, 2, 3) * 0.5)
+    flat = s.render()
+    s2 = EditorSession(T, textured(sc, torch.ones(2, 2, 3) * 0.5))
+    torch.testing.assert_close(flat, s2.render(), rtol=1e-5, atol=1e-7)
+    with pytest.raises(Exception, match="no texture"):
+        s.set_texture("back", tint=0.5)
