@@ -82,3 +82,40 @@ def test_editor_tint_and_swap(setup):
     torch.testing.assert_close(flat, s2.render(), rtol=1e-5, atol=1e-7)
     with pytest.raises(Exception, match="no texture"):
         s.set_texture("back", tint=0.5)
+
+
+def test_relighting_samples_the_texture_per_vertex():
+    """A texture of constant c on the Lambert floor scales the relit image of the floor by c
+    (per-vertex sampling, then the vertex colours interpolated)."""
+    from tests.transport.test_visibility import ball_on_plane
+    from torch_brdf.render.triple import TripleProductRenderer
+    from torch_brdf.scene import EnvironmentMap, SceneObject
+    from torch_brdf.transport.visibility import precompute_visibility
+
+    sc = ball_on_plane(quads=2, box=False)
+    sc.lights[:] = [EnvironmentMap.constant(1.0, 16)]
+    vis = precompute_visibility(sc, resolution=16, progress=False)
+    plain = TripleProductRenderer(sc, vis, dtype=torch.float64)
+    i = sc.object_id("floor")
+    o = sc.objects[i]
+    v = np.asarray(o.mesh.vertices)
+    c = torch.tensor([0.2, 0.5, 0.8])
+    objects = list(sc.objects)
+    objects[i] = SceneObject(
+        o.name,
+        o.mesh,
+        o.material,
+        o.editable,
+        o.smooth,
+        v[:, [0, 2]],
+        {"base_color": Texture(c.expand(2, 2, 3).clone())},
+    )
+    tsc = Scene(objects, sc.materials, sc.lights, sc.camera.with_size(12, 12), workers=1)
+    tex = TripleProductRenderer(tsc, vis, dtype=torch.float64)
+    assert tex.textured and not plain.textured
+    cam = tsc.camera
+    a, _ = plain.render(cam)
+    b, _ = tex.render(cam)
+    floor = tsc.trace(*cam.generate_rays()).object_id.reshape(12, 12) == i
+    assert bool(floor.any())
+    torch.testing.assert_close(b[floor], a[floor] * c, rtol=1e-5, atol=1e-6)
