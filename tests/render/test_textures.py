@@ -140,3 +140,46 @@ def test_fit_image_recovers_the_factor_of_a_textured_object(setup):
     res = fit_image(R, "floor", target, max_iter=20, progress=False)
     end = float(((R.evaluate().detach() - target) ** 2).mean())
     assert end < 1e-6 * start + 1e-14, (start, end, res.loss)
+
+
+def test_cli_precompute_and_edit_a_textured_xml_scene(tmp_path):
+    """precompute -> edit on a Mitsuba XML scene with a textured floor: the texture is visible
+    in the edited frame (a 2 x 2 texture, left column black, right column white)."""
+    from PIL import Image
+    from typer.testing import CliRunner
+
+    from torch_brdf.cli import app
+    from torch_brdf.io import read_exr
+
+    a = np.zeros((2, 2, 3), np.uint8)
+    a[:, 1] = 255
+    Image.fromarray(a).save(tmp_path / "split.png")
+    (tmp_path / "s.xml").write_text(
+        """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="0, 3, 0.01" target="0, 0, 0" up="0, 0, -1"/></transform>
+    <film type="hdrfilm"><integer name="width" value="12"/><integer name="height" value="12"/></film></sensor>
+  <shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/></transform>
+    <bsdf type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="split.png"/>
+    </texture></bsdf></shape>
+  <shape type="cube" id="block"><transform name="to_world"><scale value="0.2"/><translate y="0.2"/></transform>
+    <bsdf type="diffuse"/></shape>
+  <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+</scene>"""
+    )
+    runner = CliRunner()
+    t = tmp_path / "T.npz"
+    res = runner.invoke(
+        app,
+        ["precompute", str(tmp_path / "s.xml"), "--out", str(t), "--series", "4,1", "--spp", "2", "--no-resume"],
+    )
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(
+        app,
+        ["edit", str(t), "--scene", str(tmp_path / "s.xml"), "--set", "floor.albedo=0.8", "--out", str(tmp_path / "e")],
+    )
+    assert res.exit_code == 0, res.output
+    img = read_exr(tmp_path / "e.exr")
+    # columns 4 and 7 see the floor at u = 0.33 and 0.67: bilinear between the black and white texels
+    left, right = img[2:10, 4].mean(), img[2:10, 7].mean()
+    assert float(right) > 2.5 * float(left), (float(left), float(right))
