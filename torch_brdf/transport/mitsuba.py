@@ -297,7 +297,7 @@ def _metallic_roughness_class(mi):
             mi.BSDF.__init__(self, props)
             self.c = mi.Color3f(props["base_color"])
             # an image texture of the base colour (texels times the factor), or None
-            self.c_tex = props["base_color_texture"] if props.has_property("base_color_texture") else None
+            self.c_tex = props["base_color_texture"] if "base_color_texture" in props else None
             self.m = float(props["metallic"])
             self.alpha = max(float(props["roughness"]) ** 2, 1e-5)
             self.f0 = (1.0 - self.m) * 0.04 + self.m * self.c
