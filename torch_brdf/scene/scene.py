@@ -302,6 +302,7 @@ class Scene:
                     "editable": o.editable,
                     "triangles": len(o.mesh.faces),
                     "vertices": len(o.mesh.vertices),
+                    **({"textures": {k: t.name for k, t in o.textures.items()}} if o.textures else {}),
                 }
                 for i, o in enumerate(self.objects)
             ],
