@@ -77,9 +77,16 @@ def main(
         False, "--version", callback=_version, is_eager=True, help="Print the package version and exit."
     ),
     debug: bool = typer.Option(False, "--debug", help="On failure print the full traceback, not just one line."),
+    allow_outside: bool = typer.Option(
+        False, "--allow-outside", help="Scene files may reference files outside their folder."
+    ),
+    substitute: bool = typer.Option(
+        False, "--substitute", help="Replace unsupported parts of scene files by stated substitutes (a warning)."
+    ),
 ):
     """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
+    _STATE["allow_outside"], _STATE["substitute"] = allow_outside, substitute
     from .data import progress_default
 
     try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
@@ -177,7 +184,8 @@ def load_scene(
         check_image_size(resolution, resolution, "--resolution")
     if width is not None or height is not None:
         check_image_size(width or 8, height or 8, "--width/--height")  # before the scene is loaded
-    scene = make(resolution or 256) if make is not None else load(spec, resolution)
+    options = {"allow_outside": bool(_STATE.get("allow_outside")), "substitute": bool(_STATE.get("substitute"))}
+    scene = make(resolution or 256) if make is not None else load(spec, resolution, **options)
     if width is None and height is None:
         return scene
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)

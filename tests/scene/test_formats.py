@@ -326,6 +326,10 @@ def test_cli_info_reads_an_xml_scene(tmp_path):
     png(tmp_path / "t.png")
     res = CliRunner().invoke(app, ["info", str(xml(tmp_path, bitmap("t.png"), name="t.xml"))])
     assert res.exit_code == 0 and '"base_color": "t.png"' in res.output, res.output
+    res = CliRunner().invoke(app, ["info", str(xml(tmp_path, '<bsdf type="dielectric"/>', name="d.xml"))])
+    assert res.exit_code != 0 and "unsupported BSDF plugin 'dielectric'" in res.output
+    res = CliRunner().invoke(app, ["--substitute", "info", str(tmp_path / "d.xml")])
+    assert res.exit_code == 0 and '"floor"' in res.output, res.output
     res = CliRunner().invoke(app, ["info", str(tmp_path / "nothing.abc")])
     assert res.exit_code != 0 and ".gltf" in res.output and "Traceback" not in res.output
 

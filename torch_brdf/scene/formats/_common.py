@@ -62,7 +62,9 @@ class SceneFile:
         """Raise for an unsupported feature, or warn and go on with ``substitute`` (a sentence)
         when the options allow it."""
         if not self.options.substitute:
-            raise self.error(where, f"{problem} (load_scene(..., substitute=True) uses {substitute})")
+            raise self.error(
+                where, f"{problem} (load_scene(..., substitute=True) or torch-brdf --substitute uses {substitute})"
+            )
         warnings.warn(f"{self.path}: {where}: {problem}; using {substitute}", SubstitutionWarning, stacklevel=3)
 
     def resolve(self, ref: str, where: str, must_exist: bool = True) -> Path:
@@ -75,7 +77,7 @@ class SceneFile:
             raise self.error(
                 where,
                 f"file reference {ref!r} leaves the scene's folder {self.root} "
-                "(load_scene(..., allow_outside=True) follows it)",
+                "(load_scene(..., allow_outside=True) or torch-brdf --allow-outside follows it)",
             )
         if must_exist and not p.is_file():
             raise self.error(where, f"referenced file not found: {ref!r} (looked for {p})")
