@@ -35,5 +35,14 @@ one; ``tests/test_layers.py`` keeps it so):
 from . import errors, parallel  # noqa: F401  (parallel sets OMP_WAIT_POLICY before torch loads; errors imports no torch)
 from .errors import TorchBRDFError
 
-__version__ = "0.1.0"
-__all__ = ["TorchBRDFError", "__version__", "errors"]
+__version__ = "0.2.0"
+__all__ = ["TorchBRDFError", "__version__", "errors", "load_scene"]
+
+
+def __getattr__(name: str):
+    # load_scene at the top level without importing the scene layer (embree, trimesh) eagerly
+    if name == "load_scene":
+        from .scene import load_scene
+
+        return load_scene
+    raise AttributeError(f"module 'torch_brdf' has no attribute {name!r}")

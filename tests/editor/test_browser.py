@@ -266,8 +266,8 @@ def test_relighting_tab_rotates_the_light_orbits_and_edits(page, relight_files, 
 def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small_tensors_file):
     # a value typed out of range (GGX roughness <= 1), into a form that has just appeared: the
     # kernel rebuilds the form after each model choice, and the new slider's first value comes
-    # back from the browser moved to its grid, possibly after the typed value (that echo used to
-    # clear the message: the race of #18, covered in-process by test_app's echo test).
+    # back from the browser moved to its grid, possibly after the typed value (that echo must not
+    # clear the message: a race covered in-process by test_app's echo test).
     selected(page, "back")
     # lambert has no roughness: waiting for the box to vanish and come back guarantees that the
     # box typed into is the new GGX form's

@@ -4,7 +4,7 @@ Tests of the piecewise-constant reading pass ``lookup="nearest"``; the bilinear 
 reading has its own oracles in ``test_envmap_bilinear.py`` and shares the lookup-agnostic ones
 here through the ``env`` fixture.
 
-Real maps come from the shared data folder (``$TORCH_BRDF_DATA``, default ../shared/data)
+Real maps come from the data folder (``$TORCH_BRDF_DATA``)
 and are skipped when it is absent; every other test uses procedural maps.
 """
 

@@ -37,7 +37,7 @@ from ..metrics import relative_rmse
 from ..records import PolynomialTensors
 from ..render import PolynomialRenderer
 from ..render.material import MaterialProjector
-from ..render.polynomial import emitter_mask
+from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
 from ..transport import PolynomialSettings, path_trace, precompute_polynomial
 
@@ -197,7 +197,10 @@ def load_source(
             ``cache_dir`` where an earlier run with the same settings left them).
         scene: the scene of a tensors file (default: the built-in scene named in the file's
             settings, if there is one; else no scene: no reference, ids from the tensors).
-        resolution, series, spp, seed: precomputation settings for a scene.
+        resolution: precomputation settings for a scene.
+        series: as ``resolution``.
+        spp: as ``resolution``.
+        seed: as ``resolution``.
         progress: tqdm bar of the precomputation.
     Returns:
         (tensors, scene or None, note): ``note`` says where the tensors came from.
@@ -268,11 +271,14 @@ class EditorSession:
         self.materials = {n: mats.get(n, {"type": "lambert", "albedo": 0.5}) for n in self.editable}
         self.f0: dict[str, Any] = {n: None for n in self.editable}
         self.renderer = PolynomialRenderer(tensors, self.materials)
+        #: objects whose base-colour texture modulates the frame (Sec. 5.3 weight maps)
+        self.textured = apply_scene_textures(self.renderer, scene) if scene is not None else []
         self.ids, self.ids_source = object_id_buffer(tensors, scene)
         self.mask = emitter_mask(tensors)
         self.selected: str | None = None
         self._projectors: dict[str, MaterialProjector] = {}
         self.projected: dict[str, torch.Tensor] = {}  # obj -> (J, 3) last projected curve
+        self._base_textures: dict[str, Any] = {}  # obj -> the texture before its tint
         self.last_frame_s = 0.0
         self.last_set_s = 0.0
 
@@ -363,6 +369,51 @@ class EditorSession:
         self.projected[obj] = base
         if self.selected is not None and self.renderer.frozen_object is None:
             self.select(self.selected)  # another object's constants changed: freeze again
+        self.last_set_s = time.perf_counter() - t0
+        return self.last_set_s
+
+    def set_texture(self, obj: str, image=None, tint=None) -> float:
+        """Swap ``obj``'s base-colour texture for ``image`` and/or multiply it by ``tint`` at run
+        time (Ben-Artzi et al. 2008, Fig. 1: retexturing the floor); returns the seconds spent.
+
+        Args:
+            obj: an editable, textured object of the session's scene.
+            image: a :class:`~torch_brdf.scene.textures.Texture`, an (H, W, 3) linear image or an
+                image file (PNG/JPEG decoded from sRGB, EXR, .hdr); None keeps the current one.
+            tint: RGB (3 values or one) multiplying the texture; None: no tint.
+        Raises:
+            SceneError: no scene, an unknown, fixed or untextured object, or a bad image.
+        """
+        from ..scene.textures import Texture, read_texture
+
+        if self.scene is None:
+            raise SceneError("set_texture needs the session's scene (EditorSession(tensors, scene))")
+        if obj not in self.editable:
+            self.select(obj)  # raises the readable error
+        i = self.scene.object_id(obj)
+        o = self.scene.objects[i]
+        if "base_color" not in o.textures:
+            raise SceneError(f"object {obj!r} has no texture to change; textured: {self.textured}")
+        t0 = time.perf_counter()
+        if image is None:
+            tex = self._base_textures.get(obj, o.textures["base_color"])
+        elif isinstance(image, Texture):
+            tex = image
+        elif isinstance(image, (str, Path)):
+            tex = read_texture(image)
+        else:
+            tex = Texture(torch.as_tensor(image), "image")
+        self._base_textures[obj] = tex
+        if tint is not None:
+            tex = tex.tinted(tint)
+        scene = copy.copy(self.scene)
+        scene.objects = list(self.scene.objects)
+        scene.objects[i] = dataclasses.replace(o, textures={**o.textures, "base_color": tex})
+        self.scene = scene
+        self.renderer.weight_maps.pop(self.tensors.object_id(obj), None)
+        self.textured = apply_scene_textures(self.renderer, scene)
+        if self.selected is not None:
+            self.select(self.selected)
         self.last_set_s = time.perf_counter() - t0
         return self.last_set_s
 

@@ -1,4 +1,4 @@
-r"""The error-budget planner of BRDF editing with global illumination (issue #17).
+r"""The error-budget planner of BRDF editing with global illumination.
 
 Given a relative-RMSE budget :math:`e` (and optionally seconds), choose the settings of
 :func:`~torch_brdf.transport.polynomial.precompute_polynomial` that model only what the scene
@@ -672,7 +672,9 @@ def plan_from_pilots(
 
     Args:
         scene: the scene (with the plan's fixed objects already fixed).
-        bases, projection_errors, fixed: from :func:`planned_bases`.
+        bases: from :func:`planned_bases`.
+        projection_errors: as ``bases``.
+        fixed: as ``bases``.
         pilots: at least two records of the same series and bases, different seeds and (for
             the cost fit) at least two different spp; bounces >= the most the plan may
             choose; no second-bounce level; uniform spp.
@@ -745,7 +747,6 @@ def plan_from_pilots(
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
         return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp), float(c.mean()) * spp
 
-    # bounces, eye light samples and spp together (see _choose)
     options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
     bounces, light_samples = _choose(options, tails, needed, budget, error is not None)
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
