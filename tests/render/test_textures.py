@@ -13,7 +13,7 @@ from torch_brdf.render import PolynomialRenderer, apply_scene_textures
 from torch_brdf.scene import Scene
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.textures import Texture, surface_mean, texture_weight_map
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 
 def textured(sc: Scene, image: torch.Tensor) -> Scene:
@@ -30,7 +30,7 @@ def textured(sc: Scene, image: torch.Tensor) -> Scene:
 @pytest.fixture(scope="module")
 def setup():
     sc = cornell_box(8)
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=1, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=1, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     return sc, T, mats
 
