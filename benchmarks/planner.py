@@ -104,7 +104,7 @@ from torch_brdf.render.triple import TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight, cornell_box_glossy, teatray
 from torch_brdf.scene.gbuffer import trace_gbuffer
 from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 
 def _rays(T) -> int:
@@ -353,7 +353,9 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 
     def carry_out(R: int, k: int, b: int, rule: str) -> dict:
         t0 = time.perf_counter()
-        vis = precompute_visibility(scene, R, 16, k, b, progress=False)
+        vis = precompute_visibility(
+            scene, VisibilitySettings(resolution=R, block=16, supersample=k, bits=b), progress=False
+        )
         pre = time.perf_counter() - t0
         r = TripleProductRenderer(scene, vis, rule=make_rule(rule))
         view = r.view()

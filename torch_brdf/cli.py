@@ -29,10 +29,8 @@ from pathlib import Path
 import typer
 
 from ._checks import (
-    MAX_CUBEMAP_RESOLUTION,
     MAX_IMAGE_SIDE,
     check_image_size,
-    check_int,
     check_real,
 )
 from .errors import SceneError, TorchBRDFError, ValueRangeError
@@ -181,23 +179,29 @@ def load_scene(
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
 
 
-#: options of ``precompute`` named otherwise than their settings field
-_SETTING_OPTIONS = {"mixture": "--sampler"}
+#: per settings kind: its class (module, name) and the options named otherwise than their field
+_SETTINGS = {
+    "polynomial": ("torch_brdf.transport.polynomial.settings", "PolynomialSettings", {"mixture": "--sampler"}),
+    "visibility": ("torch_brdf.transport.visibility", "VisibilitySettings", {"resolution": "--cubemap"}),
+    "path": ("torch_brdf.transport.pathtrace", "PathTraceSettings", {"max_bounces": "--bounces"}),
+}
 
 
-def _polynomial_settings(**options):
-    """:class:`~torch_brdf.transport.polynomial.PolynomialSettings` from command-line options
-    (their one check); a refused value is named as its option (``--series ...``)."""
+def _settings(kind: str, **options):
+    """The settings object of a producer (``kind`` in :data:`_SETTINGS`) from command-line
+    options, checked by the object itself; a refused value is named as its option (``--series ...``)."""
+    import importlib
+
     from .errors import TorchBRDFError
-    from .transport.polynomial import PolynomialSettings
 
+    module, name, renamed = _SETTINGS[kind]
     try:
-        return PolynomialSettings(**options)
+        return getattr(importlib.import_module(module), name)(**options)
     except TorchBRDFError as exc:
-        name = getattr(exc, "setting", None)
-        if name is not None:
-            option, message = _SETTING_OPTIONS.get(name, "--" + name.replace("_", "-")), str(exc)
-            exc.args = ("--" + message if message.startswith(name + " ") else f"{option}: {message}",)
+        field = getattr(exc, "setting", None)
+        if field is not None:
+            option, message = renamed.get(field, "--" + field.replace("_", "-")), str(exc)
+            exc.args = (option + message[len(field) :] if message.startswith(field + " ") else f"{option}: {message}",)
         raise
 
 
@@ -222,9 +226,9 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
     return sc if env is None else dataclasses.replace(sc, lights=[env])
 
 
-def _render_to(
-    scene, out: Path, spp: int, bounces: int, seed: int, exposure, checkpoint: bool, progress: bool | None = None
-) -> dict:
+def _render_to(scene, out: Path, settings, seed: int, exposure, checkpoint: bool, progress: bool | None = None) -> dict:
+    """Path-trace ``scene`` at ``settings`` (a :class:`~torch_brdf.transport.pathtrace.PathTraceSettings`)
+    to ``out`` .exr and .png."""
     from .io import write_exr
     from .transport.pathtrace import path_trace
 
@@ -232,7 +236,7 @@ def _render_to(
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
-    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
+    image = path_trace(scene, settings, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
     stops = _preview(out.with_suffix(".png"), image, exposure)
@@ -242,8 +246,8 @@ def _render_to(
         "exr": str(out.with_suffix(".exr")),
         "png": str(out.with_suffix(".png")),
         "seconds": round(seconds, 3),
-        "spp": spp,
-        "max_bounces": bounces,
+        "spp": settings.spp,
+        "max_bounces": settings.max_bounces,
         "size": [scene.camera.width, scene.camera.height],
         "exposure": stops,
     }
@@ -293,8 +297,9 @@ def demo(
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
     _file_out(out)
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     scene = load_scene("cornell_box", resolution, width, height)
-    info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
+    info = _render_to(scene, out, settings, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -319,8 +324,9 @@ def render(
     _file_out(out)
     if exposure is not None:
         check_real(exposure, "--exposure")
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
-    info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
+    info = _render_to(sc, out, settings, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -376,7 +382,8 @@ def precompute(
     samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
     if sampler not in samplers:
         raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
-    settings = _polynomial_settings(
+    settings = _settings(
+        "polynomial",
         series=series,
         spp=spp,
         bases=_json_object(bases, "--bases"),
@@ -721,7 +728,7 @@ def fit_image_cmd(
         sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, _polynomial_settings(series=series, spp=spp), seed=0, progress=progress)
+        T = precompute_polynomial(sc, _settings("polynomial", series=series, spp=spp), seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
@@ -775,22 +782,18 @@ def precompute_visibility_cmd(
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     _file_out(out)
     from .records.cache import remove_cache
-    from .sphere.cubemap import CubemapBlocks
-    from .transport.visibility import BITS, precompute_visibility
+    from .transport.visibility import precompute_visibility
 
     if resolution is not None:  # the old name: a cubemap size here, an image size everywhere else
         typer.echo(f"warning: precompute-visibility --resolution is deprecated; use --cubemap {resolution} "
                    "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
         cubemap = resolution
-    resolution = check_int(cubemap, "--cubemap", 16, MAX_CUBEMAP_RESOLUTION)
-    CubemapBlocks(resolution, 16)  # a multiple of the block size
-    if bits not in BITS:
-        raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
+    settings = _settings("visibility", resolution=cubemap, block=16, supersample=supersample, bits=bits, chunk=chunk)
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
     run = {"executor": "local" if ray is None else "ray", "address": ray}
-    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress, **run)
+    vis = precompute_visibility(sc, settings, checkpoint=ck, progress=progress, **run)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)
@@ -798,7 +801,7 @@ def precompute_visibility_cmd(
     info = {
         "out": str(out),
         "vertices": len(vis.vertices),
-        "cubemap": f"{resolution}x{resolution}x6",
+        "cubemap": f"{settings.resolution}x{settings.resolution}x6",
         "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
         "seconds": round(seconds, 3),
     }
@@ -889,7 +892,7 @@ def editor(
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
 
-    _polynomial_settings(series=series, spp=spp)  # checked before the server starts
+    _settings("polynomial", series=series, spp=spp)  # checked before the server starts
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     if (relight is None) != (visibility is None):

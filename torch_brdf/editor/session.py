@@ -37,7 +37,7 @@ from ..records import PolynomialTensors
 from ..render import PolynomialRenderer
 from ..render.polynomial import emitter_mask
 from ..scene import trace_gbuffer
-from ..transport import PolynomialSettings, path_trace, precompute_polynomial
+from ..transport import PathTraceSettings, PolynomialSettings, path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
@@ -146,7 +146,12 @@ class ReferenceJob:
             for s in range(self.spp):
                 if self._cancel.is_set():
                     break
-                img = path_trace(self.scene, 1, self.max_bounces, self.seed * 1_000_003 + s, progress=False)
+                img = path_trace(
+                    self.scene,
+                    PathTraceSettings(spp=1, max_bounces=self.max_bounces),
+                    seed=self.seed * 1_000_003 + s,
+                    progress=False,
+                )
                 total = img.double() if total is None else total + img.double()
                 self.done = s + 1
                 if self.on_progress is not None:
