@@ -12,19 +12,19 @@ from typing import Any
 import torch
 
 from ..._checks import check_seed
-from ..._threads import available_memory, tile_processes
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
+from ...parallel.threads import available_memory, tile_processes
+from ...parallel.tiles import run_tiles, single_process, tile_tick
 from ...records.cache import TileCache, settings_key
+from ...records.guides import GUIDE_VERSION
 from ...records.polynomial import ObjectBasis, PolynomialTensors
 from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
-from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import Accumulator, TileSums, library
 from .._native import ptr as _p
-from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .bases import plan_bases, with_fixed
@@ -59,7 +59,7 @@ TILE_PIXELS = 4096
 
 
 def _default_processes(tile_paths: int) -> int:
-    """Tiles at once by default: :func:`~torch_brdf._threads.tile_processes` (one per usable
+    """Tiles at once by default: :func:`~torch_brdf.parallel.threads.tile_processes` (one per usable
     core, 1 on a busy machine), fewer when that many tiles would not fit in the available
     memory (at least one)."""
     n = tile_processes()
@@ -485,7 +485,7 @@ def precompute_polynomial(
             resumes from it; removed on success unless ``keep_checkpoint``.
         keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
         executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
-            :mod:`torch_brdf.transport.executor`); the tensors are the same bit for bit.
+            :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
             cluster address.
         max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
