@@ -210,7 +210,72 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
     return {"image": img, "seconds": secs, "variant": variant}
 
 
-def main() -> None:
+def _freeze_and_frames(q: bool, out: dict) -> None:
+    """Freezing the back wall and its frames at 512² (128² quick) into ``out``."""
+    fres, fspp = (128, 2) if q else (512, 4)
+    sc5 = cornell_box_glossy(fres)
+    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
+    R = PolynomialRenderer(T5, _materials(sc5))
+    out["freeze_resolution"], out["freeze_spp"] = fres, fspp
+    out["freeze_entries"] = T5.num_entries
+    out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
+    t0 = time.perf_counter()
+    R.freeze("back")
+    out["freeze_s"] = time.perf_counter() - t0
+    c = R.c[T5.object_id("back")].clone()
+    frames, streams = [], []
+    for k in range(5):
+        R.set_coefficients("back", c * (1 + 0.1 * k))
+        t0 = time.perf_counter()
+        R()
+        frames.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        R.stream()
+        streams.append(time.perf_counter() - t0)
+    out["frame_s"], out["stream_s"] = min(frames), min(streams)
+    out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
+    out["frozen_mb"] = R.frozen_nbytes / 2**20
+    t0 = time.perf_counter()
+    R.evaluate()
+    out["full_evaluation_s"] = time.perf_counter() - t0
+    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
+    del R, T5
+
+
+def _series_errors(q: bool, sca, ref, mask, rspp: int, out: dict) -> None:
+    """``out["rel_rmse"]``: each series' relative RMSE against the reference (a reference of the
+    same depth for series of other bounces), seconds and MB."""
+    rel, refs = {}, {}
+    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
+    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
+    for series, n, key in runs:
+        t0 = time.perf_counter()
+        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
+        secs = time.perf_counter() - t0
+        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
+        bounces = Tk.series.bounces
+        r = ref
+        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
+            r = refs.get(bounces)
+            if r is None:
+                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
+                r = (
+                    hi["image"]
+                    if hi is not None
+                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
+                )
+                refs[bounces] = r
+        rel[key] = {
+            "rel_rmse": relative_rmse(img, r, mask),
+            "seconds": secs,
+            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
+            "bounces": bounces,
+        }
+        print(key, rel[key], flush=True)
+    out["rel_rmse"] = rel
+
+
+def _args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
@@ -220,12 +285,35 @@ def main() -> None:
     ap.add_argument(
         "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
     )
-    args = ap.parse_args()
-    q = args.quick
-    out: dict = {"quick": q}
+    return ap.parse_args()
+
+
+def _same(one, other) -> bool:
+    """The two records' arrays are equal."""
+    a, b = one.to_arrays()[0], other.to_arrays()[0]
+    return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def _timeline(out: dict, tl: list) -> None:
+    """The tiles' timeline ([tile, process, start, end, CPU s], s after the call began) into ``out``."""
+    out["tile_timeline"] = tl
+    out["serial_before_tiles_s"] = min(r[2] for r in tl)
+    out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
+    out["tiles_cpu_s"] = sum(r[4] for r in tl)
+    out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
+
+
+def _native_load(out: dict) -> None:
     t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
     out["native"] = _native.library() is not None
     out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()
+
+
+def main() -> None:
+    args = _args()
+    q = args.quick
+    out: dict = {"quick": q}
+    _native_load(out)
 
     # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
     res, spp = (64, 8) if q else (256, 64)
@@ -235,13 +323,8 @@ def main() -> None:
     T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
-    tl = T.meta["timeline"]  # [tile, process, start, end, CPU s] of each tile, s after the call began
-    if tl:
-        out["tile_timeline"] = tl
-        out["serial_before_tiles_s"] = min(r[2] for r in tl)
-        out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
-        out["tiles_cpu_s"] = sum(r[4] for r in tl)
-        out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
+    if T.meta["timeline"]:
+        _timeline(out, T.meta["timeline"])
 
     def again(**kw):
         """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
@@ -251,15 +334,10 @@ def main() -> None:
         return T_, time.perf_counter() - t0
 
     cpu = [0.0]
-
-    def same(one, other) -> bool:
-        a, b = one.to_arrays()[0], other.to_arrays()[0]
-        return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
-
     if args.baseline:  # the same precompute with its tiles in this process, one after another
         T1, out["one_process_s"] = again(processes=1)
         out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
-        out["equals_one_process"] = same(T, T1)
+        out["equals_one_process"] = _same(T, T1)
         out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
         del T1
     if args.torch_path:  # the same precompute with the kernel off, same processes
@@ -271,7 +349,7 @@ def main() -> None:
         out["native_again_cpu_s"] = cpu[0]
         out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
         out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
-        out["equals_torch_path"] = same(T, T2)
+        out["equals_torch_path"] = _same(T, T2)
         out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
         del T2
     # embree alone: the rays of a run in this process (tiles may run in forked processes),
@@ -308,34 +386,7 @@ def main() -> None:
         return
 
     # -- freezing and frames at 512^2 ------------------------------------------------------------
-    fres, fspp = (128, 2) if q else (512, 4)
-    sc5 = cornell_box_glossy(fres)
-    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
-    R = PolynomialRenderer(T5, _materials(sc5))
-    out["freeze_resolution"], out["freeze_spp"] = fres, fspp
-    out["freeze_entries"] = T5.num_entries
-    out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
-    t0 = time.perf_counter()
-    R.freeze("back")
-    out["freeze_s"] = time.perf_counter() - t0
-    c = R.c[T5.object_id("back")].clone()
-    frames, streams = [], []
-    for k in range(5):
-        R.set_coefficients("back", c * (1 + 0.1 * k))
-        t0 = time.perf_counter()
-        R()
-        frames.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        R.stream()
-        streams.append(time.perf_counter() - t0)
-    out["frame_s"], out["stream_s"] = min(frames), min(streams)
-    out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
-    out["frozen_mb"] = R.frozen_nbytes / 2**20
-    t0 = time.perf_counter()
-    R.evaluate()
-    out["full_evaluation_s"] = time.perf_counter() - t0
-    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
-    del R, T5
+    _freeze_and_frames(q, out)
 
     # -- accuracy against the full-BRDF reference --------------------------------------------
     # The high-spp reference is Mitsuba 3 (llvm) when it runs here -- our reference_path_trace
@@ -361,34 +412,7 @@ def main() -> None:
         "direct_only": relative_rmse(apx["direct"], ref, mask),
     }
     print("ordering", out["approximation_rel_rmse"], flush=True)
-    rel, refs = {}, {}
-    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
-    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
-    for series, n, key in runs:
-        t0 = time.perf_counter()
-        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
-        secs = time.perf_counter() - t0
-        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
-        bounces = Tk.series.bounces
-        r = ref
-        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
-            r = refs.get(bounces)
-            if r is None:
-                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
-                r = (
-                    hi["image"]
-                    if hi is not None
-                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
-                )
-                refs[bounces] = r
-        rel[key] = {
-            "rel_rmse": relative_rmse(img, r, mask),
-            "seconds": secs,
-            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
-            "bounces": bounces,
-        }
-        print(key, rel[key], flush=True)
-    out["rel_rmse"] = rel
+    _series_errors(q, sca, ref, mask, rspp, out)
 
     # -- our reference against Mitsuba (equal spp) ----------------------------------------------
     n = 64 if q else 256
