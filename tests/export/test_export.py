@@ -97,7 +97,6 @@ def test_tabulate_marks_the_horizon_missing():
     ("material", "target"),
     [
         (LAMBERT, "diffuse"),
-        (MR_GOLD, "principled"),
         ({"type": "cook_torrance", "roughness": 0.3, "f0": 1.0}, "roughconductor"),
     ],
 )

@@ -12,8 +12,9 @@ What is exact (written directly) and what is fitted:
 source                      Mitsuba 3 XML                              glTF 2.0
 ==========================  =========================================  ===========================
 ``lambert``                 ``diffuse`` (exact)                        exact (see below)
-``metallic_roughness``      ``principled`` (exact for metallic = 1;    ``pbrMetallicRoughness`` (exact)
-                            fitted otherwise: Disney's diffuse)
+``metallic_roughness``      ``principled`` (fitted; 4% for a metal:    ``pbrMetallicRoughness`` (exact)
+                            separable masking, more with Disney's
+                            diffuse for dielectrics)
 ``cook_torrance`` GGX,      ``roughconductor`` (exact)                 fitted
 :math:`F_0 = 1`, no diffuse
 anything else               fitted: ``diffuse``, ``roughconductor``,   fitted metallic-roughness
@@ -54,12 +55,13 @@ from ..errors import ExportError, TorchBRDFError
 from ..frame import half_diff_to_directions
 from ..io.atomic import replacing
 from ..io.merl import MERL_RES, merl_index_to_angles, write_merl_binary
-from .fit import STOCK_MODELS, FitPairs, StockFit, fit_error, fit_stock, principled_params
+from .fit import STOCK_MODELS, FitPairs, StockFit, fit_error, fit_stock
 
 __all__ = [
     "FORMATS",
     "STOCK_MODELS",
     "ExportReport",
+    "FitPairs",
     "export_material",
     "export_scene_mitsuba",
     "fit_stock",
@@ -71,8 +73,6 @@ __all__ = [
 
 #: export formats and their file suffixes
 FORMATS = {"mitsuba": ".xml", "gltf": ".gltf", "merl": ".binary"}
-#: the exact mapping of a Mitsuba principled for a metal (measured against Mitsuba 3.9)
-EXACT_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -139,8 +139,6 @@ def _exact_mitsuba(brdf) -> StockFit | None:
     with torch.no_grad():
         if type(brdf) is Lambert:
             return StockFit("diffuse", {"reflectance": _rgb_list(brdf.reflectance)}, brdf, 0.0, exact=True)
-        if type(brdf) is MetallicRoughness and float(brdf.metallic) == 1.0:
-            return StockFit("principled", principled_params(brdf), brdf, 0.0, exact=True)
         if (
             type(brdf) is CookTorrance
             and brdf.distribution == "ggx"

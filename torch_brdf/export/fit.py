@@ -19,8 +19,11 @@ re-measures the error against Mitsuba's own plugin when Mitsuba is installed):
   ``specular_reflectance`` :math:`R`): :math:`R\,D\,G_1G_1/(4\cos\theta_i\cos\theta_o)`, the
   :class:`~torch_brdf.brdf.microfacet.CookTorrance` GGX lobe with :math:`F_0 = 1` (Mitsuba's
   microfacet masking is the separable Smith one, as ours).
-* ``principled``: the glTF :class:`~torch_brdf.brdf.gltf.MetallicRoughness` (exact for a
-  metal; a dielectric differs by Mitsuba's Disney diffuse, 5-15%).
+* ``principled``: the glTF :class:`~torch_brdf.brdf.gltf.MetallicRoughness`. Not exact:
+  Mitsuba's principled masks with the separable Smith :math:`G_1G_1` where glTF's is
+  height-correlated (about 4% for a metal, from grazing pairs), and its dielectric diffuse is
+  Disney's (retro-reflection, :math:`(1 - F_L/2)(1 - F_V/2)`), not Lambert times
+  :math:`1 - F`. The export re-measures the error with Mitsuba.
 """
 
 from __future__ import annotations
