@@ -454,9 +454,13 @@ def edit(
     ),
     out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+    exports: list[str] = typer.Option(
+        [], "--export", help="OBJECT:FORMAT:FILE, repeatable: write the edited material (mitsuba, gltf, merl)."
+    ),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
+    targets = [_parse_export(e) for e in exports]
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
@@ -477,12 +481,84 @@ def edit(
     for obj, param, value in edits:
         if param != "type":
             materials[obj][param] = value
+    for obj, _, _ in targets:
+        if obj not in materials:
+            raise SceneError(f"--export {obj}: {obj!r} is not an editable object; choose from {sorted(materials)}")
     t0 = time.perf_counter()
     image = PolynomialRenderer(T, materials)().detach()
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
+    if targets:
+        from .export import export_material
+
+        info["exports"] = [
+            {"object": o, **asdict_report(export_material(materials[o], f, fmt, name=o))} for o, fmt, f in targets
+        ]
     typer.echo(json.dumps(info))
+
+
+def _parse_export(item: str) -> tuple[str, str, Path]:
+    """``OBJECT:FORMAT:FILE`` of ``--export`` (checked before any work)."""
+    from .export import FORMATS
+
+    parts = item.split(":", 2)
+    if len(parts) != 3 or not all(parts):
+        raise ValueRangeError(f"--export {item!r}: expected OBJECT:FORMAT:FILE, e.g. back:mitsuba:out/back.xml")
+    obj, fmt, file = parts
+    if fmt not in FORMATS:
+        raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
+    path = Path(file)
+    if not path.parent.is_dir():
+        raise ValueRangeError(f"--export {item!r}: folder {path.parent} does not exist")
+    return obj, fmt, path
+
+
+def asdict_report(report) -> dict:
+    """An :class:`~torch_brdf.export.ExportReport` as a JSON-ready dict."""
+    import dataclasses
+
+    return dataclasses.asdict(report)
+
+
+@app.command("export")
+@_cli
+def export_cmd(
+    material: str = typer.Argument(
+        ..., help='A material as JSON (\'{"type": "lambert", "albedo": 0.5}\'), or SCENE:OBJECT, or a SCENE.'
+    ),
+    out: Path = typer.Argument(..., help="File to write: .xml (Mitsuba 3), .gltf (glTF 2.0) or .binary (MERL)."),
+    fmt: str = typer.Option(None, "--format", help="mitsuba, gltf or merl (default: from the suffix of OUT)."),
+    tolerance: float = typer.Option(None, min=0.0, help="Refuse a fit whose error is above this (relative L2)."),
+    name: str = typer.Option("material", help="The material's id / name in the file."),
+):
+    """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
+    from .export import export_material, export_scene_mitsuba
+
+    if not out.parent.is_dir():
+        raise ValueRangeError(f"OUT: folder {out.parent} does not exist")
+    if material.lstrip().startswith("{"):
+        try:
+            spec = json.loads(material)
+        except json.JSONDecodeError as exc:
+            raise ValueRangeError(f"MATERIAL is not valid JSON: {exc}") from None
+        report = export_material(spec, out, fmt, tolerance, name)
+        typer.echo(json.dumps(asdict_report(report)))
+        return
+    spec_scene, _, obj = material.partition(":")
+    sc = load_scene(spec_scene, None)
+    if not obj:
+        if (fmt or out.suffix.lstrip(".")) not in ("mitsuba", "xml"):
+            raise ValueRangeError("a whole SCENE exports to Mitsuba XML only (OUT.xml)")
+        reports = export_scene_mitsuba(sc, out, tolerance)
+        typer.echo(json.dumps([asdict_report(r) for r in reports]))
+        return
+    by_name = {o.name: o for o in sc.objects}
+    if obj not in by_name:
+        raise SceneError(f"{material}: no object {obj!r} in the scene; objects: {sorted(by_name)}")
+    label = obj if name == "material" else name
+    report = export_material(sc.materials[by_name[obj].material], out, fmt, tolerance, label)
+    typer.echo(json.dumps(asdict_report(report)))
 
 
 @app.command("fit-gplvm")
