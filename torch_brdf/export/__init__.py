@@ -18,7 +18,8 @@ source                      Mitsuba 3 XML                              glTF 2.0
 ``cook_torrance`` GGX,      ``roughconductor`` (exact)                 fitted
 :math:`F_0 = 1`, no diffuse
 anything else               fitted: ``diffuse``, ``roughconductor``,   fitted metallic-roughness
-                            ``principled``, the best one
+                            ``principled``, ``blendbsdf`` of diffuse
+                            and roughconductor: the best one
 ==========================  =========================================  ===========================
 
 A Lambert material is written to glTF exactly as metallic 0 with ``KHR_materials_specular``
@@ -155,11 +156,23 @@ def mitsuba_bsdf(model: str, params: dict, name: str = "material") -> ET.Element
     two-sided), with ``id=name``.
 
     Args:
-        model: ``"diffuse"``, ``"roughconductor"`` or ``"principled"``.
+        model: a name of :data:`STOCK_MODELS` (``"diffuse+roughconductor"`` is a
+            ``blendbsdf`` of the two).
         params: the parameters (RGB lists or floats) as :class:`StockFit` holds them.
     """
     outer = ET.Element("bsdf", type="twosided", id=name)
-    inner = ET.SubElement(outer, "bsdf", type=model)
+    if model == "diffuse+roughconductor":
+        blend = ET.SubElement(outer, "bsdf", type="blendbsdf")
+        ET.SubElement(blend, "float", name="weight", value=f"{float(params['weight']):.9g}")
+        _plugin(blend, "diffuse", {"reflectance": params["reflectance"]})
+        _plugin(blend, "roughconductor", {k: params[k] for k in ("alpha", "specular_reflectance")})
+    else:
+        _plugin(outer, model, params)
+    return outer
+
+
+def _plugin(parent: ET.Element, model: str, params: dict) -> None:
+    inner = ET.SubElement(parent, "bsdf", type=model)
     if model == "roughconductor":
         ET.SubElement(inner, "string", name="distribution", value="ggx")
         ET.SubElement(inner, "string", name="material", value="none")
@@ -168,7 +181,6 @@ def mitsuba_bsdf(model: str, params: dict, name: str = "material") -> ET.Element
             ET.SubElement(inner, "rgb", name=key, value=", ".join(f"{v:.9g}" for v in value))
         else:
             ET.SubElement(inner, "float", name=key, value=f"{float(value):.9g}")
-    return outer
 
 
 def _mitsuba_error(model: str, params: dict, brdf, pairs: FitPairs) -> float | None:

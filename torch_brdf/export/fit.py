@@ -19,6 +19,10 @@ re-measures the error against Mitsuba's own plugin when Mitsuba is installed):
   ``specular_reflectance`` :math:`R`): :math:`R\,D\,G_1G_1/(4\cos\theta_i\cos\theta_o)`, the
   :class:`~torch_brdf.brdf.microfacet.CookTorrance` GGX lobe with :math:`F_0 = 1` (Mitsuba's
   microfacet masking is the separable Smith one, as ours).
+* ``diffuse+roughconductor``: ``blendbsdf`` of the two with weight :math:`w`:
+  :math:`(1-w)\rho/\pi + w\,R\,D\,G_1G_1/(4\cos\theta_i\cos\theta_o)`, fitted as
+  :math:`k_d/\pi + k_s D G_1G_1/(4\ldots)` with :math:`\max k_d + \max k_s \le 1` (the
+  glossy-plus-diffuse shape of Blinn-Phong, Ward or Cook-Torrance with a diffuse base).
 * ``principled``: the glTF :class:`~torch_brdf.brdf.gltf.MetallicRoughness`. Not exact:
   Mitsuba's principled masks with the separable Smith :math:`G_1G_1` where glTF's is
   height-correlated (about 4% for a metal, from grazing pairs), and its dielectric diffuse is
@@ -42,7 +46,7 @@ from ..frame import half_terms
 __all__ = ["STOCK_MODELS", "FitPairs", "StockFit", "fit_error", "fit_stock"]
 
 #: Mitsuba stock plugins the fit can target.
-STOCK_MODELS = ("diffuse", "roughconductor", "principled")
+STOCK_MODELS = ("diffuse", "roughconductor", "principled", "diffuse+roughconductor")
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,19 @@ class _ScaledConductor(BRDF):
         return torch.where(up.unsqueeze(-1), f, torch.zeros((), dtype=wi.dtype))
 
 
+class _DiffuseConductor(_ScaledConductor):
+    """``blendbsdf`` of ``diffuse`` and ``roughconductor``: kd / pi + R x the GGX lobe."""
+
+    def __init__(self, kd=0.3, reflectance=0.5, alpha=0.2):
+        super().__init__(reflectance, alpha)
+        self.register_constrained("kd", kd, Clamped(0.0, 1.0), shape=(3,))
+
+    def eval_local(self, wi, wo):
+        up = ((wi[..., 2] > 0) & (wo[..., 2] > 0)).unsqueeze(-1)
+        diffuse = torch.where(up, self.kd.to(wi.dtype) / math.pi, torch.zeros((), dtype=wi.dtype))
+        return super().eval_local(wi, wo) + diffuse
+
+
 def _adam(model: BRDF, pairs: FitPairs, f: torch.Tensor, steps: int) -> float:
     params = [p for p in model.parameters()]
     opt = torch.optim.Adam(params, lr=0.05)
@@ -181,6 +198,33 @@ def _fit_conductor(f, pairs, steps) -> StockFit:
     err, m = best
     params = {"alpha": float(m.alpha.detach()), "specular_reflectance": m.reflectance.detach().tolist()}
     return StockFit("roughconductor", params, m, err)
+
+
+def _fit_blend(f, pairs, steps) -> StockFit:
+    best = None
+    for alpha in (0.1, 0.4):
+        m = _DiffuseConductor(0.3, 0.5, alpha).double()
+        err = _adam(m, pairs, f, steps)
+        if best is None or err < best[0]:
+            best = (err, m)
+    err, m = best
+    with torch.no_grad():
+        kd, ks = m.kd.double(), m.reflectance.double()
+        total = float(kd.max() + ks.max())
+        if total > 1:  # blendbsdf needs max kd + max ks <= 1: scale both (and re-measure)
+            with torch.no_grad():
+                m.kd = kd / total
+                m.reflectance = ks / total
+            kd, ks = kd / total, ks / total
+            err = fit_error(f, m.eval_local(pairs.wi, pairs.wo), pairs.weight)
+        w = float(ks.max()) / max(float(ks.max() + kd.max()), 1e-300)
+        params = {
+            "weight": w,
+            "reflectance": (kd / max(1 - w, 1e-12)).clamp(0, 1).tolist(),
+            "alpha": float(m.alpha.detach()),
+            "specular_reflectance": (ks / max(w, 1e-12)).clamp(0, 1).tolist(),
+        }
+    return StockFit("diffuse+roughconductor", params, m, err)
 
 
 def _fit_principled(f, pairs, steps) -> StockFit:
@@ -240,6 +284,8 @@ def fit_stock(
             fits.append(_fit_diffuse(f, pairs))
         elif name == "roughconductor":
             fits.append(_fit_conductor(f, pairs, steps))
+        elif name == "diffuse+roughconductor":
+            fits.append(_fit_blend(f, pairs, steps))
         else:
             fits.append(_fit_principled(f, pairs, steps))
     return sorted(fits, key=lambda s: s.error)
