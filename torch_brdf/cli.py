@@ -457,10 +457,15 @@ def edit(
     exports: list[str] = typer.Option(
         [], "--export", help="OBJECT:FORMAT:FILE, repeatable: write the edited material (mitsuba, gltf, merl)."
     ),
+    save_scene: Path = typer.Option(
+        None, "--save-scene", help="Write the scene with the edits as a TOML scene file (re-opens with them)."
+    ),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
     targets = [_parse_export(e) for e in exports]
+    if save_scene is not None and not save_scene.parent.is_dir():
+        raise ValueRangeError(f"--save-scene: folder {save_scene.parent} does not exist")
     from .records import PolynomialTensors
     from .render import PolynomialRenderer
 
@@ -489,6 +494,8 @@ def edit(
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
+    if save_scene is not None:
+        info["scene_file"] = str(_save_edited_scene(sc, T, materials, {e[0] for e in edits}, save_scene))
     if targets:
         from .export import export_material
 
@@ -496,6 +503,26 @@ def edit(
             {"object": o, **asdict_report(export_material(materials[o], f, fmt, name=o))} for o, fmt, f in targets
         ]
     typer.echo(json.dumps(info))
+
+
+def _save_edited_scene(sc, T, materials: dict, edited: set, path: Path) -> Path:
+    """Save ``sc`` at the tensors' image size with each edited object's material under a key of
+    its own (objects that shared the material keep the old one)."""
+    import dataclasses
+
+    from .export.scene_file import save_scene_toml
+    from .scene import Scene
+
+    table = {k: dict(v) for k, v in sc.materials.items()}
+    objects = []
+    for o in sc.objects:
+        if o.name in edited:
+            key = o.name if o.name not in table else f"{o.name}_edited"
+            table[key] = materials[o.name]
+            o = dataclasses.replace(o, material=key)
+        objects.append(o)
+    scene = Scene(objects, table, sc.lights, sc.camera, name=sc.name).with_resolution(T.width, T.height)
+    return save_scene_toml(scene, path)
 
 
 def _parse_export(item: str) -> tuple[str, str, Path]:
