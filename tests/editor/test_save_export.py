@@ -70,3 +70,32 @@ def test_export_per_material(session, tmp_path):
 def test_save_needs_a_scene(small_tensors_file, tmp_path):
     with pytest.raises(SceneError, match="no scene"):
         EditorSession(small_tensors_file[1], None).save(tmp_path / "x.toml")
+
+
+def test_app_buttons(small_tensors_file, tmp_path):
+    pytest.importorskip("anywidget", reason="the editor extra is not installed (pip install -e '.[editor]')")
+    from torch_brdf.editor.app import EditorApp
+
+    app = EditorApp({"source": str(small_tensors_file[0]), "threads": 0})
+    s = app.session
+    assert s.selected == "back"
+    start = dict(s.materials["back"])
+    app._apply_material({**start, "exponent": 300.0})
+    app.undo_button.click()
+    assert s.materials["back"] == start and "undid" in app.message.value
+    app.redo_button.click()
+    assert s.materials["back"]["exponent"] == 300.0
+    app.ab_button.click()
+    assert s.materials["back"] == start and "saved" in app.ab_button.description
+    app.ab_button.click()
+    assert s.materials["back"]["exponent"] == 300.0
+    app.export_path.value = str(tmp_path / "back.gltf")
+    app.export_format.value = "gltf"
+    app.export_button.click()
+    assert (tmp_path / "back.gltf").is_file() and "exported back" in app.message.value
+    app.save_path.value = str(tmp_path / "missing" / "x.toml")
+    app.save_button.click()
+    assert "tb-error" in app.message.value and "does not exist" in app.message.value
+    app.save_path.value = str(tmp_path / "edited.toml")
+    app.save_button.click()
+    assert (tmp_path / "edited.toml").is_file() and "saved" in app.message.value
