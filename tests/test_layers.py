@@ -21,7 +21,7 @@ import torch_brdf
 
 #: low to high; a module may import its own layer or a lower one.
 LAYERS = (
-    {"errors", "_checks", "_threads", "data", "io", "sphere", "frame", "metrics", "linalg"},
+    {"errors", "_checks", "parallel", "data", "io", "sphere", "frame", "metrics", "linalg"},
     {"brdf", "scene", "export"},
     {"records"},
     {"transport", "manifold", "inverse", "denoise", "planner"},

@@ -9,6 +9,8 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.sphere`: sampling warps and pdfs, lat-long maps, cubemap blocks, DCT, Haar.
 * :mod:`torch_brdf.frame`: local shading frames, half/difference angles.
 * :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, HDR-FLIP, log-RMSE ...).
+* :mod:`torch_brdf.parallel`: processes and threads: usable cores and quotas, thread limits,
+  forked workers, the ray-tracing process pool and the tile executor (local or Ray).
 * :mod:`torch_brdf.linalg`: dense linear algebra shared by the package (the Cholesky with jitter).
 * :mod:`torch_brdf.brdf`: the BRDF base class, analytic, microfacet, measured and SRBF models,
   1-D band bases.
@@ -31,7 +33,7 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.report`: the speed/accuracy report (every benchmark's trade on one page).
 """
 
-from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
+from . import errors, parallel  # noqa: F401  (parallel sets OMP_WAIT_POLICY before torch loads; errors imports no torch)
 from .errors import TorchBRDFError
 
 __version__ = "0.1.0"

@@ -1018,7 +1018,7 @@ def report(
     quick: bool = typer.Option(False, "--quick", help="Run every benchmark with --quick (the small version)."),
     results: Path = typer.Option(None, help="Read saved benchmark JSON from this folder instead of running."),
     only: list[str] = typer.Option(None, help="Run only this benchmark (repeatable; e.g. --only extremes)."),
-    benchmarks: Path = typer.Option(None, help="The benchmarks/ folder (default ./benchmarks or the checkout's)."),
+    benchmarks: Path = typer.Option(None, help="Run this folder's scripts instead of the package's benchmarks."),
     timeout: float = typer.Option(None, min=1.0, help="Seconds per benchmark (default 1800 quick, 14400 full)."),
     progress: bool = PROGRESS,
 ):

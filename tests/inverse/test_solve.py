@@ -7,9 +7,6 @@ import pytest
 import torch
 
 from tests.inverse.conftest import KD, true_coefficients
-from tests.inverse.qp_set import objective_gap, problem_targets, qp_set, reference_solution, violation
-from tests.inverse.qp_set import strokes as _strokes
-from tests.inverse.qp_set import whole as _whole
 from torch_brdf.errors import FileFormatError, InfeasibleError, ShapeError, ValueRangeError
 from torch_brdf.inverse import (
     LightSamples,
@@ -24,6 +21,9 @@ from torch_brdf.inverse import (
     transfer_functions,
 )
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.report.benchmarks.qp_set import objective_gap, problem_targets, qp_set, reference_solution, violation
+from torch_brdf.report.benchmarks.qp_set import strokes as _strokes
+from torch_brdf.report.benchmarks.qp_set import whole as _whole
 
 
 def test_recovers_a_known_brdf(view, target_render):

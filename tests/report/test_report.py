@@ -262,6 +262,6 @@ def test_quick_report_passes_its_options_to_the_scripts(tmp_path):
     assert run_benchmark("manifold", tmp_path, False, timeout=60)["result"]["argv"] == []
     for name, opts in QUICK_ARGS.items():
         assert name in BENCHMARKS and opts
-        text = (REPO / "benchmarks" / f"{name}.py").read_text()
+        text = (REPO / "torch_brdf" / "report" / "benchmarks" / f"{name}.py").read_text()
         for opt in (o for o in opts if o.startswith("--")):
             assert f'add_argument("{opt}"' in text or f'add_argument(\n        "{opt}"' in text, (name, opt)

@@ -21,10 +21,10 @@ import torch
 
 from tests.transport._ray import init_local, private_ray_env
 from torch_brdf.errors import ValueRangeError
+from torch_brdf.parallel import tiles as executor
+from torch_brdf.parallel.tiles import TileError, run_tiles, tile_tick
 from torch_brdf.records.cache import TileCache
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport import executor
-from torch_brdf.transport.executor import TileError, run_tiles, tile_tick
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 4, "progress": False}

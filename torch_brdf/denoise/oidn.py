@@ -63,8 +63,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ShapeError, TorchBRDFError, ValueRangeError
+from ..records.guides import GuideBuffers
 from .atrous import EdgeAwareFilter, GuideFilter
-from .guides import GuideBuffers
 
 
 def _pyoidn():

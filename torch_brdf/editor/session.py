@@ -7,8 +7,10 @@ application (:mod:`torch_brdf.editor.app`) and the tests drive the same session.
 
 Projection at interactive rates. :func:`torch_brdf.brdf.project` is the float64
 cosine-weighted least squares on a ~410k-pair quadrature (about a second per call on two
-shared cores). The session keeps a :class:`~torch_brdf.brdf.Projector` per object (the
-quadrature, memberships and factorised normal matrix made once) on a coarser rule
+shared cores). The session gives each object the renderer's
+:class:`~torch_brdf.render.material.MaterialProjector` (the same exact cases and Fresnel split)
+with a :class:`~torch_brdf.brdf.Projector` (the quadrature, memberships and factorised normal
+matrix made once) on a coarser rule
 (:data:`FAST_QUADRATURE`, ~10k pairs; the :math:`\theta_h` cells keep the band edges, so band
 boxes are still integrated cell-exactly), so an edit evaluates the BRDF on the stored pairs and
 solves a factorised J x J system per channel. The coarse rule's difference from
@@ -21,7 +23,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -30,11 +31,12 @@ from typing import Any
 
 import torch
 
-from ..brdf import BRDF, Factored1D, Lambert, Projector, create
+from ..brdf import BRDF, create
 from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
 from ..metrics import relative_rmse
 from ..records import PolynomialTensors
 from ..render import PolynomialRenderer
+from ..render.material import MaterialProjector
 from ..render.polynomial import emitter_mask
 from ..scene import trace_gbuffer
 from ..transport import path_trace, precompute_polynomial
@@ -269,9 +271,8 @@ class EditorSession:
         self.ids, self.ids_source = object_id_buffer(tensors, scene)
         self.mask = emitter_mask(tensors)
         self.selected: str | None = None
-        self._projectors: dict[tuple[str, bool], Projector] = {}
+        self._projectors: dict[str, MaterialProjector] = {}
         self.projected: dict[str, torch.Tensor] = {}  # obj -> (J, 3) last projected curve
-        self._band_bases: dict[str, Any] = {}
         self.last_frame_s = 0.0
         self.last_set_s = 0.0
         # undo/redo of material edits: (object, snapshot before the edit); snapshots keep the
@@ -316,9 +317,7 @@ class EditorSession:
     def band_basis(self, obj: str):
         """The object's :class:`~torch_brdf.brdf.BandBasis` (made once: its lobe-spaced edges
         take ~7 ms to compute, a tenth of an edit's budget)."""
-        if obj not in self._band_bases:
-            self._band_bases[obj] = self.basis(obj).band_basis()
-        return self._band_bases[obj]
+        return self.projector(obj).bands
 
     def band_material(self, obj: str, coefficients=None, model: str = "factored_1d") -> dict[str, Any]:
         """A ``factored_1d`` (or ``factored_1d_fresnel``) material dict on ``obj``'s own bands
@@ -342,19 +341,17 @@ class EditorSession:
         return bool(self.basis(obj).fresnel)
 
     # -- materials ----------------------------------------------------------------------------
+    def projector(self, obj: str) -> MaterialProjector:
+        """The object's :class:`~torch_brdf.render.material.MaterialProjector` on the coarse rule
+        :data:`FAST_QUADRATURE` (float64 constants; made once per object)."""
+        if obj not in self._projectors:
+            self._projectors[obj] = MaterialProjector(self.basis(obj), FAST_QUADRATURE, graph=False)
+        return self._projectors[obj]
+
     def coefficients(self, obj: str, brdf: BRDF) -> torch.Tensor:
-        """The object's eye-vertex coefficients (J, 3) for ``brdf`` (fast projection; Lambert
+        """The object's eye-vertex curve (J, 3) for ``brdf`` (fast projection; Lambert
         on a one-band constant quotient exactly, as the renderer does)."""
-        b = self.basis(obj)
-        if type(brdf) is Lambert and b.quotient == "one":
-            return (brdf.reflectance.detach().double() / math.pi).reshape(1, 3).expand(b.J, 3)
-        basis = self.band_basis(obj)
-        if type(brdf) is Factored1D and torch.equal(brdf.basis.edges, basis.edges) and brdf.quotient.key == b.quotient:
-            return brdf.coefficients.detach().double()  # a curve on these bands is used as is
-        key = (obj, bool(brdf.anisotropic))
-        if key not in self._projectors:
-            self._projectors[key] = Projector(basis, b.quotient, brdf.anisotropic, **FAST_QUADRATURE)
-        return self._projectors[key](brdf)
+        return self.projector(obj).curve(brdf)
 
     def set_material(self, obj: str, material: dict[str, Any], f0=None) -> float:
         """Give ``obj`` a material dict (validated by the model itself); returns the seconds spent.
@@ -393,18 +390,7 @@ class EditorSession:
 
     def _set(self, obj: str, material: dict[str, Any], f0=None) -> None:
         t0 = time.perf_counter()
-        brdf = checked_create(material)
-        b = self.basis(obj)
-        base = self.coefficients(obj, brdf)
-        if b.fresnel:
-            f = torch.as_tensor(1.0 if f0 is None else f0, dtype=torch.float64).reshape(-1).expand(3)
-            if bool(((f < 0) | (f > 1)).any()) or not bool(torch.isfinite(f).all()):
-                raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
-            c = torch.cat([base * f, base * (1 - f)], 0)
-        elif f0 is not None:
-            raise ValueRangeError(f"{obj!r} was precomputed without a Fresnel layer: f0 cannot be edited")
-        else:
-            c = base
+        c, base = self.projector(obj)(checked_create(material), f0, obj)
         self.renderer.set_coefficients(obj, c)
         self.materials[obj], self.f0[obj] = dict(material), f0
         self.projected[obj] = base

@@ -66,9 +66,9 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .._threads import single_thread
 from ..errors import InfeasibleError, NumericalError, ShapeError, ValueRangeError
 from ..linalg import cholesky_jitter
+from ..parallel.threads import single_thread
 
 __all__ = ["QPResult", "solve_qp"]
 

@@ -40,13 +40,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._threads import single_thread
 from ..data import progress_default
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
 from ..metrics import cosine_weighted_rmse as cosine_weighted_rmse  # re-exported
 from ..metrics import log_relative_rmse as log_relative_rmse  # re-exported
+from ..parallel.threads import single_thread
 from ..records.cache import Checkpoint
 
 OBS_KIND = "merl-observations"

@@ -45,9 +45,9 @@ import torch
 from scipy.linalg import lapack
 from tqdm.auto import tqdm
 
-from .._threads import single_thread
 from ..data import progress_default
 from ..errors import NumericalError, ShapeError, ValueRangeError
+from ..parallel.threads import single_thread
 from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
 from .linesearch import strong_wolfe

@@ -18,9 +18,10 @@ stored ``(C, J, K'·P)`` with the coefficient axis first, so a frame is two batc
 products that stream ``F`` once (../shared/FACTS.md: 16x faster than ``einsum('pjn,j->pn')``).
 
 Materials: :meth:`PolynomialRenderer.set_material` accepts any BRDF of the library (or a
-scene material dict): ``c`` by cosine-weighted projection onto the object's bands
-(:func:`~torch_brdf.brdf.bands.project`; a :class:`~torch_brdf.brdf.bands.Factored1D` on the
-same bands is used as is, keeping gradients), ``d = (1/pi) sum_j c_j e_j`` (App. B, Eq. 37)
+scene material dict): ``c`` by :class:`~torch_brdf.render.material.MaterialProjector`
+(cosine-weighted projection onto the object's bands; a Lambert BRDF on a constant quotient
+exactly, a :class:`~torch_brdf.brdf.bands.Factored1D` on the same bands as is, both keeping
+gradients; the Fresnel layer's :math:`F_0` split), ``d = (1/pi) sum_j c_j e_j`` (App. B, Eq. 37)
 and the second-bounce ``c_hat`` by the albedo-weighted coarsening of Sec. 4.1. Everything is
 RGB and differentiable in ``c``, ``c_hat`` and ``d``.
 """
@@ -34,12 +35,13 @@ import torch
 from torch import nn
 
 from .._checks import as_float_tensor, check_finite
-from .._threads import tuned_method
-from ..brdf import BRDF, Lambert, create
-from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
+from ..brdf import BRDF, create
+from ..brdf.bands import band_albedos, coarsen_coefficients
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..metrics import relative_rmse as relative_rmse  # re-exported; defined in torch_brdf.metrics
+from ..parallel.threads import tuned_method
 from ..records.polynomial import ObjectBasis, PolynomialTensors
+from .material import MaterialProjector
 
 
 def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None) -> torch.Tensor:
@@ -73,7 +75,7 @@ class PolynomialRenderer(nn.Module):
         max_bounces: render only bounces 1..max_bounces (default all precomputed).
 
     ``threads``: torch threads of :meth:`freeze` and frozen frames; None (default) uses the
-    count measured fastest for their size (:func:`torch_brdf._threads.tuned`).
+    count measured fastest for their size (:func:`torch_brdf.parallel.threads.tuned`).
     """
 
     threads: int | None = None
@@ -108,6 +110,7 @@ class PolynomialRenderer(nn.Module):
         self.weight_maps: dict[int, torch.Tensor] = {}
         self._map_means: dict[int, torch.Tensor] = {}
         self._albedo_weights: dict[int, list[torch.Tensor]] = {}
+        self._projectors: dict[int, MaterialProjector] = {}
         self._frozen: dict[str, Any] | None = None
         materials = dict(materials or {})
         for k, b in enumerate(tensors.bases):
@@ -171,7 +174,7 @@ class PolynomialRenderer(nn.Module):
         Args:
             obj: object name or id.
             brdf: a :class:`~torch_brdf.brdf.BRDF` or ``{"type": ..., **params}``. A
-                :class:`Factored1D` on exactly this object's bands keeps its coefficients
+                :class:`Factored1D` on exactly this object's bands and quotient keeps its coefficients
                 (and their gradients); anything else is projected (float64, no gradient).
             f0: for objects precomputed with ``fresnel=True`` (App. A, Eq. 31-32): the
                 normal-incidence reflectance :math:`F_0` (scalar or RGB in [0, 1]) of the Schlick
@@ -188,31 +191,9 @@ class PolynomialRenderer(nn.Module):
             brdf = create(brdf)
         if not isinstance(brdf, BRDF):
             raise ShapeError(f"set_material expects a BRDF module or a material dict; got {type(brdf).__name__}")
-        basis = b.band_basis()
-        same = isinstance(brdf, Factored1D) and torch.equal(brdf.basis.edges, basis.edges)
-        if b.fresnel and isinstance(brdf, FresnelFactored1D) and same:
-            c = torch.cat([lay.coefficients for lay in brdf.layers()], 0)
-        else:
-            if same and type(brdf) is Factored1D:
-                base = brdf.coefficients
-            elif type(brdf) is Lambert and b.quotient == "one":
-                # exact: a constant projects onto box bands with a constant quotient as itself
-                base = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.J, 3)
-            else:
-                base = project(brdf, basis, b.quotient)
-            if b.fresnel:
-                # Eq. 32: f1 = F f, f2 = (1 - F) f with the user's F0 (default 1: no Fresnel)
-                f = torch.as_tensor(1.0 if f0 is None else f0, dtype=base.dtype).reshape(-1).expand(3)
-                if bool(((f < 0) | (f > 1)).any()):
-                    raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
-                c = torch.cat([base * f, base * (1 - f)], 0)
-            else:
-                if f0 is not None:
-                    raise ValueRangeError(
-                        f"object {self.tensors.object_names[m]!r} was precomputed without a Fresnel layer; "
-                        "precompute with bases={name: {'fresnel': True}} to edit f0"
-                    )
-                c = base
+        if m not in self._projectors:
+            self._projectors[m] = MaterialProjector(b)
+        c, _ = self._projectors[m](brdf, f0, self.tensors.object_names[m])
         self.set_coefficients(m, c.detach() if from_dict else c)
 
     def set_coefficients(self, obj, c, d=None, c_hat=None) -> None:

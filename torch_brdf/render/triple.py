@@ -57,13 +57,13 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from .._threads import tuned_method
 from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..data import progress_default
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
 from ..metrics import psnr
+from ..parallel.threads import tuned_method
 from ..records.visibility import VertexVisibility
 from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
@@ -436,7 +436,7 @@ class TripleProductRenderer(nn.Module):
         lighting_samples: k x k lat-long lookups averaged per cube texel.
 
     ``threads``: torch threads of :meth:`shade`; None (default) uses the count measured
-    fastest for the number of vertices (:func:`torch_brdf._threads.tuned`).
+    fastest for the number of vertices (:func:`torch_brdf.parallel.threads.tuned`).
     """
 
     threads: int | None = None

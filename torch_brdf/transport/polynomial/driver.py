@@ -12,20 +12,20 @@ from typing import Any
 import torch
 
 from ..._checks import MAX_BANDS, check_count, check_seed
-from ..._threads import available_memory, tile_processes
 from ...data import progress_default
 from ...errors import ShapeError, ValueRangeError
+from ...parallel.threads import available_memory, tile_processes
+from ...parallel.tiles import run_tiles, single_process, tile_tick
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import TileCache, settings_key
+from ...records.guides import GUIDE_VERSION
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
-from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import Accumulator, TileSums, library
 from .._native import ptr as _p
-from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
@@ -59,7 +59,7 @@ TILE_PIXELS = 4096
 
 
 def _default_processes(tile_paths: int) -> int:
-    """Tiles at once by default: :func:`~torch_brdf._threads.tile_processes` (one per usable
+    """Tiles at once by default: :func:`~torch_brdf.parallel.threads.tile_processes` (one per usable
     core, 1 on a busy machine), fewer when that many tiles would not fit in the available
     memory (at least one)."""
     n = tile_processes()
@@ -411,13 +411,13 @@ def precompute_polynomial(
         error: relative RMSE budget of ``plan="auto"``.
         time_budget: seconds budget of ``plan="auto"``.
         executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
-            :mod:`torch_brdf.transport.executor`); the tensors are the same bit for bit.
+            :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
             cluster address.
         max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
         guides: attach the view's denoiser guides (:func:`torch_brdf.transport.guides.guide_buffers`:
             one pixel-centre ray and its mirror ray per pixel, saved with the record and
-            versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
+            versioned by :data:`~torch_brdf.records.guides.GUIDE_VERSION`, also in
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
         processes: ``local`` only: tiles computed at once in forked processes (None: one per

@@ -13,11 +13,11 @@ Executors:
 - ``local`` (default): with one process (``processes=1``, or a single tile to compute) tiles
   run one after another in this process, with one torch thread (on a shared 2-core machine
   torch's second thread spin-waits and made the 64² precompute 30x slower under load); ray
-  casting still uses the scene's forked trace workers. With more (default: one per usable
-  core, or 1 on a busy machine, :func:`~torch_brdf._threads.tile_processes`), tiles run at once in that many forked
-  processes, each tracing its own rays with one torch thread (the torch stages of a tile are
-  serial, so this is what keeps every core busy); this process writes the checkpoint and
-  assembles, in tile order, as for one process.
+  casting still uses the scene's forked trace workers. With more (default: one per usable core,
+  or 1 on a busy machine, :func:`~torch_brdf.parallel.threads.tile_processes`), tiles run at
+  once in that many forked processes, each tracing its own rays with one torch thread (the
+  torch stages of a tile are serial, so this is what keeps every core busy); this process
+  writes the checkpoint and assembles, in tile order, as for one process.
 - ``ray``: one Ray task per tile (``pip install torch_brdf[cluster]``). The context is put
   into the object store once and each worker process fetches it once (it is cached per
   worker under its key), so per task only the tile index travels; the worker also encodes
@@ -31,24 +31,20 @@ from __future__ import annotations
 
 import copy
 import ctypes
-import multiprocessing
 import os
 import shutil
-import signal
 import tempfile
 import time
 import uuid
-import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._threads import configure_worker, prepare_fork, single_thread, tile_processes
 from ..errors import TorchBRDFError, ValueRangeError
-from ..records.cache import TileCache
+from .threads import configure_worker, forking, single_thread, tile_processes, worker_setup
 
 __all__ = [
     "EXECUTORS",
@@ -66,6 +62,21 @@ EXECUTORS = ("local", "ray")
 #: a tile's result: arrays (to cache) and JSON-able metadata.
 TileResult = tuple[dict[str, np.ndarray], dict[str, Any]]
 TileFn = Callable[[Any, int], TileResult]
+
+
+class TileCache(Protocol):
+    """Where finished tiles are kept: what :func:`run_tiles` asks of
+    :class:`torch_brdf.records.cache.TileCache` (``folder`` None: nothing is written)."""
+
+    folder: Any
+
+    def load(self, k: int) -> TileResult | None: ...
+
+    def save(self, k: int, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None: ...
+
+    def encode(self, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> bytes: ...
+
+    def save_encoded(self, k: int, data: bytes) -> None: ...
 
 
 class Tiles(list):
@@ -213,7 +224,7 @@ def run_tiles(
         max_new: compute at most this many tiles not in ``cache`` (the first ones missing; the
             others stay None in the result): for tests of resuming.
         processes: local only: tiles computed at once in forked processes (each gets
-            ``ray_context`` as for Ray); None: :func:`~torch_brdf._threads.tile_processes` (one
+            ``ray_context`` as for Ray); None: :func:`~torch_brdf.parallel.threads.tile_processes` (one
             per usable core, 1 on a busy machine); 1: all in this process (needed when ``fn``
             fills something of ``context``'s, e.g. an oracle).
         steps_per_tile: the bar's units per tile (``num_tiles`` counts, e.g. pass groups), which
@@ -462,8 +473,7 @@ def _keep_freed_memory() -> bool:
 
 
 def _forked_init() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which stops us
-    configure_worker(1)
+    worker_setup(1)
     _keep_freed_memory()
 
 
@@ -500,18 +510,15 @@ def _run_forked(
     ``BrokenProcessPool``; either way, and on Ctrl-C, the other processes are stopped."""
     global _FORKED
     _EXITING[:] = [p for p in _EXITING if p.is_alive()]  # those of earlier runs that are gone
-    prepare_fork()
-    mp = multiprocessing.get_context("fork")
-    ticks = mp.SimpleQueue()
-
-    def report() -> None:
-        while not ticks.empty():
-            advance(*ticks.get())
-
     folder = _hand_folder()
-    _FORKED = (fn, context, cache, meta, ticks, folder)
-    with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads; children use one
-        warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+    with forking() as mp:
+        ticks = mp.SimpleQueue()
+
+        def report() -> None:
+            while not ticks.empty():
+                advance(*ticks.get())
+
+        _FORKED = (fn, context, cache, meta, ticks, folder)
         pool = ProcessPoolExecutor(processes, mp, initializer=_forked_init)
         received = False
         try:

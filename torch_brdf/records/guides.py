@@ -1,7 +1,7 @@
 """The guide-buffer record: per-pixel first-hit data of one view that denoisers use as guides
-(computed by :func:`torch_brdf.transport.guides.guide_buffers`, saved with the multibounce tensors).
-See :mod:`torch_brdf.transport.guides` for what each guide means and why none depends on a
-material."""
+(traced by :func:`torch_brdf.transport.guides.guide_buffers`, saved with the multibounce tensors
+and read by :mod:`torch_brdf.denoise`). See :mod:`torch_brdf.transport.guides` for what each
+guide means and why none depends on a material."""
 
 from __future__ import annotations
 
@@ -102,10 +102,3 @@ class GuideBuffers:
             t["light_cos_h"],
             angle,
         )
-
-
-def object_albedo_proxy(object_id: torch.Tensor) -> torch.Tensor:
-    """(..., 3) grey in [0.35, 0.95] per object id by a fixed golden-ratio sequence; 0 for -1."""
-    g = 0.35 + 0.6 * torch.remainder(object_id.double() * 0.6180339887498949 + 0.5, 1.0)
-    g = torch.where(object_id >= 0, g, 0.0).float()
-    return g[..., None].expand(*object_id.shape, 3).contiguous()

@@ -12,6 +12,8 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
   how many tiles run at once.
 - :func:`configure_worker`: what every worker process runs first: one torch thread and one
   BLAS thread (a worker is one of several processes that share the cores).
+- :func:`forking` / :func:`worker_setup`: how the trace pool and the tile executor start
+  their forked workers (BLAS found before the fork; workers leave Ctrl-C to the parent).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
   block (../shared/FACTS.md: OpenBLAS inside a torch loop is 5-6x slower per call when both
   run their own threads on 2 cores).
@@ -34,8 +36,10 @@ from __future__ import annotations
 import functools
 import importlib.util
 import math
+import multiprocessing
 import operator
 import os
+import signal
 import sys
 import threading
 import time
@@ -48,7 +52,7 @@ if not _TORCH_FIRST:  # libgomp reads it when torch loads it: only effective bef
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _WAIT_POLICY_AT_LOAD = os.environ.get("OMP_WAIT_POLICY")
 
-from .errors import ValueRangeError  # noqa: E402  (torch is imported where it is used: see _AfterTorch)
+from ..errors import ValueRangeError  # noqa: E402  (torch is imported where it is used: see _AfterTorch)
 
 #: environment variable: torch intra-op threads of the calling process (a positive integer).
 ENV_THREADS = "TORCH_BRDF_THREADS"
@@ -305,6 +309,25 @@ def configure_worker(threads: int = 1) -> None:
     torch.set_num_threads(threads)
     if _BLAS is not None:
         _BLAS.limit(limits=threads, user_api="blas")
+
+
+def worker_setup(threads: int = 1) -> None:
+    """Run first in every forked worker: Ctrl-C is left to the parent (which stops its workers),
+    and :func:`configure_worker` with ``threads`` threads."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    configure_worker(threads)
+
+
+@contextmanager
+def forking():
+    """The ``fork`` multiprocessing context, for starting workers inside the block: the parent's
+    BLAS libraries are found first (:func:`prepare_fork`), and Python's warning about forking a
+    process that runs threads (>= 3.12) is silenced, since every worker starts with
+    :func:`worker_setup` and uses one thread of each kind."""
+    prepare_fork()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+        yield multiprocessing.get_context("fork")
 
 
 def cap_to_usable() -> None:

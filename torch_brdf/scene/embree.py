@@ -1,32 +1,21 @@
-r"""The numpy + embree side of ray tracing, and a pool of forked processes that share it.
+r"""The numpy + embree side of ray tracing: chunked closest-hit and occlusion queries.
 
 embreex holds the GIL for a whole ``EmbreeScene.run`` call, so threads do not trace in
-parallel; processes do. Everything here uses numpy and embreex only, never torch, because
-it also runs in children forked from a parent that may have torch's thread pools running
-(a forked child has only the forking thread; torch would deadlock waiting for the others).
+parallel; processes do (:class:`~torch_brdf.parallel.tracepool.TracePool`). Everything here
+uses numpy and embreex only, never torch, because it also runs in children forked from a
+parent that may have torch's thread pools running (a forked child has only the forking
+thread; torch would deadlock waiting for the others).
 
-- :class:`TraceKernel` traces rays in chunks of :data:`CHUNK` rays and turns embree's
-  output into hit arrays (:class:`HitArrays`). Chunks start at global ray indices
-  ``k * CHUNK`` and every chunk runs the same numpy calls on arrays of the same shapes and
-  strides, whichever process traces it, so results are bitwise identical for any number
-  of workers (numpy's SIMD loops do not depend on alignment, only on shapes and strides).
-- :class:`TracePool` lets the calling process and ``workers - 1`` forked children take
-  chunks from a shared counter, with rays and results in shared memory.
+:class:`TraceKernel` traces rays in chunks of :data:`CHUNK` rays and turns embree's output
+into hit arrays (:class:`HitArrays`). Chunks start at global ray indices ``k * CHUNK`` and
+every chunk runs the same numpy calls on arrays of the same shapes and strides, whichever
+process traces it, so results are bitwise identical for any number of workers (numpy's SIMD
+loops do not depend on alignment, only on shapes and strides).
 
-The pool starts on first use (the embree scene is committed in the parent first, so the
-children inherit the finished BVH and never build one), is reused across calls, and is
-stopped by :meth:`TracePool.close`, when it is garbage collected, or at interpreter exit.
-An exception or interrupt (Ctrl-C) in the parent during a call stops it too; the next call
-starts a fresh one. Children ignore SIGINT and exit when the parent goes away.
-
-Compiled loops (``transport/_native.c``) may call embree themselves: :func:`embree_entry`
+Compiled loops (``transport/csrc``) may call embree themselves: :func:`embree_entry`
 gives the committed scene's ``RTCScene`` handle and the address of ``rtcOccluded1`` from the
 very library instance embreex loaded (so the same BVH and the same per-ray query as
 ``EmbreeScene.run``), or None where that cannot be checked.
-
-Forked children share the parent's memory copy-on-write: while they live, memory the
-parent frees is not returned to the system and pages it writes are copied once. Call
-``close()`` on a tracer you are done with in a long-running process, or use ``workers=1``.
 """
 
 from __future__ import annotations
@@ -34,29 +23,18 @@ from __future__ import annotations
 import ctypes
 import gc
 import glob
-import mmap
-import multiprocessing
 import os
-import signal
-import threading
-import warnings
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 from embreex import rtcore, rtcore_scene
 
-from .._threads import configure_worker, prepare_fork, worker_count
+from ._bindings import EMBREE, declare
 
 #: rays per embree call; results do not depend on it being shared by every process.
 CHUNK = 1 << 14
 #: chunks that go through embree before their hits are computed (at most).
 BATCH = 16
-#: most chunks a process of a :class:`TracePool` takes at once (smaller: less waiting for a
-#: slow process at the end of a round, e.g. when another program shares its core).
-GRAB = 4
-#: rays per round trip of :class:`TracePool` (its shared memory holds ~85 B per ray).
-ROUND = 32 * CHUNK
 
 
 @dataclass
@@ -110,6 +88,11 @@ class TraceKernel:
         face_offsets: (O,) int64 first global triangle of each object.
         smooth: (O,) bool, whether an object interpolates vertex normals.
     """
+
+    #: what a :class:`~torch_brdf.parallel.tracepool.TracePool` of this kernel reads: rays per
+    #: chunk (every process's chunks start at multiples of it) and the type of its hit results
+    chunk = CHUNK
+    results = HitArrays
 
     def __init__(self, scene, table: np.ndarray, face_offsets: np.ndarray, smooth: np.ndarray):
         self.scene = scene
@@ -256,7 +239,7 @@ def embree_function(name: str) -> int | None:
 class EmbreeHits:
     """What a compiled loop needs to cast a :class:`TraceKernel`'s closest-hit and shadow rays
     itself and to make :class:`HitArrays` as :meth:`TraceKernel.trace` does
-    (``tb_trace_hits`` / ``tb_occluded_rays`` in ``transport/_native.c``).
+    (``tb_trace_hits`` / ``tb_occluded_rays`` in ``transport/csrc/rays.c``).
 
     Attributes:
         scene: the committed ``RTCScene`` handle (:func:`embree_entry`).
@@ -302,233 +285,10 @@ def embree_entry(scene) -> tuple[int, int] | None:
         return None
     handle = ctypes.c_void_p.from_address(base + 2 * word).value
     rtc_device = ctypes.c_void_p.from_address(device + 2 * word).value
-    lib.rtcGetSceneDevice.restype, lib.rtcGetSceneDevice.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
-    lib.rtcReleaseDevice.restype, lib.rtcReleaseDevice.argtypes = None, [ctypes.c_void_p]
+    declare(lib, EMBREE)
     got = lib.rtcGetSceneDevice(handle)  # takes a reference to the device
     if got:
         lib.rtcReleaseDevice(got)
     if not handle or got != rtc_device:
         return None
     return handle, ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value
-
-
-class _Shared:
-    """A round's rays, the children's results and the chunk counter, in an anonymous
-    shared mapping made before fork (so every process sees the same pages).
-
-    Args:
-        n: capacity in rays.
-        lock: a ``multiprocessing`` lock that guards the counter.
-    """
-
-    _LAYOUT = (("next", np.int64, 1), ("o", np.float32, 3), ("d", np.float32, 3), ("t_max", np.float32, 1),
-               ("occluded", np.bool_, 1), ("t", np.float32, 1), ("object_id", np.int32, 1),
-               ("prim_id", np.int32, 1), ("barycentrics", np.float32, 2), ("position", np.float32, 3),
-               ("geometric_normal", np.float32, 3), ("normal", np.float32, 3))  # fmt: skip
-
-    def __init__(self, n: int, lock):
-        sizes = [np.dtype(dt).itemsize * k * (1 if name == "next" else n) for name, dt, k in self._LAYOUT]
-        self.map = mmap.mmap(-1, sum(-(-s // 64) * 64 for s in sizes))  # MAP_SHARED | MAP_ANONYMOUS
-        self.lock = lock
-        self.arrays, offset = {}, 0
-        for (name, dt, k), size in zip(self._LAYOUT, sizes, strict=True):
-            a = np.frombuffer(self.map, dt, size // np.dtype(dt).itemsize, offset)
-            self.arrays[name] = a.reshape(-1, k) if k > 1 else a
-            offset += -(-size // 64) * 64
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        try:
-            return self.__dict__["arrays"][name]
-        except KeyError:
-            raise AttributeError(name) from None
-
-    def hits(self) -> HitArrays:
-        """The result arrays (full capacity)."""
-        a = self.arrays
-        return HitArrays(*(a[k] for k in ("t", "object_id", "prim_id", "barycentrics", "position",
-                                          "geometric_normal", "normal")))  # fmt: skip
-
-    def grab(self, chunks: int, workers: int) -> range:
-        """The next chunks to trace (guided scheduling: big pieces first, single chunks at the
-        end, so that all processes finish together). Empty when the round is done."""
-        with self.lock:
-            k = int(self.next[0])
-            take = min(GRAB, max(1, (chunks - k) // (2 * workers)), max(0, chunks - k))
-            self.next[0] = k + take
-        return range(k, k + take)
-
-
-def _drain(kernel: TraceKernel, op: str, shared: _Shared, n: int, workers: int, src, dst) -> list[range]:
-    """Trace chunks of a round of ``n`` rays until none is left; return the chunks traced.
-
-    Args:
-        src: (o, d, t_max) arrays of the round's rays (t_max only for occlusion).
-        dst: :class:`HitArrays` or a bool array for the round's results.
-    """
-    done, chunks = [], -(-n // CHUNK)
-    while got := shared.grab(chunks, workers):
-        a, b = got.start * CHUNK, min(n, got.stop * CHUNK)
-        if op == "trace":
-            kernel.trace(src[0][a:b], src[1][a:b], dst[a:b])
-        else:
-            kernel.occluded(src[0][a:b], src[1][a:b], src[2][a:b], dst[a:b])
-        done.append(got)
-    return done
-
-
-def _worker_main(kernel: TraceKernel, shared: _Shared, workers: int, conn, parent_end, ppid: int) -> None:
-    """A child's loop: ``(op, n)`` in, chunks of the round traced, ``None`` or an error out."""
-    parent_end.close()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it closes us
-    gc.disable()  # never run finalisers of inherited (torch) objects here; fewer copied pages
-    configure_worker()  # one torch thread, one BLAS thread: a worker shares the cores with its siblings
-    src = (shared.o, shared.d, shared.t_max)
-    while True:
-        try:
-            while not conn.poll(1.0):
-                if os.getppid() != ppid:  # orphaned
-                    return
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
-        if msg is None:
-            return
-        op, n = msg
-        try:
-            _drain(kernel, op, shared, n, workers, src, shared.hits() if op == "trace" else shared.occluded)
-            conn.send(None)
-        except Exception as exc:  # report, keep serving
-            conn.send(f"{type(exc).__name__}: {exc}")
-
-
-def _shutdown(owner: int, procs: list, conns: list, terminate: bool = False) -> None:
-    """Stop the children (only from the process that forked them): ask, or ``terminate``."""
-    if os.getpid() != owner:
-        return
-    for c in conns:
-        try:
-            c.send(None)
-        except (OSError, ValueError):
-            pass
-    for p in procs:
-        if terminate:
-            p.terminate()
-        p.join(timeout=2.0)
-        if p.is_alive():
-            p.terminate()
-            p.join(timeout=2.0)
-    for c in conns:
-        c.close()
-    procs.clear()
-    conns.clear()
-
-
-def default_workers() -> int:
-    """Processes that trace a large batch: :func:`torch_brdf._threads.worker_count` (the usable
-    cores, affinity and cgroup quota, at most 8; ``TORCH_BRDF_WORKERS`` overrides)."""
-    return worker_count()
-
-
-class TracePool:
-    """The parent plus ``workers - 1`` forked children tracing the chunks of a call.
-
-    A call goes in rounds of up to :data:`ROUND` rays: the parent copies the round's rays
-    to shared memory, every process takes chunks from a shared counter until none is left
-    (the parent reads the caller's arrays and writes the results in place, the children
-    use shared memory), then the parent copies the children's results out.
-
-    Args:
-        kernel: the :class:`TraceKernel` (its embree scene is committed before forking).
-        workers: processes that trace, the parent included (>= 2).
-    """
-
-    def __init__(self, kernel: TraceKernel, workers: int):
-        if workers < 2:
-            raise ValueError(f"a TracePool needs workers >= 2; got {workers}")
-        self.kernel = kernel
-        self.workers = int(workers)
-        self._lock = threading.Lock()
-        self._procs: list = []
-        self._conns: list = []
-        self._shared: _Shared | None = None
-        self._owner = -1
-        self._finalizer = None
-
-    @property
-    def running(self) -> bool:
-        """Whether this process's children are up."""
-        return bool(self._procs) and self._owner == os.getpid()
-
-    def start(self) -> None:
-        """Fork the children now (otherwise done by the first call)."""
-        if self.running:
-            return
-        self._procs, self._conns = [], []  # after a fork: the parent's children are not ours
-        self.kernel.commit()
-        prepare_fork()
-        ctx = multiprocessing.get_context("fork")
-        ppid = os.getpid()
-        self._shared = _Shared(ROUND, ctx.Lock())
-        with warnings.catch_warnings():  # Python >= 3.12 warns on fork with threads: our children use no torch
-            warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
-            for i in range(self.workers - 1):
-                parent_end, child_end = ctx.Pipe()
-                args = (self.kernel, self._shared, self.workers, child_end, parent_end, ppid)
-                p = ctx.Process(target=_worker_main, args=args, name=f"torch_brdf-trace-{i + 1}", daemon=True)
-                p.start()
-                child_end.close()
-                self._procs.append(p)
-                self._conns.append(parent_end)
-        self._owner = ppid
-        self._finalizer = weakref.finalize(self, _shutdown, ppid, self._procs, self._conns)
-
-    def close(self, terminate: bool = False) -> None:
-        """Stop the children (after their current round, or at once if ``terminate``);
-        a later call starts new ones."""
-        if self._finalizer is not None and self._finalizer.alive:
-            _shutdown(*self._finalizer.detach()[2], terminate=terminate)
-        self._procs, self._conns, self._shared = [], [], None
-
-    def trace(self, o: np.ndarray, d: np.ndarray, out: HitArrays) -> None:
-        """:meth:`TraceKernel.trace` over all processes. o, d: (P, 3) float32; out: P rays."""
-        self._run("trace", (o, d), out)
-
-    def occluded(self, o: np.ndarray, d: np.ndarray, t_max: np.ndarray, out: np.ndarray) -> None:
-        """:meth:`TraceKernel.occluded` over all processes. t_max: (P,) float32; out: (P,) bool."""
-        self._run("occluded", (o, d, t_max), out)
-
-    def _run(self, op: str, src: tuple[np.ndarray, ...], out) -> None:
-        with self._lock:
-            self.start()
-            try:
-                for a in range(0, len(src[0]), ROUND):
-                    self._round(op, tuple(x[a : a + ROUND] for x in src), out[a : a + ROUND])
-            except BaseException:
-                self.close(terminate=True)  # a child may be mid-round: never reuse it
-                raise
-
-    def _round(self, op: str, src: tuple[np.ndarray, ...], out) -> None:
-        sh, n = self._shared, len(src[0])
-        for name, x in zip(("o", "d", "t_max"), src, strict=False):  # t_max only for occlusion
-            getattr(sh, name)[:n] = x
-        sh.next[0] = 0
-        for conn in self._conns:
-            conn.send((op, n))
-        mine = _drain(self.kernel, op, sh, n, self.workers, src, out)
-        for conn in self._conns:
-            try:
-                err = conn.recv()
-            except EOFError:
-                err = "it exited"
-            if err is not None:
-                raise RuntimeError(f"a trace worker failed: {err}")
-        theirs = np.ones(-(-n // CHUNK), bool)
-        for r in mine:
-            theirs[r.start : r.stop] = False
-        for k in np.flatnonzero(theirs):
-            a, b = k * CHUNK, min(n, (k + 1) * CHUNK)
-            if op == "trace":
-                for dst, s in zip(out[a:b].fields(), sh.hits()[a:b].fields(), strict=True):
-                    dst[:] = s
-            else:
-                out[a:b] = sh.occluded[a:b]

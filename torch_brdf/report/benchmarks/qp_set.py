@@ -1,4 +1,4 @@
-"""A held-out-like set of inverse-design QPs made from one teapot view (tests and benchmarks/inverse.py).
+"""A held-out-like set of inverse-design QPs made from one teapot view (the inverse benchmark and the tests).
 
 Problem kinds (the review of issue #20 found the old ADMM default failing on the first four):
 
