@@ -71,7 +71,7 @@ def principled_residual(material: dict) -> float:
 
 def test_principled_residual():
     # principled is not glTF's model: its masking is the separable Smith G1 G1 (glTF's is
-    # height-correlated: they differ at grazing pairs, ~4% for the metal) and its dielectric
+    # height-correlated: they differ at grazing pairs: a few percent for the metal) and its dielectric
     # diffuse is Disney's (retro-reflection, 1 - F/2 per direction), not Lambert x (1 - F)
     metal, plastic = principled_residual(GOLD), principled_residual(PLASTIC)
     print(f"principled residual: metal r=0.35 {metal:.4f}, dielectric r=0.5 {plastic:.4f}")

@@ -12,7 +12,7 @@ What is exact (written directly) and what is fitted:
 source                      Mitsuba 3 XML                              glTF 2.0
 ==========================  =========================================  ===========================
 ``lambert``                 ``diffuse`` (exact)                        exact (see below)
-``metallic_roughness``      ``principled`` (fitted; 4% for a metal:    ``pbrMetallicRoughness`` (exact)
+``metallic_roughness``      ``principled`` (fitted; a few % for metals:``pbrMetallicRoughness`` (exact)
                             separable masking, more with Disney's
                             diffuse for dielectrics)
 ``cook_torrance`` GGX,      ``roughconductor`` (exact)                 fitted

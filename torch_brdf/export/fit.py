@@ -25,7 +25,8 @@ re-measures the error against Mitsuba's own plugin when Mitsuba is installed):
   glossy-plus-diffuse shape of Blinn-Phong, Ward or Cook-Torrance with a diffuse base).
 * ``principled``: the glTF :class:`~torch_brdf.brdf.gltf.MetallicRoughness`. Not exact:
   Mitsuba's principled masks with the separable Smith :math:`G_1G_1` where glTF's is
-  height-correlated (about 4% for a metal, from grazing pairs), and its dielectric diffuse is
+  height-correlated (a few percent for a metal, from grazing pairs; ``benchmarks/export.py``
+  prints it as ``principled_residual``), and its dielectric diffuse is
   Disney's (retro-reflection, :math:`(1 - F_L/2)(1 - F_V/2)`), not Lambert times
   :math:`1 - F`. The export re-measures the error with Mitsuba.
 """
