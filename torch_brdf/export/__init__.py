@@ -12,9 +12,9 @@ What is exact (written directly) and what is fitted:
 source                      Mitsuba 3 XML                              glTF 2.0
 ==========================  =========================================  ===========================
 ``lambert``                 ``diffuse`` (exact)                        exact (see below)
-``metallic_roughness``      ``principled`` (fitted; a few % for metals:``pbrMetallicRoughness`` (exact)
-                            separable masking, more with Disney's
-                            diffuse for dielectrics)
+``metallic_roughness``      ``principled`` (fitted: separable         ``pbrMetallicRoughness`` (exact)
+                            masking; Disney's diffuse for
+                            dielectrics)
 ``cook_torrance`` GGX,      ``roughconductor`` (exact)                 fitted
 :math:`F_0 = 1`, no diffuse
 anything else               fitted: ``diffuse``, ``roughconductor``,   fitted metallic-roughness
