@@ -22,7 +22,7 @@ import torch_brdf
 #: low to high; a module may import its own layer or a lower one.
 LAYERS = (
     {"errors", "_checks", "parallel", "data", "io", "sphere", "frame", "metrics", "linalg"},
-    {"brdf", "scene"},
+    {"brdf", "scene", "export"},
     {"records"},
     {"transport", "manifold", "inverse", "denoise", "planner"},
     {"render"},

@@ -466,9 +466,18 @@ def edit(
     ),
     out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+    exports: list[str] = typer.Option(
+        [], "--export", help="OBJECT:FORMAT:FILE, repeatable: write the edited material (mitsuba, gltf, merl)."
+    ),
+    save_scene: Path = typer.Option(
+        None, "--save-scene", help="Write the scene with the edits as a TOML scene file (re-opens with them)."
+    ),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
+    targets = [_parse_export(e) for e in exports]
+    if save_scene is not None and not save_scene.parent.is_dir():
+        raise ValueRangeError(f"--save-scene: folder {save_scene.parent} does not exist")
     from .records import PolynomialTensors
     from .render import PolynomialRenderer, apply_scene_textures
 
@@ -489,6 +498,9 @@ def edit(
     for obj, param, value in edits:
         if param != "type":
             materials[obj][param] = value
+    for obj, _, _ in targets:
+        if obj not in materials:
+            raise SceneError(f"--export {obj}: {obj!r} is not an editable object; choose from {sorted(materials)}")
     t0 = time.perf_counter()
     renderer = PolynomialRenderer(T, materials)
     apply_scene_textures(renderer, sc)  # textured objects: the texture at the eye vertex, its mean after
@@ -496,7 +508,98 @@ def edit(
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
+    if save_scene is not None:
+        info["scene_file"] = str(_save_edited_scene(sc, T, materials, {e[0] for e in edits}, save_scene))
+    if targets:
+        from .export import export_material
+
+        info["exports"] = [
+            {"object": o, **asdict_report(export_material(materials[o], f, fmt, name=o))} for o, fmt, f in targets
+        ]
     typer.echo(json.dumps(info))
+
+
+def _save_edited_scene(sc, T, materials: dict, edited: set, path: Path) -> Path:
+    """Save ``sc`` at the tensors' image size with each edited object's material under a key of
+    its own (objects that shared the material keep the old one)."""
+    import dataclasses
+
+    from .export.scene_file import save_scene_toml
+    from .scene import Scene
+
+    table = {k: dict(v) for k, v in sc.materials.items()}
+    objects = []
+    for o in sc.objects:
+        if o.name in edited:
+            key = o.name if o.name not in table else f"{o.name}_edited"
+            table[key] = materials[o.name]
+            o = dataclasses.replace(o, material=key)
+        objects.append(o)
+    scene = Scene(objects, table, sc.lights, sc.camera, name=sc.name).with_resolution(T.width, T.height)
+    return save_scene_toml(scene, path)
+
+
+def _parse_export(item: str) -> tuple[str, str, Path]:
+    """``OBJECT:FORMAT:FILE`` of ``--export`` (checked before any work)."""
+    from .export import FORMATS
+
+    parts = item.split(":", 2)
+    if len(parts) != 3 or not all(parts):
+        raise ValueRangeError(f"--export {item!r}: expected OBJECT:FORMAT:FILE, e.g. back:mitsuba:out/back.xml")
+    obj, fmt, file = parts
+    if fmt not in FORMATS:
+        raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
+    path = Path(file)
+    if not path.parent.is_dir():
+        raise ValueRangeError(f"--export {item!r}: folder {path.parent} does not exist")
+    return obj, fmt, path
+
+
+def asdict_report(report) -> dict:
+    """An :class:`~torch_brdf.export.ExportReport` as a JSON-ready dict."""
+    import dataclasses
+
+    return dataclasses.asdict(report)
+
+
+@app.command("export")
+@_cli
+def export_cmd(
+    material: str = typer.Argument(
+        ..., help='A material as JSON (\'{"type": "lambert", "albedo": 0.5}\'), or SCENE:OBJECT, or a SCENE.'
+    ),
+    out: Path = typer.Argument(..., help="File to write: .xml (Mitsuba 3), .gltf (glTF 2.0) or .binary (MERL)."),
+    fmt: str = typer.Option(None, "--format", help="mitsuba, gltf or merl (default: from the suffix of OUT)."),
+    tolerance: float = typer.Option(None, min=0.0, help="Refuse a fit whose error is above this (relative L2)."),
+    name: str = typer.Option("material", help="The material's id / name in the file."),
+):
+    """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
+    from .export import export_material, export_scene_mitsuba
+
+    if not out.parent.is_dir():
+        raise ValueRangeError(f"OUT: folder {out.parent} does not exist")
+    if material.lstrip().startswith("{"):
+        try:
+            spec = json.loads(material)
+        except json.JSONDecodeError as exc:
+            raise ValueRangeError(f"MATERIAL is not valid JSON: {exc}") from None
+        report = export_material(spec, out, fmt, tolerance, name)
+        typer.echo(json.dumps(asdict_report(report)))
+        return
+    spec_scene, _, obj = material.partition(":")
+    sc = load_scene(spec_scene, None)
+    if not obj:
+        if (fmt or out.suffix.lstrip(".")) not in ("mitsuba", "xml"):
+            raise ValueRangeError("a whole SCENE exports to Mitsuba XML only (OUT.xml)")
+        reports = export_scene_mitsuba(sc, out, tolerance)
+        typer.echo(json.dumps([asdict_report(r) for r in reports]))
+        return
+    by_name = {o.name: o for o in sc.objects}
+    if obj not in by_name:
+        raise SceneError(f"{material}: no object {obj!r} in the scene; objects: {sorted(by_name)}")
+    label = obj if name == "material" else name
+    report = export_material(sc.materials[by_name[obj].material], out, fmt, tolerance, label)
+    typer.echo(json.dumps(asdict_report(report)))
 
 
 @app.command("fit-gplvm")
