@@ -1,4 +1,4 @@
-"""The material editor's latency in a real browser (issue #18).
+"""The material editor's latency in a real browser.
 
 Runs :mod:`torch_brdf.report.benchmarks.editor` (shipped with the package, so that ``torch-brdf
 report`` runs it from an install) with the same options (``--help``) and the same JSON as its

@@ -1,4 +1,4 @@
-"""The numerical extremes table (issue #17): every case of tests/test_extremes.py, evaluated.
+"""The numerical extremes table: every case of tests/test_extremes.py, evaluated.
 
 Runs :mod:`torch_brdf.report.benchmarks.extremes` (shipped with the package, so that ``torch-brdf
 report`` runs it from an install) with the same options (``--help``) and the same JSON as

@@ -1,4 +1,4 @@
-"""Inverse material design with global illumination (issue #16): fits through the polynomial
+"""Inverse material design with global illumination: fits through the polynomial
 tensors.
 
 Runs :mod:`torch_brdf.report.benchmarks.inverse_gi` (shipped with the package, so that ``torch-brdf

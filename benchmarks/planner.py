@@ -1,4 +1,4 @@
-"""The error-budget planners against fixed defaults (issue #17): GI editing, inverse design,
+"""The error-budget planners against fixed defaults: GI editing, inverse design,
 relighting, ...
 
 Runs :mod:`torch_brdf.report.benchmarks.planner` (shipped with the package, so that ``torch-brdf

@@ -1,4 +1,4 @@
-"""The speed/accuracy report (issue #17): every benchmark, one page.
+"""The speed/accuracy report: every benchmark, one page.
 
     python benchmarks/report.py [--quick] [--out out/report] [--results FOLDER] [--only NAME ...]
 

@@ -169,7 +169,7 @@ def test_forked_tiles_in_order_and_errors_raised_here():
 
 @pytest.mark.parametrize("processes", [1, 2])
 def test_tile_files_written_beside_the_assembly_before_run_tiles_returns(tmp_path, monkeypatch, processes):
-    """Session 16: the driver writes tile files in a background thread while it assembles; every
+    """The driver writes tile files in a background thread while it assembles; every
     file is on disk when run_tiles returns, and a failed write is raised after the others."""
     seen = []
 

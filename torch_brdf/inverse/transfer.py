@@ -370,12 +370,20 @@ def precompute_transfer(
     of ``px`` in tiles of ``tile_pixels`` pixels, through the tile executor.
 
     Args:
-        scene, px, samples, basis, f0, cuts, meta: as :func:`cosine_visibility` and :func:`transfer_functions`.
+        scene: as :func:`cosine_visibility` and :func:`transfer_functions`.
+        px: as ``scene``.
+        samples: as ``scene``.
+        basis: as ``scene``.
+        f0: as ``scene``.
+        cuts: as ``scene``.
+        meta: as ``scene``.
         tile_pixels: pixels per tile (the unit of work, of checkpointing and of a Ray task).
         checkpoint: folder for finished tiles (resumed from; removed on success), or None.
         progress: tqdm bar over finished tiles.
-        executor, address, max_retries: ``"local"`` or ``"ray"``, see
+        executor: ``"local"`` or ``"ray"``, see
             :func:`~torch_brdf.parallel.tiles.run_tiles`; the record is the same bit for bit.
+        address: as ``executor``.
+        max_retries: as ``executor``.
     Returns:
         :class:`BasisImage` as :func:`transfer_functions` (values (3, J + 1, P)); ``meta["seconds"]``
         sums the tiles' transfer seconds, ``meta["executor"]`` names the executor.

@@ -13,7 +13,7 @@ manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`~torch_brdf.m
 for partially observed BRDFs.
 
 **Sources.** :func:`nbrdf_observations` tabulates the NBRDF networks (an *approximation* of
-MERL, see ``../shared/data/merl/README.md``) through
+MERL; see the data section of ``docs/getting-started.md``) through
 :func:`torch_brdf.brdf.measured.tabulate_nbrdf`, with a resumable, checksummed cache;
 :func:`binary_observations` reads real ``.binary`` files through the same selection, and
 :func:`binary_column_blocks` streams the full grid from memory-mapped ``.binary`` files in

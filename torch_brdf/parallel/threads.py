@@ -15,7 +15,7 @@ r"""The one place that decides torch_brdf's parallelism: processes, intra-op thr
 - :func:`forking` / :func:`worker_setup`: how the trace pool and the tile executor start
   their forked workers (BLAS found before the fork; workers leave Ctrl-C to the parent).
 - :func:`limit_threads` / :func:`single_thread`: torch *and* numpy/scipy BLAS threads inside a
-  block (../shared/FACTS.md: OpenBLAS inside a torch loop is 5-6x slower per call when both
+  block (measured: OpenBLAS inside a torch loop is 5-6x slower per call when both
   run their own threads on 2 cores).
 - :func:`tuned`: the renderer's freeze and frame paths run with the thread count that was
   fastest for their (op, size class): each candidate is timed on real calls (no extra work),
@@ -195,7 +195,7 @@ def tile_processes(processes: int | None = None, load: float | None = None) -> i
             :data:`BUSY_LOAD_PER_CORE` per usable core: beside other sessions a second process
             mostly splits the same CPU share (Linux groups a session's processes,
             ``sched_autogroup``) and costs extra CPU time and page faults (measured 0.79x at
-            load 13 on 2 cores, README "Where the precompute's time goes").
+            load 13 on 2 cores).
         load: the load average to judge by (default ``os.getloadavg()[0]``; tests pass one).
     """
     if processes is not None or _from_env(ENV_WORKERS) is not None:
@@ -282,7 +282,7 @@ def single_thread(enabled: bool = True):
 
     Small kernels (a 147 x 192 product, a 100 x 100 Cholesky) are up to ~10-40x slower with two
     threads on a shared 2-core machine (thread hand-off under load), and scipy's OpenBLAS inside
-    a torch loop 5-6x (../shared/FACTS.md). ``enabled=False`` leaves the settings alone.
+    a torch loop 5-6x (thread oversubscription). ``enabled=False`` leaves the settings alone.
     """
     if not enabled:
         yield

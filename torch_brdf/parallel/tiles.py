@@ -248,7 +248,8 @@ def run_tiles(
         executor: ``"local"`` or ``"ray"``.
         address: Ray only, see :func:`connect_ray`.
         max_retries: Ray only: times a tile is run again after its worker died.
-        desc, progress: the tqdm bar over finished tiles.
+        desc: the label of the tqdm bar over finished tiles.
+        progress: whether that bar shows.
         ray_context: Ray only: the object shipped to workers instead of ``context`` (e.g. the
             scene without its forked trace workers); default ``context.for_ray()`` when
             ``context`` has it (:class:`TileWork`), else ``context``.
@@ -341,8 +342,8 @@ def run_tiles(
 
 
 class _TileWriter:
-    """The tile files of a run, written by one background thread in the order the tiles finish
-    (session 16): writing a file is mostly a system call that releases the GIL, so the driver
+    """The tile files of a run, written by one background thread in the order the tiles finish:
+    writing a file is mostly a system call that releases the GIL, so the driver
     assembles tile k while tile k - 1 is written, and its serial work per tile is the larger of
     the two rather than their sum. Nothing is started without a checkpoint folder. The thread
     is made at the first write, after the forked tile processes have started."""

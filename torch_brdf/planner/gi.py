@@ -1,4 +1,4 @@
-r"""The error-budget planner of BRDF editing with global illumination (issue #17).
+r"""The error-budget planner of BRDF editing with global illumination.
 
 Given a relative-RMSE budget :math:`e` (and optionally seconds), choose the settings of
 :func:`~torch_brdf.transport.polynomial.precompute_polynomial` that model only what the scene
@@ -555,7 +555,9 @@ def plan_from_pilots(
 
     Args:
         scene: the scene (with the plan's fixed objects already fixed).
-        bases, projection_errors, fixed: from :func:`planned_bases`.
+        bases: from :func:`planned_bases`.
+        projection_errors: as ``bases``.
+        fixed: as ``bases``.
         pilots: at least two records of the same series and bases, different seeds and (for
             the cost fit) at least two different spp; bounces >= the most the plan may
             choose; no second-bounce level; uniform spp.
@@ -638,7 +640,6 @@ def plan_from_pilots(
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series, bases = _planned_series(bases, bounces, g2g, budget)
-    bias2 = band_error**2 + tails[bounces] ** 2
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -649,7 +650,7 @@ def plan_from_pilots(
         seconds=seconds,
         band_error=band_error,
         bounce_error=tails[bounces],
-        noise_error=math.sqrt(max(0.0, predicted**2 - bias2)),
+        noise_error=math.sqrt(max(0.0, predicted**2 - (band_error**2 + tails[bounces] ** 2))),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
         predicted_seconds=predicted_seconds,
@@ -688,7 +689,8 @@ def plan_polynomial(
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :class:`~torch_brdf.transport.polynomial.PolynomialSettings` (the
             pilots light the scene the same way).

@@ -15,7 +15,7 @@ a low-frequency second bounce, linear in :math:`\hat c_i`; the seed's :math:`F_{
 
 with :math:`g'_{(\varnothing, n)} = d_i^n` and :math:`g'_{(k, n)} = \hat c_{i,k} d_i^n`. ``F`` is
 stored ``(C, J, K'·P)`` with the coefficient axis first, so a frame is two batched matrix
-products that stream ``F`` once (../shared/FACTS.md: 16x faster than ``einsum('pjn,j->pn')``).
+products that stream ``F`` once (measured: 16x faster than ``einsum('pjn,j->pn')``).
 
 Materials: :meth:`PolynomialRenderer.set_material` accepts any BRDF of the library (or a
 scene material dict): ``c`` by :class:`~torch_brdf.render.material.MaterialProjector`
@@ -233,10 +233,10 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is not None and self._frozen["object"] != m:
             self._frozen = None  # another object's constants changed: freeze again on demand
 
-    def set_weight_map(self, obj, weights) -> None:
+    def set_weight_map(self, obj, weights, mean=None) -> None:
         """Modulate the directly seen pixels of ``obj`` by a texture / weight map (H, W) or
-        (H, W, C); later bounces see the object's diffuse equivalent times the map's mean
-        over its pixels (Sec. 5.3)."""
+        (H, W, C); later bounces see the object's diffuse equivalent times ``mean`` (3 values;
+        default: the map's mean over the object's pixels) (Sec. 5.3)."""
         m = self.tensors.object_id(obj)
         w = as_float_tensor(weights, "weights").to(self.dtype)
         if w.ndim == 2:
@@ -247,6 +247,10 @@ class PolynomialRenderer(nn.Module):
         self.weight_maps[m] = w = w.reshape(-1, 3)
         pix = torch.cat([b.pixels for b in self.blocks if b.object_id == m] or [torch.zeros(0, dtype=torch.long)])
         self._map_means[m] = w[pix.unique()].mean(0) if pix.numel() else w.mean(0)
+        if mean is not None:
+            mean = as_float_tensor(mean, "mean").to(self.dtype).reshape(-1).expand(3)
+            check_finite(mean, "mean")
+            self._map_means[m] = mean.clone()
         self._frozen = None
 
     def _map_mean(self, m: int) -> torch.Tensor:
@@ -464,6 +468,41 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is None:
             return 0
         return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
+
+
+def apply_scene_textures(renderer: PolynomialRenderer, scene, samples: int = 16, seed: int = 0) -> list[str]:
+    r"""Give every textured editable object of ``scene`` its texture as the renderer's weight map
+    (Ben-Artzi et al. 2008, Sec. 5.3): the directly seen surface exactly (per pixel, the texel
+    averaged over ``samples`` jittered camera rays, :func:`~torch_brdf.scene.textures.texture_weight_map`),
+    later bounces the texture's surface mean (:func:`~torch_brdf.scene.textures.surface_mean`)
+    times the material's diffuse equivalent.
+
+    The texture multiplies the whole eye-vertex BRDF of the object, which is the base-colour
+    texture exactly for Lambert materials and an approximation for models whose base colour is
+    only part of the BRDF (``blinn_phong``: its specular lobe is scaled too).
+
+    Args:
+        renderer: a :class:`PolynomialRenderer` of tensors precomputed from ``scene``.
+        scene: the scene (any resolution: its camera is resized to the tensors').
+        samples, seed: of the weight maps.
+    Returns:
+        The names of the objects given a weight map.
+    """
+    from ..scene.textures import surface_mean, texture_weight_map
+
+    sc = scene.with_resolution(renderer.width, renderer.height)
+    names = set(renderer.tensors.object_names)
+    done = []
+    for k, o in enumerate(sc.objects):
+        if "base_color" not in o.textures or o.name not in names:
+            continue
+        m = renderer.tensors.object_id(o.name)
+        if renderer.tensors.bases[m] is None:
+            continue  # a fixed object: its BRDF is baked into the tensors with its factor
+        w = texture_weight_map(sc, o.name, samples, seed + k)
+        renderer.set_weight_map(o.name, w, mean=surface_mean(sc, o.name, seed=seed + k))
+        done.append(o.name)
+    return done
 
 
 def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""The speed/accuracy report (issue #17): every benchmark's trade in one page.
+"""The speed/accuracy report: every benchmark's trade in one page.
 
 :func:`make_report` runs the benchmarks -- the modules of :mod:`.benchmarks`, shipped with the
 package (``benchmarks/<name>.py`` in the repository runs the same ones), or the scripts of a

@@ -55,7 +55,7 @@ ENV = {"manifold": {"OPENBLAS_NUM_THREADS": "1"}}
 #: options the report adds to a benchmark's ``--quick`` (``torch-brdf report --quick``), so that
 #: the whole quick report takes minutes: fewer repeats, rounds, frames, splits and peer seconds,
 #: never other keys or another meaning. A benchmark run by hand with ``--quick`` alone keeps its
-#: own quick sizes (the README cites figures of those runs).
+#: own quick sizes (the docs quote figures of those runs, saved in ``docs/results``).
 QUICK_ARGS: dict[str, list[str]] = {
     # one round of precompute vs embree alone (the embreex variants on two chunks, scaled), the
     # first of the three frames, a 16-quad plane: the same keys on a smaller scene

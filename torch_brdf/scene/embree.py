@@ -110,7 +110,8 @@ class TraceKernel:
         """Closest hits of rays whose first one has a global index divisible by :data:`CHUNK`.
 
         Args:
-            o, d: (P, 3) float32 C-contiguous origins and directions.
+            o: (P, 3) float32 C-contiguous origins.
+            d: (P, 3) float32 C-contiguous directions.
             out: :class:`HitArrays` of P rays, filled in.
         """
         # BATCH chunks through embree, then through numpy: each keeps its data in cache
@@ -124,7 +125,9 @@ class TraceKernel:
         """Whether anything lies within ``(0, t_max)`` along each ray.
 
         Args:
-            o, d: (P, 3) float32 C-contiguous; t_max: (P,) float32 (<= 1e37), overwritten.
+            o: (P, 3) float32 C-contiguous origins.
+            d: (P, 3) float32 C-contiguous directions.
+            t_max: (P,) float32 (<= 1e37), overwritten.
             out: (P,) bool, filled in.
         """
         for a in range(0, len(o), CHUNK):

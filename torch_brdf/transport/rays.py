@@ -1,4 +1,4 @@
-r"""The GI precompute's rays cast straight into embree by the compiled kernel (#14).
+r"""The GI precompute's rays cast straight into embree by the compiled kernel.
 
 :class:`NativeRays` casts closest-hit rays and shadow rays of a scene's
 :class:`~torch_brdf.scene.raytrace.RayTracer` with ``tb_trace_hits`` and ``tb_occluded_rays`` of
@@ -79,7 +79,8 @@ class NativeRays:
         dtypes go to the tracer itself).
 
         Args:
-            origins, directions: (P, 3) float32.
+            origins: (P, 3) float32.
+            directions: (P, 3) float32.
         Returns:
             :class:`~torch_brdf.scene.raytrace.Hits` (float32 and int64 views of reused buffers).
         Raises:

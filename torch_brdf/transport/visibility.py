@@ -78,7 +78,8 @@ def visibility_fraction(
     Args:
         scene: the scene (its tracer casts the rays).
         geom: cubemap layout.
-        pos, nrm: (m, 3) vertex positions and unit normals.
+        pos: (m, 3) vertex positions.
+        nrm: (m, 3) unit vertex normals.
         supersample: k, rays per texel side.
     Returns:
         (m, NB, S^2) float32; encode it with
@@ -304,8 +305,10 @@ def precompute_visibility(
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
         keep_checkpoint: keep the finished chunks after success.
-        executor, address, max_retries: where the chunks run (``"local"`` or ``"ray"``), see
+        executor: where the chunks run (``"local"`` or ``"ray"``), see
             :func:`~torch_brdf.parallel.tiles.run_tiles`; the record is the same bit for bit.
+        address: as ``executor``.
+        max_retries: as ``executor``.
         processes: ``local`` only: chunks computed at once in forked processes (None: one per
             usable core; 1: one after another in this process, rays on ``scene.workers``).
     Returns:

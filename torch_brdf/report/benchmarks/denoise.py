@@ -25,11 +25,11 @@ frozen on the edited object and rendered by four methods:
   NFOR's selection, linear once picked): the spp is spent as two half-spp precomputations
   (other seeds), whose frames at the default material pick the window per pixel (and, on
   silhouette pixels, the along-edge mean, the along-edge fit in the pixels' coverage
-  (:func:`pixel_coverage` at ``COVERAGE_SAMPLES`` x ``COVERAGE_SAMPLES`` rays, session 14; its
+  (:func:`pixel_coverage` at ``COVERAGE_SAMPLES`` x ``COVERAGE_SAMPLES`` rays; its
   seconds are in the pick's and in ``coverage_s``) or the pixel itself: :class:`SelectionSettings`);
   the mean record of both (:func:`mean_tensors`, the same spp) is frozen and denoised with it. With
   ``--stratified`` the halves are complementary shares of one stratification
-  (``LobeMixture(share=(k, 2))``, session 13), so that mean samples as one stratified run does. Its own
+  (``LobeMixture(share=(k, 2))``), so that mean samples as one stratified run does. Its own
   part (``halves``) also reports ``none`` and ``regression`` on that same mean record under
   ``same_samples`` ``{method: {spp: [default, edited]}}``, so the comparison holds the samples fixed;
 * ``oidn_cumulative``: OIDN once per cumulative band sum of each term (:class:`CumulativeOIDN`:
@@ -37,13 +37,13 @@ frozen on the edited object and rendered by four methods:
   differences again), the other records and silhouette pixels by ``selected``'s pick, on the
   same mean record of the halves (its own part ``cumulative``, reusing the half records cached
   as record files, which ``benchmarks/denoise_tune.py`` shares), with the class's default ``mix``
-  (0: OIDN's share alone; session 8 reported the average with ``selected``, no better);
+  (0: OIDN's share alone; the average with ``selected`` is no better);
   ``oidn_cumulative_mix_half`` ``{spp: [default, edited]}`` is that average (exact: the frame is
   linear in the denoised bases). The class keeps each denoised prefix sum's local mean
-  (``keep_mean``, session 13) and divides each prefix sum of the frozen object by its area
-  lights' noise-free light lobe (``lobes``: :func:`light_lobe_images`, session 13; its seconds
+  (``keep_mean``) and divides each prefix sum of the frozen object by its area
+  lights' noise-free light lobe (``lobes``: :func:`light_lobe_images`; its seconds
   are in ``denoise_s`` and ``lobes_s``); in the same part, ``oidn_cumulative_no_lobes`` and
-  ``oidn_cumulative_raw`` (neither: the method as sessions 8-12 measured it) ``{spp: [default,
+  ``oidn_cumulative_raw`` (neither: the plain method) ``{spp: [default,
   edited]}`` (without an area light, as the teatray, ``no_lobes`` is ``oidn_cumulative`` itself).
 
 Prints progress, then one JSON object as the last line: for the Cornell box at top level and
@@ -60,7 +60,7 @@ denoised frozen frame; for ``oidn_frame`` frame + OIDN) timed interleaved in one
 (the denoised frozen tensor's stored size over the noisy one's of the same part: the frame's
 cost, which the frame-time goal reads), ``mean_ratio`` ``{method: mean / reference mean}`` at the
 middle spp, ``record_mb`` (sparse tensors) and ``frozen_mb`` ``{method: MB}``, ``goals``
-(the issue's acceptance goals, each with its figures), ``budget`` (per region and material:
+(the denoising goals, each with its figures), ``budget`` (per region and material:
 the hi-spp noise, the bias left at hi spp, the reference's own noise and each method's excess
 over that bias; see :func:`_budget`), ``load`` (1-min load average at the
 start and end of each part). Edited material: exponent 1000 and another colour, a material
@@ -153,7 +153,7 @@ def _shares() -> list[str]:
 
 
 #: subpixel rays per side of the pixel coverage the selecting filter's silhouette fits use
-#: (:func:`pixel_coverage`, session 14)
+#: (:func:`pixel_coverage`)
 COVERAGE_SAMPLES = 8
 
 
@@ -396,7 +396,7 @@ def _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder):
             arrays["oidn_cumulative"],
             arrays["oidn_cumulative_e"],
         )
-    # the frames are linear in the denoised bases: the average with selected (session 8's mix 1/2)
+    # the frames are linear in the denoised bases: the average with selected (mix 1/2)
     for suf in ("", "_e"):
         arrays["oidn_cumulative_mix_half" + suf] = (arrays["oidn_cumulative" + suf] + h["selected" + suf]) / 2
     meta = {
@@ -679,7 +679,7 @@ def _budget(hi, at_mid, ref, ref_e, second_ref, regions, mask, filters) -> dict:
 
 
 def _goals(out: dict, mid: str, top: str) -> dict:
-    """The issue's goals per denoising method at the middle spp, each with its figures."""
+    """The denoising goals per method at the middle spp, each with its figures."""
     goals = {}
     for m in ("linear", "oidn_basis", "regression", "selected", "oidn_cumulative"):
         e, e_e = out["rel_rmse"][m][mid], out["rel_rmse_edited"][m][mid]

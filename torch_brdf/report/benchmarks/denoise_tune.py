@@ -190,7 +190,7 @@ def edit_robust(name: str, cfg: dict, folder: Path, groups: int = 8) -> dict:
     ``denoise.py``'s ``halves`` part at the middle spp (rel. RMSE ``[default, edited]``; exact:
     the filters are linear per image and the emission is not filtered where errors are measured):
     ``selected`` (the benchmark's pick: default-material pilots, silhouette candidates),
-    ``no_silhouette`` (silhouette pixels kept, the session-6 pick), ``probes`` (pilots at the
+    ``no_silhouette`` (silhouette pixels kept, the plain pick), ``probes`` (pilots at the
     :data:`PROBES` materials, ``relative=True``: not the benchmark's edit) and ``band_groups``
     (one pick per group of ``groups`` consecutive bands of the frozen object and one for the
     other records, each from the default-material halves of that group)."""

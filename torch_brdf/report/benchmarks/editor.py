@@ -1,4 +1,4 @@
-"""The material editor's latency in a real browser (issue #18).
+"""The material editor's latency in a real browser.
 
     python benchmarks/editor.py [--quick] [--steps 50] [--spp 4]
 

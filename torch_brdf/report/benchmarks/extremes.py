@@ -1,4 +1,4 @@
-"""The numerical extremes table (issue #17): every case of tests/test_extremes.py, evaluated.
+"""The numerical extremes table: every case of tests/test_extremes.py, evaluated.
 
     python benchmarks/extremes.py [--quick] [--only SUBSTRING ...]
 

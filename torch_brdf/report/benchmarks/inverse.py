@@ -47,7 +47,8 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # ../shared/FACTS.md: scipy inside torch loops
+# scipy's OpenBLAS inside torch loops: 5-6x slower per call from thread oversubscription
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import json

@@ -1,4 +1,4 @@
-"""Inverse material design with global illumination (issue #16): fits through the polynomial tensors.
+"""Inverse material design with global illumination: fits through the polynomial tensors.
 
     python benchmarks/inverse_gi.py [--quick] [--no-mitsuba] [--sizes 128,256] [--spp 16,64,256] [--no-gi]
 
@@ -24,7 +24,7 @@ Scene: the glossy Cornell box. Prints progress, then one JSON object as the last
   (default 16, 64, 256 paths per pixel; ``ours`` per spp, with its ``precompute_s``); Mitsuba:
   ``MitsubaBlinnPhongFit`` (prb, ``mi.ad.Adam``, ``--mitsuba-lr`` 0.02, ``--mitsuba-spp`` 16
   per step, ``--mitsuba-steps`` 100; chosen by a sweep at 128²: lr 0.05 and 0.1 at 16 spp and
-  lr 0.05 at 4 spp got no closer to the truth's score, see the README). Both sides' parameters
+  lr 0.05 at 4 spp got no closer to the truth's score, see the inverse-design guide). Both sides' parameters
   are scored by ONE evaluator: the weighted MSE on the back wall of a Mitsuba render at 256 spp
   with one fixed seed (common random numbers) against the target (``truth_loss``: the truth's
   score, the evaluator's noise floor). Per spp: ``ours_fit_s`` (our whole fit: an upper bound

@@ -6,7 +6,7 @@ Each stage is timed quiet, then while one busy process (a Python spin loop that 
 script starts and stops itself, and that exits on its own after ``--busy-seconds``) runs;
 quiet and loaded runs of a stage alternate (``--rounds``) so that a change in the rest of
 the machine's load affects both figures of a stage alike. On a 2-core machine the busy
-process's fair share leaves one core: an ideal slowdown is at most 2x (issue #21: <= 2.2x,
+process's fair share leaves one core: an ideal slowdown is at most 2x (the goal: <= 2.2x,
 and no stage slower than Mitsuba's slowdown + 0.5).
 
 Stages (``--quick`` sizes in brackets), each the median of its timed runs over ``--rounds``

@@ -34,7 +34,7 @@ Prints progress lines, then one JSON object as the LAST line:
   under the sky); ``direct_blend_*`` the same with direct light only (exact up to the clamp of
   negative values, ``gi_midpoint_negative_fraction``); ``gi_weights`` the blending weights used and
   ``gi_convex_blend_rel_l1`` the GI error of the uniform convex blend of the same renders.
-* Configuration (issue #20): unless stated otherwise, fits use ``mu = MU = 1e-10`` (the seed:
+* Configuration: unless stated otherwise, fits use ``mu = MU = 1e-10`` (the seed:
   1e-6) and the model predicts with the smooth GP mean (``GPLVM(continuous=True)``); the
   seed's configuration (mu 1e-6, interpolant exact at the latents) is reported beside it.
 * held-out study: ``heldout_logrmse_mean`` / ``_std``, ``pca_heldout_logrmse_mean`` / ``_std``,

@@ -1,4 +1,4 @@
-"""The error-budget planners against fixed defaults (issue #17): GI editing, inverse design, relighting,
+"""The error-budget planners against fixed defaults: GI editing, inverse design, relighting,
 the BRDF manifold.
 
     python benchmarks/planner.py [--quick] [--error 0.1] [--resolution 32] [--capabilities gi,inverse,relight,manifold]

@@ -16,7 +16,7 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   ``precompute_over_rays``: the ratio (the goal is <= 1.5). ``precompute_processes``:
   processes that computed tiles at once (by default one per core unless the machine is busy;
   with ``--baseline`` one per core whatever the load), and with ``--baseline`` also
-  ``one_process_s`` (tiles one after another in this process, as before #14's parallel tiles),
+  ``one_process_s`` (tiles one after another in this process, without parallel tiles),
   ``speedup_over_one_process`` and ``equals_one_process`` (bit for bit).
 * ``tile_timeline``: per tile of that precompute [tile, process id, start, end (wall seconds
   after the call began), CPU seconds]; ``serial_before_tiles_s`` / ``serial_after_tiles_s``
@@ -424,7 +424,7 @@ def main() -> None:
         out["mitsuba_vs_reference_rel_rmse"] = relative_rmse(mi["image"], ours_a, mask)
         out["reference_seed_rel_rmse"] = relative_rmse(ours_b, ours_a, mask)
         out["mitsuba_mean_ratio"] = float(mi["image"][mask].mean() / ours_a[mask].mean())
-        # the peer's point on the error-vs-time curve of ``rel_rmse`` (same reference, issue #17)
+        # the peer's point on the error-vs-time curve of ``rel_rmse`` (same reference)
         out["mitsuba_point"] = {"spp": n, "seconds": mi["seconds"], "rel_rmse": relative_rmse(mi["image"], ref, mask)}
     out = {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
     print(json.dumps(out))

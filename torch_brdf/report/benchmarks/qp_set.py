@@ -1,6 +1,6 @@
 """A held-out-like set of inverse-design QPs made from one teapot view (the inverse benchmark and the tests).
 
-Problem kinds (the review of issue #20 found the old ADMM default failing on the first four):
+Problem kinds (a plain ADMM fails on the first four):
 
 * ``*-half``: partial masks (half the object weighted, the other half free): lobes no pixel
   constrains, singular H;

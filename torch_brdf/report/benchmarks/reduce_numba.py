@@ -1,4 +1,4 @@
-"""Is a numba kernel faster than torch for the GI precompute's per-tile reduction? (issue #14)
+"""Is a numba kernel faster than torch for the GI precompute's per-tile reduction?
 
     python benchmarks/reduce_numba.py [--quick] [--n 2000000]
 

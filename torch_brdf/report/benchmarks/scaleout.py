@@ -22,9 +22,9 @@ first runs). Prints progress, then one JSON object as the last line:
   numbering every term once all are in, spread over the tiles), ``write_s_per_tile``: writing
   the tile file a Ray worker encoded into the checkpoint folder as the CLI does, in the driver's
   writer thread (``local_write_s_per_tile``: encoding and writing it there), and
-  ``driver_s_per_tile`` the larger of the two (session 16: the writes run beside the assembly;
-  before, their sum).
-* the model (stated in the README): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
+  ``driver_s_per_tile`` the larger of the two (the writes run beside the assembly, so not
+  their sum).
+* the model (stated in the cluster guide): a 1024x1024, 1024 spp precompute as ``n`` tiles on ``N``
   nodes of 2 workers. Tile sizing for that scene: 16 rows (16k pixels, 16.8M paths, a few
   minutes of work) while there are at most 64 tiles per 2N workers, otherwise ``n = 4 * 2N``
   tiles (at N = 64: 512 tiles of 2 rows, 2M paths each), so that each task runs for seconds
@@ -35,7 +35,7 @@ first runs). Prints progress, then one JSON object as the last line:
   ``t_tile`` the measured worker seconds per path times the paths of a tile and ``t_driver``
   the measured driver seconds per tile (``driver_s_per_tile``: assembly or writing, whichever
   is longer) scaled by the entries of a tile (entries per pixel grow as spp^0.54:
-  11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, ../shared/FACTS.md) and ``transfer``
+  11 MB at 64 spp, ~50 MB at 1024 spp on the 128² box, measured) and ``transfer``
   the measured ``ray.get`` of a tile's result scaled the same way;
   ``predicted_speedup_N = T(1) / T(N)`` for N = 8 and 64, and ``predicted_s_*``; the
   ``*_no_checkpoint`` keys: the same without tile files (``t_driver`` = assembly only).

@@ -47,14 +47,14 @@ __all__ = ["TILE_KIND", "TILE_PIXELS", "precompute_polynomial", "spp_map_of"]
 TILE_KIND = "multibounce-tile"
 
 #: peak memory of a tile per path (bytes): its transient entries set it (measured 0.6-0.9 kB
-#: on the 128² box at 64-1024 spp, ../shared/FACTS.md); bounds the tiles run at once.
+#: on the 128² box at 64-1024 spp); bounds the tiles run at once.
 TILE_BYTES_PER_PATH = 1024
 
 #: pixels of a default tile (whole rows: ``TILE_PIXELS // width`` of them, at least one). Small
 #: enough that the processes pulling tiles run out of work nearly together and the last tile's
 #: hand-back and assembly (serial after the tiles) are short: 16 tiles of 16 rows at 256²
-#: (until session 9: 16384 pixels, 4 tiles of 64 rows, which left one of two processes waiting
-#: for the last tile). Part of the random stream (each tile is seeded by its index).
+#: (16384 pixels, 4 tiles of 64 rows, left one of two processes waiting for the last tile).
+#: Part of the random stream (each tile is seeded by its index).
 TILE_PIXELS = 4096
 
 
@@ -102,7 +102,7 @@ def _offsets(n: int, gen: torch.Generator) -> torch.Tensor:
 def eye_rays(cam, pixels: torch.Tensor, rec: torch.Tensor, off: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """A pass group's eye rays: ``cam.rays_through`` at the raster positions of ``pixels[rec]``
     (flat indices) plus ``off`` (row, column) offsets. For a plain
-    :class:`~torch_brdf.scene.camera.Camera` with the compiled kernel (session 10): its
+    :class:`~torch_brdf.scene.camera.Camera` with the compiled kernel: its
     ``tb_camera_local`` and ``tb_camera_finish`` around the product with the camera frame and the
     row norms, which stay torch's (their rounding is BLAS's and torch's own), so the same rays bit
     for bit with a fraction of the passes over memory.

@@ -1,4 +1,4 @@
-r"""The per-vertex steps of the GI tracer in the compiled kernel (#14): one C call per step and
+r"""The per-vertex steps of the GI tracer in the compiled kernel: one C call per step and
 wavefront instead of ~40 torch ops per vertex.
 
 :class:`VertexKernel` wraps ``tb_frame``, ``tb_area_sample``, ``tb_light_gather``, ``tb_layers``,
@@ -282,7 +282,7 @@ def c_rand_matches(lib) -> bool:
 
 
 class Wavefront:
-    r"""The GI tracer's wavefront in buffers allocated once and reused (#14, session 8): the path
+    r"""The GI tracer's wavefront in buffers allocated once and reused: the path
     state, the vertices and every per-step output of :meth:`~.tracer._Tracer._run_wavefront`, so
     a bounce runs as a few kernel calls on them (frame, light samples with their uniforms drawn in
     the kernel, the light samples that reach their vertex with their factors, mixture, band slots,
