@@ -248,8 +248,8 @@ def _folder_cycles(edges: dict[str, set[str]]) -> list[str]:
     return sorted(f for f in edges if f in reach(f))
 
 
-#: the packages that produce results for the planner to measure; none of them may ask it
-PRODUCERS = ("transport", "inverse", "manifold", "denoise", "render", "records", "scene", "brdf")
+#: the packages below the planner (the producers it measures and what they build on); none may ask it
+PRODUCERS = tuple(sorted(f for layer in LAYERS[: LAYERS.index({"planner"})] for f in layer))
 
 
 def test_folder_level_flow():
