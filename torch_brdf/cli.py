@@ -494,8 +494,9 @@ def edit(
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
     targets = [_parse_export(e) for e in exports]
-    if save_scene is not None and not save_scene.parent.is_dir():
-        raise ValueRangeError(f"--save-scene: folder {save_scene.parent} does not exist")
+    if save_scene is not None:
+        _file_out(save_scene)
+        save_scene.parent.mkdir(parents=True, exist_ok=True)
     from .records import PolynomialTensors
     from .render import PolynomialRenderer, apply_scene_textures
 
@@ -568,8 +569,8 @@ def _parse_export(item: str) -> tuple[str, str, Path]:
     if fmt not in FORMATS:
         raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
     path = Path(file)
-    if not path.parent.is_dir():
-        raise ValueRangeError(f"--export {item!r}: folder {path.parent} does not exist")
+    _file_out(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     return obj, fmt, path
 
 
@@ -594,8 +595,8 @@ def export_cmd(
     """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
     from .export import export_material, export_scene_mitsuba
 
-    if not out.parent.is_dir():
-        raise ValueRangeError(f"OUT: folder {out.parent} does not exist")
+    _file_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     if material.lstrip().startswith("{"):
         try:
             spec = json.loads(material)
