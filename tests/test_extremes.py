@@ -47,7 +47,7 @@ from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.lights import AreaLight
 from torch_brdf.transport.pathtrace import reference_path_trace
 from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 F32, F64 = torch.float32, torch.float64
 
@@ -205,7 +205,7 @@ def pathtrace_bright_sun() -> Outcome:
 def _triple_setup():
     sc = ball_on_plane(quads=8)
     sc.lights[:] = [sky()]
-    return sc, precompute_visibility(sc, resolution=32, chunk=64, progress=False)
+    return sc, precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=64), progress=False)
 
 
 def _triple(dtype=F64, box="phong", floor="lambert", env: EnvironmentMap | None = None) -> TripleProductRenderer:

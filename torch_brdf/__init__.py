@@ -16,6 +16,7 @@ one; ``tests/test_layers.py`` keeps it so):
   1-D band bases.
 * :mod:`torch_brdf.scene`: meshes, embree ray tracing, camera and its G-buffer, lights,
   environment maps, built-in scenes.
+* :mod:`torch_brdf.export`: materials and scenes out: Mitsuba 3 XML (stock plugins), glTF 2.0, MERL.
 * :mod:`torch_brdf.records`: what producers save and consumers read (basis images, multibounce
   tensors, visibility, fits) with one codec, and the one checkpoint/tile cache.
 * :mod:`torch_brdf.transport`: the reference path tracer and the precomputations (multibounce

@@ -19,9 +19,10 @@ from __future__ import annotations
 import math
 import numbers
 import sys
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
-from .errors import ShapeError, ValueRangeError
+from .errors import ShapeError, TorchBRDFError, ValueRangeError
 
 if TYPE_CHECKING:  # torch is imported where it is used: the CLI reads the caps below without it
     import torch
@@ -176,3 +177,23 @@ def check_image_size(width, height, name: str = "image") -> tuple[int, int]:
             f"{name} size {w}x{h} = {w * h} pixels exceeds the cap of {MAX_IMAGE_PIXELS} (8192 x 8192)"
         )
     return w, h
+
+
+def check_bool(value, name: str) -> bool:
+    """``value`` if it is True or False (not 0, 1 or a string)."""
+    if not isinstance(value, bool):
+        raise ValueRangeError(f"{name} must be True or False; got {value!r}")
+    return value
+
+
+def check_fields(obj: Any, checks: Mapping[str, Callable[[Any], Any]]) -> None:
+    """Check and normalise the fields of a frozen settings dataclass (from its ``__post_init__``):
+    ``checks[name](value)`` returns the value kept; the exception of a refused value gets a
+    ``setting`` attribute naming the field (so the command line can name it as its option)."""
+    for name, check in checks.items():
+        try:
+            value = check(getattr(obj, name))
+        except TorchBRDFError as exc:
+            exc.setting = name
+            raise
+        object.__setattr__(obj, name, value)

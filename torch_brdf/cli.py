@@ -29,10 +29,8 @@ from pathlib import Path
 import typer
 
 from ._checks import (
-    MAX_CUBEMAP_RESOLUTION,
     MAX_IMAGE_SIDE,
     check_image_size,
-    check_int,
     check_real,
 )
 from .errors import SceneError, TorchBRDFError, ValueRangeError
@@ -189,23 +187,29 @@ def load_scene(
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
 
 
-#: options of ``precompute`` named otherwise than their settings field
-_SETTING_OPTIONS = {"mixture": "--sampler"}
+#: per settings kind: its class (module, name) and the options named otherwise than their field
+_SETTINGS = {
+    "polynomial": ("torch_brdf.transport.polynomial.settings", "PolynomialSettings", {"mixture": "--sampler"}),
+    "visibility": ("torch_brdf.transport.visibility", "VisibilitySettings", {"resolution": "--cubemap"}),
+    "path": ("torch_brdf.transport.pathtrace", "PathTraceSettings", {"max_bounces": "--bounces"}),
+}
 
 
-def _polynomial_settings(**options):
-    """:class:`~torch_brdf.transport.polynomial.PolynomialSettings` from command-line options
-    (their one check); a refused value is named as its option (``--series ...``)."""
+def _settings(kind: str, **options):
+    """The settings object of a producer (``kind`` in :data:`_SETTINGS`) from command-line
+    options, checked by the object itself; a refused value is named as its option (``--series ...``)."""
+    import importlib
+
     from .errors import TorchBRDFError
-    from .transport.polynomial import PolynomialSettings
 
+    module, name, renamed = _SETTINGS[kind]
     try:
-        return PolynomialSettings(**options)
+        return getattr(importlib.import_module(module), name)(**options)
     except TorchBRDFError as exc:
-        name = getattr(exc, "setting", None)
-        if name is not None:
-            option, message = _SETTING_OPTIONS.get(name, "--" + name.replace("_", "-")), str(exc)
-            exc.args = ("--" + message if message.startswith(name + " ") else f"{option}: {message}",)
+        field = getattr(exc, "setting", None)
+        if field is not None:
+            option, message = renamed.get(field, "--" + field.replace("_", "-")), str(exc)
+            exc.args = (option + message[len(field) :] if message.startswith(field + " ") else f"{option}: {message}",)
         raise
 
 
@@ -232,9 +236,9 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
     return sc if env is None else dataclasses.replace(sc, lights=[env])
 
 
-def _render_to(
-    scene, out: Path, spp: int, bounces: int, seed: int, exposure, checkpoint: bool, progress: bool | None = None
-) -> dict:
+def _render_to(scene, out: Path, settings, seed: int, exposure, checkpoint: bool, progress: bool | None = None) -> dict:
+    """Path-trace ``scene`` at ``settings`` (a :class:`~torch_brdf.transport.pathtrace.PathTraceSettings`)
+    to ``out`` .exr and .png."""
     from .io import write_exr
     from .transport.pathtrace import path_trace
 
@@ -242,7 +246,7 @@ def _render_to(
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
-    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
+    image = path_trace(scene, settings, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
     stops = _preview(out.with_suffix(".png"), image, exposure)
@@ -252,8 +256,8 @@ def _render_to(
         "exr": str(out.with_suffix(".exr")),
         "png": str(out.with_suffix(".png")),
         "seconds": round(seconds, 3),
-        "spp": spp,
-        "max_bounces": bounces,
+        "spp": settings.spp,
+        "max_bounces": settings.max_bounces,
         "size": [scene.camera.width, scene.camera.height],
         "exposure": stops,
     }
@@ -303,8 +307,9 @@ def demo(
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
     _file_out(out)
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     scene = load_scene("cornell_box", resolution, width, height)
-    info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
+    info = _render_to(scene, out, settings, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -331,8 +336,9 @@ def render(
     _file_out(out)
     if exposure is not None:
         check_real(exposure, "--exposure")
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
-    info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
+    info = _render_to(sc, out, settings, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -401,7 +407,8 @@ def precompute(
     fixed_series = series is not None or spp is not None or bases is not None
     if fixed_series and (error is not None or seconds is not None):
         raise ValueRangeError("--error/--seconds plan the series; --series/--spp/--bases fix it: give one or the other")
-    settings = _polynomial_settings(
+    settings = _settings(
+        "polynomial",
         series="64,1,1,1" if series is None else series,
         spp=64 if spp is None else spp,
         bases=_json_object(bases, "--bases"),
@@ -492,9 +499,19 @@ def edit(
     ),
     out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+    exports: list[str] = typer.Option(
+        [], "--export", help="OBJECT:FORMAT:FILE, repeatable: write the edited material (mitsuba, gltf, merl)."
+    ),
+    save_scene: Path = typer.Option(
+        None, "--save-scene", help="Write the scene with the edits as a TOML scene file (re-opens with them)."
+    ),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
+    targets = [_parse_export(e) for e in exports]
+    if save_scene is not None:
+        _file_out(save_scene)
+        save_scene.parent.mkdir(parents=True, exist_ok=True)
     from .records import PolynomialTensors
     from .render import PolynomialRenderer, apply_scene_textures
 
@@ -515,6 +532,9 @@ def edit(
     for obj, param, value in edits:
         if param != "type":
             materials[obj][param] = value
+    for obj, _, _ in targets:
+        if obj not in materials:
+            raise SceneError(f"--export {obj}: {obj!r} is not an editable object; choose from {sorted(materials)}")
     t0 = time.perf_counter()
     renderer = PolynomialRenderer(T, materials)
     apply_scene_textures(renderer, sc)  # textured objects: the texture at the eye vertex, its mean after
@@ -522,7 +542,98 @@ def edit(
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
+    if save_scene is not None:
+        info["scene_file"] = str(_save_edited_scene(sc, T, materials, {e[0] for e in edits}, save_scene))
+    if targets:
+        from .export import export_material
+
+        info["exports"] = [
+            {"object": o, **asdict_report(export_material(materials[o], f, fmt, name=o))} for o, fmt, f in targets
+        ]
     typer.echo(json.dumps(info))
+
+
+def _save_edited_scene(sc, T, materials: dict, edited: set, path: Path) -> Path:
+    """Save ``sc`` at the tensors' image size with each edited object's material under a key of
+    its own (objects that shared the material keep the old one)."""
+    import dataclasses
+
+    from .export.scene_file import save_scene_toml
+    from .scene import Scene
+
+    table = {k: dict(v) for k, v in sc.materials.items()}
+    objects = []
+    for o in sc.objects:
+        if o.name in edited:
+            key = o.name if o.name not in table else f"{o.name}_edited"
+            table[key] = materials[o.name]
+            o = dataclasses.replace(o, material=key)
+        objects.append(o)
+    scene = Scene(objects, table, sc.lights, sc.camera, name=sc.name).with_resolution(T.width, T.height)
+    return save_scene_toml(scene, path)
+
+
+def _parse_export(item: str) -> tuple[str, str, Path]:
+    """``OBJECT:FORMAT:FILE`` of ``--export`` (checked before any work)."""
+    from .export import FORMATS
+
+    parts = item.split(":", 2)
+    if len(parts) != 3 or not all(parts):
+        raise ValueRangeError(f"--export {item!r}: expected OBJECT:FORMAT:FILE, e.g. back:mitsuba:out/back.xml")
+    obj, fmt, file = parts
+    if fmt not in FORMATS:
+        raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
+    path = Path(file)
+    _file_out(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return obj, fmt, path
+
+
+def asdict_report(report) -> dict:
+    """An :class:`~torch_brdf.export.ExportReport` as a JSON-ready dict."""
+    import dataclasses
+
+    return dataclasses.asdict(report)
+
+
+@app.command("export")
+@_cli
+def export_cmd(
+    material: str = typer.Argument(
+        ..., help='A material as JSON (\'{"type": "lambert", "albedo": 0.5}\'), or SCENE:OBJECT, or a SCENE.'
+    ),
+    out: Path = typer.Argument(..., help="File to write: .xml (Mitsuba 3), .gltf (glTF 2.0) or .binary (MERL)."),
+    fmt: str = typer.Option(None, "--format", help="mitsuba, gltf or merl (default: from the suffix of OUT)."),
+    tolerance: float = typer.Option(None, min=0.0, help="Refuse a fit whose error is above this (relative L2)."),
+    name: str = typer.Option("material", help="The material's id / name in the file."),
+):
+    """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
+    from .export import export_material, export_scene_mitsuba
+
+    _file_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if material.lstrip().startswith("{"):
+        try:
+            spec = json.loads(material)
+        except json.JSONDecodeError as exc:
+            raise ValueRangeError(f"MATERIAL is not valid JSON: {exc}") from None
+        report = export_material(spec, out, fmt, tolerance, name)
+        typer.echo(json.dumps(asdict_report(report)))
+        return
+    spec_scene, _, obj = material.partition(":")
+    sc = load_scene(spec_scene, None)
+    if not obj:
+        if (fmt or out.suffix.lstrip(".")) not in ("mitsuba", "xml"):
+            raise ValueRangeError("a whole SCENE exports to Mitsuba XML only (OUT.xml)")
+        reports = export_scene_mitsuba(sc, out, tolerance)
+        typer.echo(json.dumps([asdict_report(r) for r in reports]))
+        return
+    by_name = {o.name: o for o in sc.objects}
+    if obj not in by_name:
+        raise SceneError(f"{material}: no object {obj!r} in the scene; objects: {sorted(by_name)}")
+    label = obj if name == "material" else name
+    report = export_material(sc.materials[by_name[obj].material], out, fmt, tolerance, label)
+    typer.echo(json.dumps(asdict_report(report)))
 
 
 @app.command("fit-gplvm")
@@ -750,7 +861,7 @@ def fit_image_cmd(
         sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, _polynomial_settings(series=series, spp=spp), seed=0, progress=progress)
+        T = precompute_polynomial(sc, _settings("polynomial", series=series, spp=spp), seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
@@ -806,22 +917,18 @@ def precompute_visibility_cmd(
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     _file_out(out)
     from .records.cache import remove_cache
-    from .sphere.cubemap import CubemapBlocks
-    from .transport.visibility import BITS, precompute_visibility
+    from .transport.visibility import precompute_visibility
 
     if resolution is not None:  # the old name: a cubemap size here, an image size everywhere else
         typer.echo(f"warning: precompute-visibility --resolution is deprecated; use --cubemap {resolution} "
                    "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
         cubemap = resolution
-    resolution = check_int(cubemap, "--cubemap", 16, MAX_CUBEMAP_RESOLUTION)
-    CubemapBlocks(resolution, 16)  # a multiple of the block size
-    if bits not in BITS:
-        raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
+    settings = _settings("visibility", resolution=cubemap, block=16, supersample=supersample, bits=bits, chunk=chunk)
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
     run = {"executor": "local" if ray is None else "ray", "address": ray}
-    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress, **run)
+    vis = precompute_visibility(sc, settings, checkpoint=ck, progress=progress, **run)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)
@@ -829,7 +936,7 @@ def precompute_visibility_cmd(
     info = {
         "out": str(out),
         "vertices": len(vis.vertices),
-        "cubemap": f"{resolution}x{resolution}x6",
+        "cubemap": f"{settings.resolution}x{settings.resolution}x6",
         "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
         "seconds": round(seconds, 3),
     }
@@ -922,7 +1029,7 @@ def editor(
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
 
-    _polynomial_settings(series=series, spp=spp)  # checked before the server starts
+    _settings("polynomial", series=series, spp=spp)  # checked before the server starts
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     if (relight is None) != (visibility is None):

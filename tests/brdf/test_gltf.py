@@ -89,7 +89,7 @@ def test_matches_the_specification(params):
     brdf = MetallicRoughness(base_color=c, metallic=m, roughness=r).double()
     ours = brdf.eval(wi, wo).detach().numpy()
     # the parameters as stored (float32 at construction, then float64)
-    c, m, r = brdf.base_color.detach().numpy(), float(brdf.metallic), float(brdf.roughness)
+    c, m, r = brdf.base_color.detach().numpy(), float(brdf.metallic.detach()), float(brdf.roughness.detach())
     ref = spec_reference(c, m, r, wi.numpy(), wo.numpy())
     np.testing.assert_allclose(ours, ref, rtol=1e-9, atol=1e-12)
 

@@ -60,7 +60,7 @@ def relight_files(tmp_path_factory):
 
     from torch_brdf.scene import load_scene
     from torch_brdf.scene.builtin import grid_plane
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.6))
     box.apply_translation([0.1, 0.45, 0.0])
@@ -84,7 +84,7 @@ objects = [
 lights = [{{ type = "envmap", procedural = "sky", height = 32, {sun} }}]
 """
     )
-    vis = precompute_visibility(load_scene(str(toml)), resolution=32, chunk=64, progress=False)
+    vis = precompute_visibility(load_scene(str(toml)), VisibilitySettings(resolution=32, chunk=64), progress=False)
     path = d / "vis.npz"
     vis.save(path)
     return toml, path

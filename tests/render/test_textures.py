@@ -90,11 +90,11 @@ def test_relighting_samples_the_texture_per_vertex():
     from tests.transport.test_visibility import ball_on_plane
     from torch_brdf.render.triple import TripleProductRenderer
     from torch_brdf.scene import EnvironmentMap, SceneObject
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = ball_on_plane(quads=2, box=False)
     sc.lights[:] = [EnvironmentMap.constant(1.0, 16)]
-    vis = precompute_visibility(sc, resolution=16, progress=False)
+    vis = precompute_visibility(sc, VisibilitySettings(resolution=16), progress=False)
     plain = TripleProductRenderer(sc, vis, dtype=torch.float64)
     i = sc.object_id("floor")
     o = sc.objects[i]

@@ -15,7 +15,7 @@ from tests.transport.test_visibility import ball_on_plane
 from torch_brdf.brdf.analytic import Phong
 from torch_brdf.records import BasisImage
 from torch_brdf.render import BasisImageRenderer, PolynomialRenderer, TripleProductRenderer
-from torch_brdf.transport import PolynomialSettings, precompute_polynomial, precompute_visibility
+from torch_brdf.transport import PolynomialSettings, VisibilitySettings, precompute_polynomial, precompute_visibility
 
 
 def _round_trip(module, render):
@@ -66,7 +66,7 @@ def test_polynomial_renderer_to(tensors, frozen):
 def test_triple_product_renderer_to():
     scene = ball_on_plane(quads=4)
     scene.lights[:] = [sky()]
-    vis = precompute_visibility(scene, resolution=16, chunk=64, progress=False)
+    vis = precompute_visibility(scene, VisibilitySettings(resolution=16, chunk=64), progress=False)
     r = TripleProductRenderer(scene, vis)
     r.set_material("box", Phong(0.3, 0.5, 60.0))
 

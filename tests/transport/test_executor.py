@@ -426,11 +426,11 @@ def test_transfer_tiles_equal_the_untiled_sum(teapot_view, tmp_path):
 
 def test_visibility_ray_equals_local(ray_instance):
     from tests.transport.test_visibility import ball_on_plane
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = ball_on_plane()
-    a = precompute_visibility(sc, 32, chunk=16, progress=False)
-    b = precompute_visibility(sc, 32, chunk=16, progress=False, executor="ray")
+    a = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=16), progress=False)
+    b = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=16), progress=False, executor="ray")
     assert -(-len(a.vertices) // 16) >= 3  # several chunks
     xa, xb = a.to_arrays()[0], b.to_arrays()[0]
     assert sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)

@@ -13,7 +13,7 @@ from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.transport import polynomial as poly
-from torch_brdf.transport.pathtrace import material_brdfs, path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, material_brdfs, path_trace
 from torch_brdf.transport.polynomial import (
     Mixture,
     ObjectBasis,
@@ -139,7 +139,7 @@ def test_lambert_scene_matches_path_tracer():
     T = precompute_polynomial(sc, PolynomialSettings("1,1,1", spp=spp), seed=1, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     img = PolynomialRenderer(T, mats, dtype=torch.float64).evaluate()
-    ref = path_trace(sc, spp=spp, max_bounces=3, seed=2, progress=False).double()
+    ref = path_trace(sc, PathTraceSettings(spp=spp, max_bounces=3), seed=2, progress=False).double()
     # rows 0-1 see the light itself, whose few jittered hits dominate the noise: compare the rest.
     # Two seeds of each estimator differ by ~0.5% in the mean of these 48 pixels x 256 paths.
     img, ref = img[2:], ref[2:]

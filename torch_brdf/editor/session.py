@@ -39,7 +39,7 @@ from ..render import PolynomialRenderer
 from ..render.material import MaterialProjector
 from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
-from ..transport import PolynomialSettings, path_trace, precompute_polynomial
+from ..transport import PathTraceSettings, PolynomialSettings, path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
@@ -148,7 +148,12 @@ class ReferenceJob:
             for s in range(self.spp):
                 if self._cancel.is_set():
                     break
-                img = path_trace(self.scene, 1, self.max_bounces, self.seed * 1_000_003 + s, progress=False)
+                img = path_trace(
+                    self.scene,
+                    PathTraceSettings(spp=1, max_bounces=self.max_bounces),
+                    seed=self.seed * 1_000_003 + s,
+                    progress=False,
+                )
                 total = img.double() if total is None else total + img.double()
                 self.done = s + 1
                 if self.on_progress is not None:
@@ -281,6 +286,13 @@ class EditorSession:
         self._base_textures: dict[str, Any] = {}  # obj -> the texture before its tint
         self.last_frame_s = 0.0
         self.last_set_s = 0.0
+        # undo/redo of material edits: (object, snapshot before the edit); snapshots keep the
+        # coefficients too, so that undo and A/B give back the very same image
+        self._undo: list[tuple[str, tuple]] = []
+        self._redo: list[tuple[str, tuple]] = []
+        # the A/B toggle compares the current edit with the last saved (or opened) materials
+        self.saved = {n: self._snapshot(n) for n in self.editable}
+        self._ab_stash: dict[str, tuple] | None = None
 
     # -- selection ----------------------------------------------------------------------------
     @property
@@ -362,6 +374,32 @@ class EditorSession:
         """
         if obj not in self.editable:
             self.select(obj)  # raises the readable error
+        before = self._snapshot(obj)
+        self._set(obj, material, f0)
+        if self._ab_stash is not None:  # an edit while B is shown continues from B
+            self._ab_stash = None
+        self._undo.append((obj, before))
+        self._redo.clear()
+        return self.last_set_s
+
+    def _snapshot(self, obj: str) -> tuple:
+        """(material, f0, c, c_hat, d, projected curve) of ``obj`` as they are now."""
+        m = self.tensors.object_id(obj)
+        r = self.renderer
+        return (dict(self.materials[obj]), self.f0[obj], r.c[m], r.c_hat[m], r.d[m], self.projected.get(obj))
+
+    def _restore(self, obj: str, snap: tuple) -> None:
+        material, f0, c, c_hat, d, projected = snap
+        self.renderer.set_coefficients(obj, c, d, c_hat)
+        self.materials[obj], self.f0[obj] = dict(material), f0
+        if projected is None:
+            self.projected.pop(obj, None)
+        else:
+            self.projected[obj] = projected
+        if self.selected is not None and self.renderer.frozen_object is None:
+            self.select(self.selected)
+
+    def _set(self, obj: str, material: dict[str, Any], f0=None) -> None:
         t0 = time.perf_counter()
         c, base = self.projector(obj)(checked_create(material), f0, obj)
         self.renderer.set_coefficients(obj, c)
@@ -370,7 +408,86 @@ class EditorSession:
         if self.selected is not None and self.renderer.frozen_object is None:
             self.select(self.selected)  # another object's constants changed: freeze again
         self.last_set_s = time.perf_counter() - t0
-        return self.last_set_s
+
+    # -- undo, redo, A/B, save, export ---------------------------------------------------------
+    def undo(self) -> str | None:
+        """Undo the last material edit; returns the object it changed (None: nothing to undo)."""
+        return self._step(self._undo, self._redo)
+
+    def redo(self) -> str | None:
+        """Redo the last undone edit; returns the object it changed (None: nothing to redo)."""
+        return self._step(self._redo, self._undo)
+
+    def _step(self, src: list, dst: list) -> str | None:
+        if not src:
+            return None
+        self._ab_stash = None
+        obj, snap = src.pop()
+        dst.append((obj, self._snapshot(obj)))
+        self._restore(obj, snap)
+        return obj
+
+    @property
+    def showing_saved(self) -> bool:
+        """True while the A/B toggle shows the saved materials (B)."""
+        return self._ab_stash is not None
+
+    def toggle_ab(self) -> bool:
+        """Switch between the current edit (A) and the saved materials (B); returns
+        :attr:`showing_saved`. Coefficients are restored as they were (the same images)."""
+        if self._ab_stash is None:
+            stash = {n: self._snapshot(n) for n in self.editable}
+            target = self.saved
+        else:
+            stash, target = None, self._ab_stash
+        for n, snap in target.items():
+            if snap[:2] != (self.materials[n], self.f0[n]):
+                self._restore(n, snap)
+        self._ab_stash = stash
+        return self.showing_saved
+
+    def edited_scene(self):
+        """The scene with each object's current material (edited objects get a material key of
+        their own; objects that shared it keep the old one), at the tensors' image size.
+
+        Raises:
+            SceneError: a session opened from tensors alone (no scene to save).
+        """
+
+        from ..scene import Scene
+
+        if self.scene is None:
+            raise SceneError("this session has no scene (tensors alone): nothing to save")
+        table = {k: dict(v) for k, v in self.scene.materials.items()}
+        objects = []
+        for o in self.scene.objects:
+            if o.name in self.materials and self.materials[o.name] != table.get(o.material):
+                key = o.name if o.name not in table else f"{o.name}_edited"
+                table[key] = dict(self.materials[o.name])
+                o = dataclasses.replace(o, material=key)
+            objects.append(o)
+        sc = Scene(objects, table, self.scene.lights, self.scene.camera, name=self.scene.name)
+        return sc.with_resolution(self.tensors.width, self.tensors.height)
+
+    def save(self, path) -> Any:
+        """Save the scene with the current materials as a TOML scene file (see
+        :func:`torch_brdf.export.scene_file.save_scene_toml`); they become the saved (B)
+        materials. Returns the path written."""
+        from ..export.scene_file import save_scene_toml
+
+        if self._ab_stash is not None:
+            self.toggle_ab()  # save the edit, not the saved materials on show
+        out = save_scene_toml(self.edited_scene(), path)
+        self.saved = {n: self._snapshot(n) for n in self.editable}
+        return out
+
+    def export(self, obj: str, path, fmt: str | None = None, tolerance: float | None = None):
+        """Export ``obj``'s current material (:func:`torch_brdf.export.export_material`)."""
+        from ..export import export_material
+
+        if obj not in self.materials:
+            raise SceneError(f"unknown or fixed object {obj!r}; editable: {self.editable}")
+        return export_material(self.materials[obj], path, fmt, tolerance, name=obj)
 
     def set_texture(self, obj: str, image=None, tint=None) -> float:
         """Swap ``obj``'s base-colour texture for ``image`` and/or multiply it by ``tint`` at run

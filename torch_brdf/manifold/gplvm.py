@@ -210,6 +210,13 @@ def _start_latents(s: torch.Tensor, q: int, init, generator: torch.Generator | N
     return x0
 
 
+def _check_warmup_and_window(warmup_fraction: float, tol_window, method: str) -> None:
+    if not 0 <= warmup_fraction < 1:
+        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
+    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
+        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+
+
 def fit_gplvm(
     s: torch.Tensor,
     d: int,
@@ -291,13 +298,9 @@ def fit_gplvm(
     s = s / scale
     t0 = time.perf_counter()  # the start (PCA, jitter) counts in ``seconds``
     x0 = _start_latents(s, q, init, generator)
-    if not 0 <= warmup_fraction < 1:
-        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
-    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
-        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+    _check_warmup_and_window(warmup_fraction, tol_window, method)
     window = {"window": tol_window} if method == "lbfgs" else {}
-    meta = {}
-    n_warm = round(warmup_fraction * max_iter)
+    meta, n_warm = {}, round(warmup_fraction * max_iter)
     if method == "lbfgs" and warmup_mu is not None and mu <= WARMUP_RATIO * warmup_mu and n_warm > 0:
         jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
         with small_matrix_mode(n):

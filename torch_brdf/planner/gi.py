@@ -752,7 +752,6 @@ def plan_from_pilots(
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series, bases = _planned_series(bases, bounces, g2g, budget)
-    bias2 = band_error**2 + tails[bounces] ** 2
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -763,7 +762,7 @@ def plan_from_pilots(
         seconds=seconds,
         band_error=band_error,
         bounce_error=tails[bounces],
-        noise_error=math.sqrt(max(0.0, predicted**2 - bias2)),
+        noise_error=math.sqrt(max(0.0, predicted**2 - (band_error**2 + tails[bounces] ** 2))),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
         predicted_seconds=predicted_seconds,
@@ -805,7 +804,8 @@ def plan_polynomial(
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :class:`~torch_brdf.transport.polynomial.PolynomialSettings` (the
             pilots light the scene the same way).

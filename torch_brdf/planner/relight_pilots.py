@@ -54,11 +54,20 @@ from ..scene.envmap import EnvironmentMap
 from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
-from ..transport.visibility import BITS, precompute_visibility, visibility_fraction
+from ..transport.visibility import BITS, VisibilitySettings, precompute_visibility, visibility_fraction
 from .relight import RelightPilot, error_from_psnr, plan_from_relight_pilots
 from .table import Plan
 
-__all__ = ["DEFAULT_RULE", "RULES", "frame_units", "make_rule", "plan_relighting", "planned_renderer", "shade_vertices"]
+__all__ = [
+    "DEFAULT_RULE",
+    "RULES",
+    "frame_units",
+    "make_rule",
+    "plan_relighting",
+    "planned_renderer",
+    "shade_vertices",
+    "visibility_settings",
+]
 
 #: the candidate BRDF-sampling rules: ``kind:factor``; fixed:l = l x l samples everywhere,
 #: appendix-a:f = :class:`PhongRule` with its angles x f (other models: :class:`GenericRule`),
@@ -297,6 +306,12 @@ def planned_renderer(
     """Carry out a relighting plan: the visibility at its settings
     (:func:`~torch_brdf.transport.visibility.precompute_visibility`, ``visibility_kwargs`` passed
     on, e.g. ``checkpoint=``) and a renderer with its rule (lit by ``envmap``, default the scene's)."""
+    vis = precompute_visibility(scene, visibility_settings(plan), **visibility_kwargs)
+    return TripleProductRenderer(scene, vis, envmap, rule=make_rule(plan.settings["rule"]))
+
+
+def visibility_settings(plan: Plan) -> VisibilitySettings:
+    """The :class:`~torch_brdf.transport.visibility.VisibilitySettings` of a relighting plan
+    (its cubemap, supersampling and bits)."""
     s = plan.settings
-    vis = precompute_visibility(scene, s["cubemap"], 16, s["supersample"], s["bits"], **visibility_kwargs)
-    return TripleProductRenderer(scene, vis, envmap, rule=make_rule(s["rule"]))
+    return VisibilitySettings(resolution=s["cubemap"], block=16, supersample=s["supersample"], bits=s["bits"])

@@ -2,7 +2,7 @@
 differential block visibility of all-frequency relighting."""
 
 from ..records.visibility_codec import BlockVisibility
-from .pathtrace import path_trace, reference_path_trace
+from .pathtrace import PathTraceSettings, path_trace, reference_path_trace
 from .polynomial import (
     LobeMixture,
     Mixture,
@@ -15,13 +15,14 @@ from .polynomial import (
     plan_bases,
     precompute_polynomial,
 )
-from .visibility import SceneVertices, VertexVisibility, precompute_visibility, scene_vertices
+from .visibility import SceneVertices, VertexVisibility, VisibilitySettings, precompute_visibility, scene_vertices
 
 __all__ = [
     "BlockVisibility",
     "LobeMixture",
     "Mixture",
     "ObjectBasis",
+    "PathTraceSettings",
     "PolynomialSettings",
     "PolynomialTensors",
     "SceneVertices",
@@ -29,6 +30,7 @@ __all__ = [
     "TensorBlock",
     "TermTable",
     "VertexVisibility",
+    "VisibilitySettings",
     "path_trace",
     "plan_bases",
     "precompute_polynomial",

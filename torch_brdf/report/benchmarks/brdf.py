@@ -11,7 +11,10 @@ Prints progress lines, then one JSON object as the last line:
   (Ben-Artzi et al. 2008, App. A), keys ``blinn_n{n}_J{J}`` (bands spaced for the lobe,
   ``spacing="lobe:n"``), ``blinn_n{n}_J{J}_sqrt`` (the generic sqrt spacing) and
   ``merl_{material}_J{J}`` (sqrt spacing; the MERL materials are NBRDF fits, an
-  APPROXIMATION of MERL; shared data needed).
+  APPROXIMATION of MERL; shared data needed), ``mr_metal_r{r}_J{J}`` and
+  ``mr_dielectric_r{r}_J{J}`` (the glTF metallic-roughness model, sqrt spacing; the metal
+  with the Schlick x Smith quotient of its f0 and alpha, the dielectric with the microfacet
+  quotient: its Lambert term is not a function of theta_h under any one quotient).
   ``projection_s`` beside each family: seconds per projection.
 * ``albedo_table_s``: seconds to compute the band albedos e_j (App. B) for J = 64, uncached.
 """
@@ -25,7 +28,15 @@ import time
 import torch
 
 from torch_brdf.brdf import create
-from torch_brdf.brdf.bands import BandBasis, Factored1D, band_albedos, project, projection_error
+from torch_brdf.brdf.bands import (
+    BandBasis,
+    Factored1D,
+    SchlickFresnel,
+    SmithQuotient,
+    band_albedos,
+    project,
+    projection_error,
+)
 from torch_brdf.data import data_path
 
 from ._timing import best_of
@@ -51,6 +62,7 @@ def _models(have_nbrdf: bool) -> dict[str, torch.nn.Module]:
         "cook_torrance_ggx": create("cook_torrance", distribution="ggx"),
         "ashikhmin_shirley": create("ashikhmin_shirley", nu=100.0, nv=1000.0),
         "distribution_based": create("distribution_based"),
+        "metallic_roughness": create("metallic_roughness", metallic=0.5, roughness=0.5),
         "factored_1d_J64": Factored1D(J=64),
     }
     if have_nbrdf:
@@ -79,19 +91,29 @@ def main() -> None:
     rel = {k: round(v / evals["lambert"], 4) for k, v in evals.items()}
 
     errors, times = {}, {}
-    # (key, brdf, spacing, key suffix): Blinn-Phong with bands adapted to its lobe (the
+    # (key, brdf, spacing, key suffix[, quotient]): Blinn-Phong with bands adapted to its lobe (the
     # recommended choice for a known exponent) and with the generic sqrt spacing
     families = []
     for e in (10, 100, 1000):
         blinn = create("blinn_phong", kd=0.0, ks=1.0, exponent=float(e))
         families += [(f"blinn_n{e}", blinn, f"lobe:{e}", ""), (f"blinn_n{e}", blinn, "sqrt", "_sqrt")]
+    for r in (0.2, 0.5):
+        gold = (1.0, 0.78, 0.34)
+        metal = create("metallic_roughness", base_color=gold, metallic=1.0, roughness=r)
+        plastic = create("metallic_roughness", base_color=(0.8, 0.4, 0.1), metallic=0.0, roughness=r)
+        q_metal = SchlickFresnel(SmithQuotient("ggx", r * r), f0=list(gold))
+        families += [
+            (f"mr_metal_r{r}", metal, "sqrt", "", q_metal),
+            (f"mr_dielectric_r{r}", plastic, "sqrt", "", "microfacet"),
+        ]
     if have_nbrdf:
         families += [(f"merl_{m}", create("nbrdf", material=m), "sqrt", "") for m in MERL_MATERIALS]
-    for key, brdf, spacing, suffix in families:
+    for key, brdf, spacing, suffix, *quotient in families:
+        q = quotient[0] if quotient else "one"
         t0 = time.perf_counter()
         for J in js:
             basis = BandBasis("theta_h", J, spacing=spacing)
-            fac = Factored1D(basis, coefficients=project(brdf, basis))
+            fac = Factored1D(basis, coefficients=project(brdf, basis, q), quotient=q)
             k = f"{key}_J{J}{suffix}"
             errors[k] = round(projection_error(brdf, fac), 5)
             print(f"projection {k} ({spacing} spacing): rel err {errors[k]:.4%}", flush=True)

@@ -177,10 +177,10 @@ def stage_frame(q: bool, ctx: dict):
 def stage_triple(q: bool, ctx: dict):
     from torch_brdf.render.triple import TripleProductRenderer
     from torch_brdf.scene.builtin import bunny_relight
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = bunny_relight((160, 120), plane_quads=16 if q else 32, use_data=False)
-    vis = precompute_visibility(sc, 16 if q else 32, chunk=512, progress=False)
+    vis = precompute_visibility(sc, VisibilitySettings(resolution=16 if q else 32, chunk=512), progress=False)
     r = TripleProductRenderer(sc, vis)
     view = r.view()
     return (lambda: r.shade(view)), 7, 2 * _threads.TRIALS

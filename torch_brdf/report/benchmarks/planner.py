@@ -104,7 +104,7 @@ from torch_brdf.render.triple import TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight, cornell_box_glossy, teatray
 from torch_brdf.scene.gbuffer import trace_gbuffer
 from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 
 def _rays(T) -> int:
@@ -353,7 +353,9 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 
     def carry_out(R: int, k: int, b: int, rule: str) -> dict:
         t0 = time.perf_counter()
-        vis = precompute_visibility(scene, R, 16, k, b, progress=False)
+        vis = precompute_visibility(
+            scene, VisibilitySettings(resolution=R, block=16, supersample=k, bits=b), progress=False
+        )
         pre = time.perf_counter() - t0
         r = TripleProductRenderer(scene, vis, rule=make_rule(rule))
         view = r.view()
@@ -445,6 +447,32 @@ def statistic_table(pairs: list[tuple[torch.Tensor, torch.Tensor]], resamples: i
     return table
 
 
+def _manifold_carry_out(obs, train, test, q):
+    """Fit on ``train`` with ``q`` latent dimensions, place ``test``: (log-RMSE per held-out material, CPU s)."""
+    t0 = time.process_time()
+    h = heldout_reconstruction(obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT)
+    return h.gplvm_logrmse, time.process_time() - t0
+
+
+def _manifold_defaults(obs, pool, test, fam: int, stat, saved: dict) -> list[dict]:
+    """The fixed defaults (``MANIFOLD_DEFAULTS``, trained on the whole pool) carried out and scored."""
+    out = []
+    for q in MANIFOLD_DEFAULTS:
+        scores, secs = _manifold_carry_out(obs, pool, test, q)
+        saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
+        out.append(
+            {
+                "family": fam,
+                "q": q,
+                "n": len(pool),
+                "achieved_error": float(stat(scores)),
+                "achieved_mean": float(scores.mean()),
+                "cpu_s": secs,
+            }
+        )
+    return out
+
+
 def run_manifold(
     error: float,
     families: tuple[int, ...],
@@ -466,13 +494,7 @@ def run_manifold(
     kind ``manifold-planner-scores``), so another statistic can be studied without new fits;
     ``statistics`` in the output: :func:`statistic_table` of the plans' own scores."""
     stat = STATISTICS[statistic]
-
-    def carry_out(obs, train, test, q):
-        t0 = time.process_time()
-        h = heldout_reconstruction(
-            obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT
-        )
-        return h.gplvm_logrmse, time.process_time() - t0
+    carry_out = _manifold_carry_out
 
     runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
@@ -482,19 +504,7 @@ def run_manifold(
         names = list(obs.names)
         test, pool = names[:80] + names[80 + pool_size :], names[80 : 80 + pool_size]
         assert not set(test) & set(pool)
-        for q in MANIFOLD_DEFAULTS:
-            scores, secs = carry_out(obs, pool, test, q)
-            saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
-            defaults.append(
-                {
-                    "family": fam,
-                    "q": q,
-                    "n": len(pool),
-                    "achieved_error": float(stat(scores)),
-                    "achieved_mean": float(scores.mean()),
-                    "cpu_s": secs,
-                }
-            )
+        defaults += _manifold_defaults(obs, pool, test, fam, stat, saved)
         for order in orders:
             t0 = time.process_time()
             pilots: dict = {}

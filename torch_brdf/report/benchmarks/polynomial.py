@@ -63,14 +63,15 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 * ``memory`` (with ``--memory`` or ``--memory-only``): peak RSS of precompute (with its save),
   freeze and the denoised freeze (``freeze(obj, "linear")``), each in a fresh subprocess, at two
   sizes (128² and 256², 8 spp; ``--quick``: 64² and 128²) of the glossy Cornell box
-  (:mod:`torch_brdf.report.benchmarks._memory`): per stage ``peak_mb``, ``above_start_mb``, ``bytes_per_pixel``,
-  ``bytes_per_pixel_sample`` and ``over_file`` at each size; per stage ``growth_over_file`` (the
-  growth of the peak between the two sizes over the growth of the saved record: the multiple of
-  the record a stage holds on large scenes) and ``growth_bytes_per_pixel`` (the same growth per
-  pixel), and ``predicted_gb`` for a 512², 64-spp (0.26 GB record), a 1024², 64-spp (1.05 GB)
-  and a 1024², 1024-spp (4.2 GB) scene: the precompute scales with its record (entries grow with
-  spp), freezing and denoising with the pixels (the frozen object's dense basis images), each
-  as the peak at the larger size plus the growth.
+  (:mod:`torch_brdf.report.benchmarks._memory`): per stage ``peak_mb``, ``above_start_mb``,
+  ``bytes_per_pixel``, ``bytes_per_pixel_sample`` and ``over_file`` at each size; per stage
+  ``growth_over_file`` (the growth of the peak between the two sizes over the growth of the saved
+  record: the multiple of the record a stage holds on large scenes) and
+  ``growth_bytes_per_pixel`` (the same growth per pixel), and ``predicted_gb`` for a 512², 64-spp
+  (0.26 GB record), a 1024², 64-spp (1.05 GB) and a 1024², 1024-spp (4.2 GB) scene: the
+  precompute scales with its record (entries grow with spp), freezing and denoising with the
+  pixels (the frozen object's dense basis images), each as the peak at the larger size plus the
+  growth.
 """
 
 from __future__ import annotations
@@ -222,6 +223,86 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
     return {"image": img, "seconds": secs, "variant": variant}
 
 
+def _freeze_and_frames(q: bool, out: dict) -> None:
+    """Freezing the back wall and its frames at 512² (128² quick) into ``out``."""
+    fres, fspp = (128, 2) if q else (512, 4)
+    sc5 = cornell_box_glossy(fres)
+    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
+    R = PolynomialRenderer(T5, _materials(sc5))
+    out["freeze_resolution"], out["freeze_spp"] = fres, fspp
+    out["freeze_entries"] = T5.num_entries
+    out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
+    t0 = time.perf_counter()
+    R.freeze("back")
+    out["freeze_s"] = time.perf_counter() - t0
+    c = R.c[T5.object_id("back")].clone()
+    frames, streams = [], []
+    for k in range(5):
+        R.set_coefficients("back", c * (1 + 0.1 * k))
+        t0 = time.perf_counter()
+        R()
+        frames.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        R.stream()
+        streams.append(time.perf_counter() - t0)
+    out["frame_s"], out["stream_s"] = min(frames), min(streams)
+    out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
+    out["frozen_mb"] = R.frozen_nbytes / 2**20
+    t0 = time.perf_counter()
+    R.evaluate()
+    out["full_evaluation_s"] = time.perf_counter() - t0
+    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
+    del R, T5
+
+
+def _series_errors(q: bool, sca, ref, mask, rspp: int, out: dict) -> None:
+    """``out["rel_rmse"]``: each series' relative RMSE against the reference (a reference of the
+    same depth for series of other bounces), seconds and MB."""
+    rel, refs = {}, {}
+    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
+    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
+    for series, n, key in runs:
+        t0 = time.perf_counter()
+        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
+        secs = time.perf_counter() - t0
+        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
+        bounces = Tk.series.bounces
+        r = ref
+        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
+            r = refs.get(bounces)
+            if r is None:
+                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
+                r = (
+                    hi["image"]
+                    if hi is not None
+                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
+                )
+                refs[bounces] = r
+        rel[key] = {
+            "rel_rmse": relative_rmse(img, r, mask),
+            "seconds": secs,
+            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
+            "bounces": bounces,
+        }
+        print(key, rel[key], flush=True)
+    out["rel_rmse"] = rel
+
+
+def _args() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
+    ap.add_argument(
+        "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
+    )
+    ap.add_argument(
+        "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
+    )
+    ap.add_argument("--memory", action="store_true", help="also measure peak RSS per stage (subprocesses)")
+    ap.add_argument("--memory-only", action="store_true", help="only the peak RSS per stage")
+    return ap.parse_args()
+
+
 #: record sizes (GB) of the scenes the memory keys predict for (series 64,1,1,1; the 1024-spp
 #: size from the entries' growth with spp measured on the glossy Cornell box)
 RECORD_GB = {"512_spp64": 0.26, "1024_spp64": 1.05, "1024_spp1024": 4.2}
@@ -245,39 +326,53 @@ def memory_model(a: dict, b: dict, load: float) -> dict:
         pred = {}
         for name, gb in RECORD_GB.items():
             pixels = int(name.split("_")[0]) ** 2
-            more = (
-                k * (gb * 1024 - b["file_mb"])
-                if stage == "precompute"
-                else per_pixel * (pixels - b["resolution"] ** 2) / 2**20
-            )
+            if stage == "precompute":
+                more = k * (gb * 1024 - b["file_mb"])
+            else:
+                more = per_pixel * (pixels - b["resolution"] ** 2) / 2**20
             pred[name] = round((b[stage]["peak_mb"] + more) / 1024, 2)
         out[stage] = {"growth_over_file": round(k, 2), "growth_bytes_per_pixel": round(per_pixel), "predicted_gb": pred}
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
-    ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
-    ap.add_argument(
-        "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
-    )
-    ap.add_argument(
-        "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
-    )
-    ap.add_argument("--memory", action="store_true", help="also measure peak RSS per stage (subprocesses)")
-    ap.add_argument("--memory-only", action="store_true", help="only the peak RSS per stage")
-    args = ap.parse_args()
-    q = args.quick
-    out: dict = {"quick": q}
-    if args.memory or args.memory_only:
-        out["memory"] = _memory_keys(q)
-        if args.memory_only:
-            print(json.dumps(out))
-            return
+def _same(one, other) -> bool:
+    """The two records' arrays are equal."""
+    a, b = one.to_arrays()[0], other.to_arrays()[0]
+    return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def _timeline(out: dict, tl: list) -> None:
+    """The tiles' timeline ([tile, process, start, end, CPU s], s after the call began) into ``out``."""
+    out["tile_timeline"] = tl
+    out["serial_before_tiles_s"] = min(r[2] for r in tl)
+    out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
+    out["tiles_cpu_s"] = sum(r[4] for r in tl)
+    out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
+
+
+def _native_load(out: dict) -> None:
     t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
     out["native"] = _native.library() is not None
     out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()
+
+
+def _prologue(args, out: dict) -> bool:
+    """The memory keys (``--memory``, ``--memory-only``: then printed, True), else the kernel's load."""
+    if args.memory or args.memory_only:
+        out["memory"] = _memory_keys(args.quick)
+        if args.memory_only:
+            print(json.dumps(out))
+            return True
+    _native_load(out)
+    return False
+
+
+def main() -> None:
+    args = _args()
+    q = args.quick
+    out: dict = {"quick": q}
+    if _prologue(args, out):  # --memory-only: printed, nothing else to run
+        return
 
     # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
     res, spp = (64, 8) if q else (256, 64)
@@ -287,13 +382,8 @@ def main() -> None:
     T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **forked)
     out["precompute_s"] = time.perf_counter() - t0
     out["precompute_processes"] = T.meta["processes"]
-    tl = T.meta["timeline"]  # [tile, process, start, end, CPU s] of each tile, s after the call began
-    if tl:
-        out["tile_timeline"] = tl
-        out["serial_before_tiles_s"] = min(r[2] for r in tl)
-        out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
-        out["tiles_cpu_s"] = sum(r[4] for r in tl)
-        out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
+    if T.meta["timeline"]:
+        _timeline(out, T.meta["timeline"])
 
     def again(**kw):
         """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
@@ -303,15 +393,10 @@ def main() -> None:
         return T_, time.perf_counter() - t0
 
     cpu = [0.0]
-
-    def same(one, other) -> bool:
-        a, b = one.to_arrays()[0], other.to_arrays()[0]
-        return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
-
     if args.baseline:  # the same precompute with its tiles in this process, one after another
         T1, out["one_process_s"] = again(processes=1)
         out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
-        out["equals_one_process"] = same(T, T1)
+        out["equals_one_process"] = _same(T, T1)
         out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
         del T1
     if args.torch_path:  # the same precompute with the kernel off, same processes
@@ -323,7 +408,7 @@ def main() -> None:
         out["native_again_cpu_s"] = cpu[0]
         out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
         out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
-        out["equals_torch_path"] = same(T, T2)
+        out["equals_torch_path"] = _same(T, T2)
         out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
         del T2
     # embree alone: the rays of a run in this process (tiles may run in forked processes),
@@ -360,34 +445,7 @@ def main() -> None:
         return
 
     # -- freezing and frames at 512^2 ------------------------------------------------------------
-    fres, fspp = (128, 2) if q else (512, 4)
-    sc5 = cornell_box_glossy(fres)
-    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
-    R = PolynomialRenderer(T5, _materials(sc5))
-    out["freeze_resolution"], out["freeze_spp"] = fres, fspp
-    out["freeze_entries"] = T5.num_entries
-    out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
-    t0 = time.perf_counter()
-    R.freeze("back")
-    out["freeze_s"] = time.perf_counter() - t0
-    c = R.c[T5.object_id("back")].clone()
-    frames, streams = [], []
-    for k in range(5):
-        R.set_coefficients("back", c * (1 + 0.1 * k))
-        t0 = time.perf_counter()
-        R()
-        frames.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        R.stream()
-        streams.append(time.perf_counter() - t0)
-    out["frame_s"], out["stream_s"] = min(frames), min(streams)
-    out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
-    out["frozen_mb"] = R.frozen_nbytes / 2**20
-    t0 = time.perf_counter()
-    R.evaluate()
-    out["full_evaluation_s"] = time.perf_counter() - t0
-    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
-    del R, T5
+    _freeze_and_frames(q, out)
 
     # -- accuracy against the full-BRDF reference --------------------------------------------
     # The high-spp reference is Mitsuba 3 (llvm) when it runs here -- our reference_path_trace
@@ -413,34 +471,7 @@ def main() -> None:
         "direct_only": relative_rmse(apx["direct"], ref, mask),
     }
     print("ordering", out["approximation_rel_rmse"], flush=True)
-    rel, refs = {}, {}
-    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
-    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
-    for series, n, key in runs:
-        t0 = time.perf_counter()
-        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
-        secs = time.perf_counter() - t0
-        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
-        bounces = Tk.series.bounces
-        r = ref
-        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
-            r = refs.get(bounces)
-            if r is None:
-                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
-                r = (
-                    hi["image"]
-                    if hi is not None
-                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
-                )
-                refs[bounces] = r
-        rel[key] = {
-            "rel_rmse": relative_rmse(img, r, mask),
-            "seconds": secs,
-            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
-            "bounces": bounces,
-        }
-        print(key, rel[key], flush=True)
-    out["rel_rmse"] = rel
+    _series_errors(q, sca, ref, mask, rspp, out)
 
     # -- our reference against Mitsuba (equal spp) ----------------------------------------------
     n = 64 if q else 256

@@ -117,7 +117,7 @@ def main() -> None:
 
     res, spp, rows = (64, 8, 8) if args.quick else (128, 16, 8)
     sc = cornell_box_glossy(res)
-    kw = {"settings": PolynomialSettings(series="64,1,1,1", spp=spp, tile_rows=rows), "seed": 0, "progress": False}
+    kw = {"settings": PolynomialSettings("64,1,1,1", spp=spp, tile_rows=rows), "seed": 0, "progress": False}
     tiles = -(-res // rows)
     out: dict = {"quick": args.quick, "resolution": res, "spp": spp, "tiles": tiles, "cpus": os.cpu_count()}
     out["load_avg_start"] = os.getloadavg()[0]

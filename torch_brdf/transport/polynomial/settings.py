@@ -18,8 +18,8 @@ from typing import Any
 
 import torch
 
-from ..._checks import MAX_BANDS, check_count
-from ...errors import ShapeError, TorchBRDFError, ValueRangeError
+from ..._checks import MAX_BANDS, check_bool, check_count, check_fields
+from ...errors import ShapeError, ValueRangeError
 from ...records.polynomial import ObjectBasis, Series
 from .bases import check_basis_overrides
 from .sampler import LobeMixture, Mixture
@@ -92,7 +92,8 @@ class PolynomialSettings:
         storage: how the record's values are saved (``"float32"`` or ``"float16"``).
     Raises:
         ValueRangeError, ShapeError, SceneError: a value out of range or of the wrong form
-            (the exception's ``setting`` attribute names the field).
+            (the exception's ``setting`` attribute names the field, see
+            :func:`~torch_brdf._checks.check_fields`).
     """
 
     series: Series | str | Sequence[int] = "64,1,1,1"
@@ -108,26 +109,22 @@ class PolynomialSettings:
     storage: str = "float32"
 
     def __post_init__(self):
-        checks = {
-            "series": _check_series,
-            "spp": _check_spp,
-            "bases": _check_bases,
-            "mixture": _check_mixture,
-            "env_point_lights": _check_optional_count,
-            "light_samples": lambda v, n: check_count(v, n, 1024),
-            "tile_rows": _check_optional_count,
-            "group": _check_optional_count,
-            "fixed": _check_names,
-            "guides": _check_bool,
-            "storage": _check_storage,
-        }
-        for name, check in checks.items():
-            try:
-                value = check(getattr(self, name)) if name in _ONE_ARG else check(getattr(self, name), name)
-            except TorchBRDFError as exc:
-                exc.setting = name  # which field: the command line names it as its option
-                raise
-            object.__setattr__(self, name, value)
+        check_fields(
+            self,
+            {
+                "series": _check_series,
+                "spp": _check_spp,
+                "bases": _check_bases,
+                "mixture": _check_mixture,
+                "env_point_lights": lambda v: _check_optional_count(v, "env_point_lights"),
+                "light_samples": lambda v: check_count(v, "light_samples", 1024),
+                "tile_rows": lambda v: _check_optional_count(v, "tile_rows"),
+                "group": lambda v: _check_optional_count(v, "group"),
+                "fixed": _check_names,
+                "guides": lambda v: check_bool(v, "guides"),
+                "storage": _check_storage,
+            },
+        )
 
     def replace(self, **changes: Any) -> PolynomialSettings:
         """A copy with ``changes`` (checked again)."""
@@ -195,22 +192,13 @@ def _check_mixture(value: Any) -> Mixture | LobeMixture:
     return value
 
 
-def _check_names(value: Any, name: str) -> tuple[str, ...]:
+def _check_names(value: Any) -> tuple[str, ...]:
     if isinstance(value, str) or not isinstance(value, Sequence) or not all(isinstance(n, str) for n in value):
-        raise ValueRangeError(f"{name} must be a sequence of object names; got {value!r}")
+        raise ValueRangeError(f"fixed must be a sequence of object names; got {value!r}")
     return tuple(value)
 
 
-def _check_bool(value: Any, name: str) -> bool:
-    if not isinstance(value, bool):
-        raise ValueRangeError(f"{name} must be True or False; got {value!r}")
-    return value
-
-
-def _check_storage(value: Any, name: str) -> str:
+def _check_storage(value: Any) -> str:
     if value not in STORAGES:
-        raise ValueRangeError(f"{name} must be one of {STORAGES}; got {value!r}")
+        raise ValueRangeError(f"storage must be one of {STORAGES}; got {value!r}")
     return value
-
-
-_ONE_ARG = {"series", "spp", "bases", "mixture"}
