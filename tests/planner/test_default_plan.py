@@ -14,7 +14,7 @@ from torch_brdf.planner.gi import DEFAULT_ERROR, DEFAULT_SECONDS, precompute_pla
 from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene import Camera, EnvironmentMap, Scene, SceneObject, mesh_from_arrays
-from torch_brdf.transport.pathtrace import path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
 PT_RUNS, PT_SPP, PT_BOUNCES = 2, 64, 6
 
@@ -47,7 +47,8 @@ def default_run():
     T = precompute_planned(sc, seed=1, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects}
     img = PolynomialRenderer(T, mats, dtype=torch.float64)().double()
-    refs = torch.stack([path_trace(sc, PT_SPP, PT_BOUNCES, seed=s, progress=False) for s in range(PT_RUNS)]).double()
+    pt = PathTraceSettings(spp=PT_SPP, max_bounces=PT_BOUNCES)
+    refs = torch.stack([path_trace(sc, pt, seed=s, progress=False) for s in range(PT_RUNS)]).double()
     o, d = sc.camera.generate_rays(dtype=torch.float64)
     ids = sc.trace(o.float(), d.float()).object_id.reshape(sc.camera.height, sc.camera.width)
     return sc, T, img, refs, ids

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torch_brdf.scene import AreaLight, Camera, Scene, SceneObject, mesh_from_arrays
-from torch_brdf.transport.pathtrace import path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
 RADIANCE = 5.0
 # a 1 x 1 quad at z = 1 facing -z (towards the camera): (v1 - v0) x (v2 - v0) = -z
@@ -30,15 +30,15 @@ def centre(img: torch.Tensor) -> torch.Tensor:
 def test_light_on_an_object_without_object_id_is_visible_and_the_same_as_with_it():
     scene, _, light = scene_with(light_object=True, object_id=None)
     assert scene.lights[0].object_id == 1 and light.object_id == -1  # the caller's light untouched
-    img = path_trace(scene, spp=2, max_bounces=1, seed=3, progress=False)
+    img = path_trace(scene, PathTraceSettings(spp=2, max_bounces=1), seed=3, progress=False)
     torch.testing.assert_close(centre(img), torch.full((4, 3), RADIANCE))
     named, _, _ = scene_with(light_object=True, object_id=1)
-    assert torch.equal(img, path_trace(named, spp=2, max_bounces=1, seed=3, progress=False))
+    assert torch.equal(img, path_trace(named, PathTraceSettings(spp=2, max_bounces=1), seed=3, progress=False))
 
 
 def test_light_without_any_object_gets_a_fixed_black_one():
     scene, objects, _ = scene_with(light_object=False, object_id=None)
     assert [o.name for o in scene.objects] == ["floor", "area_light_0"] and len(objects) == 1
     assert not scene.objects[1].editable and scene.lights[0].object_id == 1
-    img = path_trace(scene, spp=2, max_bounces=1, seed=3, progress=False)
+    img = path_trace(scene, PathTraceSettings(spp=2, max_bounces=1), seed=3, progress=False)
     torch.testing.assert_close(centre(img), torch.full((4, 3), RADIANCE))
