@@ -184,8 +184,8 @@ def project_perceptual(
                 return e
 
             opt.step(closure)
-            with torch.no_grad():
-                for cand in (x.detach(), model.latents[i]):
+            with torch.no_grad():  # a non-finite end (line search on a plateau of valid weights) is dropped
+                for cand in (x.detach(), model.latents[i]) if bool(torch.isfinite(x).all()) else (model.latents[i],):
                     e = error(cand)
                     if e < best_e:
                         best_x, best_e = cand.clone(), e

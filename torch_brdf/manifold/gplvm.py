@@ -881,9 +881,13 @@ class GPLVM(torch.nn.Module):
                 return e
 
             opt.step(closure)
-            with torch.no_grad():
-                e = float(self._error(x.detach(), g_mat, g_vec))
-            for cand, ce in ((x.detach(), e), (self.latents[i], float(at_data[i]))):
+            cands = [(self.latents[i], float(at_data[i]))]
+            # the valid weights are constant on plateaus (a vertex of the simplex), where the line
+            # search can divide by a zero curvature: a non-finite end point is not a candidate
+            if bool(torch.isfinite(x).all()):
+                with torch.no_grad():
+                    cands.append((x.detach(), float(self._error(x.detach(), g_mat, g_vec))))
+            for cand, ce in cands:
                 if ce < best_e:
                     best_x, best_e = cand.clone(), ce
         return best_x, best_e + float(target_sq)
