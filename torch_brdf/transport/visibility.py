@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
+from .._checks import MAX_CUBEMAP_RESOLUTION, MAX_SUPERSAMPLE, check_count, check_int
 from .._threads import single_thread
 from ..data import progress_default
 from ..errors import FileFormatError, ValueRangeError
@@ -284,9 +284,8 @@ def precompute_visibility(
             above :data:`~torch_brdf._checks.MAX_CUBEMAP_RESOLUTION`), supersample, bits or chunk.
     """
     resolution = check_count(resolution, "resolution", MAX_CUBEMAP_RESOLUTION)
-    block, supersample, chunk = (
-        check_count(v, k) for v, k in ((block, "block"), (supersample, "supersample"), (chunk, "chunk"))
-    )
+    block, chunk = check_count(block, "block"), check_count(chunk, "chunk")
+    supersample = check_count(supersample, "supersample", MAX_SUPERSAMPLE)
     max_chunks = None if max_chunks is None else check_int(max_chunks, "max_chunks", 0)
     geom = CubemapBlocks(resolution, block)
     if bits not in BITS:
