@@ -101,7 +101,7 @@ def test_relight_budget_ranges(tmp_path, no_work, option, words):
     _one_line_error(runner.invoke(app, args), 2, *words)
 
 
-def test_relight_missing_visibility_refused_before_the_scene(tmp_path, no_work):
+def test_relight_missing_visibility_refused_before_rendering(tmp_path):
     args = ["relight", "bunny_relight", "--out", str(tmp_path / "r"), "--visibility", str(tmp_path / "v.npz")]
     _one_line_error(runner.invoke(app, args), 2, "--visibility", "no such file")
 

@@ -362,6 +362,16 @@ def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT)
         raise ValueRangeError(f"--ray {address}: cannot connect ({(why or type(exc).__name__).lower()})") from None
 
 
+def _parse_series(text: str):
+    """``--series`` as a :class:`~torch_brdf.records.polynomial.Series`; its errors name the option."""
+    from .records.polynomial import Series
+
+    try:
+        return Series.parse(text)
+    except ValueRangeError as exc:
+        raise ValueRangeError(f"--series {text!r}: {exc}") from None
+
+
 def _check_record(path: Path | str, kind: str, option: str) -> None:
     """Refuse ``path`` before any work unless it is a record file of ``kind``."""
     from .io.arrays import read_kind
@@ -405,14 +415,14 @@ def precompute(
     """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
     _file_out(out)
     from .records.cache import remove_cache
-    from .transport.polynomial import LobeMixture, Series, precompute_polynomial
+    from .transport.polynomial import LobeMixture, precompute_polynomial
     from .transport.polynomial.plan import check_basis_overrides
 
     # every option is checked before the scene is loaded and the precompute starts
     samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
     if sampler not in samplers:
         raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
-    parsed = Series.parse(series)
+    parsed = _parse_series(series)
     check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
     check_ray_address(ray)
     if storage not in _STORAGES:
@@ -888,8 +898,6 @@ def relight(
         check_real(error, "--error", 1e-7, 1.0)
         if error == 0:
             raise ValueRangeError("--error must be > 0 (a fraction of the peak)")
-    if error is None and psnr is None:
-        _check_record(visibility, "vertex-visibility", "--visibility")
     sc = load_scene(scene, resolution, width, height)
     if sc.environment is None:  # before the record loads; the renderer's "pass envmap=" is the API's
         raise SceneError(f"relight needs an environment map; scene {sc.name!r} has none (add an envmap light)")
@@ -897,6 +905,8 @@ def relight(
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
+    if error is None and psnr is None:  # a missing or wrong record: before the renderer is built
+        _check_record(visibility, "vertex-visibility", "--visibility")
     plan = None
     if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
         from .render.relight_plan import plan_relighting, planned_renderer
@@ -941,9 +951,8 @@ def editor(
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
-    from .transport.polynomial import Series
 
-    check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
+    check_count(_parse_series(series).eye, "--series bands per bounce", MAX_BANDS)
     _check_editor_inputs(source, gplvm, relight, visibility)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
