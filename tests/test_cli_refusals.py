@@ -126,3 +126,9 @@ def test_api_save_on_a_full_disk_names_the_path(tmp_path, monkeypatch):
     assert isinstance(exc, OSError) and isinstance(exc, TorchBRDFError)
     assert exc.errno == errno.ENOSPC and exc.filename == str(target) and str(target) in str(exc)
     assert not any(p.is_file() for p in tmp_path.rglob("*"))  # nothing half-written
+
+
+@pytest.mark.parametrize("series", ["4,,1", "64,1,", "4;1"])
+def test_series_with_an_empty_or_bad_entry_is_refused(tmp_path, no_work, series):
+    args = ["precompute", "cornell_box", "--out", str(tmp_path / "t.npz"), "--series", series]
+    _one_line_error(runner.invoke(app, args), 2, "--series", "cannot parse")

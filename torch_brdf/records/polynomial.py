@@ -65,10 +65,14 @@ class Series:
         if isinstance(spec, Series):
             return spec
         if isinstance(spec, str):
+            # every entry is a number: "4,,1" or "64,1," is a typo, not the series (4, 1) or (64, 1)
+            parts = spec.strip().removeprefix("(").removesuffix(")").split(",")
             try:
-                spec = [int(s) for s in spec.replace("(", "").replace(")", "").split(",") if s.strip()]
+                if any(not p.strip() for p in parts):
+                    raise ValueError("an empty entry")
+                spec = [int(p) for p in parts]
             except ValueError as exc:
-                raise ValueRangeError(f"cannot parse BRDF series {spec!r}; expected e.g. '64,1,1,1'") from exc
+                raise ValueRangeError(f"cannot parse BRDF series {spec!r} ({exc}); expected e.g. '64,1,1,1'") from None
         return cls(tuple(spec))
 
     @property
