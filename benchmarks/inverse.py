@@ -31,8 +31,9 @@ Prints progress lines, then one JSON object as the last line:
   rank-deficient H, an out-of-family Ward target, shared, rho_d -> 1) built on this view:
   ``problems``; per solver (``default`` = ``solve_qp`` interior point, ``admm`` without its
   fallback, ``admm_fallback``, ``proxqp`` at eps 1e-10, ``clarabel`` defaults): ``solved``
-  (objective within 1e-6 relative of the reference -- ProxQP at eps 1e-12, Clarabel where it
-  returns nothing -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
+  (objective at most 1e-6 relative above the reference -- ProxQP at eps 1e-12, Clarabel where
+  it returns nothing; a feasible point below it is solved, the reference being the less
+  accurate one there -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
   The set is also split into ``easy`` (targets inside the SRBF family: ``exact-whole``,
   ``exact-half``, ``few-pixels``; zero residual) and ``hard`` (the rest), each with ``solved``,
   ``problems`` and ``total_s`` per solver (the default and ProxQP: best of ``repeats`` per
@@ -190,7 +191,8 @@ def qp_set_benchmark(px, ls, vis, rec, repeats: int = 3) -> dict:
                     x = None
                 best = min(best, time.perf_counter() - t0)
             times.append(best)
-            ok = x is not None and abs(objective_gap(pr, x, ref)) <= 1e-6 and violation(pr, x) <= 1e-8
+            # at most 1e-6 above the reference (below it: the reference was the less accurate)
+            ok = x is not None and objective_gap(pr, x, ref) <= 1e-6 and violation(pr, x) <= 1e-8
             solved += int(ok)
             if not ok:
                 failed.append(label)
