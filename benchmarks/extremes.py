@@ -1,49 +1,11 @@
-"""The numerical extremes table (issue #17): every case of tests/test_extremes.py, evaluated.
+"""The numerical extremes table: every case of tests/test_extremes.py, evaluated.
 
-    python benchmarks/extremes.py [--quick] [--only SUBSTRING ...]
-
-Runs :func:`tests.test_extremes.evaluate` -- the function ``test_extreme`` asserts on -- on
-every case of :data:`tests.test_extremes.CASES`, so each cell of the report's table is what the
-test checks, never typed by hand. Needs the repository checkout (it imports ``tests``).
-``--quick`` changes nothing (the cases are already small; it is accepted for the report's
-runner). Prints one line per case, then one JSON object as the last line: ``cells`` (per case:
-``row``, ``column``, ``expect``, ``status``, ``ok``, ``error``, ``bound``, ``note``,
-``seconds``), ``failed`` (how many cells are not ``ok``) and ``seconds``.
+Runs :mod:`torch_brdf.report.benchmarks.extremes` (shipped with the package, so that ``torch-brdf
+report`` runs it from an install) with the same options (``--help``) and the same JSON as
+its last line.
 """
 
-from __future__ import annotations
-
-import argparse
-import json
-import sys
-import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from tests.test_extremes import CASES, evaluate
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="accepted for the report's runner (the cases are small)")
-    ap.add_argument(
-        "--only", action="append", default=None, help="only cases whose row/column contains this (repeatable)"
-    )
-    args = ap.parse_args()
-    t0 = time.perf_counter()
-    cells = []
-    for case in CASES:
-        if args.only and not any(o in case.id for o in args.only):
-            continue
-        c0 = time.perf_counter()
-        cell = evaluate(case)
-        cell["seconds"] = time.perf_counter() - c0
-        cells.append(cell)
-        print(f"{'ok ' if cell['ok'] else 'BAD'} {case.id}: {cell['status']} error {cell['error']}", flush=True)
-    out = {"cells": cells, "failed": sum(not c["ok"] for c in cells), "seconds": time.perf_counter() - t0}
-    print(json.dumps(out))
-
+from torch_brdf.report.benchmarks.extremes import main
 
 if __name__ == "__main__":
     main()

@@ -1,12 +1,12 @@
-"""The speed/accuracy report (issue #17): every benchmark, one page.
+"""The speed/accuracy report: every benchmark, one page.
 
     python benchmarks/report.py [--quick] [--out out/report] [--results FOLDER] [--only NAME ...]
 
-The same as ``torch-brdf report``: runs every script of this folder (``--quick``: their
-small versions), keeps each one's JSON and log under ``<out>/runs/``, and writes
-``<out>/report.html`` (self-contained) with one PNG per figure beside it. ``--results``
-reads a folder of saved JSON (run records, bare benchmark objects or captured stdout
-``<name>.out``) instead of running. Prints one JSON object as the last line: the page and PNGs.
+The same as ``torch-brdf report``: runs every benchmark (``--quick``: their small versions),
+keeps each one's JSON and log under ``<out>/runs/``, and writes ``<out>/report.html`` (self-
+contained) with one PNG per figure beside it. ``--results`` reads a folder of saved JSON (run
+records, bare benchmark objects or captured stdout ``<name>.out``) instead of running. Prints
+one JSON object as the last line: the page and PNGs.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, choices=BENCHMARKS, help="run only these benchmarks")
     ap.add_argument("--timeout", type=float, default=None, help="seconds per benchmark")
     args = ap.parse_args()
-    page = make_report(args.out, args.quick, args.results, args.only, Path(__file__).parent, args.timeout)
+    page = make_report(args.out, args.quick, args.results, args.only, None, args.timeout)
     print(json.dumps({"report": str(page), "pngs": sorted(str(p) for p in page.parent.glob("*.png"))}))
 
 

@@ -1,6 +1,6 @@
 """Check the shared data folder with torch_brdf's own readers and print a summary.
 
-    python datasets/check_shared_data.py            # uses $TORCH_BRDF_DATA or ../shared/data
+    python datasets/check_shared_data.py            # the data folder: $TORCH_BRDF_DATA, else the cache's
 
 Reads every env map (EXR: finite, non-negative, lat-long 2:1) and mesh (valid triangles)
 and prints one line per file, then one JSON object. Exit code 1 if anything fails to

@@ -7,7 +7,7 @@ at the lower-edge angles of every MERL bin (as ``shared/tools/make_merl_npz.py``
     # full resolution: one real-format MERL .binary per material (34,992,012 bytes each)
     python datasets/nbrdf_to_merl.py binary OUT_DIR [--materials blue-acrylic,gold-metallic-paint]
 
-    # downsampled npz layout of data/merl/README.md (float16, source 'nbrdf')
+    # the downsampled npz layout of torch_brdf.io.merl (float16, source 'nbrdf')
     python datasets/nbrdf_to_merl.py npz OUT.npz [--materials ...] [--theta-d-step 2] [--phi-d-step 4]
 
 Bins whose incoming or outgoing direction (for phi_h = 0) is at or below the horizon are
@@ -15,7 +15,7 @@ set to -1 (missing) in both forms: a geometric mask, not MERL's missing-data pat
 Nothing is random (no seed needed); the output is deterministic. Writes are atomic
 (temporary file + rename), so the run is resumable: existing outputs that read back
 correctly are skipped (``--force`` recomputes them). The weights default to
-``$TORCH_BRDF_DATA/merl/nbrdf_merl100_weights.npz`` (or ``../shared/data``). Prints one
+``merl/nbrdf_merl100_weights.npz`` of the data folder (``$TORCH_BRDF_DATA``). Prints one
 line per material, then one JSON object.
 """
 

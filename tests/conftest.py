@@ -1,4 +1,4 @@
-"""Shared fixtures: seeded generators, the shared data folder, per-dtype tolerances."""
+"""Shared fixtures: seeded generators, the data folder, per-dtype tolerances."""
 
 from __future__ import annotations
 
@@ -14,8 +14,15 @@ import torch
 
 from torch_brdf.data import REGISTRY, data_path, data_root
 
+# The developer layout keeps the data folder beside the checkout, as shared/data in its parent. The
+# package itself looks only in $TORCH_BRDF_DATA and the cache, so the tests default the variable
+# to that folder when it exists (CONTRIBUTING.md, "Data").
+_SIBLING = Path(__file__).resolve().parents[2] / "shared" / "data"
+if "TORCH_BRDF_DATA" not in os.environ and _SIBLING.is_dir():
+    os.environ["TORCH_BRDF_DATA"] = str(_SIBLING)
+
 # Data fetched into the default folder ($TORCH_BRDF_CACHE/data) is found through the cache folder,
-# which some tests point elsewhere: the folder found at the start holds for the whole session.
+# which some tests point elsewhere: the folder found at the start holds for the whole run.
 if data_root() is not None:
     os.environ.setdefault("TORCH_BRDF_DATA", str(data_root()))
 
@@ -34,7 +41,7 @@ def shared_file(*parts: str):
     """Path of a shared data file, or skip the test with the reason."""
     p = data_path(*parts, required=False)
     if p is None:
-        pytest.skip(f"shared data not found: {'/'.join(parts)} (set TORCH_BRDF_DATA or place ../shared/data)")
+        pytest.skip(f"shared data not found: {'/'.join(parts)} (set TORCH_BRDF_DATA; see CONTRIBUTING.md)")
     return p
 
 

@@ -1,4 +1,4 @@
-"""A new user's path through the command line (issue #19): the README's command table is the
+"""A new user's path through the command line: the command table is the
 typer app's real commands, options and defaults; the documented flows run end to end with the
 default file names; cheap argument checks come before expensive work; long commands print
 progress."""
@@ -265,7 +265,7 @@ ROW_ARGS = {
     "manifold": ["out/gplvm.npz", "--point", "chrome", "--grid", "15,15,30", "--resolution", "16", "--spp", "2"],
     "editor": ["tiny.toml", "--resolution", "8", "--spp", "2", "--series", "2,1"],
     "fetch-data": ["--dest", "data", "--file", "meshes/teapot.obj"],
-    "report": ["--results", str(README.parent / "tests" / "report" / "data")],  # saved JSON: no benchmark runs
+    "report": ["--results", str(README.parent / "docs" / "results")],  # saved JSON: no benchmark runs
 }
 #: the commands that are quick at any size (dot products, JSON): no progress bar expected; report
 #: only reads saved JSON here (its benchmark runs have a bar per script: torch_brdf.report)

@@ -32,7 +32,7 @@ def test_invalid_progress_switch_is_refused(monkeypatch):
 
 def test_fetched_data_is_found_without_setting_the_variable(monkeypatch, tmp_path):
     # `torch-brdf fetch-data` without --dest and $TORCH_BRDF_DATA writes under the cache folder;
-    # the package must look there too (it looked only in ../shared/data: the data was not found)
+    # the package must look there too, or fetched data would never be found
     import pooch
 
     from torch_brdf import data
@@ -47,12 +47,13 @@ def test_fetched_data_is_found_without_setting_the_variable(monkeypatch, tmp_pat
     monkeypatch.setenv("TORCH_BRDF_CACHE", str(tmp_path / "cache"))
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(pooch, "retrieve", retrieve)
-    with pytest.raises(DataNotFoundError, match=r"nothing\.ply' not found \(looked in .*cache/data; `torch-brdf fetch"):
+    with pytest.raises(
+        DataNotFoundError, match=r"nothing\.ply' not found \(looked in .*cache/data; `python datasets/originals.py`"
+    ):
         data.data_path("meshes", "nothing.ply")
     (path,) = data.fetch_data(base_url="http://127.0.0.1:9", files=["meshes/teapot.obj"], progress=False)
     assert path == tmp_path / "cache" / "data" / "meshes" / "teapot.obj"
-    assert data.data_search_path()[-1] == tmp_path / "cache" / "data"
-    if not any(p.is_dir() for p in data.data_search_path()[:-1]):  # no ../shared/data beside this checkout
-        assert data.data_path("meshes", "teapot.obj") == path
+    assert data.data_search_path() == [tmp_path / "cache" / "data"]
+    assert data.data_path("meshes", "teapot.obj") == path
     monkeypatch.setenv("TORCH_BRDF_DATA", str(tmp_path / "elsewhere"))  # the variable alone, when set
     assert data.data_search_path() == [tmp_path / "elsewhere"] and data.data_root() is None

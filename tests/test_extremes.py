@@ -1,4 +1,4 @@
-"""The numerical extremes (issue #17): one case per cell of the report's extremes table.
+"""The numerical extremes: one case per cell of the report's extremes table.
 
 Rows are the renderers and solvers (the GI-editing polynomial renderer, the all-frequency
 relighting renderer, the reference path tracer, the GPLVM fit, the QP solver); columns are the

@@ -1,4 +1,4 @@
-"""The import layers of torch_brdf (issue #12's acceptance): read every module's imports with
+"""The import layers of torch_brdf: read every module's imports with
 ``ast`` -- absolute and relative, at module level and inside functions -- and fail on an
 import that runs back up the layers, on an import cycle between modules, and on a
 subpackage or top-level module that belongs to no layer.
@@ -21,8 +21,8 @@ import torch_brdf
 
 #: low to high; a module may import its own layer or a lower one.
 LAYERS = (
-    {"errors", "_checks", "_threads", "data", "io", "sphere", "frame", "metrics", "linalg"},
-    {"brdf", "scene"},
+    {"errors", "_checks", "parallel", "data", "io", "sphere", "frame", "metrics", "linalg"},
+    {"brdf", "scene", "export"},
     {"records"},
     {"transport", "manifold", "inverse", "denoise", "planner"},
     {"render"},
@@ -183,7 +183,7 @@ def _write(root: Path, files: dict[str, str]) -> Path:
 
 
 def test_the_checker_finds_upward_imports_cycles_and_loose_packages(tmp_path):
-    """A made-up package with one of each fault (the two of issue #12 among them): upward
+    """A made-up package with one of each fault: upward
     imports (absolute, one inside a function), a cycle hidden in a function body, a loose subpackage;
     and the patterns that are fine: an __init__ importing its submodules that import it back."""
     root = _write(

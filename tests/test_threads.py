@@ -1,4 +1,4 @@
-"""torch_brdf._threads: usable cores (affinity, cgroup v2/v1 quota), overrides, errors, the
+"""torch_brdf.parallel.threads: usable cores (affinity, cgroup v2/v1 quota), overrides, errors, the
 measured thread counts, BLAS limits, and OpenMP threads that sleep instead of spinning."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info
 
-from torch_brdf import _threads as th
 from torch_brdf.errors import TorchBRDFError, ValueRangeError
+from torch_brdf.parallel import threads as th
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -126,10 +126,6 @@ def test_invalid_env_values_raise_the_package_error(monkeypatch, bad):
         th.intra_op_threads()
     with pytest.raises(TorchBRDFError, match=th.ENV_THREADS), th.tuned("op", 10):
         pass
-    from torch_brdf.scene.parallel import default_workers
-
-    with pytest.raises(ValueRangeError, match=th.ENV_WORKERS):
-        default_workers()
 
 
 @pytest.mark.parametrize("bad", [0, -1, True, 2.0, "x", None])
@@ -252,7 +248,7 @@ def test_openmp_threads_sleep_instead_of_spinning():
             torch.tanh(x)  # a parallel region
         c0 = time.process_time()
         time.sleep(0.5)
-        print(os.environ["OMP_WAIT_POLICY"], torch_brdf._threads.omp_wait_policy(), time.process_time() - c0)
+        print(os.environ["OMP_WAIT_POLICY"], torch_brdf.parallel.threads.omp_wait_policy(), time.process_time() - c0)
         """
     )
     policy, seen, cpu = out.split()
@@ -263,7 +259,7 @@ def test_openmp_threads_sleep_instead_of_spinning():
         "active"
     )
     late = _python("import torch, torch_brdf, os; print(os.environ.get('OMP_WAIT_POLICY'), "
-                   "torch_brdf._threads.omp_wait_policy())")  # fmt: skip
+                   "torch_brdf.parallel.threads.omp_wait_policy())")  # fmt: skip
     assert late == "None default"
 
 

@@ -9,11 +9,14 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.sphere`: sampling warps and pdfs, lat-long maps, cubemap blocks, DCT, Haar.
 * :mod:`torch_brdf.frame`: local shading frames, half/difference angles.
 * :mod:`torch_brdf.metrics`: image and BRDF error metrics (relative RMSE, PSNR, HDR-FLIP, log-RMSE ...).
+* :mod:`torch_brdf.parallel`: processes and threads: usable cores and quotas, thread limits,
+  forked workers, the ray-tracing process pool and the tile executor (local or Ray).
 * :mod:`torch_brdf.linalg`: dense linear algebra shared by the package (the Cholesky with jitter).
 * :mod:`torch_brdf.brdf`: the BRDF base class, analytic, microfacet, measured and SRBF models,
   1-D band bases.
 * :mod:`torch_brdf.scene`: meshes, embree ray tracing, camera and its G-buffer, lights,
   environment maps, built-in scenes.
+* :mod:`torch_brdf.export`: materials and scenes out: Mitsuba 3 XML (stock plugins), glTF 2.0, MERL.
 * :mod:`torch_brdf.records`: what producers save and consumers read (basis images, multibounce
   tensors, visibility, fits) with one codec, and the one checkpoint/tile cache.
 * :mod:`torch_brdf.transport`: the reference path tracer and the precomputations (multibounce
@@ -30,8 +33,17 @@ one; ``tests/test_layers.py`` keeps it so):
 * :mod:`torch_brdf.report`: the speed/accuracy report (every benchmark's trade on one page).
 """
 
-from . import _threads, errors  # noqa: F401  (_threads first: sets OMP_WAIT_POLICY before torch loads)
+from . import errors, parallel  # noqa: F401  (parallel sets OMP_WAIT_POLICY before torch loads; errors imports no torch)
 from .errors import TorchBRDFError
 
-__version__ = "0.1.0"
-__all__ = ["TorchBRDFError", "__version__", "errors"]
+__version__ = "0.2.0"
+__all__ = ["TorchBRDFError", "__version__", "errors", "load_scene"]
+
+
+def __getattr__(name: str):
+    # load_scene at the top level without importing the scene layer (embree, trimesh) eagerly
+    if name == "load_scene":
+        from .scene import load_scene
+
+        return load_scene
+    raise AttributeError(f"module 'torch_brdf' has no attribute {name!r}")

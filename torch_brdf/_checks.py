@@ -2,7 +2,7 @@
 
 Errors follow pytorch3d's habit: say what was expected and what came. The caps on sizes
 that come from users (scene files, command-line options) live here too, so one table
-documents them (README, "Errors"):
+documents them (``docs/guides/files-and-errors.md``):
 
 * :data:`MAX_IMAGE_SIDE` pixels per image side, :data:`MAX_IMAGE_PIXELS` pixels per image;
 * :data:`MAX_BANDS` bands per entry of a BRDF series, :data:`MAX_BOUNCES` entries (bounces);

@@ -77,9 +77,16 @@ def main(
         False, "--version", callback=_version, is_eager=True, help="Print the package version and exit."
     ),
     debug: bool = typer.Option(False, "--debug", help="On failure print the full traceback, not just one line."),
+    allow_outside: bool = typer.Option(
+        False, "--allow-outside", help="Scene files may reference files outside their folder."
+    ),
+    substitute: bool = typer.Option(
+        False, "--substitute", help="Replace unsupported parts of scene files by stated substitutes (a warning)."
+    ),
 ):
     """torch_brdf: BRDF design in the final scene."""
     _STATE["debug"] = debug
+    _STATE["allow_outside"], _STATE["substitute"] = allow_outside, substitute
     from .data import progress_default
 
     try:  # a bad $TORCH_BRDF_PROGRESS fails every command up front, not after the work
@@ -168,7 +175,7 @@ def _json_object(text: str | None, option: str) -> dict | None:
 def load_scene(
     spec: str, resolution: int | None = None, width: int | None = None, height: int | None = None, make=None
 ):
-    """:func:`torch_brdf.scene.load_scene` (built-in name or TOML file; or ``make(resolution)``) at
+    """:func:`torch_brdf.scene.load_scene` (built-in name or scene file; or ``make(resolution)``) at
     ``--width`` x ``--height``; ``--resolution`` N is the N x N shorthand; an unset side keeps
     ``resolution``, else the scene's."""
     from .scene import load_scene as load
@@ -177,7 +184,8 @@ def load_scene(
         check_image_size(resolution, resolution, "--resolution")
     if width is not None or height is not None:
         check_image_size(width or 8, height or 8, "--width/--height")  # before the scene is loaded
-    scene = make(resolution or 256) if make is not None else load(spec, resolution)
+    options = {"allow_outside": bool(_STATE.get("allow_outside")), "substitute": bool(_STATE.get("substitute"))}
+    scene = make(resolution or 256) if make is not None else load(spec, resolution, **options)
     if width is None and height is None:
         return scene
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
@@ -192,11 +200,13 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
 
     if (spec is None) == (mesh is None):
         which = "not both" if mesh is not None else "neither was given"  # `render --envmap X` said "not both"
-        raise ValueRangeError(f"give a SCENE (built-in name or TOML file) or --mesh FILE; {which}")
+        raise ValueRangeError(
+            f"give a SCENE (built-in name or a .toml, .gltf, .glb, .xml or .obj file) or --mesh FILE; {which}"
+        )
     for path, option in ((mesh, "--mesh"), (envmap, "--envmap")):
         if path is not None and not path.is_file():
             raise SceneError(f"{option}: no such file: {path}")
-    env = EnvironmentMap.from_exr(envmap) if envmap is not None else None
+    env = EnvironmentMap.from_file(envmap) if envmap is not None else None
     if mesh is not None:
         sc = load_scene(f"mesh:{mesh}", resolution, width, height, lambda r: mesh_scene(mesh, r, env))
         return sc
@@ -283,7 +293,9 @@ def demo(
 @app.command()
 @_cli
 def render(
-    scene: str = typer.Argument(None, help="Built-in scene name or a TOML scene file (or --mesh)."),
+    scene: str = typer.Argument(
+        None, help="Built-in scene name or a scene file: .toml, .gltf, .glb, .xml, .obj (or --mesh)."
+    ),
     mesh: Path = typer.Option(None, help="Quick scene: this mesh file (OBJ, PLY, ...) on a plane, framed."),
     envmap: Path = typer.Option(None, help="Light the scene with this lat-long EXR instead of its own lights."),
     out: Path = typer.Option(Path("out/render"), help="Output path without suffix (.exr and .png)."),
@@ -308,7 +320,7 @@ def render(
 
 @app.command()
 @_cli
-def info(scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file.")):
+def info(scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj.")):
     """Print scene statistics as JSON: objects, triangles, bounds, lights, camera."""
     typer.echo(json.dumps(load_scene(scene).info(), indent=2))
 
@@ -386,7 +398,7 @@ def _check_record(path: Path | str, kind: str, option: str) -> None:
 @app.command()
 @_cli
 def precompute(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     out: Path = typer.Option(Path("out/tensors.npz"), help="Output tensor file (.npz, versioned, checksummed)."),
     series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
     spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
@@ -518,11 +530,20 @@ def edit(
     ),
     out: Path = typer.Option(Path("out/edit"), help="Output path without suffix (.exr and .png)."),
     exposure: float = typer.Option(None, help="PNG exposure in stops (default: automatic, see _preview)."),
+    exports: list[str] = typer.Option(
+        [], "--export", help="OBJECT:FORMAT:FILE, repeatable: write the edited material (mitsuba, gltf, merl)."
+    ),
+    save_scene: Path = typer.Option(
+        None, "--save-scene", help="Write the scene with the edits as a TOML scene file (re-opens with them)."
+    ),
 ):
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
+    targets = [_parse_export(e) for e in exports]
+    if save_scene is not None and not save_scene.parent.is_dir():
+        raise ValueRangeError(f"--save-scene: folder {save_scene.parent} does not exist")
     from .records import PolynomialTensors
-    from .render import PolynomialRenderer
+    from .render import PolynomialRenderer, apply_scene_textures
 
     edits = [_parse_set(s) for s in sets]  # before loading anything
     if exposure is not None:
@@ -541,12 +562,108 @@ def edit(
     for obj, param, value in edits:
         if param != "type":
             materials[obj][param] = value
+    for obj, _, _ in targets:
+        if obj not in materials:
+            raise SceneError(f"--export {obj}: {obj!r} is not an editable object; choose from {sorted(materials)}")
     t0 = time.perf_counter()
-    image = PolynomialRenderer(T, materials)().detach()
+    renderer = PolynomialRenderer(T, materials)
+    apply_scene_textures(renderer, sc)  # textured objects: the texture at the eye vertex, its mean after
+    image = renderer().detach()
     seconds = time.perf_counter() - t0
     info = _write_image(out, image, exposure, seconds)
     info["materials"] = {o: materials[o] for o in sorted({e[0] for e in edits})}
+    if save_scene is not None:
+        info["scene_file"] = str(_save_edited_scene(sc, T, materials, {e[0] for e in edits}, save_scene))
+    if targets:
+        from .export import export_material
+
+        info["exports"] = [
+            {"object": o, **asdict_report(export_material(materials[o], f, fmt, name=o))} for o, fmt, f in targets
+        ]
     typer.echo(json.dumps(info))
+
+
+def _save_edited_scene(sc, T, materials: dict, edited: set, path: Path) -> Path:
+    """Save ``sc`` at the tensors' image size with each edited object's material under a key of
+    its own (objects that shared the material keep the old one)."""
+    import dataclasses
+
+    from .export.scene_file import save_scene_toml
+    from .scene import Scene
+
+    table = {k: dict(v) for k, v in sc.materials.items()}
+    objects = []
+    for o in sc.objects:
+        if o.name in edited:
+            key = o.name if o.name not in table else f"{o.name}_edited"
+            table[key] = materials[o.name]
+            o = dataclasses.replace(o, material=key)
+        objects.append(o)
+    scene = Scene(objects, table, sc.lights, sc.camera, name=sc.name).with_resolution(T.width, T.height)
+    return save_scene_toml(scene, path)
+
+
+def _parse_export(item: str) -> tuple[str, str, Path]:
+    """``OBJECT:FORMAT:FILE`` of ``--export`` (checked before any work)."""
+    from .export import FORMATS
+
+    parts = item.split(":", 2)
+    if len(parts) != 3 or not all(parts):
+        raise ValueRangeError(f"--export {item!r}: expected OBJECT:FORMAT:FILE, e.g. back:mitsuba:out/back.xml")
+    obj, fmt, file = parts
+    if fmt not in FORMATS:
+        raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
+    path = Path(file)
+    if not path.parent.is_dir():
+        raise ValueRangeError(f"--export {item!r}: folder {path.parent} does not exist")
+    return obj, fmt, path
+
+
+def asdict_report(report) -> dict:
+    """An :class:`~torch_brdf.export.ExportReport` as a JSON-ready dict."""
+    import dataclasses
+
+    return dataclasses.asdict(report)
+
+
+@app.command("export")
+@_cli
+def export_cmd(
+    material: str = typer.Argument(
+        ..., help='A material as JSON (\'{"type": "lambert", "albedo": 0.5}\'), or SCENE:OBJECT, or a SCENE.'
+    ),
+    out: Path = typer.Argument(..., help="File to write: .xml (Mitsuba 3), .gltf (glTF 2.0) or .binary (MERL)."),
+    fmt: str = typer.Option(None, "--format", help="mitsuba, gltf or merl (default: from the suffix of OUT)."),
+    tolerance: float = typer.Option(None, min=0.0, help="Refuse a fit whose error is above this (relative L2)."),
+    name: str = typer.Option("material", help="The material's id / name in the file."),
+):
+    """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
+    from .export import export_material, export_scene_mitsuba
+
+    if not out.parent.is_dir():
+        raise ValueRangeError(f"OUT: folder {out.parent} does not exist")
+    if material.lstrip().startswith("{"):
+        try:
+            spec = json.loads(material)
+        except json.JSONDecodeError as exc:
+            raise ValueRangeError(f"MATERIAL is not valid JSON: {exc}") from None
+        report = export_material(spec, out, fmt, tolerance, name)
+        typer.echo(json.dumps(asdict_report(report)))
+        return
+    spec_scene, _, obj = material.partition(":")
+    sc = load_scene(spec_scene, None)
+    if not obj:
+        if (fmt or out.suffix.lstrip(".")) not in ("mitsuba", "xml"):
+            raise ValueRangeError("a whole SCENE exports to Mitsuba XML only (OUT.xml)")
+        reports = export_scene_mitsuba(sc, out, tolerance)
+        typer.echo(json.dumps([asdict_report(r) for r in reports]))
+        return
+    by_name = {o.name: o for o in sc.objects}
+    if obj not in by_name:
+        raise SceneError(f"{material}: no object {obj!r} in the scene; objects: {sorted(by_name)}")
+    label = obj if name == "material" else name
+    report = export_material(sc.materials[by_name[obj].material], out, fmt, tolerance, label)
+    typer.echo(json.dumps(asdict_report(report)))
 
 
 @app.command("fit-gplvm")
@@ -700,7 +817,7 @@ def manifold(
 @app.command("fit-strokes")
 @_cli
 def fit_strokes(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     obj: str = typer.Option(..., "--object", help="Object whose BRDF is designed."),
     strokes: Path = typer.Option(..., help="Strokes JSON file (see torch_brdf.inverse.design)."),
     out: Path = typer.Option(Path("out/inverse"), help="Output folder."),
@@ -737,7 +854,7 @@ def fit_strokes(
 @app.command("fit-image")
 @_cli
 def fit_image_cmd(
-    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or scene file."),
     target: Path = typer.Option(None, help="Target image (.exr or .png) at the tensors' size."),
     strokes: Path = typer.Option(None, help="Strokes JSON (as fit-strokes) painted on the current render: the target."),
     keep_weight: float = typer.Option(1.0, min=0.0, help="With --strokes: weight of unpainted object pixels."),
@@ -761,7 +878,7 @@ def fit_image_cmd(
     from .inverse.design import load_strokes
     from .io import read_exr, read_png, save_arrays, write_exr, write_png
     from .records.polynomial import PolynomialTensors
-    from .render import PolynomialRenderer, fit_image, object_mask, paint_image
+    from .render import PolynomialRenderer, apply_scene_textures, fit_image, object_mask, paint_image
     from .transport.polynomial import precompute_polynomial
 
     def read(path: Path):
@@ -779,6 +896,7 @@ def fit_image_cmd(
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
+    apply_scene_textures(R, sc)
     if mask is None:
         w = sum(object_mask(T, o).double() for o in objects).clamp(max=1)
     else:
@@ -798,6 +916,7 @@ def fit_image_cmd(
     arrays = {f"c_{k}": v.numpy() for k, v in res.coefficients.items()}
     save_arrays(out / "fit.npz", arrays, "gi-image-fit", {"objects": list(res.coefficients)})
     full = PolynomialRenderer(T, mats, dtype=torch.float64)
+    apply_scene_textures(full, sc)
     for k, v in res.coefficients.items():
         full.set_coefficients(k, v)
     image = full().detach().float()
@@ -813,7 +932,7 @@ def fit_image_cmd(
 @app.command("precompute-visibility")
 @_cli
 def precompute_visibility_cmd(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file."),
+    scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     out: Path = typer.Option(Path("out/vis.npz"), help="Output record (.npz, versioned, checksummed)."),
     cubemap: int = typer.Option(64, help="Cubemap texels per face side (a multiple of 16: 64 or 128)."),
     resolution: int = typer.Option(None, hidden=True, help="Deprecated here: the cubemap size (use --cubemap)."),
@@ -863,7 +982,9 @@ def precompute_visibility_cmd(
 @app.command()
 @_cli
 def relight(
-    scene: str = typer.Argument(..., help="Built-in scene name or a TOML scene file (as precomputed)."),
+    scene: str = typer.Argument(
+        ..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj (as precomputed)."
+    ),
     visibility: Path = typer.Option(Path("out/vis.npz"), help="Record written by precompute-visibility."),
     out: Path = typer.Option(Path("out/relight"), help="Output path without suffix (.exr and .png)."),
     rotate: float = typer.Option(0.0, help="Turn the environment map about +y (radians)."),
@@ -936,7 +1057,7 @@ def relight(
 @app.command()
 @_cli
 def editor(
-    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or TOML scene."),
+    source: str = typer.Argument(..., help="Tensors file (.npz from precompute), built-in scene name or scene file."),
     scene: str = typer.Option(None, help="The scene of a tensors file (default: the one named in the file)."),
     resolution: int = typer.Option(128, **_RESOLUTION, help="Image size when precomputing a scene."),
     spp: int = typer.Option(16, **_SPP, help="Paths per pixel when precomputing a scene."),
@@ -945,7 +1066,7 @@ def editor(
         None, help="Where precomputed tensors are kept for the next start (default $TORCH_BRDF_CACHE/editor)."
     ),
     gplvm: Path = typer.Option(None, help="A GPLVM fit of NBRDF materials: shows the measured-material map."),
-    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or TOML; with --visibility)."),
+    relight: str = typer.Option(None, help="Scene of the relighting tab (built-in name or file; with --visibility)."),
     visibility: Path = typer.Option(None, help="Its record from precompute-visibility (the relighting tab)."),
     port: int = typer.Option(None, min=1, max=65535, help="Port on 127.0.0.1 (default: a free one)."),
 ):
@@ -1009,7 +1130,7 @@ def report(
     quick: bool = typer.Option(False, "--quick", help="Run every benchmark with --quick (the small version)."),
     results: Path = typer.Option(None, help="Read saved benchmark JSON from this folder instead of running."),
     only: list[str] = typer.Option(None, help="Run only this benchmark (repeatable; e.g. --only extremes)."),
-    benchmarks: Path = typer.Option(None, help="The benchmarks/ folder (default ./benchmarks or the checkout's)."),
+    benchmarks: Path = typer.Option(None, help="Run this folder's scripts instead of the package's benchmarks."),
     timeout: float = typer.Option(None, min=1.0, help="Seconds per benchmark (default 1800 quick, 14400 full)."),
     progress: bool = PROGRESS,
 ):

@@ -1,4 +1,4 @@
-"""The user's environment: where the optional shared data lives (meshes, env maps,
+"""The user's environment: where the optional data folder lives (meshes, env maps,
 MERL-derived BRDFs), where caches go, and whether long steps show progress.
 
 The package works without the data: every built-in scene has a procedural fallback. Tests
@@ -76,25 +76,23 @@ def progress_default(progress: bool | None = None) -> bool:
 
 
 def data_search_path() -> list[Path]:
-    """Where :func:`data_root` looks, in order: ``$TORCH_BRDF_DATA`` alone if set; otherwise
-    ``../shared/data`` relative to the current directory, then to the repository that holds
-    this package, then ``data`` in :func:`cache_dir` (where ``torch-brdf fetch-data`` puts the
+    """Where :func:`data_root` looks: ``$TORCH_BRDF_DATA`` alone if set, else ``data`` in
+    :func:`cache_dir` (where ``torch-brdf fetch-data`` and ``datasets/originals.py`` put the
     files by default)."""
     env = os.environ.get(ENV_VAR)
     if env:
         return [Path(env).expanduser()]
-    shared = [(base / ".." / "shared" / "data").resolve() for base in (Path.cwd(), Path(__file__).resolve().parents[1])]
-    return [*shared, cache_dir() / "data"]
+    return [cache_dir() / "data"]
 
 
 def data_root() -> Path | None:
-    """The shared data folder (the first folder of :func:`data_search_path` that exists), or
+    """The data folder (the first folder of :func:`data_search_path` that exists), or
     ``None`` when there is none."""
     return next((p for p in data_search_path() if p.is_dir()), None)
 
 
 def data_path(*parts: str, required: bool = True) -> Path | None:
-    """Path of a file inside the shared data folder.
+    """Path of a file inside the data folder.
 
     Raises:
         DataNotFoundError: when ``required`` and the folder or file is missing.
@@ -105,8 +103,9 @@ def data_path(*parts: str, required: bool = True) -> Path | None:
         if required:
             where = ", ".join(str(p) for p in data_search_path())
             raise DataNotFoundError(
-                f"shared data file {'/'.join(parts)!r} not found (looked in {where}; "
-                f"`torch-brdf fetch-data` downloads it, `{ENV_VAR}=FOLDER` points elsewhere)"
+                f"data file {'/'.join(parts)!r} not found (looked in {where}; "
+                f"`python datasets/originals.py` rebuilds it from its original sources, "
+                f"`torch-brdf fetch-data --url MIRROR` downloads it, `{ENV_VAR}=FOLDER` points elsewhere)"
             )
         return None
     return p
@@ -115,7 +114,7 @@ def data_path(*parts: str, required: bool = True) -> Path | None:
 #: ``TORCH_BRDF_DATA_URL``: base URL of a mirror of the data folder (``<url>/meshes/bunny.ply``, ...).
 URL_ENV_VAR = "TORCH_BRDF_DATA_URL"
 
-#: The shared data files and their pinned SHA-256 (the versions the tests and figures use).
+#: The data files and their pinned SHA-256 (the versions the tests and figures use).
 REGISTRY: dict[str, str] = {
     "envmaps/grace_latlong_512x256.exr": "b0199ac15c2ed181f6c0ee37cd6626d90de42f34b1372d896d7285fa76f25aed",
     "envmaps/overcast_soil_puresky_512x256.exr": "58c4bf79ba5033b90093d4b95a43dab76d3e72efcc75284c0a066a02e55b704b",
@@ -145,7 +144,7 @@ def fetch_data(
     files: list[str] | None = None,
     progress: bool | None = None,
 ) -> list[Path]:
-    """Download the shared data files into ``dest`` and verify their pinned SHA-256 (pooch).
+    """Download the data files into ``dest`` and verify their pinned SHA-256 (pooch).
 
     Files already present with the right checksum are not downloaded again; a download whose
     checksum differs is deleted and refused.
@@ -167,8 +166,9 @@ def fetch_data(
     base_url = base_url or os.environ.get(URL_ENV_VAR)
     if not base_url:
         raise DataNotFoundError(
-            f"no download URL: pass --url or set ${URL_ENV_VAR} to a mirror of the data folder "
-            "(the files are derived from the sources listed in the README's Data section)"
+            f"no download URL: pass --url or set ${URL_ENV_VAR} to a mirror of the data folder; "
+            "without a mirror, `python datasets/originals.py` (in a clone of the repository) rebuilds "
+            "the files from their original public sources (see docs/getting-started.md)"
         )
     dest = Path(dest or os.environ.get(ENV_VAR) or cache_dir() / "data").expanduser()
     names = list(REGISTRY) if files is None else list(files)

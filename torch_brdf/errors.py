@@ -54,3 +54,8 @@ class NumericalError(TorchBRDFError, ArithmeticError):
 
 class InfeasibleError(TorchBRDFError, ValueError):
     """Constraints admit no solution (e.g. energy conservation with diffuse albedo >= 1)."""
+
+
+class ExportError(TorchBRDFError, ValueError):
+    """A material cannot be exported as asked: an unknown object, an unwritable path, or a
+    fit of a stock model whose error exceeds the tolerance the user set."""

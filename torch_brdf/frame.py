@@ -206,7 +206,8 @@ def half_diff_angles(
     r"""Rusinkiewicz half/difference angles of local directions.
 
     Args:
-        wi, wo: (*B, 3) unit local directions.
+        wi: (*B, 3) unit local directions.
+        wo: as ``wi``.
     Returns:
         theta_h, phi_h, theta_d, phi_d: (*B,) each; :math:`\theta_h, \theta_d \in [0, \pi]`,
         :math:`\phi_h, \phi_d \in (-\pi, \pi]`.

@@ -40,7 +40,8 @@ def cholesky_jitter(
 
     Args:
         k: (N, N) symmetric matrix (factorised in float64 whatever its dtype).
-        floor, cap: smallest and largest jitter.
+        floor: smallest and largest jitter.
+        cap: as ``floor``.
         what: name for messages.
         warn: emit :class:`JitterWarning` when jitter > 0 was needed.
         relative: jitter in units of :math:`\\max_i |k_{ii}|` (1 when the diagonal is 0) instead of

@@ -67,7 +67,8 @@ def relative_rmse(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tens
     r"""Relative RMSE :math:`\sqrt{\sum (I - R)^2 / \sum R^2}` over the counted pixels and channels.
 
     Args:
-        image, reference: (H, W, C) (or any equal shapes).
+        image: (H, W, C) (or any equal shapes).
+        reference: as ``image``.
         mask: optional (H, W) bool; only those pixels count (default all).
     Returns:
         float.
@@ -92,7 +93,8 @@ def psnr(
     r"""Peak signal-to-noise ratio in dB, :math:`10\log_{10}(\mathrm{peak}^2/\mathrm{MSE})`.
 
     Args:
-        image, reference: (H, W, C) (or any equal shapes) linear images.
+        image: (H, W, C) (or any equal shapes) linear images.
+        reference: as ``image``.
         mask: optional (H, W) bool; only those pixels count.
         peak: default the reference's maximum over the counted pixels.
     Returns:
@@ -110,7 +112,8 @@ def hdr_flip(image: torch.Tensor, reference: torch.Tensor, mask: torch.Tensor | 
     """Mean HDR-FLIP error of ``image`` against ``reference`` (0 = identical; higher worse).
 
     Args:
-        image, reference: (H, W, 3) linear radiance (negative values clamped to 0).
+        image: (H, W, 3) linear radiance (negative values clamped to 0).
+        reference: as ``image``.
         mask: (H, W) bool pixels to average over (default all); FLIP itself sees the whole
             images (its filters are spatial).
     Returns:
@@ -148,7 +151,8 @@ def log_relative_rmse(
     r"""Log-relative RMSE per row (Nielsen et al. 2015 mapping, see the module docstring).
 
     Args:
-        pred, true: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
+        pred: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
+        true: as ``pred``.
         eps: :math:`\varepsilon`. reference: optional per-bin :math:`\rho_{ref}` (cancels; accepted for clarity).
     Returns:
         (M,) or () float64.
@@ -165,7 +169,8 @@ def cosine_weighted_rmse(pred: torch.Tensor, true: torch.Tensor, cosine: torch.T
     """RMSE of ``cosine * (pred - true)`` per row.
 
     Args:
-        pred, true: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
+        pred: (M, 3 * B) or (3 * B,) BRDF values. cosine: (B,) or (3 * B,) clipped cosine map.
+        true: as ``pred``.
     Returns:
         (M,) or () float64.
     """

@@ -64,10 +64,10 @@ import torch
 from torch import nn
 
 from tests._stats import assert_chi2
-from torch_brdf._threads import single_thread
 from torch_brdf.brdf.base import BRDF, Clamped
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.frame import Frame, orthonormal_basis
+from torch_brdf.parallel.threads import single_thread
 
 F32, F64 = torch.float32, torch.float64
 

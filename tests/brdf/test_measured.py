@@ -117,7 +117,7 @@ def test_nbrdf_fold_makes_it_reciprocal_and_the_raw_network_is_not():
     torch.testing.assert_close(blue.eval(wi, wo), blue.eval(wo, wi), rtol=1e-10, atol=1e-12)
     raw = NBRDF("blue-acrylic", weights_path(), fold_phi_d=False)
     a, b = raw.eval(wi, wo), raw.eval(wo, wi)
-    assert ((a - b).abs() / b.abs().clamp_min(1e-3)).max() > 0.01  # README: +-15 % phi_d asymmetry
+    assert ((a - b).abs() / b.abs().clamp_min(1e-3)).max() > 0.01  # the NBRDF fit's +-15 % phi_d asymmetry
 
 
 def test_nbrdf_names_errors_registry_and_repr(gold):
@@ -173,7 +173,7 @@ def test_tabulation_uses_lower_edges_and_the_horizon_mask(gold):
     assert bool((t[:, 2, 2, 0] == -1).all())  # theta_h + theta_d > 90 deg in the plane: below the horizon
     assert bool((t[:, 2, 2, 1] > 0).all())  # ... but still above it at phi_d = 90 deg
     assert bool((t[:, 0, 0] >= 0).all())
-    assert bool((t[:, 1, 1, 0] >= 0).all())  # README: wi.z = +1e-16 at (30, 80, 0) counts as above
+    assert bool((t[:, 1, 1, 0] >= 0).all())  # wi.z = +1e-16 at (30, 80, 0) counts as above
 
 
 # -- MERLTabulated --------------------------------------------------------------------------------------

@@ -140,8 +140,8 @@ def test_selection_with_coverage_lowers_the_silhouettes_error(gen):
 def test_pixels_whose_centre_misses_are_filtered_along_their_edge(gen):
     """A pixel whose centre ray misses the scene but which an object partly covers (the box's
     open front) records that part: it has no normal, and its taps are the pixels of the same
-    signature, so the means and the fits filter it (until session 15 the normal weight left it
-    as it was: its error was that of the noisy pixel)."""
+    signature, so the means and the fits filter it (a normal weight alone would leave it as it is,
+    with the error of the noisy pixel)."""
     sc = cornell_box(64)
     g = guide_buffers(sc)
     cov = pixel_coverage(sc, 8, g.object_id)

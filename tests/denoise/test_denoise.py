@@ -34,9 +34,9 @@ from torch_brdf.denoise import (
 from torch_brdf.errors import FileFormatError, ShapeError, ValueRangeError
 from torch_brdf.io.arrays import load_arrays, save_arrays
 from torch_brdf.records import PolynomialTensors
+from torch_brdf.records.guides import GUIDE_NAMES, GUIDE_VERSION
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
-from torch_brdf.scene.guides import GUIDE_NAMES, GUIDE_VERSION
 from torch_brdf.transport.guides import light_lobe_images
 from torch_brdf.transport.polynomial import precompute_polynomial
 

@@ -54,9 +54,9 @@ def _snapped(ctl, value):
 
 def test_the_browsers_grid_echo_is_not_an_edit(app):
     # ipywidgets' FloatLogSlider sends back every value the kernel gives it, moved to its grid
-    # (a new form's first value too); arriving after a typed value, it used to re-render, clear
-    # that value's message and overwrite the typed box (#18: "a value typed the instant a form
-    # appears is lost").
+    # (a new form's first value too); arriving after a typed value, it must not re-render, clear
+    # that value's message and overwrite the typed box (a value typed the instant a form appears
+    # would be lost).
     app.model.value = "lambert"
     app.model.value = "GGX (cook_torrance)"
     ctl, typed = app.controls["roughness"], _typed_box(app, "roughness")

@@ -266,8 +266,8 @@ def test_relighting_tab_rotates_the_light_orbits_and_edits(page, relight_files, 
 def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small_tensors_file):
     # a value typed out of range (GGX roughness <= 1), into a form that has just appeared: the
     # kernel rebuilds the form after each model choice, and the new slider's first value comes
-    # back from the browser moved to its grid, possibly after the typed value (that echo used to
-    # clear the message: the race of #18, covered in-process by test_app's echo test).
+    # back from the browser moved to its grid, possibly after the typed value (that echo must not
+    # clear the message: a race covered in-process by test_app's echo test).
     selected(page, "back")
     # lambert has no roughness: waiting for the box to vanish and come back guarantees that the
     # box typed into is the new GGX form's
@@ -292,3 +292,33 @@ def test_bad_input_shows_a_message_and_the_server_stays_up(page, tmp_path, small
     page.focus(".tb-param-roughness .noUi-handle")
     page.keyboard.press("ArrowRight")
     settle(page, n, quiet=0.5)
+
+
+def test_undo_ab_export_and_save(page, tmp_path):
+    selected(page, "back")
+    page.select_option(".tb-model select", label="GGX (cook_torrance)")
+    page.wait_for_selector(".tb-typed-roughness input")
+    page.select_option(".tb-model select", label="lambert")  # an edit to undo
+    page.wait_for_selector(".tb-typed-roughness", state="detached")
+    page.click("button.tb-undo")
+    page.wait_for_selector(".tb-info:has-text('undid an edit of back')")
+    page.wait_for_selector(".tb-typed-roughness input")  # the GGX form is back
+    page.click("button.tb-ab")
+    page.wait_for_selector("button.tb-ab:has-text('showing the saved')")
+    page.click("button.tb-ab")
+    page.wait_for_selector("button.tb-ab:has-text('showing the edit')")
+    out = tmp_path / "back.gltf"
+    page.select_option(".tb-export-format select", label="gltf")
+    page.fill(".tb-export-path input", str(out))
+    page.click("button.tb-export")
+    page.wait_for_selector(".tb-info:has-text('exported back')")
+    assert out.is_file() and (tmp_path / "back.gltf.export.json").is_file()
+    scene_file = tmp_path / "edited.toml"
+    page.fill(".tb-save-path input", str(scene_file))
+    page.click("button.tb-save")
+    page.wait_for_selector(".tb-info:has-text('saved the scene')")
+    from torch_brdf.scene import Scene
+
+    saved = Scene.from_toml(scene_file)
+    back = next(o for o in saved.objects if o.name == "back")
+    assert saved.materials[back.material]["type"] == "cook_torrance"

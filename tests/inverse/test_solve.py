@@ -7,9 +7,6 @@ import pytest
 import torch
 
 from tests.inverse.conftest import KD, true_coefficients
-from tests.inverse.qp_set import objective_gap, problem_targets, qp_set, reference_solution, violation
-from tests.inverse.qp_set import strokes as _strokes
-from tests.inverse.qp_set import whole as _whole
 from torch_brdf.errors import FileFormatError, InfeasibleError, ShapeError, ValueRangeError
 from torch_brdf.inverse import (
     LightSamples,
@@ -24,6 +21,9 @@ from torch_brdf.inverse import (
     transfer_functions,
 )
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.report.benchmarks.qp_set import objective_gap, problem_targets, qp_set, reference_solution, violation
+from torch_brdf.report.benchmarks.qp_set import strokes as _strokes
+from torch_brdf.report.benchmarks.qp_set import whole as _whole
 
 
 def test_recovers_a_known_brdf(view, target_render):
@@ -115,7 +115,7 @@ def test_near_singular_normal_equations(view):
     """Few painted pixels and no kept pixels: most lobes unseen, H singular; still a KKT point.
 
     The default method solves it on the procedural stand-in teapot too (no data folder), where
-    the former ADMM default failed (issue #13); so does ADMM through its fallback."""
+    a plain ADMM default fails; so does ADMM through its fallback."""
     rec = view[-1]
     t = _strokes(rec)
     few = StrokeTarget(t.target, t.painted.double(), t.painted)
@@ -176,7 +176,7 @@ KINDS += ["shared", "kd-extreme"]
 @pytest.mark.parametrize("method", ["interior_point", "admm"])
 @pytest.mark.parametrize("kind", KINDS)
 def test_qp_set_against_reference(problems, kind, method):
-    """Acceptance of issue #20: every QP of the set solved within 1e-6 relative of ProxQP at
+    """Every QP of the set solved within 1e-6 relative of ProxQP at
     eps 1e-12 (Clarabel where ProxQP returns nothing: kd-extreme), violation <= 1e-8. ADMM may
     reach it through its interior point fallback (tested on its own in test_qp)."""
     for pr, ref in problems[kind]:

@@ -104,7 +104,7 @@ def test_floor_puts_exact_edges_in_the_upper_bin():
     assert merl_phi_d_index(t64(below(math.pi / 2))).item() == 89
     # One ulp below pi/8, MERL's own arithmetic (2025 - 2^-42, whose square root rounds to 45)
     # still says 45; sqrt(theta/(pi/2)) * 90 in float64 would say 44. MERL's lookup is the
-    # reference, and the answer no longer depends on the CPU's vectorised square root.
+    # reference, and the answer does not depend on the CPU's vectorised square root.
     assert merl_reference(below(math.pi / 8), 0.0, 0.0)[0] == 45
     assert merl_theta_h_index(t64(below(math.pi / 8))).item() == 45
     assert merl_indices(t64(0.0), t64(0.0), t64(0.0)) == (0, 0, 0)
@@ -137,7 +137,7 @@ def test_bin_centres_address_their_bins_in_both_dtypes():
 
 
 def test_lower_edges_are_not_safe_lookup_points():
-    # The README's index -> angle map computed in float64 rounds some edges down a bin:
+    # MERL's index -> angle map computed in float64 rounds some edges down a bin:
     # documented in torch_brdf.io.merl; use centres to address bins.
     _, td, _ = merl_index_to_angles(torch.arange(90), torch.arange(90), torch.arange(180), at="lower")
     assert merl_theta_d_index(td[19]).item() == 18
@@ -379,7 +379,7 @@ def test_shared_sample_table_loads_without_pickle():
     assert d.phi_d_index.tolist() == list(range(0, 180, 4))
     assert d.source == "nbrdf" and d.is_approximation
     missing = d.brdf[:, 0] == -1
-    assert abs(missing.double().mean().item() - 0.233) < 0.001  # the README's 23.3 % horizon mask
+    assert abs(missing.double().mean().item() - 0.233) < 0.001  # the NBRDF table's 23.3 % horizon mask
 
 
 def test_nbrdf_weights_load_and_validate(tmp_path):

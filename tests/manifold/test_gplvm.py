@@ -320,7 +320,7 @@ def test_heldout_in_the_log_metric_is_never_worse_than_the_nearest_material():
 
 def test_lbfgs_stops_at_a_stationary_point():
     """Latents so far apart that K is the identity: the gradient is exactly zero and the fit
-    returns them unchanged (it used to hand the line search a zero slope, which raises)."""
+    returns them unchanged (not a zero slope handed to the line search, which raises)."""
     z = analytic_rows(torch.rand(6, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64), SMALL_GRID)
     s, d = gram(z)
     init = 1e4 * torch.arange(6, dtype=torch.float64)[:, None]

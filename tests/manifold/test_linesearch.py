@@ -153,10 +153,10 @@ def test_mu_warmup_is_recorded_and_reaches_at_least_strong_wolfe_lbfgs(tmp_path)
 @pytest.mark.parametrize("q", [2, 3])
 @pytest.mark.parametrize("budget", [20, 40, 100])
 def test_default_fit_ends_at_least_as_high_as_strong_wolfe_lbfgs_at_small_budgets(q, budget):
-    """Issue #20: the default fit (mu 1e-10 with its warm-up, our L-BFGS, closed-form gradient)
+    """The default fit (mu 1e-10 with its warm-up, our L-BFGS, closed-form gradient)
     ends at least as high as torch.optim.LBFGS(line_search_fn="strong_wolfe") on the same
     normalised objective, PCA start and iteration budget. Fails if ours ends lower. (A multimodal
-    objective: on other data and budgets either can end higher; README, "BRDF manifold".)"""
+    objective: on other data and budgets either can end higher.)"""
     obs, _ = small_family(40, seed=3)
     s, d = gram(obs.z, obs.cosine_weights())
     fit = fit_gplvm(s, d, q, mu=1e-10, max_iter=budget, generator=torch.Generator().manual_seed(0))

@@ -44,12 +44,12 @@ def test_trainer_fits_the_training_split_and_saves(tmp_path, monkeypatch, capsys
 
 @pytest.mark.reference
 def test_gpy_peer_optimises_the_same_objective():
-    """benchmarks/manifold.py's GPy driver: GPy's GPLVM objective (noise mu - 1e-8, its +1e-8 added
+    """The manifold benchmark's GPy driver: GPy's GPLVM objective (noise mu - 1e-8, its +1e-8 added
     back) equals Eq. 6 at the start, and its latents are scored with our log-likelihood."""
     pytest.importorskip("GPy")
     from tests.manifold.common import small_family
+    from torch_brdf.report.benchmarks import manifold as bench
 
-    bench = _load("benchmarks/manifold.py", "bench_manifold")
     obs, _ = small_family(12)
     res = bench.gpy_peer(obs, 2, 1e-6, 20, seconds_cap=60.0)
     assert res["gpy_objective_gap"] < 1e-9

@@ -1,4 +1,4 @@
-"""The GI-editing planner (issue #17): bands from projection errors, the pilot's per-bounce
+"""The GI-editing planner: bands from projection errors, the pilot's per-bounce
 images from the record alone, and the plan's predicted error against the achieved one."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The inverse-design planner (issue #17): light samples, SRBF count and cut tolerance from
+"""The inverse-design planner: light samples, SRBF count and cut tolerance from
 pilots; its predicted error against the achieved one on a small teapot view."""
 
 from __future__ import annotations

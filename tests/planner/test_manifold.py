@@ -1,4 +1,4 @@
-"""The manifold planner (issue #17): q and the training materials from validation pilots; its
+"""The manifold planner: q and the training materials from validation pilots; its
 predicted held-out error (the trimmed statistic: the interquartile mean of the log errors)
 against the achieved one on the analytic family (no data needed), for two orders of the pool
 (``benchmarks/planner.py --capabilities manifold`` runs eight orders on each of four family

@@ -1,4 +1,4 @@
-"""The relighting planner (issue #17): cubemap resolution, visibility bits and sampling rule from
+"""The relighting planner: cubemap resolution, visibility bits and sampling rule from
 pilots on a sample of the seen vertices; its predicted error against the error the planned
 settings reach on every seen vertex (no data needed: the procedural bunny)."""
 

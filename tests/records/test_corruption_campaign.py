@@ -1,4 +1,4 @@
-"""Corruption campaign over every array file reader (issue #13), with fixed seeds.
+"""Corruption campaign over every array file reader, with fixed seeds.
 
 Every record type, a checkpoint, a cache tile, a MERL table, NBRDF weights and a MERL binary
 file are damaged by random byte flips and truncations (and, for our checksummed files, by

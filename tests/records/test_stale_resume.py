@@ -1,9 +1,9 @@
 """Resume never mixes stale work: every cache's key holds the scene's content.
 
-The scenario of issue #13: interrupt a run after it saved a checkpoint, edit the scene's light
+The scenario: interrupt a run after it saved a checkpoint, edit the scene's light
 and albedo, run the same command again: the result must equal a fresh run of the edited scene
-(before the content digest, the render resumed the old scene's passes and gave an image of
-neither scene). Also: a damaged render checkpoint is moved aside with a warning naming it.
+(without the scene's content digest in the key, the render would resume the old scene's
+passes and give an image of neither scene). Also: a damaged render checkpoint is moved aside with a warning naming it.
 """
 
 from __future__ import annotations
@@ -174,7 +174,7 @@ def _toml(desc: dict) -> str:
 
 
 def test_cli_render_resume_after_scene_edit(tmp_path, monkeypatch):
-    """The issue's command: kill ``torch-brdf render scene.toml``, edit light and albedo, run again."""
+    """The user's command: kill ``torch-brdf render scene.toml``, edit light and albedo, run again."""
     from typer.testing import CliRunner
 
     from torch_brdf.cli import app

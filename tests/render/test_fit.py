@@ -1,4 +1,4 @@
-"""GI inverse design through the polynomial tensors (issue #16): recovery, extremes, GI vs direct."""
+"""GI inverse design through the polynomial tensors: recovery, extremes, GI vs direct."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The GI fit against its peer (issue #16): Mitsuba 3's differentiable path tracer (prb +
+"""The GI fit against its peer: Mitsuba 3's differentiable path tracer (prb +
 Adam) on the same small task. Both sides must agree on the model (the polynomial render of
 the glossy box equals Mitsuba's render within noise) and, fitting kd and ks of the back wall
 to one Mitsuba target, reach comparable loss under one evaluator."""

@@ -8,7 +8,7 @@ import torch
 
 from tests.render.test_triple import renderer as triple_renderer
 from tests.transport.test_visibility import ball_on_plane
-from torch_brdf import _threads
+from torch_brdf.parallel import threads as _threads
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.render.triple import PhongRule
 from torch_brdf.scene.builtin import cornell_box

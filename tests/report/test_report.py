@@ -1,7 +1,7 @@
-"""The speed/accuracy report (issue #17): a quick report is rendered and checked for form.
+"""The speed/accuracy report: a quick report is rendered and checked for form.
 
-The input is real: ``tests/report/data/`` holds the JSON that ``python benchmarks/<name>.py
---quick`` printed on this kind of machine (``data/README.md`` says when and how), and the
+The input is real: ``docs/results/`` holds the JSON that ``python benchmarks/<name>.py
+--quick`` printed on this kind of machine (its ``README.md`` says how), and the
 extremes benchmark is run here through the report's runner on a few cells. A benchmark that
 fails must show in the page, not stop it.
 """
@@ -25,7 +25,7 @@ from torch_brdf.report.sections import CAPABILITIES, planner_choices, sections
 
 pytest.importorskip("matplotlib")
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[2] / "docs" / "results"
 REPO = Path(__file__).resolve().parents[2]
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -262,6 +262,6 @@ def test_quick_report_passes_its_options_to_the_scripts(tmp_path):
     assert run_benchmark("manifold", tmp_path, False, timeout=60)["result"]["argv"] == []
     for name, opts in QUICK_ARGS.items():
         assert name in BENCHMARKS and opts
-        text = (REPO / "benchmarks" / f"{name}.py").read_text()
+        text = (REPO / "torch_brdf" / "report" / "benchmarks" / f"{name}.py").read_text()
         for opt in (o for o in opts if o.startswith("--")):
             assert f'add_argument("{opt}"' in text or f'add_argument(\n        "{opt}"' in text, (name, opt)

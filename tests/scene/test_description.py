@@ -98,7 +98,7 @@ def test_the_valid_scene_loads(folder):
     assert [o.name for o in scene.objects] == ["block", "lamp"] and len(scene.lights) == 3
 
 
-# the mutations the bad-input campaign found escaping or silently accepted (#13)
+# mutations a bad-input campaign found escaping or silently accepted
 NAMED = [
     (("camera", "origin"), [1, 2], "camera.origin"),
     (("camera", "fov_deg"), "wide", "camera.fov_deg"),

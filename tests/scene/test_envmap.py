@@ -1,6 +1,6 @@
 """EnvironmentMap: pdf/sampling consistency, exact sums, rotation, median cut, bad input.
 
-Real maps come from the shared data folder (``$TORCH_BRDF_DATA``, default ../shared/data)
+Real maps come from the data folder (``$TORCH_BRDF_DATA``)
 and are skipped when it is absent; every other test uses procedural maps.
 """
 

@@ -79,7 +79,7 @@ def test_non_finite_vertex_raises_mesh_error_naming_the_mesh(bad):
 
 
 def test_vertices_beyond_float32_raise_mesh_error(tmp_path):
-    # finite in float64 but Inf in the float32 that embree traces: the render used to run
+    # finite in float64 but Inf in the float32 that embree traces: an unchecked render would run
     obj = tmp_path / "huge.obj"
     obj.write_text("v 0 0 0\nv 1e300 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(MeshError, match=r"huge\.obj.*1 vertices exceed the float32 range"):

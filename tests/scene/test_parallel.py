@@ -15,7 +15,7 @@ import trimesh
 
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.scene import RayTracer, Scene, cornell_box
-from torch_brdf.scene.parallel import CHUNK
+from torch_brdf.scene.embree import CHUNK
 from torch_brdf.scene.raytrace import PARALLEL_MIN_RAYS
 
 N = 300_000  # 18 full chunks and a partial one

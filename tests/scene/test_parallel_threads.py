@@ -10,7 +10,8 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_info
 
-from torch_brdf.scene.parallel import CHUNK, HitArrays, TraceKernel, TracePool
+from torch_brdf.parallel.tracepool import TracePool
+from torch_brdf.scene.embree import CHUNK, HitArrays, TraceKernel
 
 
 class _AskingKernel(TraceKernel):

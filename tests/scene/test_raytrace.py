@@ -160,7 +160,7 @@ def test_non_finite_or_half_precision_rays_and_bounds_are_refused():
     scene = cornell_box(8)
     o, d = scene.camera.generate_rays()
     with pytest.raises(ValueRangeError, match="t_max holds 64 NaN"):
-        scene.occluded(o, d, float("nan"))  # used to mean "not occluded"
+        scene.occluded(o, d, float("nan"))  # must not mean "not occluded"
     assert bool(scene.occluded(o, d, float("inf")).any())  # inf stays "unbounded"
     with pytest.raises(ShapeError, match="float16"):
         scene.trace(o.half(), d.half())

@@ -59,8 +59,8 @@ def stop_processes_under(folder: str) -> list[int]:
 
 
 def init_local(tmp: str, num_cpus: int):
-    """A local Ray instance in ``tmp`` (:func:`~torch_brdf.transport.executor.connect_ray`,
+    """A local Ray instance in ``tmp`` (:func:`~torch_brdf.parallel.tiles.connect_ray`,
     which retries a start that timed out); returns the ray module."""
-    from torch_brdf.transport.executor import connect_ray
+    from torch_brdf.parallel.tiles import connect_ray
 
     return connect_ray(None, num_cpus=num_cpus, _temp_dir=tmp)

@@ -21,10 +21,10 @@ import torch
 
 from tests.transport._ray import init_local, private_ray_env
 from torch_brdf.errors import ValueRangeError
+from torch_brdf.parallel import tiles as executor
+from torch_brdf.parallel.tiles import TileError, run_tiles, tile_tick
 from torch_brdf.records.cache import TileCache
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport import executor
-from torch_brdf.transport.executor import TileError, run_tiles, tile_tick
 from torch_brdf.transport.polynomial import precompute_polynomial
 
 SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 4, "progress": False}
@@ -169,7 +169,7 @@ def test_forked_tiles_in_order_and_errors_raised_here():
 
 @pytest.mark.parametrize("processes", [1, 2])
 def test_tile_files_written_beside_the_assembly_before_run_tiles_returns(tmp_path, monkeypatch, processes):
-    """Session 16: the driver writes tile files in a background thread while it assembles; every
+    """The driver writes tile files in a background thread while it assembles; every
     file is on disk when run_tiles returns, and a failed write is raised after the others."""
     seen = []
 

@@ -1,4 +1,4 @@
-"""A two-node Ray cluster on this machine, started the way the README starts one
+"""A two-node Ray cluster on this machine, started the way the cluster guide starts one
 (``ray start --head`` plus ``ray start --address``): a precompute joined through the address
 equals the local executor bit for bit, and its tiles ran on both nodes.
 

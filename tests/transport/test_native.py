@@ -293,7 +293,7 @@ def test_area_light_samples_equal_torch(monkeypatch):
 
 @needs_cc
 def test_eye_rays_equal_camera_rays_bit_for_bit():
-    """The compiled eye rays (session 10) are Camera.rays_through's, bit for bit, on rotated
+    """The compiled eye rays are Camera.rays_through's, bit for bit, on rotated
     cameras and image sizes that are not powers of two; NaN offsets are refused by name."""
     from torch_brdf.errors import ValueRangeError
     from torch_brdf.scene.camera import Camera
@@ -332,7 +332,7 @@ def test_eye_rays_equal_camera_rays_bit_for_bit():
 
 @needs_cc
 def test_pixel_offsets_are_torch_rand():
-    """The eye rays' offsets drawn by the kernel (session 10) are torch.rand's numbers, and the
+    """The eye rays' offsets drawn by the kernel are torch.rand's numbers, and the
     generator goes on as torch's would (the paths draw from it next)."""
     for n in (1, 311, 70000):
         g1, g2 = torch.Generator().manual_seed(n), torch.Generator().manual_seed(n)

@@ -155,7 +155,7 @@ def test_glossy_furnace_equals_directional_albedo(material):
     ],
 )
 def test_counts_and_seeds_are_checked_before_rendering(kwargs, name):
-    # chunk=-1 used to return a black image, the others raised raw errors mid-render
+    # unchecked, chunk=-1 would return a black image and the others raise raw errors mid-render
     scene = _closed_cube(0.5, 1.0, size=8)
     with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
         path_trace(scene, **{"spp": 1, "max_bounces": 1, "progress": False, **kwargs})

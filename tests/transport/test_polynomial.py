@@ -214,7 +214,7 @@ def _entries(T) -> dict:
 
 
 def test_terms_are_numbered_in_one_canonical_order_without_moving_entries():
-    """Session 16: each bounce's terms are numbered once every tile is in, ascending (w, c_M-1, ...,
+    """Each bounce's terms are numbered once every tile is in, ascending (w, c_M-1, ...,
     c_0), the order the tiles' blocks already hold them in: every block's term ids and entry
     indices are increasing as the tiles left them, whatever the tiling."""
     sc = glossy_box(16)

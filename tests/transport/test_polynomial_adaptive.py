@@ -1,5 +1,5 @@
 """Adaptive sampling in the multibounce precomputation: a per-pixel spp map, and light
-splitting at the eye vertex (issue #17).
+splitting at the eye vertex.
 
 Tiles are row bands whatever the map; pass s of a tile traces the pixels with more than s
 paths. A tile whose pixels all take s paths must be, entry for entry, the same tile of a

@@ -162,7 +162,7 @@ def _ulps(got: torch.Tensor, want: torch.Tensor) -> torch.Tensor:
 
 @needs_cc
 def test_sincos_against_float64_over_its_range():
-    """The kernel's own cos / sin (sincos_fd in _native.c, session 9: the mixture's angles, no
+    """The kernel's own cos / sin (sincos_fd in _native.c: the mixture's angles, no
     libm call) against float64 over the mixture's angles [-pi/4, 2 pi]: random angles, every
     float within 4096 ulps of each multiple of pi/4 (the quadrant edges and the zeros) and tiny
     angles. Stated bound 0.5 ulp (float64 arithmetic rounded once, without FMA, so the AVX2 and

@@ -13,9 +13,9 @@ from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.records.visibility_codec import BlockVisibility
 from torch_brdf.scene.builtin import grid_plane
 from torch_brdf.scene.camera import Camera
+from torch_brdf.scene.embree import embree_entry
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.mesh import mesh_from_arrays
-from torch_brdf.scene.parallel import embree_entry
 from torch_brdf.scene.scene import Scene, SceneObject
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native, visibility

@@ -34,6 +34,7 @@ from .bands import (
     projection_error,
 )
 from .base import BRDF, Clamped, Lambert, Positive, available, create, register
+from .gltf import MetallicRoughness
 from .measured import NBRDF, MERLTabulated, tabulate_nbrdf
 from .microfacet import GGXNDF, AnisotropicPhongNDF, BeckmannNDF, BlinnNDF, CookTorrance, MicrofacetDistribution
 from .srbf import SRBFBasis, SRBFDistribution, hemicube_centers, lambda_from_sigma, sigma_from_lambda
@@ -59,6 +60,7 @@ __all__ = [
     "HalfVectorDistribution",
     "Lambert",
     "MERLTabulated",
+    "MetallicRoughness",
     "MicrofacetDistribution",
     "PairQuadrature",
     "Phong",

@@ -116,8 +116,8 @@ class MERLTabulated(_IsotropicMeasured):
       :func:`torch_brdf.io.merl.merl_coordinates` (square-root-mapped :math:`\theta_h`,
       linear :math:`\theta_d`, :math:`\phi_d`), with each value placed at its bin's
       **lower edge** — the angle a table made by :func:`tabulate_nbrdf` was evaluated at,
-      and the index -> angle map of the README — so the two lookups agree on the lower
-      edges. :math:`\phi_d` wraps with period :math:`\pi` (bin 179, or the last kept
+      and the index -> angle map of :func:`~torch_brdf.io.merl.merl_index_to_angles` — so the
+      two lookups agree on the lower edges. :math:`\phi_d` wraps with period :math:`\pi` (bin 179, or the last kept
       index, blends into bin 0); :math:`\theta_h, \theta_d` are held constant beyond the
       last kept index.
 
@@ -134,8 +134,10 @@ class MERLTabulated(_IsotropicMeasured):
         table: (3, Th, Td, Tp) tensor/array (scale applied, RGB), or a path: a ``.binary``
             file (full table) or an ``.npz`` in the downsampled layout (with ``material``).
         material: material name (or position) in an ``.npz``; optional if it holds one.
-        theta_h_index, theta_d_index, phi_d_index: the MERL bin indices the table axes
+        theta_h_index: the MERL bin indices the table axes
             keep (strictly increasing); default all bins when the table is (90, 90, 180).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         interpolation: ``"nearest"`` or ``"trilinear"``.
         name: label for ``repr`` (default: file stem or material name).
         source: where the values come from, e.g. ``"merl-binary"`` or ``"nbrdf"``; an
@@ -234,7 +236,9 @@ class MERLTabulated(_IsotropicMeasured):
         r"""Table value at half/difference angles (no horizon test).
 
         Args:
-            theta_h, theta_d, phi_d: (*B,) radians (:math:`\phi_d \in (-\pi, \pi]`, folded here).
+            theta_h: (*B,) radians (:math:`\phi_d \in (-\pi, \pi]`, folded here).
+            theta_d: as ``theta_h``.
+            phi_d: as ``theta_h``.
         Returns:
             (*B, 3) in the dtype of ``theta_h``; missing bins handled as in the class docstring.
         """
@@ -280,7 +284,9 @@ def nbrdf_input(theta_h: torch.Tensor, theta_d: torch.Tensor, phi_d: torch.Tenso
     difference vector :math:`d = (\sin\theta_d\cos\phi_d, \sin\theta_d\sin\phi_d, \cos\theta_d)`.
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) radians (broadcastable).
+        theta_h: (*B,) radians (broadcastable with the others).
+        theta_d: (*B,) radians.
+        phi_d: (*B,) radians.
     Returns:
         (*B, 6) in the input dtype.
     """
@@ -304,7 +310,12 @@ def nbrdf_mlp(
 
     Args:
         x: (*B, 6) inputs (:func:`nbrdf_input`).
-        W1, b1, W2, b2, W3, b3: (6, H), (H,), (H, H), (H,), (H, 3), (3,) in the dtype of x.
+        W1: (6, H) in the dtype of x.
+        b1: (H,).
+        W2: (H, H).
+        b2: (H,).
+        W3: (H, 3).
+        b3: (3,).
     Returns:
         (*B, 3) RGB BRDF values (1/sr, MERL scale included); may be slightly negative.
     """
@@ -379,7 +390,9 @@ class NBRDF(_IsotropicMeasured):
         r"""The network at half/difference angles, clamped to >= 0 (no horizon test).
 
         Args:
-            theta_h, theta_d, phi_d: (*B,) radians; :math:`\phi_d` is folded if ``fold_phi_d``.
+            theta_h: (*B,) radians; :math:`\phi_d` is folded if ``fold_phi_d``.
+            theta_d: as ``theta_h``.
+            phi_d: as ``theta_h``.
         Returns:
             (*B, 3) in the dtype of the angles.
         """
@@ -424,8 +437,10 @@ def tabulate_nbrdf(
     Args:
         model: the :class:`NBRDF` (its ``fold_phi_d`` is irrelevant: the grid has
             :math:`\phi_d \in [0, \pi)`).
-        theta_h_index, theta_d_index, phi_d_index: MERL bin indices to evaluate
+        theta_h_index: MERL bin indices to evaluate
             (default all: 90, 90, 180).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         mask_horizon: set below-horizon bins to -1.
         chunk: about this many bins per network call (memory only).
     Returns:

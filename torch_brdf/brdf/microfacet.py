@@ -51,6 +51,7 @@ __all__ = [
     "blinn_d",
     "ggx_d",
     "ggx_g1_over_cos",
+    "ggx_log_d",
     "half_vector_pdf",
     "lobe_weight",
     "mixture_pdf",
@@ -149,8 +150,8 @@ def beckmann_d(h: torch.Tensor, alpha_x: torch.Tensor, alpha_y: torch.Tensor | N
 
     Args:
         h: (*B, 3) half vectors with :math:`h_z > 0`, any positive length.
-        alpha_x, alpha_y: () or (*B,) roughness along the tangent and bitangent
-            (``alpha_y=None``: isotropic).
+        alpha_x: () or (*B,) roughness along the tangent.
+        alpha_y: () or (*B,) roughness along the bitangent (None: ``alpha_x``, isotropic).
     Returns:
         (*B,).
     """
@@ -191,6 +192,29 @@ def ggx_d(h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     a2 = alpha * alpha
     den = (a2 * hz2 + hxy2) / len2
     return a2 / (math.pi * (den * den).clamp_min(_tiny(h.dtype)))
+
+
+def ggx_log_d(s: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    r""":math:`\log D` of :func:`ggx_d` in a form whose gradient stays finite where
+    :math:`D` is huge (float32, :math:`\alpha = 10^{-5}`, grazing mirror pairs), for models that
+    multiply :math:`D` by a large visibility (the height-correlated :math:`V` grows like
+    :math:`1/(\alpha\cos\theta)` at grazing angles):
+
+    .. math:: \log D = 2\log(1 + \tan^2\theta_h) - 2\log(1 + \tan^2\theta_h/\alpha^2) - \log(\pi\alpha^2),
+
+    with :math:`\tan^2\theta_h/\alpha^2 = (s_x/(\alpha s_z))^2 + (s_y/(\alpha s_z))^2`: squaring
+    last keeps :math:`0 \cdot \infty` out of the gradient where :math:`s_x = 0` (as in Ward).
+
+    Args:
+        s: (*B, 3) half vectors with :math:`s_z > 0`, any positive length (the unnormalised sum).
+        alpha: () or (*B,) roughness.
+    Returns:
+        (*B,).
+    """
+    sz = s[..., 2].clamp_min(_floor(s.dtype))
+    tan2 = (s[..., 0] / sz) ** 2 + (s[..., 1] / sz) ** 2
+    t = (s[..., 0] / (alpha * sz)) ** 2 + (s[..., 1] / (alpha * sz)) ** 2
+    return 2.0 * torch.log1p(tan2) - 2.0 * torch.log1p(t) - torch.log(math.pi * alpha * alpha)
 
 
 def ggx_g1_over_cos(w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:

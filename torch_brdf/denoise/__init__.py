@@ -1,7 +1,9 @@
 """Denoising precomputed basis images (every BRDF edit stays exact) and final frames.
 
-* :mod:`.guides`: per-pixel guide buffers from the camera's pixel-centre rays, and the area
-  lights' noise-free light lobes through a glossy object's bands;
+* guides (traced in :mod:`torch_brdf.transport.guides`, kept as the record
+  :class:`~torch_brdf.records.guides.GuideBuffers`, both exported here): per-pixel guide
+  buffers from the camera's pixel-centre rays, and the area lights' noise-free light lobes
+  through a glossy object's bands;
 * :mod:`.atrous`: a linear edge-aware à-trous filter with weights from the guides only;
 * :mod:`.regression`: a linear local polynomial regression (NFOR-style) with the same weights;
 * :mod:`.selection`: per pixel the regression window of lowest error, picked once from two
@@ -13,8 +15,9 @@
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
 
+from ..records.guides import GuideBuffers
+from ..transport.guides import guide_buffers, light_lobe_images, pixel_coverage
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
-from .guides import GuideBuffers, guide_buffers, light_lobe_images, pixel_coverage
 from .oidn import KEEP_MEAN_SIGMA, CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature

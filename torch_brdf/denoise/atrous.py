@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
-from .guides import GuideBuffers
+from ..parallel.threads import tuned
+from ..records.guides import GuideBuffers
 
 _B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 
@@ -178,7 +178,7 @@ class GuideFilter:
         multibounce tensors), with the half-vector guide on its banded objects (J > 1).
 
         Raises:
-            ValueRangeError: the record has no guides (attach :func:`~.guides.guide_buffers`).
+            ValueRangeError: the record has no guides (attach :func:`~torch_brdf.transport.guides.guide_buffers`).
         """
         if getattr(tensors, "guides", None) is None:
             raise ValueRangeError("the record has no guide buffers; attach guide_buffers(scene) first")

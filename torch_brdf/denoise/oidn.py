@@ -63,8 +63,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ShapeError, TorchBRDFError, ValueRangeError
+from ..records.guides import GuideBuffers
 from .atrous import EdgeAwareFilter, GuideFilter
-from .guides import GuideBuffers
 
 
 def _pyoidn():
@@ -189,7 +189,7 @@ class OIDNBasis:
 #: the default ``keep_mean`` of :class:`CumulativeOIDN` (pixels): the first guess, kept. On the
 #: stratified 64-spp Cornell box, default / edited rel. RMSE was 0.0235 / 0.0297 at 1.5 px,
 #: 0.0230 / 0.0294 at 2.5, 0.0229 / 0.0301 at 4, 0.0230 / 0.0309 at 8 and 0.0230 / 0.0320 off
-#: (README, session 13); picking the edit's best would tune on the edit.
+#: (see the denoising guide); picking the edit's best would tune on the edit.
 KEEP_MEAN_SIGMA = 4.0
 
 
@@ -241,7 +241,7 @@ class CumulativeOIDN:
         image_denoiser: ``(H, W, 3) -> (H, W, 3)`` in place of OIDN (tests; other denoisers).
         mix: weight of the fallback filter's output in the banded groups' result,
             ``(1 - mix) D + mix A`` (two denoisers of the same fixed images, so edits stay
-            exact; their errors are partly independent: see the README's measurements).
+            exact; their errors are partly independent: see ``benchmarks/denoise.py``).
         keep_mean: sigma (pixels) of the Gaussian window within which each denoised prefix
             sum is rescaled to the noisy sum's mean (module docstring); 0 turns it off.
         lobes: (J, 3, H, W) prefix images of the frozen object's light lobes

@@ -38,10 +38,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._threads import tuned
 from ..errors import ValueRangeError
+from ..parallel.threads import tuned
+from ..records.guides import GuideBuffers
 from .atrous import GuideFilter, GuideSigmas, GuideWeights
-from .guides import GuideBuffers
 
 
 @dataclass(frozen=True)

@@ -48,10 +48,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .._threads import tuned
 from ..errors import ShapeError, ValueRangeError
+from ..parallel.threads import tuned
+from ..records.guides import GuideBuffers
 from .atrous import GuideFilter, GuideSigmas, GuideWeights, _shift
-from .guides import GuideBuffers
 from .regression import RegressionFilter, RegressionSettings, apply_hat
 
 

@@ -251,7 +251,7 @@ def make_denoiser(guides, method: str = "linear", glossy=(), settings=None, qual
     with two half-spp records, pass ``CumulativeOIDN(guides, SelectedRegressionFilter(...))``).
 
     Args:
-        guides: the view's :class:`~torch_brdf.scene.guides.GuideBuffers`.
+        guides: the view's :class:`~torch_brdf.records.guides.GuideBuffers`.
         method: ``"linear"``, ``"regression"``, ``"oidn"`` or ``"cumulative"``.
         glossy: object ids with more than one band (the half-vector guide applies there).
         settings: the linear filter's settings (default: its settings class's defaults).

@@ -1,4 +1,4 @@
-"""An interactive material editor in the browser (issue #18).
+"""An interactive material editor in the browser.
 
 Click an object of a precomputed view, pick a model, drag its parameters and see global
 illumination update (Ben-Artzi et al. 2008's frozen polynomial renderer); compare with a

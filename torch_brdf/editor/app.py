@@ -153,6 +153,7 @@ class EditorApp:
             w.observe(lambda _c: self._guard(self._on_latent_dims), "value")
         self.latent_dims = W.HBox([self.latent_x, self.latent_y])
         self.latent_box = W.VBox([])
+        self._build_keep()
         self.open_path = W.Text(placeholder="tensors .npz, built-in scene name or scene .toml", description="open")
         self.open_button = W.Button(description="Open")
         self.open_button.on_click(lambda _b: self.open(self.open_path.value.strip()))
@@ -182,6 +183,7 @@ class EditorApp:
         main = W.VBox(
             [
                 W.HBox([left, W.VBox([right, lobe, self.theta_i, self.latent_box])]),
+                self.keep_box,
                 reference,
                 W.HBox([self.open_path, self.open_button]),
             ]
@@ -190,6 +192,96 @@ class EditorApp:
         self.tabs.set_title(0, "multibounce")
         self.tabs.set_title(1, "relighting")
         self.root = W.VBox([self.title, self.status, self.message, self.tabs])
+
+    # -- undo, A/B, save, export -------------------------------------------------------------------
+    def _build_keep(self) -> None:
+        def button(text: str, cls: str, icon: str, fn) -> W.Button:
+            b = W.Button(description=text, icon=icon, layout=W.Layout(width="auto"))
+            b.add_class(cls)
+            b.on_click(lambda _b: self._guard(fn))
+            return b
+
+        self.undo_button = button("Undo", "tb-undo", "undo", self.undo)
+        self.redo_button = button("Redo", "tb-redo", "repeat", self.redo)
+        self.ab_button = button("A/B: showing the edit", "tb-ab", "exchange", self.toggle_ab)
+        self.save_path = W.Text(placeholder="scene file (.toml) to save the edited scene to", description="save")
+        self.save_path.add_class("tb-save-path")
+        self.save_button = button("Save", "tb-save", "save", self.save)
+        self.export_format = W.Dropdown(options=["mitsuba", "gltf", "merl"], value="mitsuba", description="format")
+        self.export_format.add_class("tb-export-format")
+        self.export_path = W.Text(placeholder="file for the selected material", description="export")
+        self.export_path.add_class("tb-export-path")
+        self.export_button = button("Export", "tb-export", "download", self.export)
+        self.keep_box = W.VBox(
+            [
+                W.HBox([self.undo_button, self.redo_button, self.ab_button]),
+                W.HBox([self.save_path, self.save_button]),
+                W.HBox([self.export_path, self.export_format, self.export_button]),
+            ]
+        )
+
+    def _after_material_change(self, obj: str | None) -> None:
+        s = self.session
+        if obj is not None and obj == s.selected:
+            self._busy = True
+            try:
+                self.select(obj)  # the form shows the material now in force
+            finally:
+                self._busy = False
+        self._redraw()
+
+    def undo(self) -> None:
+        """Undo the last material edit (a message when there is none)."""
+        if self.session is None:
+            return
+        obj = self.session.undo()
+        if obj is None:
+            self.info("nothing to undo")
+            return
+        self._after_material_change(obj)
+        self.info(f"undid an edit of {obj}")
+
+    def redo(self) -> None:
+        """Redo the last undone edit."""
+        if self.session is None:
+            return
+        obj = self.session.redo()
+        if obj is None:
+            self.info("nothing to redo")
+            return
+        self._after_material_change(obj)
+        self.info(f"redid an edit of {obj}")
+
+    def toggle_ab(self) -> None:
+        """Switch between the current edit and the saved (or opened) materials."""
+        if self.session is None:
+            return
+        saved = self.session.toggle_ab()
+        self.ab_button.description = "A/B: showing the saved" if saved else "A/B: showing the edit"
+        self._after_material_change(self.session.selected)
+
+    def save(self) -> None:
+        """Save the edited scene to the file in the save box (a TOML scene file)."""
+        path = self.save_path.value.strip()
+        if not path:
+            self.error("give a scene file to save to (e.g. out/edited.toml)")
+            return
+        out = self.session.save(path)
+        self.ab_button.description = "A/B: showing the edit"
+        self.info(f"saved the scene with its edits to {out}")
+
+    def export(self) -> None:
+        """Export the selected object's material to the file in the export box."""
+        s, path = self.session, self.export_path.value.strip()
+        if s is None or s.selected is None:
+            self.error("select an object first")
+            return
+        if not path:
+            self.error("give a file to export the material to")
+            return
+        rep = s.export(s.selected, path, self.export_format.value)
+        how = "exact" if rep.exact else f"fitted, error {rep.error:.3g}"
+        self.info(f"exported {s.selected} as {rep.target} ({how}) to {rep.path}")
 
     # -- the relighting tab ------------------------------------------------------------------------
     def _build_relight(self) -> W.VBox:

@@ -133,7 +133,7 @@ def data_models() -> dict[str, ModelChoice | str]:
     full = data_path("merl", "merl100_f16.npz", required=False)
     table = full or data_path("merl", "merl_nbrdf_sample_f16.npz", required=False)
     if table is None:
-        out["merl"] = "needs a MERL table merl/merl100_f16.npz (see data/merl/README.md): not found"
+        out["merl"] = "needs a MERL table merl/merl100_f16.npz in the data folder (see getting started): not found"
     else:
         names = tuple(load_merl_table(table).names)
         spec = ParamSpec("material", "choice", 0.0, 0.0, names[0], names)

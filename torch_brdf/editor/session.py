@@ -7,8 +7,10 @@ application (:mod:`torch_brdf.editor.app`) and the tests drive the same session.
 
 Projection at interactive rates. :func:`torch_brdf.brdf.project` is the float64
 cosine-weighted least squares on a ~410k-pair quadrature (about a second per call on two
-shared cores). The session keeps a :class:`~torch_brdf.brdf.Projector` per object (the
-quadrature, memberships and factorised normal matrix made once) on a coarser rule
+shared cores). The session gives each object the renderer's
+:class:`~torch_brdf.render.material.MaterialProjector` (the same exact cases and Fresnel split)
+with a :class:`~torch_brdf.brdf.Projector` (the quadrature, memberships and factorised normal
+matrix made once) on a coarser rule
 (:data:`FAST_QUADRATURE`, ~10k pairs; the :math:`\theta_h` cells keep the band edges, so band
 boxes are still integrated cell-exactly), so an edit evaluates the BRDF on the stored pairs and
 solves a factorised J x J system per channel. The coarse rule's difference from
@@ -21,7 +23,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -30,12 +31,13 @@ from typing import Any
 
 import torch
 
-from ..brdf import BRDF, Factored1D, Lambert, Projector, create
+from ..brdf import BRDF, create
 from ..errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError
 from ..metrics import relative_rmse
 from ..records import PolynomialTensors
 from ..render import PolynomialRenderer
-from ..render.polynomial import emitter_mask
+from ..render.material import MaterialProjector
+from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
 from ..transport import path_trace, precompute_polynomial
 
@@ -195,7 +197,10 @@ def load_source(
             ``cache_dir`` where an earlier run with the same settings left them).
         scene: the scene of a tensors file (default: the built-in scene named in the file's
             settings, if there is one; else no scene: no reference, ids from the tensors).
-        resolution, series, spp, seed: precomputation settings for a scene.
+        resolution: precomputation settings for a scene.
+        series: as ``resolution``.
+        spp: as ``resolution``.
+        seed: as ``resolution``.
         progress: tqdm bar of the precomputation.
     Returns:
         (tensors, scene or None, note): ``note`` says where the tensors came from.
@@ -266,14 +271,23 @@ class EditorSession:
         self.materials = {n: mats.get(n, {"type": "lambert", "albedo": 0.5}) for n in self.editable}
         self.f0: dict[str, Any] = {n: None for n in self.editable}
         self.renderer = PolynomialRenderer(tensors, self.materials)
+        #: objects whose base-colour texture modulates the frame (Sec. 5.3 weight maps)
+        self.textured = apply_scene_textures(self.renderer, scene) if scene is not None else []
         self.ids, self.ids_source = object_id_buffer(tensors, scene)
         self.mask = emitter_mask(tensors)
         self.selected: str | None = None
-        self._projectors: dict[tuple[str, bool], Projector] = {}
+        self._projectors: dict[str, MaterialProjector] = {}
         self.projected: dict[str, torch.Tensor] = {}  # obj -> (J, 3) last projected curve
-        self._band_bases: dict[str, Any] = {}
+        self._base_textures: dict[str, Any] = {}  # obj -> the texture before its tint
         self.last_frame_s = 0.0
         self.last_set_s = 0.0
+        # undo/redo of material edits: (object, snapshot before the edit); snapshots keep the
+        # coefficients too, so that undo and A/B give back the very same image
+        self._undo: list[tuple[str, tuple]] = []
+        self._redo: list[tuple[str, tuple]] = []
+        # the A/B toggle compares the current edit with the last saved (or opened) materials
+        self.saved = {n: self._snapshot(n) for n in self.editable}
+        self._ab_stash: dict[str, tuple] | None = None
 
     # -- selection ----------------------------------------------------------------------------
     @property
@@ -309,9 +323,7 @@ class EditorSession:
     def band_basis(self, obj: str):
         """The object's :class:`~torch_brdf.brdf.BandBasis` (made once: its lobe-spaced edges
         take ~7 ms to compute, a tenth of an edit's budget)."""
-        if obj not in self._band_bases:
-            self._band_bases[obj] = self.basis(obj).band_basis()
-        return self._band_bases[obj]
+        return self.projector(obj).bands
 
     def band_material(self, obj: str, coefficients=None, model: str = "factored_1d") -> dict[str, Any]:
         """A ``factored_1d`` (or ``factored_1d_fresnel``) material dict on ``obj``'s own bands
@@ -335,19 +347,17 @@ class EditorSession:
         return bool(self.basis(obj).fresnel)
 
     # -- materials ----------------------------------------------------------------------------
+    def projector(self, obj: str) -> MaterialProjector:
+        """The object's :class:`~torch_brdf.render.material.MaterialProjector` on the coarse rule
+        :data:`FAST_QUADRATURE` (float64 constants; made once per object)."""
+        if obj not in self._projectors:
+            self._projectors[obj] = MaterialProjector(self.basis(obj), FAST_QUADRATURE, graph=False)
+        return self._projectors[obj]
+
     def coefficients(self, obj: str, brdf: BRDF) -> torch.Tensor:
-        """The object's eye-vertex coefficients (J, 3) for ``brdf`` (fast projection; Lambert
+        """The object's eye-vertex curve (J, 3) for ``brdf`` (fast projection; Lambert
         on a one-band constant quotient exactly, as the renderer does)."""
-        b = self.basis(obj)
-        if type(brdf) is Lambert and b.quotient == "one":
-            return (brdf.reflectance.detach().double() / math.pi).reshape(1, 3).expand(b.J, 3)
-        basis = self.band_basis(obj)
-        if type(brdf) is Factored1D and torch.equal(brdf.basis.edges, basis.edges) and brdf.quotient.key == b.quotient:
-            return brdf.coefficients.detach().double()  # a curve on these bands is used as is
-        key = (obj, bool(brdf.anisotropic))
-        if key not in self._projectors:
-            self._projectors[key] = Projector(basis, b.quotient, brdf.anisotropic, **FAST_QUADRATURE)
-        return self._projectors[key](brdf)
+        return self.projector(obj).curve(brdf)
 
     def set_material(self, obj: str, material: dict[str, Any], f0=None) -> float:
         """Give ``obj`` a material dict (validated by the model itself); returns the seconds spent.
@@ -359,24 +369,163 @@ class EditorSession:
         """
         if obj not in self.editable:
             self.select(obj)  # raises the readable error
-        t0 = time.perf_counter()
-        brdf = checked_create(material)
-        b = self.basis(obj)
-        base = self.coefficients(obj, brdf)
-        if b.fresnel:
-            f = torch.as_tensor(1.0 if f0 is None else f0, dtype=torch.float64).reshape(-1).expand(3)
-            if bool(((f < 0) | (f > 1)).any()) or not bool(torch.isfinite(f).all()):
-                raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
-            c = torch.cat([base * f, base * (1 - f)], 0)
-        elif f0 is not None:
-            raise ValueRangeError(f"{obj!r} was precomputed without a Fresnel layer: f0 cannot be edited")
+        before = self._snapshot(obj)
+        self._set(obj, material, f0)
+        if self._ab_stash is not None:  # an edit while B is shown continues from B
+            self._ab_stash = None
+        self._undo.append((obj, before))
+        self._redo.clear()
+        return self.last_set_s
+
+    def _snapshot(self, obj: str) -> tuple:
+        """(material, f0, c, c_hat, d, projected curve) of ``obj`` as they are now."""
+        m = self.tensors.object_id(obj)
+        r = self.renderer
+        return (dict(self.materials[obj]), self.f0[obj], r.c[m], r.c_hat[m], r.d[m], self.projected.get(obj))
+
+    def _restore(self, obj: str, snap: tuple) -> None:
+        material, f0, c, c_hat, d, projected = snap
+        self.renderer.set_coefficients(obj, c, d, c_hat)
+        self.materials[obj], self.f0[obj] = dict(material), f0
+        if projected is None:
+            self.projected.pop(obj, None)
         else:
-            c = base
+            self.projected[obj] = projected
+        if self.selected is not None and self.renderer.frozen_object is None:
+            self.select(self.selected)
+
+    def _set(self, obj: str, material: dict[str, Any], f0=None) -> None:
+        t0 = time.perf_counter()
+        c, base = self.projector(obj)(checked_create(material), f0, obj)
         self.renderer.set_coefficients(obj, c)
         self.materials[obj], self.f0[obj] = dict(material), f0
         self.projected[obj] = base
         if self.selected is not None and self.renderer.frozen_object is None:
             self.select(self.selected)  # another object's constants changed: freeze again
+        self.last_set_s = time.perf_counter() - t0
+
+    # -- undo, redo, A/B, save, export ---------------------------------------------------------
+    def undo(self) -> str | None:
+        """Undo the last material edit; returns the object it changed (None: nothing to undo)."""
+        return self._step(self._undo, self._redo)
+
+    def redo(self) -> str | None:
+        """Redo the last undone edit; returns the object it changed (None: nothing to redo)."""
+        return self._step(self._redo, self._undo)
+
+    def _step(self, src: list, dst: list) -> str | None:
+        if not src:
+            return None
+        self._ab_stash = None
+        obj, snap = src.pop()
+        dst.append((obj, self._snapshot(obj)))
+        self._restore(obj, snap)
+        return obj
+
+    @property
+    def showing_saved(self) -> bool:
+        """True while the A/B toggle shows the saved materials (B)."""
+        return self._ab_stash is not None
+
+    def toggle_ab(self) -> bool:
+        """Switch between the current edit (A) and the saved materials (B); returns
+        :attr:`showing_saved`. Coefficients are restored as they were (the same images)."""
+        if self._ab_stash is None:
+            stash = {n: self._snapshot(n) for n in self.editable}
+            target = self.saved
+        else:
+            stash, target = None, self._ab_stash
+        for n, snap in target.items():
+            if snap[:2] != (self.materials[n], self.f0[n]):
+                self._restore(n, snap)
+        self._ab_stash = stash
+        return self.showing_saved
+
+    def edited_scene(self):
+        """The scene with each object's current material (edited objects get a material key of
+        their own; objects that shared it keep the old one), at the tensors' image size.
+
+        Raises:
+            SceneError: a session opened from tensors alone (no scene to save).
+        """
+
+        from ..scene import Scene
+
+        if self.scene is None:
+            raise SceneError("this session has no scene (tensors alone): nothing to save")
+        table = {k: dict(v) for k, v in self.scene.materials.items()}
+        objects = []
+        for o in self.scene.objects:
+            if o.name in self.materials and self.materials[o.name] != table.get(o.material):
+                key = o.name if o.name not in table else f"{o.name}_edited"
+                table[key] = dict(self.materials[o.name])
+                o = dataclasses.replace(o, material=key)
+            objects.append(o)
+        sc = Scene(objects, table, self.scene.lights, self.scene.camera, name=self.scene.name)
+        return sc.with_resolution(self.tensors.width, self.tensors.height)
+
+    def save(self, path) -> Any:
+        """Save the scene with the current materials as a TOML scene file (see
+        :func:`torch_brdf.export.scene_file.save_scene_toml`); they become the saved (B)
+        materials. Returns the path written."""
+        from ..export.scene_file import save_scene_toml
+
+        if self._ab_stash is not None:
+            self.toggle_ab()  # save the edit, not the saved materials on show
+        out = save_scene_toml(self.edited_scene(), path)
+        self.saved = {n: self._snapshot(n) for n in self.editable}
+        return out
+
+    def export(self, obj: str, path, fmt: str | None = None, tolerance: float | None = None):
+        """Export ``obj``'s current material (:func:`torch_brdf.export.export_material`)."""
+        from ..export import export_material
+
+        if obj not in self.materials:
+            raise SceneError(f"unknown or fixed object {obj!r}; editable: {self.editable}")
+        return export_material(self.materials[obj], path, fmt, tolerance, name=obj)
+
+    def set_texture(self, obj: str, image=None, tint=None) -> float:
+        """Swap ``obj``'s base-colour texture for ``image`` and/or multiply it by ``tint`` at run
+        time (Ben-Artzi et al. 2008, Fig. 1: retexturing the floor); returns the seconds spent.
+
+        Args:
+            obj: an editable, textured object of the session's scene.
+            image: a :class:`~torch_brdf.scene.textures.Texture`, an (H, W, 3) linear image or an
+                image file (PNG/JPEG decoded from sRGB, EXR, .hdr); None keeps the current one.
+            tint: RGB (3 values or one) multiplying the texture; None: no tint.
+        Raises:
+            SceneError: no scene, an unknown, fixed or untextured object, or a bad image.
+        """
+        from ..scene.textures import Texture, read_texture
+
+        if self.scene is None:
+            raise SceneError("set_texture needs the session's scene (EditorSession(tensors, scene))")
+        if obj not in self.editable:
+            self.select(obj)  # raises the readable error
+        i = self.scene.object_id(obj)
+        o = self.scene.objects[i]
+        if "base_color" not in o.textures:
+            raise SceneError(f"object {obj!r} has no texture to change; textured: {self.textured}")
+        t0 = time.perf_counter()
+        if image is None:
+            tex = self._base_textures.get(obj, o.textures["base_color"])
+        elif isinstance(image, Texture):
+            tex = image
+        elif isinstance(image, (str, Path)):
+            tex = read_texture(image)
+        else:
+            tex = Texture(torch.as_tensor(image), "image")
+        self._base_textures[obj] = tex
+        if tint is not None:
+            tex = tex.tinted(tint)
+        scene = copy.copy(self.scene)
+        scene.objects = list(self.scene.objects)
+        scene.objects[i] = dataclasses.replace(o, textures={**o.textures, "base_color": tex})
+        self.scene = scene
+        self.renderer.weight_maps.pop(self.tensors.object_id(obj), None)
+        self.textured = apply_scene_textures(self.renderer, scene)
+        if self.selected is not None:
+            self.select(self.selected)
         self.last_set_s = time.perf_counter() - t0
         return self.last_set_s
 

@@ -127,8 +127,9 @@ def design(
         config: :class:`DesignConfig`.
         out: output folder.
         display_size: (width, height) of the stroke coordinates (default the camera's).
-        executor, address: where the tiles of the visibility and transfer functions run
+        executor: where the tiles of the visibility and transfer functions run
             (``"local"`` or ``"ray"``, :func:`~torch_brdf.inverse.transfer.precompute_transfer`).
+        address: the Ray cluster's address (``executor="ray"``).
     Returns:
         A JSON-serialisable summary (pixels, objective, violation, iterations, timings, files).
     """

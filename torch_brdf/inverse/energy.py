@@ -99,7 +99,8 @@ def energy_rows(
         basis: the SRBFs (default :class:`SRBFBasis`: 147 lobes).
         directions: (N_l, 3) local unit outgoing directions with :math:`z > 0` (default the 192
             of :func:`outgoing_directions`).
-        n_theta, n_phi: Gauss-Legendre nodes in :math:`\theta_h` and :math:`\phi_h`.
+        n_theta: Gauss-Legendre nodes in :math:`\theta_h` and :math:`\phi_h`.
+        n_phi: as ``n_theta``.
     Returns:
         :class:`EnergyRows` with (N_l, J) float64 tables.
     """

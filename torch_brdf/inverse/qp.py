@@ -23,8 +23,8 @@ leaves ~1e-11 of the target energy; so it is then *polished*: the active set it 
 point is kept when its KKT conditions verify, it is feasible to 1e-12 and not worse.
 
 ``"admm"``: the fit "as a torch optimisation with projected constraints on the small normal
-equations" (issue #7; the design card: "the constrained inverse fits are autograd
-optimisations with projected constraints"), written as OSQP's ADMM (Stellato et al., "OSQP: an
+equations" ("the constrained inverse fits are autograd optimisations with projected
+constraints"), written as OSQP's ADMM (Stellato et al., "OSQP: an
 operator splitting solver for quadratic programs", Math. Prog. Comp. 12, 2020). The
 constraints are stacked as :math:`l \le Ax \le u` with :math:`A = [G; I]`,
 :math:`l = [-\infty; 0]`, :math:`u = [h; +\infty]`. Each iteration solves
@@ -52,7 +52,7 @@ Why the interior point method is the default: on the tests' set of fit QPs
 (``tests/inverse/qp_set.py``: partial masks, zero-residual targets, rank-deficient H, an
 out-of-family target, rho_d -> 1) it solves every problem to the reference optimum, in a
 fixed ~15-25 iterations; ADMM needs 50-3600 iterations and fails on two of them without the
-fallback. Timings and success counts: ``benchmarks/inverse.py`` (and the README).
+fallback. Timings and success counts: ``benchmarks/inverse.py`` (and the inverse-design guide).
 
 Before the interior point method, the default first tries an *active-set* solve
 (:func:`_active_set_first`): the polishing step below started from every bound active (x = 0),
@@ -77,9 +77,9 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .._threads import single_thread
 from ..errors import InfeasibleError, NumericalError, ShapeError, ValueRangeError
 from ..linalg import cholesky_jitter
+from ..parallel.threads import single_thread
 
 __all__ = ["QPResult", "solve_qp"]
 

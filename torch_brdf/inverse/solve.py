@@ -44,9 +44,9 @@ from dataclasses import dataclass
 import torch
 
 from .._checks import check_finite
-from .._threads import single_thread
 from ..brdf.srbf import SRBFBasis
 from ..errors import InfeasibleError, ShapeError, ValueRangeError
+from ..parallel.threads import single_thread
 from ..records.basis_image import BasisImage
 from ..records.fits import FitResult
 from ._util import f64

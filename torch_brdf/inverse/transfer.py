@@ -37,7 +37,7 @@ not the ray casts.
 
 Tiles: :func:`precompute_transfer` casts the visibility and sums the transfer functions of
 an object's pixels in tiles of consecutive pixels, through the tile executor shared with the
-other precomputations (:func:`~torch_brdf.transport.executor.run_tiles`: ``local`` or
+other precomputations (:func:`~torch_brdf.parallel.tiles.run_tiles`: ``local`` or
 ``ray``); a tile is a pure function of (scene, pixels, samples, settings, tile index), so the
 record is the same bit for bit whichever executor ran it.
 
@@ -64,13 +64,13 @@ from ..brdf.srbf import SRBFBasis
 from ..data import progress_default
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import Frame, half_terms
+from ..parallel.tiles import TileWork, run_tiles
 from ..records.basis_image import BasisImage
 from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..scene.camera import Camera
 from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.lights import LightSamples, luminance
 from ..scene.scene import Scene
-from ..transport.executor import TileWork, run_tiles
 from .energy import default_basis
 
 __all__ = [
@@ -376,12 +376,20 @@ def precompute_transfer(
     of ``px`` in tiles of ``tile_pixels`` pixels, through the tile executor.
 
     Args:
-        scene, px, samples, basis, f0, cuts, meta: as :func:`cosine_visibility` and :func:`transfer_functions`.
+        scene: as :func:`cosine_visibility` and :func:`transfer_functions`.
+        px: as ``scene``.
+        samples: as ``scene``.
+        basis: as ``scene``.
+        f0: as ``scene``.
+        cuts: as ``scene``.
+        meta: as ``scene``.
         tile_pixels: pixels per tile (the unit of work, of checkpointing and of a Ray task).
         checkpoint: folder for finished tiles (resumed from; removed on success), or None.
         progress: tqdm bar over finished tiles.
-        executor, address, max_retries: ``"local"`` or ``"ray"``, see
-            :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
+        executor: ``"local"`` or ``"ray"``, see
+            :func:`~torch_brdf.parallel.tiles.run_tiles`; the record is the same bit for bit.
+        address: as ``executor``.
+        max_retries: as ``executor``.
     Returns:
         :class:`BasisImage` as :func:`transfer_functions` (values (3, J + 1, P)); ``meta["seconds"]``
         sums the tiles' transfer seconds, ``meta["executor"]`` names the executor.

@@ -15,8 +15,7 @@ are the RGB BRDF in 1/sr; negative values mark bins without a measurement.
 kept negative (scaling by a positive factor keeps the sign); ``table < 0`` is the mask.
 One array instead of (values, mask) keeps the file's own convention and costs nothing.
 
-**Angle -> index** (MERL's lookup, ``BRDFRead.cpp``; the README of the shared data is the
-reference for the exact arithmetic):
+**Angle -> index** (MERL's lookup, ``BRDFRead.cpp``, whose arithmetic this follows exactly):
 
 * :math:`i_h = \lfloor \sqrt{\theta_h / (\pi/2)} \cdot 90 \rfloor` (0 for
   :math:`\theta_h \le 0`), clamped to 0..89 (square-root spacing: fine bins near the
@@ -97,7 +96,9 @@ def merl_coordinates(
     exact bins are :func:`merl_indices`); integer values sit on the lower bin edges.
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) angles in radians (broadcastable).
+        theta_h: (*B,) angles in radians (broadcastable with the others).
+        theta_d: (*B,) angles in radians.
+        phi_d: (*B,) angles in radians.
     Returns:
         u_h, u_d, u_p: (*B,) each.
     """
@@ -214,7 +215,9 @@ def merl_indices(
     """The three MERL bin indices of half/difference angles (see the module docstring).
 
     Args:
-        theta_h, theta_d, phi_d: (*B,) radians.
+        theta_h: (*B,) radians.
+        theta_d: as ``theta_h``.
+        phi_d: as ``theta_h``.
     Returns:
         i_h, i_d, i_p: (*B,) int64 each.
     """
@@ -229,7 +232,7 @@ def merl_flat_index(i_h: torch.Tensor, i_d: torch.Tensor, i_p: torch.Tensor) -> 
 def merl_index_to_angles(
     i_h, i_d, i_p, at: Literal["lower", "centre"] = "lower", dtype: torch.dtype = torch.float64
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    r"""Angles of MERL bins: their lower edges (the README's index -> angle map, used for the
+    r"""Angles of MERL bins: their lower edges (the index -> angle map used for the
     ``theta_h``, ``theta_d``, ``phi_d`` arrays of the npz layout) or their centres.
 
     With :math:`t = i` (lower) or :math:`t = i + 1/2` (centre):
@@ -239,8 +242,10 @@ def merl_index_to_angles(
     robust way to address a bin (:func:`merl_indices` of a centre is the bin itself).
 
     Args:
-        i_h, i_d, i_p: (*B,) integer indices (tensors, arrays or sequences; any may be
+        i_h: (*B,) integer indices (tensors, arrays or sequences; any may be
             fractional too).
+        i_d: as ``i_h``.
+        i_p: as ``i_h``.
         at: ``"lower"`` or ``"centre"``.
         dtype: floating dtype of the result.
     Returns:
@@ -505,7 +510,9 @@ def write_merl_table(
         path: destination ``.npz``; its folder must exist.
         brdf: (N, 3, Th, Td, Tp) tensor or array, scale applied.
         names: N unique material names.
-        theta_h_index, theta_d_index, phi_d_index: the kept MERL bin indices (Th,), (Td,), (Tp,).
+        theta_h_index: the kept MERL bin indices (Th,), (Td,), (Tp,).
+        theta_d_index: as ``theta_h_index``.
+        phi_d_index: as ``theta_h_index``.
         source: ``"merl-binary"`` or ``"nbrdf"``.
     Returns:
         The path written (readable by :func:`load_merl_table`).

@@ -13,7 +13,7 @@ manifold (:class:`~torch_brdf.errors.ValueRangeError`); use :meth:`~torch_brdf.m
 for partially observed BRDFs.
 
 **Sources.** :func:`nbrdf_observations` tabulates the NBRDF networks (an *approximation* of
-MERL, see ``../shared/data/merl/README.md``) through
+MERL; see the data section of ``docs/getting-started.md``) through
 :func:`torch_brdf.brdf.measured.tabulate_nbrdf`, with a resumable, checksummed cache;
 :func:`binary_observations` reads real ``.binary`` files through the same selection, and
 :func:`binary_column_blocks` streams the full grid from memory-mapped ``.binary`` files in
@@ -40,13 +40,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._threads import single_thread
 from ..data import progress_default
 from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import half_diff_to_directions
 from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angles
 from ..metrics import cosine_weighted_rmse as cosine_weighted_rmse  # re-exported
 from ..metrics import log_relative_rmse as log_relative_rmse  # re-exported
+from ..parallel.threads import single_thread
 from ..records.cache import ArraySpec, CacheSchema, Checkpoint, MetaSpec
 
 OBS_KIND = "merl-observations"

@@ -84,9 +84,9 @@ def _signed_logmap(v: torch.Tensor, c: torch.Tensor, eps: float = 1e-3, negative
 
 #: placement error options of :func:`project_perceptual`
 NEGATIVES = ("penalise", "free")
-#: default factor on mapped negative values in the placement (issue #20, second pass: 1 left
-#: held-out reconstructions with more negative values than PCA's on the family hold-outs; chosen
-#: after seeing the quick-grid hold-outs, README "BRDF manifold")
+#: default factor on mapped negative values in the placement (a factor of 1 left held-out
+#: reconstructions with more negative values than PCA's on the family hold-outs; chosen after
+#: seeing the quick-grid hold-outs, see the manifold guide)
 NEGATIVE_WEIGHT = 100.0
 
 
@@ -112,7 +112,7 @@ def project_perceptual(
       times as far below zero as their magnitude lands above it,
       :math:`m(v) = \operatorname{sign}(v)\log(1 + |v|\cos/\epsilon)` (times the weight where :math:`v < 0`)
       (the same error for non-negative values; :func:`_signed_logmap`), so among points that fit
-      equally well the search prefers one without negative values (issue #20: held-out
+      equally well the search prefers one without negative values (without it, held-out
       reconstructions were more often negative than PCA's). It is never smaller than the clamped
       error the results are scored with.
     * ``negatives="free"``: the clamped mapping (a negative value costs what 0 costs), searched on
@@ -124,15 +124,15 @@ def project_perceptual(
     columns (every k-th, evenly spread over the grid and the colour channels): its cost is
     :math:`O(N \cdot \text{columns})` per evaluation, 8x fewer columns on the full MERL grid
     (d = 63,339): a placement there took half the CPU time (the exact scoring of the candidates
-    stays O(N d)) with the same log-RMSE to 4 digits (README, "BRDF manifold").
+    stays O(N d)) with the same log-RMSE to 4 digits (``benchmarks/manifold.py``).
 
     Args:
         model: a fitted :class:`GPLVM`. z_train: (N, d) its raw rows. z_new: (d,) the new BRDF.
         cosine: (B,) or (d,) clipped cosine map. starts: starting points. max_iter: per start.
         negatives: ``"penalise"`` or ``"free"`` (above).
         negative_weight: with ``"penalise"``, the factor (>= 1) on the mapped negative values: a
-            larger weight trades a little log-RMSE for fewer negative values (default 100; README,
-            "BRDF manifold"). Near a training latent the smooth mean's weights are
+            larger weight trades a little log-RMSE for fewer negative values (default 100;
+            ``benchmarks/manifold.py``). Near a training latent the smooth mean's weights are
             :math:`e_j - \mu K^{-1} e_j`, with entries of both signs: the source of the negatives.
         max_columns: columns the L-BFGS search evaluates (None = all).
         train_map: optional (N, d) :func:`_logmap` of ``z_train`` (computed when None; pass it
@@ -233,8 +233,10 @@ def heldout_reconstruction(
         starts: starting points of the projection. fit_kwargs: passed to :func:`fit_gplvm`.
         continuous: predict with the smooth GP mean (:class:`GPLVM` ``continuous=True``).
         metric: ``"log"`` or ``"weighted"`` (see above).
-        negatives, negative_weight, max_columns: how :func:`project_perceptual` treats negative
+        negatives: how :func:`project_perceptual` treats negative
             predicted values and how many columns its search evaluates (``metric="log"`` only).
+        negative_weight: as ``negatives``.
+        max_columns: as ``negatives``.
     """
     if metric not in ("log", "weighted"):
         raise ValueRangeError(f"metric must be 'log' or 'weighted'; got {metric!r}")

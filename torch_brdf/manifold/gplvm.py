@@ -45,9 +45,9 @@ import torch
 from scipy.linalg import lapack
 from tqdm.auto import tqdm
 
-from .._threads import single_thread
 from ..data import progress_default
 from ..errors import NumericalError, ShapeError, ValueRangeError
+from ..parallel.threads import single_thread
 from ..records.fits import GPLVMFit
 from .kernel import JITTER_CAP, JITTER_FLOOR, JitterWarning, cholesky_jitter, cross_kernel, kernel_matrix, se_kernel
 from .linesearch import strong_wolfe
@@ -55,7 +55,7 @@ from .linesearch import strong_wolfe
 FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
 #: the default warm-up mu of :func:`fit_gplvm`: fits at a mu 100x smaller or less start there (chosen
-#: among 1e-6 ... 1e-4 on the MERL budget map of the README, "BRDF manifold": a selection, not a law)
+#: among 1e-6 ... 1e-4 on a MERL budget map of ``benchmarks/manifold.py``: a selection, not a law)
 WARMUP_MU = 3e-6
 #: the warm-up runs only when the fit's mu is at most this fraction of ``warmup_mu``
 WARMUP_RATIO = 1e-2
@@ -137,7 +137,8 @@ def log_likelihood(
 
     Args:
         x: (N, Q) latents. s: (N, N) Gram matrix :math:`ZZ^\top`. d: columns of Z.
-        lengthscale, mu: kernel hyperparameters (Eq. 5).
+        lengthscale: kernel hyperparameters (Eq. 5).
+        mu: as ``lengthscale``.
     Returns:
         () float64; ``-inf`` when K is not positive definite at this ``mu`` (no jitter here).
     """
@@ -223,17 +224,20 @@ def fit_gplvm(
         s: (N, N) Gram matrix :math:`ZZ^\top` (from :func:`gram`, possibly cosine-weighted).
         d: number of columns of Z (the :math:`d/2\,\log|K|` factor).
         q: latent dimension (the seed uses 2..5).
-        lengthscale, mu: kernel hyperparameters (Eq. 5; seed: 1 and 1e-6).
+        lengthscale: kernel hyperparameters (Eq. 5; seed: 1 and 1e-6).
+        mu: as ``lengthscale``.
         method: ``"lbfgs"`` (exact gradient, strong-Wolfe line search, monotone), ``"adam"``
             (autograd, step halving on a decrease) or ``"hooke-jeeves"`` (the seed's direct search).
         max_iter: iterations (L-BFGS/Adam steps; Hooke–Jeeves sweeps over all coordinates).
-        tol, tol_window: stop when the last ``tol_window`` iterations together improved L by less
+        tol: stop when the last ``tol_window`` iterations together improved L by less
             than ``tol * |L|`` (``tol_window > 1``: L-BFGS only; on this multimodal objective single
             iterations can gain little just before a larger gain, so a window is the safer test).
+        tol_window: as ``tol``.
         init: (N, q) starting latents (default :func:`pca_latents`).
         normalise: divide S by :math:`\operatorname{tr}(S)/(Nd)` (unit mean square entries).
-        jitter_floor, jitter_cap: Cholesky jitter escalation (x10 steps) when :math:`K` is not
+        jitter_floor: Cholesky jitter escalation (x10 steps) when :math:`K` is not
             positive definite at ``mu``; the jitter used is in the result and warned about.
+        jitter_cap: as ``jitter_floor``.
         lr: Adam learning rate / initial Hooke–Jeeves step (in latent units).
         autograd: L-BFGS gradients by autograd through the Cholesky (:func:`log_likelihood`)
             instead of the closed form of :func:`log_likelihood_and_grad` (equal, tested; the
@@ -243,7 +247,7 @@ def fit_gplvm(
             seeded perturbation (1e-6 of the latent spread); None = ``torch.default_generator``.
         progress: tqdm bar over iterations.
         callback: called as ``callback(iteration, loglik)`` after every accepted iteration.
-        warmup_mu, warmup_fraction: continuation in :math:`\mu` (L-BFGS only): when ``mu`` is
+        warmup_mu: continuation in :math:`\mu` (L-BFGS only): when ``mu`` is
             at most ``warmup_mu / 100``, the first ``warmup_fraction`` of ``max_iter`` iterations maximise
             L at ``warmup_mu`` (a better conditioned K), the rest at ``mu`` from there. The
             recorded ``loglik`` is that of the final ``mu`` only (non-decreasing);
@@ -252,7 +256,8 @@ def fit_gplvm(
             start has a hugely negative L (near-coincident latents make K nearly singular) and
             the warm-up reached a higher final L than strong-Wolfe L-BFGS from the PCA start on the
             MERL data at budgets of 150 to 1000 iterations, not at 60 or 100 (both need ~60
-            iterations to leave the start's region; README, "BRDF manifold").
+            iterations to leave the start's region; ``benchmarks/manifold.py``).
+        warmup_fraction: as ``warmup_mu``.
     Returns:
         :class:`GPLVMFit`.
     Raises:

@@ -76,9 +76,11 @@ def strong_wolfe(
     Args:
         phi: ``phi(t) -> (value, slope, payload)``: :math:`\phi(t)`, :math:`\phi'(t)` and anything
             the caller wants back for the accepted step (e.g. the gradient vector).
-        value0, slope0: :math:`\phi(0)` and :math:`\phi'(0) < 0`.
+        value0: :math:`\phi(0)`.
+        slope0: :math:`\phi'(0) < 0`.
         step: first trial step (> 0).
-        c1, c2: the Wolfe constants, 0 < c1 < c2 < 1.
+        c1: the sufficient-decrease (Armijo) constant, 0 < c1 < c2.
+        c2: the curvature constant, c1 < c2 < 1.
         max_evaluations: budget of ``phi`` calls.
         min_width: stop shrinking when the bracket is narrower than this (relative to its end).
     Returns:

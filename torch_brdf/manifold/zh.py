@@ -1,6 +1,7 @@
 r"""Real spherical harmonics, rotated zonal harmonics, and ZH shading of interpolated BRDFs.
 
-Our own tested convention (not scipy's ``sph_harm``/``sph_harm_y``; see ../shared/FACTS.md).
+Our own tested convention (not scipy's: 1.17 removed ``sph_harm``, and ``sph_harm_y`` orders its
+angles differently).
 For a unit vector :math:`\omega = (x, y, z)` with polar angle :math:`\theta` from :math:`+z`
 and azimuth :math:`\phi = \operatorname{atan2}(y, x)`:
 
@@ -280,7 +281,8 @@ def zh_shade(
     interpolation of :math:`\mu` in :math:`\theta_o`; 0 where the view is below the horizon.
 
     Args:
-        normals, views: (P, 3) world normals and directions towards the eye.
+        normals: (P, 3) world normals and directions towards the eye.
+        views: as ``normals``.
         lam: (T, (L'+1)^2, 3) a material's (or a blend's) ZH vector, L' >= order.
         theta_o: (T,) its view bins. e_lm: ((L''+1)^2, 3) lighting SH, L'' >= order.
         order: L, the shading order (<= both).

@@ -1,4 +1,4 @@
-r"""The error-budget planner of BRDF editing with global illumination (issue #17).
+r"""The error-budget planner of BRDF editing with global illumination.
 
 Given a relative-RMSE budget :math:`e` (and optionally seconds), choose the settings of
 :func:`~torch_brdf.transport.polynomial.precompute_polynomial` that model only what the scene
@@ -464,7 +464,9 @@ def plan_from_pilots(
 
     Args:
         scene: the scene (with the plan's fixed objects already fixed).
-        bases, projection_errors, fixed: from :func:`planned_bases`.
+        bases: from :func:`planned_bases`.
+        projection_errors: as ``bases``.
+        fixed: as ``bases``.
         pilots: at least two records of the same series and bases, different seeds and (for
             the cost fit) at least two different spp; bounces >= the most the plan may
             choose; no second-bounce level; uniform spp.

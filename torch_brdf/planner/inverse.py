@@ -1,4 +1,4 @@
-r"""The error-budget planner of inverse BRDF design (issue #17): light samples S, SRBF count J
+r"""The error-budget planner of inverse BRDF design: light samples S, SRBF count J
 (hemicube resolution n, :math:`J = 3n^2`) and the visibility-cut tolerance for a fit-error target.
 
 The error is the relative RMSE, over the object's pixels, of the *design image* (the fitted
@@ -98,7 +98,8 @@ def plan_inverse(
         environment: the lighting the light samples come from.
         target: the painted target over ``px``'s pixels.
         error: budget on the design image's relative RMSE; seconds: budget on precompute + fit.
-        kd, f0: diffuse albedo and Schlick F0 of the design.
+        kd: diffuse albedo of the design.
+        f0: Schlick F0 of the design.
         light_samples: candidate S (powers of two: cuts need them).
         hemicube: candidate hemicube resolutions n (J = 3 n^2); the largest is the reference.
         tolerances: candidate cut tolerances (0: dense, no cuts).

@@ -1,4 +1,4 @@
-r"""The error-budget planner of the BRDF manifold (issue #17): the latent dimension q and the
+r"""The error-budget planner of the BRDF manifold: the latent dimension q and the
 number of training materials n for a held-out error target.
 
 The error is a statistic -- by default the *trimmed* one, the exponential of the mean of the
@@ -58,7 +58,7 @@ every plan's pool predicted above what was reached). The check's own side is che
 the analytic family makes as many held-out materials as asked, and ``benchmarks/planner.py``
 scores 240 (it scored 80 before: the two halves of 80 gave medians of 0.0081 and 0.0127 for one
 model) -- but the prediction's side is the pool's size: by the 1/sqrt(S) of a mean, 80 pool
-materials would bring its scatter to ~0.17. Measured (session 9, four family draws x 8 pool
+materials would bring its scatter to ~0.17. Measured (four family draws x 8 pool
 orders, ``benchmarks/planner.py --pool 80``, the fourth draw new): every one of the 32 plans
 within 1.5x both ways (0.78-1.29), RMS log ratio 0.05-0.17 per draw against 0.27 at 40; the
 plans choose smaller models (n 17 or 34, q 2-3), since the tighter interval lets a cheaper

@@ -1,4 +1,4 @@
-r"""The error-budget planner of all-frequency relighting (issue #17): cubemap resolution,
+r"""The error-budget planner of all-frequency relighting: cubemap resolution,
 graded-visibility bits (and supersampling) and the BRDF-sampling rule for a PSNR target.
 
 The error is :math:`e = \mathrm{RMSE} / \mathrm{peak}` of the per-vertex radiance of the

@@ -9,6 +9,7 @@ The floor between the producers (:mod:`torch_brdf.transport`, :mod:`torch_brdf.m
 - :class:`PolynomialTensors` (with :class:`Series`, :class:`ObjectBasis`, :class:`TermTable`,
   :class:`TensorBlock`): the multibounce tensors;
 - :class:`VertexVisibility` and :class:`BlockVisibility`: per-vertex differential visibility;
+- :class:`GuideBuffers`: a view's denoiser guides, saved with the multibounce tensors;
 - :class:`GPLVMFit`: a fitted BRDF manifold; :class:`FitResult`: an inverse-design SRBF fit.
 
 Every record derives from :class:`Record` (``kind``, ``version``, ``to_arrays``/``from_arrays``;
@@ -30,6 +31,7 @@ from .cache import (
 )
 from .codec import Member, Record, check_schema, load_record, save_record
 from .fits import FitResult, GPLVMFit
+from .guides import GuideBuffers
 from .polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock, TermTable
 from .visibility import SceneVertices, VertexVisibility, scene_vertices
 from .visibility_codec import BlockVisibility
@@ -43,6 +45,7 @@ __all__ = [
     "CorruptCacheWarning",
     "FitResult",
     "GPLVMFit",
+    "GuideBuffers",
     "Member",
     "MetaSpec",
     "ObjectBasis",

@@ -23,9 +23,9 @@ import torch
 from .._checks import MAX_BANDS, MAX_BOUNCES
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
-from ..scene.guides import GuideBuffers
 from .basis_image import BasisImage
 from .codec import Member, Record
+from .guides import GuideBuffers
 
 __all__ = ["TENSOR_KIND", "ObjectBasis", "PolynomialTensors", "Series", "TensorBlock", "TermTable"]
 
@@ -273,7 +273,7 @@ class PolynomialTensors(Record):
         terms: bounce -> :class:`TermTable`.
         blocks: the entries, per tile, eye object and bounce.
         meta: settings and statistics (spp, seed, mixture, rays cast, seconds).
-        guides: optional per-pixel :class:`~torch_brdf.scene.guides.GuideBuffers` of the view
+        guides: optional per-pixel :class:`~torch_brdf.records.guides.GuideBuffers` of the view
             (denoisers' guides; :func:`torch_brdf.denoise.guide_buffers`), saved with the file.
     """
 
@@ -299,7 +299,7 @@ class PolynomialTensors(Record):
         "b*_index": Member("iu", 1),
         "b*_pixels": Member("iu", 1),
         "b*_terms": Member("iu", 1),
-        # optional denoiser guides (scene.guides.GuideBuffers.to_arrays)
+        # optional denoiser guides (records.guides.GuideBuffers.to_arrays)
         "guide_meta": Member("f", 1, finite=True, required=False),
         "guide_*": Member("fiub", None, required=False),
     }

@@ -10,7 +10,7 @@
 from ..records.basis_image import BasisImage, float16_error
 from .fit import ImageFit, blinn_phong_family, fit_image, object_mask, paint_image
 from .manifold import blend, gi_blend_error, render_rows
-from .polynomial import PolynomialRenderer
+from .polynomial import PolynomialRenderer, apply_scene_textures
 from .record import BasisImageRenderer
 from .triple import TripleProductRenderer
 
@@ -20,6 +20,7 @@ __all__ = [
     "ImageFit",
     "PolynomialRenderer",
     "TripleProductRenderer",
+    "apply_scene_textures",
     "blend",
     "blinn_phong_family",
     "fit_image",

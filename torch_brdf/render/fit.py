@@ -1,4 +1,4 @@
-r"""Inverse material design with global illumination through the polynomial tensors (issue #16).
+r"""Inverse material design with global illumination through the polynomial tensors.
 
 With every other object's coefficients held, the image is a polynomial in the edited objects'
 band curves :math:`c_m` (Ben-Artzi et al. 2008, Eq. 26-28): the eye vertex is linear in

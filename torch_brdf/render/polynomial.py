@@ -15,12 +15,13 @@ a low-frequency second bounce, linear in :math:`\hat c_i`; the seed's :math:`F_{
 
 with :math:`g'_{(\varnothing, n)} = d_i^n` and :math:`g'_{(k, n)} = \hat c_{i,k} d_i^n`. ``F`` is
 stored ``(C, J, K'·P)`` with the coefficient axis first, so a frame is two batched matrix
-products that stream ``F`` once (../shared/FACTS.md: 16x faster than ``einsum('pjn,j->pn')``).
+products that stream ``F`` once (measured: 16x faster than ``einsum('pjn,j->pn')``).
 
 Materials: :meth:`PolynomialRenderer.set_material` accepts any BRDF of the library (or a
-scene material dict): ``c`` by cosine-weighted projection onto the object's bands
-(:func:`~torch_brdf.brdf.bands.project`; a :class:`~torch_brdf.brdf.bands.Factored1D` on the
-same bands is used as is, keeping gradients), ``d = (1/pi) sum_j c_j e_j`` (App. B, Eq. 37)
+scene material dict): ``c`` by :class:`~torch_brdf.render.material.MaterialProjector`
+(cosine-weighted projection onto the object's bands; a Lambert BRDF on a constant quotient
+exactly, a :class:`~torch_brdf.brdf.bands.Factored1D` on the same bands as is, both keeping
+gradients; the Fresnel layer's :math:`F_0` split), ``d = (1/pi) sum_j c_j e_j`` (App. B, Eq. 37)
 and the second-bounce ``c_hat`` by the albedo-weighted coarsening of Sec. 4.1. Everything is
 RGB and differentiable in ``c``, ``c_hat`` and ``d``.
 """
@@ -34,12 +35,13 @@ import torch
 from torch import nn
 
 from .._checks import as_float_tensor, check_finite
-from .._threads import tuned_method
-from ..brdf import BRDF, Lambert, create
-from ..brdf.bands import Factored1D, FresnelFactored1D, band_albedos, coarsen_coefficients, project
+from ..brdf import BRDF, create
+from ..brdf.bands import band_albedos, coarsen_coefficients
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..metrics import relative_rmse as relative_rmse  # re-exported; defined in torch_brdf.metrics
+from ..parallel.threads import tuned_method
 from ..records.polynomial import ObjectBasis, PolynomialTensors
+from .material import MaterialProjector
 
 
 def _term_factors(counts: torch.Tensor, d: torch.Tensor, skip: int | None = None) -> torch.Tensor:
@@ -73,7 +75,7 @@ class PolynomialRenderer(nn.Module):
         max_bounces: render only bounces 1..max_bounces (default all precomputed).
 
     ``threads``: torch threads of :meth:`freeze` and frozen frames; None (default) uses the
-    count measured fastest for their size (:func:`torch_brdf._threads.tuned`).
+    count measured fastest for their size (:func:`torch_brdf.parallel.threads.tuned`).
     """
 
     threads: int | None = None
@@ -108,6 +110,7 @@ class PolynomialRenderer(nn.Module):
         self.weight_maps: dict[int, torch.Tensor] = {}
         self._map_means: dict[int, torch.Tensor] = {}
         self._albedo_weights: dict[int, list[torch.Tensor]] = {}
+        self._projectors: dict[int, MaterialProjector] = {}
         self._frozen: dict[str, Any] | None = None
         materials = dict(materials or {})
         for k, b in enumerate(tensors.bases):
@@ -171,7 +174,7 @@ class PolynomialRenderer(nn.Module):
         Args:
             obj: object name or id.
             brdf: a :class:`~torch_brdf.brdf.BRDF` or ``{"type": ..., **params}``. A
-                :class:`Factored1D` on exactly this object's bands keeps its coefficients
+                :class:`Factored1D` on exactly this object's bands and quotient keeps its coefficients
                 (and their gradients); anything else is projected (float64, no gradient).
             f0: for objects precomputed with ``fresnel=True`` (App. A, Eq. 31-32): the
                 normal-incidence reflectance :math:`F_0` (scalar or RGB in [0, 1]) of the Schlick
@@ -188,31 +191,9 @@ class PolynomialRenderer(nn.Module):
             brdf = create(brdf)
         if not isinstance(brdf, BRDF):
             raise ShapeError(f"set_material expects a BRDF module or a material dict; got {type(brdf).__name__}")
-        basis = b.band_basis()
-        same = isinstance(brdf, Factored1D) and torch.equal(brdf.basis.edges, basis.edges)
-        if b.fresnel and isinstance(brdf, FresnelFactored1D) and same:
-            c = torch.cat([lay.coefficients for lay in brdf.layers()], 0)
-        else:
-            if same and type(brdf) is Factored1D:
-                base = brdf.coefficients
-            elif type(brdf) is Lambert and b.quotient == "one":
-                # exact: a constant projects onto box bands with a constant quotient as itself
-                base = (brdf.reflectance / math.pi).reshape(1, -1).expand(b.J, 3)
-            else:
-                base = project(brdf, basis, b.quotient)
-            if b.fresnel:
-                # Eq. 32: f1 = F f, f2 = (1 - F) f with the user's F0 (default 1: no Fresnel)
-                f = torch.as_tensor(1.0 if f0 is None else f0, dtype=base.dtype).reshape(-1).expand(3)
-                if bool(((f < 0) | (f > 1)).any()):
-                    raise ValueRangeError(f"f0 must lie in [0, 1]; got {f.tolist()}")
-                c = torch.cat([base * f, base * (1 - f)], 0)
-            else:
-                if f0 is not None:
-                    raise ValueRangeError(
-                        f"object {self.tensors.object_names[m]!r} was precomputed without a Fresnel layer; "
-                        "precompute with bases={name: {'fresnel': True}} to edit f0"
-                    )
-                c = base
+        if m not in self._projectors:
+            self._projectors[m] = MaterialProjector(b)
+        c, _ = self._projectors[m](brdf, f0, self.tensors.object_names[m])
         self.set_coefficients(m, c.detach() if from_dict else c)
 
     def set_coefficients(self, obj, c, d=None, c_hat=None) -> None:
@@ -252,10 +233,10 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is not None and self._frozen["object"] != m:
             self._frozen = None  # another object's constants changed: freeze again on demand
 
-    def set_weight_map(self, obj, weights) -> None:
+    def set_weight_map(self, obj, weights, mean=None) -> None:
         """Modulate the directly seen pixels of ``obj`` by a texture / weight map (H, W) or
-        (H, W, C); later bounces see the object's diffuse equivalent times the map's mean
-        over its pixels (Sec. 5.3)."""
+        (H, W, C); later bounces see the object's diffuse equivalent times ``mean`` (3 values;
+        default: the map's mean over the object's pixels) (Sec. 5.3)."""
         m = self.tensors.object_id(obj)
         w = as_float_tensor(weights, "weights").to(self.dtype)
         if w.ndim == 2:
@@ -266,6 +247,10 @@ class PolynomialRenderer(nn.Module):
         self.weight_maps[m] = w = w.reshape(-1, 3)
         pix = torch.cat([b.pixels for b in self.blocks if b.object_id == m] or [torch.zeros(0, dtype=torch.long)])
         self._map_means[m] = w[pix.unique()].mean(0) if pix.numel() else w.mean(0)
+        if mean is not None:
+            mean = as_float_tensor(mean, "mean").to(self.dtype).reshape(-1).expand(3)
+            check_finite(mean, "mean")
+            self._map_means[m] = mean.clone()
         self._frozen = None
 
     def _map_mean(self, m: int) -> torch.Tensor:
@@ -483,6 +468,41 @@ class PolynomialRenderer(nn.Module):
         if self._frozen is None:
             return 0
         return sum(self._frozen[k].numel() * self._frozen[k].element_size() for k in ("F", "V"))
+
+
+def apply_scene_textures(renderer: PolynomialRenderer, scene, samples: int = 16, seed: int = 0) -> list[str]:
+    r"""Give every textured editable object of ``scene`` its texture as the renderer's weight map
+    (Ben-Artzi et al. 2008, Sec. 5.3): the directly seen surface exactly (per pixel, the texel
+    averaged over ``samples`` jittered camera rays, :func:`~torch_brdf.scene.textures.texture_weight_map`),
+    later bounces the texture's surface mean (:func:`~torch_brdf.scene.textures.surface_mean`)
+    times the material's diffuse equivalent.
+
+    The texture multiplies the whole eye-vertex BRDF of the object, which is the base-colour
+    texture exactly for Lambert materials and an approximation for models whose base colour is
+    only part of the BRDF (``blinn_phong``: its specular lobe is scaled too).
+
+    Args:
+        renderer: a :class:`PolynomialRenderer` of tensors precomputed from ``scene``.
+        scene: the scene (any resolution: its camera is resized to the tensors').
+        samples, seed: of the weight maps.
+    Returns:
+        The names of the objects given a weight map.
+    """
+    from ..scene.textures import surface_mean, texture_weight_map
+
+    sc = scene.with_resolution(renderer.width, renderer.height)
+    names = set(renderer.tensors.object_names)
+    done = []
+    for k, o in enumerate(sc.objects):
+        if "base_color" not in o.textures or o.name not in names:
+            continue
+        m = renderer.tensors.object_id(o.name)
+        if renderer.tensors.bases[m] is None:
+            continue  # a fixed object: its BRDF is baked into the tensors with its factor
+        w = texture_weight_map(sc, o.name, samples, seed + k)
+        renderer.set_weight_map(o.name, w, mean=surface_mean(sc, o.name, seed=seed + k))
+        done.append(o.name)
+    return done
 
 
 def emitter_mask(tensors: PolynomialTensors, dilate: int = 1) -> torch.Tensor:

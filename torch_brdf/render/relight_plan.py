@@ -1,4 +1,4 @@
-r"""The relighting planner's pilots (issue #17): cubemap resolution, graded-visibility bits and
+r"""The relighting planner's pilots: cubemap resolution, graded-visibility bits and
 the BRDF-sampling rule for a PSNR target, measured on a sample of the seen vertices.
 
 The decision (the error metric, the cost model, the choice) is
@@ -115,7 +115,9 @@ def shade_vertices(
 
     Args:
         scene: the scene; ids: (m,) its vertex ids; eye: (3,) the viewpoint.
-        resolution, supersample, bits: the visibility's settings.
+        resolution: the visibility's cubemap resolution.
+        supersample: the visibility's supersampling.
+        bits: the visibility's bits.
         rules: rule names (:func:`make_rule`); None for the dense standard-basis product.
         lighting_samples: as :class:`~torch_brdf.render.triple.TripleProductRenderer`.
         fraction: (m, NB, S^2) the undecoded visibility if already cast at (resolution, supersample).

@@ -57,13 +57,13 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from .._threads import tuned_method
 from ..brdf.analytic import Phong
 from ..brdf.base import BRDF, Lambert, create
 from ..data import progress_default
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
 from ..metrics import psnr
+from ..parallel.threads import tuned_method
 from ..records.visibility import VertexVisibility
 from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
@@ -423,6 +423,27 @@ class View:
         return self.gbuffer.mask
 
 
+def _vertex_texels(scene, count: int) -> torch.Tensor:
+    r"""(V, 3) the base-colour texel at every scene vertex (1 where untextured), in the ray
+    tracer's vertex order (objects one after another).
+
+    Relighting shades vertices and interpolates their radiance across triangles, so a texture
+    enters as one texel per vertex: exact at the vertices for Lambert materials (radiance is
+    linear in the albedo; for other models the whole BRDF is scaled), blurred between them (a
+    texture finer than the mesh is lost; subdivide the mesh to keep it)."""
+    out = torch.ones(count, 3)
+    offset = 0
+    for o in scene.objects:
+        n = len(o.mesh.vertices)
+        tex = o.textures.get("base_color")
+        if tex is not None and offset + n <= count:
+            out[offset : offset + n] = tex.lookup(torch.as_tensor(o.uv))
+        offset += n
+    if offset != count:
+        raise SceneError(f"the visibility holds {count} vertices; the scene's objects {offset}")
+    return out
+
+
 class TripleProductRenderer(nn.Module):
     """Per-vertex relighting of a static scene with locally adaptive triple products.
 
@@ -436,7 +457,7 @@ class TripleProductRenderer(nn.Module):
         lighting_samples: k x k lat-long lookups averaged per cube texel.
 
     ``threads``: torch threads of :meth:`shade`; None (default) uses the count measured
-    fastest for the number of vertices (:func:`torch_brdf._threads.tuned`).
+    fastest for the number of vertices (:func:`torch_brdf.parallel.threads.tuned`).
     """
 
     threads: int | None = None
@@ -461,11 +482,17 @@ class TripleProductRenderer(nn.Module):
         self.register_buffer("positions", v.positions.to(torch.float64))
         self.register_buffer("normals", v.normals.to(torch.float64))
         self.register_buffer("object_ids", v.object_ids)
+        self.register_buffer("vertex_texels", _vertex_texels(scene, len(v.positions)))
         env = envmap if envmap is not None else scene.environment
         if env is None:
             raise SceneError(f"scene {scene.name!r} has no environment map; pass envmap=")
         self.set_lighting(env)
         self._bases = {l: dct_basis(self.geometry.block, l, dtype) for l in (2, 4)}
+
+    @property
+    def textured(self) -> bool:
+        """Whether some object has a base-colour texture (sampled per vertex by :meth:`image`)."""
+        return any("base_color" in o.textures for o in self.scene.objects)
 
     # -- state ----------------------------------------------------------------------------
     def set_lighting(self, envmap: EnvironmentMap) -> None:
@@ -516,6 +543,8 @@ class TripleProductRenderer(nn.Module):
         gb = view.gbuffer
         img = view.background.clone() if background else torch.zeros_like(view.background)
         rad = radiance.to(torch.float64)
+        if self.textured:  # per-vertex texture sampling: the texel at each vertex scales its radiance
+            rad = rad * self.vertex_texels[view.vertex_ids].to(torch.float64)
         img[gb.pixels] = (rad[gb.corners] * gb.weights[..., None]).sum(1).float()
         return img.view(gb.height, gb.width, -1)
 

@@ -1,11 +1,14 @@
-"""The speed/accuracy report (issue #17): every benchmark's trade in one page.
+"""The speed/accuracy report: every benchmark's trade in one page.
 
-:func:`make_report` runs the scripts in ``benchmarks/`` (or reads their saved JSON from a
-results folder), turns each capability's numbers into error-vs-cost figures
-(:mod:`.sections`) and writes ``report.html`` -- self-contained, figures embedded -- plus one
-PNG per figure (:mod:`.page`). ``torch-brdf report`` and ``python benchmarks/report.py`` call it.
+:func:`make_report` runs the benchmarks -- the modules of :mod:`.benchmarks`, shipped with the
+package (``benchmarks/<name>.py`` in the repository runs the same ones), or the scripts of a
+given folder -- (or reads their saved JSON from a results folder), turns each capability's
+numbers into error-vs-cost figures (:mod:`.sections`) and writes ``report.html`` -- self-
+contained, figures embedded -- plus one PNG per figure (:mod:`.page`). ``torch-brdf report``
+and ``python benchmarks/report.py`` call it.
 The numerical-extremes table is ``benchmarks/extremes.py``'s output, which evaluates the cases
-of ``tests/test_extremes.py``.
+of ``tests/test_extremes.py`` (so it needs a source checkout; elsewhere the page says it did not
+run).
 """
 
 from __future__ import annotations
@@ -44,14 +47,15 @@ def make_report(
             :func:`~torch_brdf.report.run.load_results`) instead of running anything; a benchmark
             missing there is run only if named in ``only``.
         only: run just these benchmarks (default all of :data:`BENCHMARKS`).
-        benchmarks: the ``benchmarks/`` folder (default ``./benchmarks`` or the checkout's).
+        benchmarks: a folder of benchmark scripts to run by path instead of the package's
+            modules (None, the default: :data:`~torch_brdf.report.run.PACKAGE`, no checkout needed).
         timeout: seconds allowed per benchmark (default 1800 quick, 14400 full).
         progress: tqdm bar over the benchmarks (default: on in a terminal).
     Returns:
         the path of ``report.html``.
     Raises:
         ValueRangeError: an unknown benchmark name in ``only``.
-        DataNotFoundError: no ``benchmarks/`` folder and benchmarks to run.
+        DataNotFoundError: ``benchmarks`` is not a folder of benchmark scripts.
         FileFormatError: ``results`` is not a folder of JSON.
         TorchBRDFError: matplotlib is not installed (the ``report`` extra).
     """
@@ -61,7 +65,7 @@ def make_report(
         raise TorchBRDFError("the report's figures need matplotlib: pip install 'torch_brdf[report]'") from exc
     out = Path(out_dir)
     names = list(only) if only else list(BENCHMARKS)
-    if not only and results is None:  # any script added to benchmarks/ since runs too
+    if not only and results is None and benchmarks is not None:  # any script added to the folder runs too
         names += [
             p.stem
             for p in sorted(find_benchmarks(benchmarks).glob("*.py"))
@@ -73,7 +77,7 @@ def make_report(
     recs = load_results(results) if results is not None else {}
     todo = names if results is None else [n for n in (only or ()) if n not in recs]
     if todo:
-        bench = find_benchmarks(benchmarks)
+        bench = None if benchmarks is None else find_benchmarks(benchmarks)
         limit = timeout if timeout is not None else (1800.0 if quick else 14400.0)
         bar = tqdm(todo, desc="benchmarks", unit="script", disable=not progress_default(progress))
         for name in bar:

@@ -1,7 +1,7 @@
 """The report page: PNG figures (matplotlib, Agg) and one self-contained HTML file.
 
 The HTML embeds every figure (base64 PNG) and links the PNG file written beside it, so the
-page can be mailed alone and the README can link the PNGs. Tables never show NaN: a value
+page can be mailed alone and the docs can link the PNGs. Tables never show NaN: a value
 that is missing reads "not measured", a non-finite one "not finite".
 """
 

@@ -1,6 +1,9 @@
-"""Running the benchmark scripts and keeping what they print (the report's input).
+"""Running the benchmarks and keeping what they print (the report's input).
 
-Each script in ``benchmarks/`` prints progress and then one JSON object as its LAST line. A
+Each benchmark, a module of :mod:`torch_brdf.report.benchmarks` (shipped with the package, so an
+install writes its report without a source checkout; ``benchmarks/<name>.py`` in the repository
+runs the same module) or a script of a given folder, prints progress and then one JSON object as
+its LAST line. A
 run record (:func:`run_benchmark`) keeps that object under ``result`` with what the report
 needs beside it: the command, the seconds, the load average before and after, the peak
 resident memory and the CPU seconds of the process (and of the children it waited for: forked
@@ -52,7 +55,7 @@ ENV = {"manifold": {"OPENBLAS_NUM_THREADS": "1"}}
 #: options the report adds to a benchmark's ``--quick`` (``torch-brdf report --quick``), so that
 #: the whole quick report takes minutes: fewer repeats, rounds, frames, splits and peer seconds,
 #: never other keys or another meaning. A benchmark run by hand with ``--quick`` alone keeps its
-#: own quick sizes (the README cites figures of those runs).
+#: own quick sizes (the docs quote figures of those runs, saved in ``docs/results``).
 QUICK_ARGS: dict[str, list[str]] = {
     # one round of precompute vs embree alone (the embreex variants on two chunks, scaled), the
     # first of the three frames, a 16-quad plane: the same keys on a smaller scene
@@ -68,9 +71,12 @@ QUICK_ARGS: dict[str, list[str]] = {
     "scaleout": "--ray-start-s 120".split(),
 }
 
-# Runs a script as __main__ and reports the peak RSS and the CPU seconds (user + system) of
-# itself and its waited-for children on stderr at exit (the sibling-module imports of the
-# scripts work as with ``python script``).
+#: the package of the benchmark modules (``python -m PACKAGE.<name>``)
+PACKAGE = "torch_brdf.report.benchmarks"
+
+# Runs a benchmark module (or a script, given its path) as __main__ and reports the peak RSS and
+# the CPU seconds (user + system) of itself and its waited-for children on stderr at exit (a
+# script's sibling-module imports work as with ``python script``).
 _WRAPPER = """
 import atexit, os, resource, runpy, sys
 path = sys.argv[1]
@@ -80,25 +86,29 @@ def _peak():
     sys.stderr.write("\\n__peak_rss_kb__ %d\\n" % max(me.ru_maxrss, kids.ru_maxrss))
     sys.stderr.write("__cpu_s__ %.3f\\n" % (me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime))
 atexit.register(_peak)
-sys.path.insert(0, os.path.dirname(os.path.abspath(path)))
-runpy.run_path(path, run_name="__main__")
+if path.endswith(".py"):
+    sys.path.insert(0, os.path.dirname(os.path.abspath(path)))
+    runpy.run_path(path, run_name="__main__")
+else:
+    runpy.run_module(path, run_name="__main__", alter_sys=True)
 """
 
 
 def find_benchmarks(folder: str | os.PathLike | None = None) -> Path:
-    """The ``benchmarks/`` folder: ``folder`` if given, else ``./benchmarks``, else the one
-    beside the installed package (a source checkout).
+    """A folder of benchmark scripts: ``folder`` if given, else ``./benchmarks``, else the one
+    beside the package's source (a checkout). Needed only to run scripts by path: by default
+    the report runs the package's own modules (:data:`PACKAGE`).
 
     Raises:
-        DataNotFoundError: no such folder (the benchmarks live in the repository, not the wheel).
+        DataNotFoundError: no such folder.
     """
     here = Path(__file__).resolve().parents[2] / "benchmarks"
     for cand in [Path(folder)] if folder is not None else [Path("benchmarks"), here]:
         if (cand / "polynomial.py").is_file():
             return cand.resolve()
     raise DataNotFoundError(
-        f"no benchmarks folder at {folder or 'benchmarks/ or ' + str(here)}; run from the repository root "
-        "or pass --benchmarks (the scripts are part of the source checkout, not of the installed package)"
+        f"no benchmarks folder at {folder or 'benchmarks/ or ' + str(here)}; run from the repository root, "
+        "pass --benchmarks, or leave it out to run the installed package's benchmark modules"
     )
 
 
@@ -121,26 +131,29 @@ def _tail(text: str, lines: int = 25) -> str:
 
 def run_benchmark(
     name: str,
-    bench_dir: Path,
+    bench_dir: str | os.PathLike | None,
     quick: bool,
     out_dir: Path | None = None,
     timeout: float | None = None,
     args: Iterable[str] = (),
 ) -> dict[str, Any]:
-    """Run ``bench_dir/<name>.py`` (``--quick`` and its :data:`QUICK_ARGS` if asked, then
-    ``args``) and return its run record.
+    """Run the benchmark ``name`` (``--quick`` and its :data:`QUICK_ARGS` if asked, then
+    ``args``) and return its run record: the module ``PACKAGE.<name>`` in the working directory
+    when ``bench_dir`` is None, else the script ``bench_dir/<name>.py`` in the folder above it.
 
     A failure (non-zero exit, timeout, no JSON on the last line) is recorded in ``error``, never
     raised: the report shows it. With ``out_dir`` the record is written to ``<name>.json`` and
     the full output to ``<name>.log``.
     """
-    script = Path(bench_dir) / f"{name}.py"
-    cmd = [sys.executable, "-c", _WRAPPER, str(script), *(["--quick", *QUICK_ARGS.get(name, ())] if quick else [])]
+    target = f"{PACKAGE}.{name}" if bench_dir is None else str(Path(bench_dir) / f"{name}.py")
+    cmd = [sys.executable, "-c", _WRAPPER, target, *(["--quick", *QUICK_ARGS.get(name, ())] if quick else [])]
     cmd += list(args)
-    shown = " ".join(["python", f"benchmarks/{name}.py", *cmd[4:]])
+    shown = " ".join(["python", *(["-m", target] if bench_dir is None else [f"benchmarks/{name}.py"]), *cmd[4:]])
     env = dict(os.environ)
-    root = str(Path(bench_dir).resolve().parent)
-    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    root = None
+    if bench_dir is not None:  # the scripts' folder's parent: a checkout's root
+        root = str(Path(bench_dir).resolve().parent)
+        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
     env.update(ENV.get(name, {}))
     rec: dict[str, Any] = {"format": FORMAT, "name": name, "command": shown, "quick": bool(quick)}
     rec["started"] = time.strftime("%Y-%m-%d %H:%M:%S")

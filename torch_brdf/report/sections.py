@@ -6,7 +6,7 @@ the planner's choice (read from ``benchmarks/planner.py``'s JSON, whatever else 
 seed paper's published figure where it has one (cited), and the peer's point from the same run.
 A key that is missing becomes a "not measured" note, never an exception.
 
-Published figures of the seeds (``../shared/seeds``), used as reference points:
+Published figures of the papers the capabilities implement, used as reference points:
 
 * Ben-Artzi et al. 2008, Table II: Cornell box 450x450, series 64,1,1,1, 12K samples per pixel,
   1461 MB in total, 5 h 58 min of precomputation (no error is published).

@@ -15,7 +15,7 @@ from .builtin import (
 from .camera import Camera
 from .envmap import EnvironmentMap, PointLightSet
 from .gbuffer import GBuffer, trace_gbuffer
-from .lights import AreaLight, DirectionalLight, Light, LightSample, LightSamples, PointLights
+from .lights import AreaLight, DirectionalLight, Light, LightSample, LightSamples, PointLight, PointLights
 from .mesh import DegenerateFacesWarning, load_mesh, mesh_from_arrays
 from .raytrace import Hits, RayTracer
 from .scene import Scene, SceneObject
@@ -32,6 +32,7 @@ __all__ = [
     "Light",
     "LightSample",
     "LightSamples",
+    "PointLight",
     "PointLightSet",
     "PointLights",
     "RayTracer",

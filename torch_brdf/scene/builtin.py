@@ -339,21 +339,39 @@ BUILTIN_SCENES: dict[str, Callable[..., Scene]] = {
 }
 
 
-def load_scene(spec: str, resolution: int | None = None, default_resolution: int = 256) -> Scene:
-    """A built-in scene by name (:data:`BUILTIN_SCENES`) or a TOML scene file.
+def load_scene(
+    spec: str | Path,
+    resolution: int | None = None,
+    default_resolution: int = 256,
+    *,
+    allow_outside: bool = False,
+    substitute: bool = False,
+) -> Scene:
+    """A built-in scene by name (:data:`BUILTIN_SCENES`) or a scene file: ``.toml``,
+    ``.gltf``/``.glb`` (glTF 2.0), ``.xml`` (Mitsuba 3) or ``.obj`` (with its ``.mtl``); see
+    :mod:`torch_brdf.scene.formats`.
 
     Args:
-        spec: scene name or path of a ``.toml`` file.
+        spec: scene name or path of a scene file.
         resolution: square image size overriding the scene's (None: a built-in scene gets
-            ``default_resolution``, a TOML scene keeps its own camera).
+            ``default_resolution``, a file keeps its own camera).
+        allow_outside: follow file references (meshes, textures, maps) that leave the scene
+            file's folder; refused by default.
+        substitute: replace unsupported plugins and features by stated substitutes, with a
+            :class:`~torch_brdf.scene.formats.SubstitutionWarning`, instead of raising.
     Raises:
-        SceneError: neither a built-in name nor a scene file; ValueRangeError: bad size.
+        SceneError: neither a built-in name nor a scene file of an accepted type, or a problem in
+            the file (naming the file, the element and the problem); ValueRangeError: bad size.
     """
+    from .formats import SCENE_SUFFIXES, ImportOptions, accepted_formats, read_scene_file
+
     if resolution is not None:
         check_image_size(resolution, resolution, "resolution")
-    if spec in BUILTIN_SCENES:
+    if isinstance(spec, str) and spec in BUILTIN_SCENES:
         return BUILTIN_SCENES[spec](resolution or default_resolution)
-    if spec.endswith(".toml") or Path(spec).is_file():
-        scene = Scene.from_toml(spec)
-        return scene.with_resolution(resolution) if resolution else scene
-    raise SceneError(f"unknown scene {spec!r}: give a TOML file or one of {sorted(BUILTIN_SCENES)}")
+    path = Path(spec)
+    if path.suffix.lower() in SCENE_SUFFIXES or path.is_file():
+        return read_scene_file(path, ImportOptions(allow_outside, substitute, resolution))
+    raise SceneError(
+        f"unknown scene {str(spec)!r}: give a scene file ({accepted_formats()}) or one of {sorted(BUILTIN_SCENES)}"
+    )

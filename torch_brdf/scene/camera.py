@@ -23,9 +23,12 @@ class Camera:
     the left of the image, as in the published photographs).
 
     Args:
-        origin, target, up: 3 numbers each.
+        origin: the eye position (3 numbers).
+        target: the point looked at (3 numbers).
+        up: the up direction (3 numbers).
         fov_deg: vertical field of view in degrees, in (0, 180).
-        width, height: image size in pixels.
+        width: image width in pixels.
+        height: image height in pixels.
     """
 
     origin: tuple[float, float, float]

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from .._checks import MAX_ENVMAP_HEIGHT, as_float_tensor, check_count, check_real, check_rgb, check_vectors
-from ..errors import ShapeError, ValueRangeError
+from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..io.exr import read_exr
 from ..sphere.latlong import (
     direction_to_texel,
@@ -128,6 +128,24 @@ class EnvironmentMap(Light):
         return cls(read_exr(src).double() * scale, rotation_y=rotation_y, source=f"environment map file {src}")
 
     @classmethod
+    def from_file(cls, path: str | os.PathLike, scale: float = 1.0, rotation_y: float = 0.0) -> EnvironmentMap:
+        """Load a lat-long map from OpenEXR (``.exr``) or Radiance RGBE (``.hdr``, ``.pic``), by suffix.
+
+        Raises:
+            FileFormatError: unknown suffix, missing or unreadable file; as :meth:`from_exr` otherwise.
+        """
+        src = os.fspath(path)
+        suffix = os.path.splitext(src)[1].lower()
+        if suffix == ".exr":
+            return cls.from_exr(src, scale, rotation_y)
+        if suffix not in (".hdr", ".pic"):
+            raise FileFormatError(f"environment map {src}: unknown image type {suffix!r}; known: .exr, .hdr, .pic")
+        from ..io.hdr import read_hdr
+
+        scale = check_real(scale, "scale", minimum=0.0)
+        return cls(read_hdr(src).double() * scale, rotation_y=rotation_y, source=f"environment map file {src}")
+
+    @classmethod
     def constant(cls, rgb=1.0, height: int = 64) -> EnvironmentMap:
         """A uniform map of radiance ``rgb`` (scalar or 3 values) with ``height`` rows."""
         c = torch.tensor(check_rgb(rgb, "rgb"), dtype=torch.float32)
@@ -160,7 +178,10 @@ class EnvironmentMap(Light):
             height: H (the map is H x 2H).
             sun_direction: 3 numbers, direction towards the sun (normalised here).
             sun_angular_radius_deg: angular radius of the sun disk in degrees.
-            sun_radiance, zenith_color, horizon_color, ground_color: RGB (scalar or 3 values).
+            sun_radiance: RGB (scalar or 3 values).
+            zenith_color: as ``sun_radiance``.
+            horizon_color: as ``sun_radiance``.
+            ground_color: as ``sun_radiance``.
             supersample: subsamples per texel side for the sun's coverage.
         """
         H, s = check_count(height, "sky: height", MAX_ENVMAP_HEIGHT), check_count(supersample, "sky: supersample", 64)

@@ -115,6 +115,43 @@ class DirectionalLight(Light):
         return float(luminance(self.irradiance.double()))
 
 
+class PointLight(Light):
+    r"""An isotropic point light at a position (a delta light): irradiance
+    :math:`I\cos\theta / r^2` on a surface at distance :math:`r`.
+
+    Args:
+        position: 3 numbers.
+        intensity: RGB radiant intensity in W/sr (scalar or 3 values), Mitsuba's ``point``
+            ``intensity``.
+    """
+
+    is_delta = True
+    is_infinite = False
+
+    def __init__(self, position, intensity):
+        super().__init__()
+        p = check_vectors(torch.as_tensor(position, dtype=torch.float64).reshape(1, 3), "position")
+        self.register_buffer("position", p[0].to(torch.float32))
+        self.register_buffer("intensity", torch.tensor(check_rgb(intensity, "intensity"), dtype=torch.float32))
+
+    def sample(self, points, generator=None):
+        d = self.position.to(points.dtype) - points
+        dist = d.norm(dim=-1)
+        ok = dist > 0
+        w = d / dist.clamp_min(torch.finfo(points.dtype).tiny)[:, None]
+        irr = self.intensity.to(points.dtype) / (dist * dist).clamp_min(1e-30)[:, None]
+        weight = torch.where(ok[:, None], irr, 0.0)
+        return LightSample(
+            direction=w,
+            distance=dist,
+            weight=weight,
+            pdf=torch.where(ok, float("inf"), 0.0).to(points.dtype),
+        )
+
+    def power_estimate(self) -> float:
+        return float(luminance(self.intensity.double())) * 4.0 * float(np.pi)
+
+
 class PointLights(Light):
     """K distant point lights, e.g. an environment map's median-cut set
     (:meth:`~torch_brdf.scene.envmap.EnvironmentMap.point_lights`); next-event estimation picks

@@ -1,6 +1,6 @@
 """Loading and validating triangle meshes.
 
-Policy for bad meshes (documented here and in the README):
+Policy for bad meshes (documented here and in the scenes guide):
 
 * NaN/Inf vertex coordinates (or beyond float32, which embree traces), face indices out of
   range, or no faces at all raise

@@ -12,11 +12,11 @@ are the counter-clockwise face normals :math:`\mathrm{normalize}((v_1-v_0)\times
 vertex normals of smooth objects and equal the geometric normal on flat ones.
 
 The numpy side (embree calls and the per-hit gathers, in chunks) lives in
-:mod:`torch_brdf.scene.parallel`; this module checks and converts tensors, in numpy too
-(a torch op waits for torch's thread pool, milliseconds whenever another process holds a
-core). Batches of at least :data:`PARALLEL_MIN_RAYS` rays are traced by ``workers``
-processes (the caller plus forked children, see
-:class:`~torch_brdf.scene.parallel.TracePool`) with bitwise the same results as by one.
+:mod:`torch_brdf.scene.embree`; this module checks and converts tensors, in numpy too (a torch
+op waits for torch's thread pool, milliseconds whenever another process holds a core). Batches
+of at least :data:`PARALLEL_MIN_RAYS` rays are traced by ``workers`` processes (the caller plus
+forked children, see :class:`~torch_brdf.parallel.tracepool.TracePool`) with bitwise the same
+results as by one.
 ``benchmarks/raytrace.py`` measures both against embreex called directly.
 """
 
@@ -34,7 +34,9 @@ from embreex import mesh_construction, rtcore_scene
 
 from .._checks import as_float_tensor, check_finite, check_vectors
 from ..errors import ShapeError, ValueRangeError
-from .parallel import CHUNK, EmbreeHits, HitArrays, TraceKernel, TracePool, default_workers
+from ..parallel.threads import worker_count
+from ..parallel.tracepool import TracePool
+from .embree import CHUNK, EmbreeHits, HitArrays, TraceKernel
 
 #: largest ``t_max`` handed to embree for occlusion (embreex's own default far distance).
 _EMBREE_FAR = 1e37
@@ -113,7 +115,7 @@ class RayTracer:
         smooth: per mesh, whether shading normals interpolate vertex normals (True) or
             equal the face normal (False).
         workers: processes that trace batches of at least :data:`PARALLEL_MIN_RAYS` rays,
-            this one included; ``None`` = :func:`~torch_brdf.scene.parallel.default_workers`
+            this one included; ``None`` = :func:`~torch_brdf.parallel.threads.worker_count`
             (the usable cores, ``TORCH_BRDF_WORKERS`` overrides), 1 = never fork. Children are forked on first use
             and stopped by :meth:`close` (or garbage collection, or exit).
     """
@@ -156,7 +158,7 @@ class RayTracer:
         table[:-1, 6] = self.face_normals.numpy()
         self._kernel = TraceKernel(self._scene, table.reshape(-1, 21), self.face_offsets.numpy(), self.smooth.numpy())
         #: processes that trace large batches, this one included.
-        self.workers = default_workers() if workers is None else int(workers)
+        self.workers = worker_count() if workers is None else int(workers)
         self._pool = TracePool(self._kernel, self.workers) if self.workers > 1 else None
         lo, hi = self.vertices.min(0).values.double(), self.vertices.max(0).values.double()
         self.bbox = (lo, hi)
@@ -279,14 +281,14 @@ class RayTracer:
 
     def embree_entry(self) -> tuple[int, int] | None:
         """``(RTCScene handle, address of rtcOccluded1)`` for a compiled loop that casts this
-        scene's rays itself, in the calling process (:func:`~torch_brdf.scene.parallel.embree_entry`:
+        scene's rays itself, in the calling process (:func:`~torch_brdf.scene.embree.embree_entry`:
         the same BVH and per-ray query as :meth:`occluded`). None when this tracer spreads large
         batches over its forked workers (such a loop would use one core) or the handle cannot be
         checked; callers then use :meth:`occluded_fans`."""
         return None if self._pool is not None else self._kernel.native()
 
     def embree_hits(self) -> EmbreeHits | None:
-        """:class:`~torch_brdf.scene.parallel.EmbreeHits` (scene handle, embree's closest-hit and
+        """:class:`~torch_brdf.scene.embree.EmbreeHits` (scene handle, embree's closest-hit and
         occlusion calls, the hit tables) for a compiled loop that casts this scene's rays and
         makes the :meth:`trace` hits itself, in the calling process, or None where the handle
         cannot be checked. Unlike :meth:`embree_entry`, also for a tracer with forked workers: the

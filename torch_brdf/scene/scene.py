@@ -57,6 +57,10 @@ from .envmap import EnvironmentMap
 from .lights import AreaLight, DirectionalLight, Light
 from .mesh import load_mesh, mesh_from_arrays, validate_mesh
 from .raytrace import Hits, RayTracer
+from .textures import Texture
+
+#: texture slots of an object (what a texture scales)
+TEXTURE_KEYS = ("base_color",)
 
 #: what :meth:`Scene.content_digest` covers, in the order it is hashed
 CONTENT_PARTS = ("geometry", "materials", "lights", "camera")
@@ -73,6 +77,10 @@ class SceneObject:
         editable: False marks a fixed object whose BRDF is never edited (its full BRDF
             can be baked into precomputed path weights).
         smooth: interpolate vertex normals for shading (True) or use face normals.
+        uv: (V, 2) per-vertex texture coordinates (v up, see :mod:`.textures`), or None.
+        textures: image textures by what they scale; the one key is ``"base_color"``: the
+            diffuse/base colour of the object's material model (Lambert ``albedo``, ``kd``,
+            the metallic-roughness ``base_color``) is its factor times the texel. Needs ``uv``.
     """
 
     name: str
@@ -80,6 +88,29 @@ class SceneObject:
     material: str
     editable: bool = True
     smooth: bool = False
+    uv: np.ndarray | None = None
+    textures: dict[str, Texture] = field(default_factory=dict)
+
+    def __post_init__(self):
+        unknown = sorted(set(self.textures) - set(TEXTURE_KEYS))
+        if unknown:
+            raise SceneError(f"object {self.name!r}: unknown texture slot(s) {unknown}; known: {list(TEXTURE_KEYS)}")
+        for k, t in self.textures.items():
+            if not isinstance(t, Texture):
+                raise SceneError(f"object {self.name!r}: texture {k!r} must be a Texture; got {type(t).__name__}")
+        if self.uv is not None:
+            uv = np.asarray(self.uv, dtype=np.float64)
+            if uv.shape != (len(self.mesh.vertices), 2) or not np.isfinite(uv).all():
+                raise SceneError(
+                    f"object {self.name!r}: uv must be {len(self.mesh.vertices)} finite (u, v) pairs, one per "
+                    f"vertex; got shape {uv.shape}"
+                )
+            self.uv = uv
+        elif self.textures:
+            raise SceneError(
+                f"object {self.name!r} has a texture ({', '.join(self.textures)}) but its mesh has no UVs "
+                "(texture coordinates); add UVs to the mesh or drop the texture"
+            )
 
 
 @dataclass
@@ -97,6 +128,8 @@ class Scene:
     camera: Camera
     name: str = "scene"
     workers: int | None = None
+    #: path length the file suggests (Mitsuba's integrator ``max_depth - 1``), or None
+    max_bounces: int | None = None
     _tracer: RayTracer | None = field(default=None, repr=False)
 
     def __post_init__(self):
@@ -240,6 +273,8 @@ class Scene:
             if part == "geometry":
                 for o in self.objects:
                     _digest(h, [o.name, o.editable, o.smooth, np.asarray(o.mesh.vertices), np.asarray(o.mesh.faces)])
+                    if o.uv is not None or o.textures:  # untextured scenes keep their digests
+                        _digest(h, ["uv", o.uv, [[k, *o.textures[k].digest_parts()] for k in sorted(o.textures)]])
             elif part == "materials":
                 _digest(h, [[o.name, o.material] for o in self.objects])
                 _digest(h, self.materials)
@@ -267,6 +302,7 @@ class Scene:
                     "editable": o.editable,
                     "triangles": len(o.mesh.faces),
                     "vertices": len(o.mesh.vertices),
+                    **({"textures": {k: t.name for k, t in o.textures.items()}} if o.textures else {}),
                 }
                 for i, o in enumerate(self.objects)
             ],
@@ -375,7 +411,7 @@ def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
     extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg", "radiance")}
     try:
         if "file" in d:
-            env = EnvironmentMap.from_exr(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
+            env = EnvironmentMap.from_file(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
         elif d.get("procedural") == "constant":
             env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
         elif d.get("procedural") == "sky":

@@ -58,7 +58,8 @@ def cube_directions(face: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> tor
 
     Args:
         face: (*B,) int64 face index in 0..5.
-        a, b: (*B,) face coordinates in [-1, 1] (column and row axes).
+        a: (*B,) face coordinates in [-1, 1] (column and row axes).
+        b: as ``a``.
     Returns:
         (*B, 3) unit directions in ``a``'s dtype.
     """

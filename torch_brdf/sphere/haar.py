@@ -227,8 +227,10 @@ def haar_tripling_coefficients(resolution: int, i, j, k) -> torch.Tensor:
 
     Args:
         resolution: face size R (a power of two).
-        i, j, k: (...) broadcastable integer tensors of in-face flat positions
+        i: (...) broadcastable integer tensors of in-face flat positions
             ``row * R + col`` in the layout of :func:`haar2d`, each in ``[0, R*R)``.
+        j: as ``i``.
+        k: as ``i``.
     Returns:
         (...) float64 :math:`C_{ijk} = \sum_t \Psi_i(t)\Psi_j(t)\Psi_k(t)`.
     Raises:

@@ -1,19 +1,28 @@
-"""The compiled kernel of the GI precompute (``_native.c``: the entries and their per-key sums,
-area-light next-event samples, the tracer's per-vertex steps of
-:mod:`torch_brdf.transport.polynomial.vertex`) and of the visibility cubemaps (ray fans cast
-straight into embree, flips per block): built on first use, cached, optional.
+"""The compiled kernel of the precomputations (the C files of ``transport/csrc``, one job per file:
+torch's random generator, the entries and their per-key sums, sparse blocks, a tile's sums,
+area-light samples, eye rays, the tracer's per-vertex steps and wavefront, visibility fans and
+GI rays cast straight into embree): built on first use, cached, optional.
 
-:func:`library` compiles ``_native.c`` with the system C compiler (``$CC``, else Python's
-own compiler, else ``cc``) into ``$TORCH_BRDF_CACHE/native/`` under a name keyed by the
-hash of the source and the compiler command, once per machine (later processes load the
-cached file in milliseconds), and loads it with :mod:`ctypes`: no Python or torch headers,
-no build step beyond ``pip install``. Without a working compiler (or with
-``TORCH_BRDF_NATIVE=0``) it returns None after one warning and the precomputation keeps
-its torch path. The entries and sums equal the torch path's bit for bit on the same paths
-(``tests/transport/test_native.py``); the per-vertex steps use libm's scalar math (and their own
-cos/sin) where torch uses its vectorised math, so whole precomputations agree to float32 rounding, not bit for bit
+:func:`library` compiles every ``csrc/*.c`` with the system C compiler (``$CC``, else Python's
+own compiler, else ``cc``) and ``-Wall -Wextra -Werror`` into ``$TORCH_BRDF_CACHE/native/``
+under a name keyed by the hash of every source file (``*.c`` and ``*.h``, names and contents),
+the compiler command and the flags, once per machine (later processes load the cached file in
+milliseconds), loads it with :mod:`ctypes` and declares its entry points from the one table of
+signatures (:data:`torch_brdf.scene._bindings.KERNEL`): no Python or torch headers, no build step
+beyond ``pip install``. Without a working compiler (or with ``TORCH_BRDF_NATIVE=0``) it returns
+None after one warning and the precomputation keeps its torch path. The entries and sums equal
+the torch path's bit for bit on the same paths (``tests/transport/test_native.py``); the
+per-vertex steps use libm's scalar math (and their own cos/sin) where torch uses its vectorised
+math, so whole precomputations agree to float32 rounding, not bit for bit
 (``tests/transport/test_vertex.py``). The visibility fans give the same records bit for bit as
-the numpy path (``tests/transport/test_visibility.py``).
+the numpy path (``tests/transport/test_visibility.py``). Each entry point, its torch twin and
+its test: ``docs/kernel.md``.
+
+``TORCH_BRDF_NATIVE_SANITIZE=1`` builds the kernel with AddressSanitizer and
+UndefinedBehaviorSanitizer instead (:data:`SANITIZE_FLAGS`, a cache entry of its own); the
+process must have the ASan runtime loaded first (``LD_PRELOAD`` of :func:`sanitizer_runtime`,
+as ``.ci/sanitize`` does; without it :func:`library` raises instead of letting the loader abort
+the process).
 """
 
 from __future__ import annotations
@@ -34,29 +43,52 @@ import numpy as np
 import torch
 
 from ..data import cache_dir
-from ..errors import ValueRangeError
+from ..errors import TorchBRDFError, ValueRangeError
+from ..scene._bindings import KERNEL, declare
 from ..scene.lights import AreaLight, LightSample
 
 __all__ = [
     "ENV_VAR",
+    "SANITIZE_ENV_VAR",
+    "SANITIZE_FLAGS",
     "Accumulator",
     "TileSums",
     "area_light_sample",
+    "build_name",
     "build_seconds",
     "key_bits",
     "library",
     "occluded_fans",
+    "sanitizer_runtime",
+    "sources",
     "visibility_fans",
 ]
 
 #: ``TORCH_BRDF_NATIVE=0`` keeps the torch path (no compiler call)
 ENV_VAR = "TORCH_BRDF_NATIVE"
-_SOURCE = Path(__file__).with_name("_native.c")
-# -O3 vectorises the sampling passes (the AVX2 copies of TB_SIMD functions in _native.c);
-# -fno-math-errno and -fno-trapping-math change no value (no FMA, no reassociation: the
-# tensors are the same bit for bit as with -O2, checked in session 9), they let sqrtf inline and
-# selects replace branches so the loops vectorise
-_FLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math", "-fno-math-errno", "-fno-trapping-math"]
+#: ``TORCH_BRDF_NATIVE_SANITIZE=1`` builds and loads the kernel with the sanitizers
+SANITIZE_ENV_VAR = "TORCH_BRDF_NATIVE_SANITIZE"
+_SOURCE_DIR = Path(__file__).with_name("csrc")
+# -O3 vectorises the sampling passes (the AVX2 copies of TB_SIMD functions in csrc);
+# -ffp-contract=off and no -ffast-math keep every operation IEEE's in the order written (no FMA,
+# no reassociation: the torch path's bits); -fno-math-errno and -fno-trapping-math change no
+# value, they let sqrtf inline and selects replace branches so the loops vectorise;
+# -fvisibility=hidden exports only the entry points (TB_API in kernel.h)
+_FLAGS = [
+    "-O3",
+    "-fPIC",
+    "-shared",
+    "-ffp-contract=off",
+    "-fno-fast-math",
+    "-fno-math-errno",
+    "-fno-trapping-math",
+    "-fvisibility=hidden",
+    "-Wall",
+    "-Wextra",
+    "-Werror",
+]
+#: added to the flags of the sanitized build (``TORCH_BRDF_NATIVE_SANITIZE=1``)
+SANITIZE_FLAGS = ["-fsanitize=address,undefined", "-fno-omit-frame-pointer"]
 _state: dict = {"lib": None, "tried": False, "build_s": 0.0}
 
 
@@ -68,99 +100,103 @@ def _compiler() -> list[str] | None:
     return cmd if shutil.which(cmd[0]) is not None else None
 
 
-def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.tb_new.restype, lib.tb_new.argtypes = p, [i32, i32, p]
-    lib.tb_free.restype, lib.tb_free.argtypes = None, [p]
-    lib.tb_clear.restype, lib.tb_clear.argtypes = None, [p]
-    lib.tb_size.restype, lib.tb_size.argtypes = i64, [p]
-    lib.tb_max_count.restype, lib.tb_max_count.argtypes = i32, [p]
-    lib.tb_add_sums.restype, lib.tb_add_sums.argtypes = i32, [p, i64, p, p, p, p, p, p, p]
-    lib.tb_emit.restype = i32
-    lib.tb_emit.argtypes = [p, i64, i64, i64, p, p, p, p, p, p, p, p, p, p, p, i64, i64, p, p, i32, i64, p, p, i32]
-    lib.tb_reduce.restype, lib.tb_reduce.argtypes = i32, [p, i32, p, p, ctypes.POINTER(i64)]
-    lib.tb_reduce_into.restype, lib.tb_reduce_into.argtypes = i32, [p, i32, p]
-    lib.tb_blocks.restype, lib.tb_blocks.argtypes = i64, [i64, i32, p, p, p, p, i64, i64, p, p, p, p, p, p]
-    lib.tb_area_points.restype, lib.tb_area_points.argtypes = None, [i64, p, p, p, i64, p, p, p, p, p]
-    lib.tb_area_finish.restype = None
-    lib.tb_area_finish.argtypes = [i64, p, p, p, p, p, p, ctypes.c_float, p, p, p, p, p, p, p]
-    f32 = ctypes.c_float
-    lib.tb_frame.restype, lib.tb_frame.argtypes = None, [i64, p, p, p, p, p]
-    lib.tb_area_sample.restype = i64
-    lib.tb_area_sample.argtypes = [i64, p, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p, p]
-    lib.tb_unoccluded.restype, lib.tb_unoccluded.argtypes = i64, [i64, p, p, p]
-    lib.tb_light_gather.restype = None
-    lib.tb_light_gather.argtypes = [i64, p, p, p, p, f32, p, p, p, p, p, p, p, p, p]
-    lib.tb_layers.restype, lib.tb_layers.argtypes = None, [i64, i32, i64, p, p, p, p, p, p, p, p]
-    lib.tb_fixed_f.restype, lib.tb_fixed_f.argtypes = None, [i64, p, p, p, p, p, p]
-    lib.tb_gather.restype, lib.tb_gather.argtypes = None, [i64, p, i32, p, p, p]
-    lib.tb_mixture.restype, lib.tb_mixture.argtypes = None, [i64, p, p, f32, f32, f32, f32, p, p, p, p]
-    lib.tb_sincos.restype, lib.tb_sincos.argtypes = None, [i64, p, p, p]
-    lib.tb_advance.restype = i64
-    lib.tb_advance.argtypes = [i64, p, p, p, p, i32, p, p, i32, p, p, p, p, p, i64, p, i64, p, f32, p, p, p]
-    lib.tb_vis_fans.restype = i64
-    lib.tb_vis_fans.argtypes = [p, p, i64, p, p, i64, p, p, i64, ctypes.c_double, i64, p, p, p]
-    lib.tb_occluded_fans.restype, lib.tb_occluded_fans.argtypes = i64, [p, p, i64, p, p, p, p, p]
-    # GI ray casting (transport/rays.py)
-    lib.tb_trace_hits.restype, lib.tb_trace_hits.argtypes = i64, [p, p, i64, p, p, p, p, p, p, p, p, p, p, p, p]
-    lib.tb_occluded_rays.restype, lib.tb_occluded_rays.argtypes = i64, [p, p, i64, p, p, i64, p, p, p]
-    lib.tb_intersect_only.restype, lib.tb_intersect_only.argtypes = i64, [p, p, i64, p, p, p, p]
-    # a tile's sums by record (TileSums)
-    lib.tb_tile_new.restype, lib.tb_tile_new.argtypes = p, [i32, p]
-    lib.tb_tile_free.restype, lib.tb_tile_free.argtypes = None, [p]
-    lib.tb_tile_size.restype, lib.tb_tile_size.argtypes = i64, [p]
-    lib.tb_tile_max_count.restype, lib.tb_tile_max_count.argtypes = i32, [p]
-    lib.tb_tile_add.restype, lib.tb_tile_add.argtypes = i32, [p, p]
-    lib.tb_tile_export.restype, lib.tb_tile_export.argtypes = i64, [p, i32, p, p]
-    lib.tb_tile_blocks.restype, lib.tb_tile_blocks.argtypes = i64, [p, p, i64, i64, p, p, p, p, p, p, p]
-    # a pass group's eye rays (polynomial/driver.py eye_rays)
-    lib.tb_camera_local.restype, lib.tb_camera_local.argtypes = (
-        i64,
-        [i64, p, p, i64, i64, p, ctypes.c_double, ctypes.c_double, p],
-    )
-    lib.tb_camera_finish.restype, lib.tb_camera_finish.argtypes = None, [i64, p, p, p, p, p]
-    # the GI tracer's wavefront in reused buffers (polynomial/vertex.py Wavefront)
-    lib.tb_rand.restype, lib.tb_rand.argtypes = None, [p, i64, i32, p]
-    lib.tb_wf_start.restype, lib.tb_wf_start.argtypes = i64, [i64, p, p, p, p, p, p, i64, i64, i64]
-    lib.tb_wf_compact.restype, lib.tb_wf_compact.argtypes = i64, [i64, p, p, p, p, p, p, p, i64, i64, i64]
-    lib.tb_wf_area_sample.restype = i64
-    lib.tb_wf_area_sample.argtypes = [p, i64, p, i64, p, p, p, f32, p, p, p, f32, p, p, p, p, p, p, p]
-    lib.tb_wf_light_hits.restype = i64
-    lib.tb_wf_light_hits.argtypes = [i64, p, p, p, p, p, f32, p, p, p, p, i32, p, p, p, p, p, p, p, p, p]
-    return lib
+def sources() -> list[Path]:
+    """The kernel's source files (``csrc/*.c`` and ``csrc/*.h``), sorted by name."""
+    return sorted([*_SOURCE_DIR.glob("*.c"), *_SOURCE_DIR.glob("*.h")])
 
 
-def _build() -> ctypes.CDLL:
+def _sanitize() -> bool:
+    return os.environ.get(SANITIZE_ENV_VAR, "0") not in ("", "0")
+
+
+def sanitizer_runtime(cc: list[str] | None = None) -> str | None:
+    """The path of the compiler's AddressSanitizer runtime (``libasan.so``), which a Python
+    process must preload (``LD_PRELOAD``) to load the sanitized kernel; None when the compiler
+    has none."""
+    cc = cc or _compiler()
+    if cc is None:
+        return None
+    res = subprocess.run([*cc, "-print-file-name=libasan.so"], capture_output=True, text=True, timeout=60)
+    path = res.stdout.strip()
+    return path if res.returncode == 0 and os.path.isabs(path) and os.path.exists(path) else None
+
+
+def _asan_loaded() -> bool:
+    try:
+        with open("/proc/self/maps") as f:
+            return any("libasan" in line for line in f)
+    except OSError:  # no /proc: let the loader decide
+        return True
+
+
+def build_name(cc: list[str], flags: list[str], files: list[Path], sanitize: bool = False) -> str:
+    """The cache file name of a build: a hash of the compiler command, the flags and every
+    source file's name and bytes (``polynomial_sanitize_*`` for the sanitized build)."""
+    h = hashlib.sha256("\0".join(cc + flags).encode())
+    for f in files:
+        data = f.read_bytes()
+        h.update(f"\0{f.name}\0{len(data)}\0".encode() + data)
+    return f"polynomial_{'sanitize_' if sanitize else ''}{h.hexdigest()[:16]}.so"
+
+
+def _build(sanitize: bool = False) -> ctypes.CDLL:
     cc = _compiler()
     if cc is None:
         raise OSError("no C compiler found ($CC, Python's CC or cc)")
-    src = _SOURCE.read_bytes()
-    tag = hashlib.sha256(src + " ".join(cc + _FLAGS).encode()).hexdigest()[:16]
-    out = cache_dir() / "native" / f"polynomial_{tag}.so"
+    if sanitize and not _asan_loaded():
+        # loading the build would abort the process (ASan's runtime must be the first library)
+        raise TorchBRDFError(
+            f"{SANITIZE_ENV_VAR}=1 needs the AddressSanitizer runtime preloaded: "
+            f"LD_PRELOAD={sanitizer_runtime(cc) or 'libasan.so'} (see .ci/sanitize)"
+        )
+    flags = [*_FLAGS, *SANITIZE_FLAGS] if sanitize else list(_FLAGS)
+    files = sources()
+    if not any(f.suffix == ".c" for f in files):
+        raise OSError(f"no kernel sources in {_SOURCE_DIR}")
+    try:
+        return declare(ctypes.CDLL(str(_compile(cc, flags, files, sanitize))), KERNEL)
+    except OSError as strict:
+        if "-Werror" not in flags:
+            raise
+        # A newer compiler may warn where ours does not: the kernel is still correct C, so a
+        # user's build goes on without -Werror (CI keeps the warnings fatal) and says why.
+        lenient = [f for f in flags if f != "-Werror"]
+        lib = declare(ctypes.CDLL(str(_compile(cc, lenient, files, sanitize))), KERNEL)
+        warnings.warn(f"torch_brdf: the compiled kernel built only with warnings allowed ({strict})", stacklevel=3)
+        return lib
+
+
+def _compile(cc: list[str], flags: list[str], files: list[Path], sanitize: bool) -> Path:
+    """The cached shared library for these sources and flags, compiled (atomically) if absent."""
+    out = cache_dir() / "native" / build_name(cc, flags, files, sanitize)
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
             part = Path(tmp) / out.name
-            res = subprocess.run(
-                [*cc, *_FLAGS, "-o", str(part), str(_SOURCE)], capture_output=True, text=True, timeout=300
-            )
+            cmd = [*cc, *flags, "-o", str(part), *(str(f) for f in files if f.suffix == ".c")]
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
             if res.returncode != 0:
                 raise OSError(f"{cc[0]} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
             os.replace(part, out)  # atomic: concurrent builders leave one complete file
         _state["build_s"] = time.perf_counter() - t0
-    return _declare(ctypes.CDLL(str(out)))
+    return out
 
 
 def library() -> ctypes.CDLL | None:
     """The loaded kernel, building it on first use; None (after one warning) without a compiler
-    or with ``TORCH_BRDF_NATIVE=0``."""
+    or with ``TORCH_BRDF_NATIVE=0``. With ``TORCH_BRDF_NATIVE_SANITIZE=1``, the sanitized kernel
+    (an error when the process lacks the preloaded ASan runtime it needs).
+
+    Raises:
+        TorchBRDFError: a sanitized kernel asked for in a process without the ASan runtime.
+    """
     if os.environ.get(ENV_VAR, "1") == "0":
         return None
     if not _state["tried"]:
         _state["tried"] = True
         try:
-            _state["lib"] = _build()
+            _state["lib"] = _build(_sanitize())
         except (OSError, subprocess.SubprocessError) as e:
             warnings.warn(
                 f"torch_brdf: the compiled reduction kernel could not be built ({e}); "
@@ -246,7 +282,7 @@ class Accumulator:
 
     def emit(self, bounce: int, p: int, kk, raw, idx, rec, m1, counts, ob, ed, lw, f, scale, x, x_rows, y, y_rows):
         """The entries of light samples ``kk`` at vertex ``bounce`` (see ``tb_emit`` in
-        ``_native.c``): weight ``((raw[kk] * lw [* f] [* scale[sum(counts[kk])]]) * xw[a]) * yw[b]``
+        ``csrc/reduce.c``): weight ``((raw[kk] * lw [* f] [* scale[sum(counts[kk])]]) * xw[a]) * yw[b]``
         per layer combination (a major), rows with a NaN or all-zero weight dropped.
 
         Args:
@@ -323,7 +359,7 @@ class Accumulator:
 class TileSums:
     """A tile's per-key sums and sums of per-path squares, from its pass groups
     (:meth:`Accumulator.reduce_into`) bucketed by (record, path) and summed record by record
-    (``tb_tile_add`` in ``_native.c``) instead of sorted and merged: the same sums, added in the
+    (``tb_tile_add`` in ``csrc/tile.c``) instead of sorted and merged: the same sums, added in the
     same order, as an :class:`Accumulator` of 6 values receiving the groups' sorted runs.
 
     Args:
@@ -429,7 +465,7 @@ def visibility_fans(
 
     Args:
         lib: :func:`library`'s kernel. entry: ``(RTCScene, rtcOccluded1)`` of
-            :func:`~torch_brdf.scene.parallel.embree_entry`.
+            :func:`~torch_brdf.scene.embree.embree_entry`.
         origins: (m, 3) float32 ray origins; normals: (m, 3) float64 unit normals.
         centres: (3, T) float64 texel-centre directions in block order (the horizon test
             ``n . c > eps``), blocks of ``side x side`` texels row by row on one cube face.

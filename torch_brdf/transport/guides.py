@@ -36,11 +36,11 @@ import torch
 
 from ..errors import ShapeError, ValueRangeError
 from ..frame import orthonormal_basis
+from ..records.guides import GuideBuffers
 from ..scene.gbuffer import trace_gbuffer
-from ..scene.guides import GuideBuffers, object_albedo_proxy
 from .pathtrace import emission_seen
 
-__all__ = ["GuideBuffers", "guide_buffers", "light_lobe_images", "object_albedo_proxy", "pixel_coverage"]
+__all__ = ["guide_buffers", "light_lobe_images", "object_albedo_proxy", "pixel_coverage"]
 
 #: the most subpixel rays :func:`pixel_coverage` casts per pixel (64 x 64)
 MAX_COVERAGE_SAMPLES = 64
@@ -83,6 +83,13 @@ def guide_buffers(scene) -> GuideBuffers:
         light_cos_h=image(_light_cos_h(scene, pos, n, wo), 0.0),
         pixel_angle=2.0 * float(np.tan(np.radians(cam.fov_deg) / 2)) / h,
     )
+
+
+def object_albedo_proxy(object_id: torch.Tensor) -> torch.Tensor:
+    """(..., 3) grey in [0.35, 0.95] per object id by a fixed golden-ratio sequence; 0 for -1."""
+    g = 0.35 + 0.6 * torch.remainder(object_id.double() * 0.6180339887498949 + 0.5, 1.0)
+    g = torch.where(object_id >= 0, g, 0.0).float()
+    return g[..., None].expand(*object_id.shape, 3).contiguous()
 
 
 def pixel_coverage(scene, samples: int = 8, object_id: torch.Tensor | None = None) -> torch.Tensor:

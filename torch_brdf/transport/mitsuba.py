@@ -19,7 +19,9 @@ Mapping (each point checked by ``tests/transport/test_mitsuba.py``):
   Cornell box: red wall on the left in both). Pixels are box-filtered
   (``rfilter = box``), like our uniform jitter inside each pixel.
 * **Materials.** ``lambert`` becomes ``diffuse``; ``blinn_phong`` becomes the Python BSDF
-  ``torch_brdf_blinn_phong`` (:func:`register_blinn_phong`), our exact formula. Both are
+  ``torch_brdf_blinn_phong`` (:func:`register_blinn_phong`), our exact formula;
+  ``metallic_roughness`` the Python BSDF ``torch_brdf_metallic_roughness`` (the glTF model:
+  Mitsuba's stock ``principled`` is Disney's, not glTF's, see :mod:`torch_brdf.export`). All are
   wrapped in ``twosided`` because our surfaces are two-sided (normals flipped towards the
   arriving ray). Other models raise :class:`~torch_brdf.errors.SceneError`.
 * **Lights.** :class:`~torch_brdf.scene.lights.AreaLight` becomes an ``area`` emitter on
@@ -62,11 +64,12 @@ import torch
 from ..brdf import create
 from ..errors import SceneError, TorchBRDFError, ValueRangeError
 from ..scene.envmap import EnvironmentMap
-from ..scene.lights import AreaLight, DirectionalLight
+from ..scene.lights import AreaLight, DirectionalLight, PointLight
 from ..scene.scene import Scene
 
 __all__ = [
     "BLINN_PHONG_PLUGIN",
+    "METALLIC_ROUGHNESS_PLUGIN",
     "default_variant",
     "llvm_available",
     "mitsuba_available",
@@ -78,8 +81,10 @@ __all__ = [
 
 #: plugin name of the Python Blinn-Phong BSDF (see :func:`register_blinn_phong`)
 BLINN_PHONG_PLUGIN = "torch_brdf_blinn_phong"
+#: plugin name of the Python glTF metallic-roughness BSDF (see :func:`register_blinn_phong`)
+METALLIC_ROUGHNESS_PLUGIN = "torch_brdf_metallic_roughness"
 #: material types :func:`to_mitsuba_dict` can translate
-SUPPORTED_MATERIALS = ("lambert", "blinn_phong")
+SUPPORTED_MATERIALS = ("lambert", "blinn_phong", "metallic_roughness")
 
 _LLVM_OK: bool | None = None  # probe result, cached per process
 _REGISTERED: set[str] = set()  # variants with the Python BSDF registered
@@ -274,9 +279,98 @@ def _blinn_phong_class(mi):
     return BlinnPhongBSDF
 
 
+def _metallic_roughness_class(mi):
+    import drjit as dr
+
+    class MetallicRoughnessBSDF(mi.BSDF):
+        r"""Our :class:`~torch_brdf.brdf.gltf.MetallicRoughness` (the glTF 2.0 model) as a
+        one-sided Mitsuba BSDF, written independently of the torch code from the formula:
+        :math:`(1-m)(1-F_{0.04})c/\pi + F_{f_0} D V` with GGX :math:`\alpha = r^2` and the
+        height-correlated visibility. Sampling: Mitsuba's GGX visible normals with
+        probability 1/2, else the cosine hemisphere.
+
+        Properties: ``base_color`` (3 floats, :class:`mi.ScalarColor3f`), ``metallic``,
+        ``roughness``.
+        """
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.c = mi.Color3f(props["base_color"])
+            # an image texture of the base colour (texels times the factor), or None
+            self.c_tex = props["base_color_texture"] if "base_color_texture" in props else None
+            self.m = float(props["metallic"])
+            self.alpha = max(float(props["roughness"]) ** 2, 1e-5)
+            self.f0 = (1.0 - self.m) * 0.04 + self.m * self.c
+            self.dist = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+            self.m_components = [
+                mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
+                mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide,
+            ]
+            self.m_flags = self.m_components[0] | self.m_components[1]
+
+        def _f_cos(self, wi, wo, si=None):
+            ci, co = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
+            c = self.c if self.c_tex is None or si is None else self.c_tex.eval(si)
+            f0 = (1.0 - self.m) * 0.04 + self.m * c
+            h = dr.normalize(wi + wo)
+            x = dr.power(1.0 - dr.clip(dr.dot(wi, h), 0.0, 1.0), 5.0)
+            a2 = self.alpha * self.alpha
+            ch = mi.Frame3f.cos_theta(h)
+            d = a2 / (dr.pi * dr.square(ch * ch * (a2 - 1.0) + 1.0))
+            vis = 0.5 / dr.maximum(
+                co * dr.safe_sqrt(ci * ci * (1.0 - a2) + a2) + ci * dr.safe_sqrt(co * co * (1.0 - a2) + a2), 1e-30
+            )
+            fr = f0 + (1.0 - f0) * x
+            f = (1.0 - self.m) * (1.0 - (0.04 + 0.96 * x)) * c * dr.inv_pi + fr * d * vis
+            return dr.select((ci > 0) & (co > 0), f * co, 0.0)
+
+        def _pdf(self, wi, wo):
+            ci, co = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
+            h = dr.normalize(wi + wo)
+            spec = self.dist.pdf(wi, h) / (4.0 * dr.maximum(dr.dot(wo, h), 1e-12))
+            pdf = 0.5 * co * dr.inv_pi + 0.5 * spec
+            return dr.select((ci > 0) & (co > 0), pdf, 0.0)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            wi = si.wi
+            spec = sample1 < 0.5
+            wo_d = mi.warp.square_to_cosine_hemisphere(sample2)
+            h, _ = self.dist.sample(wi, sample2)
+            wo_s = 2.0 * dr.dot(wi, h) * h - wi
+            bs = mi.BSDFSample3f()
+            bs.wo = dr.select(spec, wo_s, wo_d)
+            bs.pdf = self._pdf(wi, bs.wo)
+            bs.eta = 1.0
+            bs.sampled_type = dr.select(
+                spec, mi.UInt32(+mi.BSDFFlags.GlossyReflection), mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+            )
+            bs.sampled_component = dr.select(spec, mi.UInt32(1), mi.UInt32(0))
+            ok = active & (mi.Frame3f.cos_theta(wi) > 0) & (bs.pdf > 0)
+            weight = self._f_cos(wi, bs.wo, si) / dr.maximum(bs.pdf, 1e-30)
+            return bs, dr.select(ok, weight, 0.0)
+
+        def eval(self, ctx, si, wo, active=True):
+            return dr.select(active, self._f_cos(si.wi, wo, si), 0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            return dr.select(active, self._pdf(si.wi, wo), 0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return dr.select(active, self._f_cos(si.wi, wo, si), 0.0), dr.select(active, self._pdf(si.wi, wo), 0.0)
+
+        def traverse(self, callback):
+            pass
+
+        def to_string(self):
+            return f"MetallicRoughnessBSDF[base_color={self.c}, metallic={self.m}, alpha={self.alpha}]"
+
+    return MetallicRoughnessBSDF
+
+
 def register_blinn_phong() -> None:
-    """Register the Python BSDF ``torch_brdf_blinn_phong`` for Mitsuba's current variant
-    (once per variant; :func:`render_mitsuba` calls it)."""
+    """Register the Python BSDFs ``torch_brdf_blinn_phong`` and
+    ``torch_brdf_metallic_roughness`` for Mitsuba's current variant (once per variant;
+    :func:`render_mitsuba` calls it)."""
     mi = _import_mitsuba()
     v = mi.variant()
     if v is None:
@@ -284,6 +378,8 @@ def register_blinn_phong() -> None:
     if v not in _REGISTERED:
         cls = _blinn_phong_class(mi)
         mi.register_bsdf(BLINN_PHONG_PLUGIN, lambda props: cls(props))
+        mr_cls = _metallic_roughness_class(mi)
+        mi.register_bsdf(METALLIC_ROUGHNESS_PLUGIN, lambda props: mr_cls(props))
         _REGISTERED.add(v)
 
 
@@ -306,6 +402,13 @@ def _bsdf_dict(key: str, material: dict[str, Any], mi) -> dict[str, Any]:
     with torch.no_grad():
         if kind == "lambert":
             inner = {"type": "diffuse", "reflectance": _rgb(brdf.reflectance)}
+        elif kind == "metallic_roughness":
+            inner = {
+                "type": METALLIC_ROUGHNESS_PLUGIN,
+                "base_color": mi.ScalarColor3f(*brdf.base_color.tolist()),
+                "metallic": float(brdf.metallic),
+                "roughness": float(brdf.roughness),
+            }
         else:
             inner = {
                 "type": BLINN_PHONG_PLUGIN,
@@ -346,23 +449,67 @@ def _envmap_bitmap(radiance: torch.Tensor, max_width: int = 2048) -> np.ndarray:
     return np.ascontiguousarray(rows, dtype=np.float32)
 
 
-def _mesh(mi, name: str, vertices, faces, normals, bsdf, emitter=None):
-    """An ``mi.Mesh`` with the given arrays: vertices (V, 3), faces (F, 3), normals (V, 3) or None."""
+def _mesh(mi, name: str, vertices, faces, normals, bsdf, emitter=None, uv=None):
+    """An ``mi.Mesh`` with the given arrays: vertices (V, 3), faces (F, 3), normals (V, 3) or
+    None, uv (V, 2) in our convention (v up) or None."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
     if emitter is not None:
         props["emitter"] = mi.load_dict(emitter)
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     f = np.ascontiguousarray(faces, dtype=np.uint32)
-    mesh = mi.Mesh(name, len(v), len(f), props=props, has_vertex_normals=normals is not None)
+    mesh = mi.Mesh(
+        name, len(v), len(f), props=props, has_vertex_normals=normals is not None, has_vertex_texcoords=uv is not None
+    )
     params = mi.traverse(mesh)
     vtype, ftype = type(params["vertex_positions"]), type(params["faces"])
     params["vertex_positions"] = vtype(v.ravel())
     params["faces"] = ftype(f.ravel())
     if normals is not None:
         params["vertex_normals"] = vtype(np.ascontiguousarray(normals, dtype=np.float32).ravel())
+    if uv is not None:  # Mitsuba's bitmap rows run down from v = 0: flip v
+        t = np.asarray(uv, dtype=np.float64)
+        t = np.stack([t[:, 0], 1.0 - t[:, 1]], -1)
+        params["vertex_texcoords"] = vtype(np.ascontiguousarray(t, dtype=np.float32).ravel())
     params.update()
     return mesh
+
+
+def _textured(mi, bsdf: dict[str, Any], material: dict[str, Any], texture) -> dict[str, Any]:
+    """``bsdf`` with its base colour replaced by ``texture`` times the material's factor: a
+    ``bitmap`` of the linear texels (``raw``: no second sRGB decoding), bilinear, repeating,
+    as :meth:`~torch_brdf.scene.textures.Texture.lookup`. The factor is multiplied into the
+    texels, which a bilinear lookup keeps exact."""
+    inner = dict(bsdf["bsdf"]) if bsdf.get("type") == "twosided" else dict(bsdf)
+    if inner["type"] == METALLIC_ROUGHNESS_PLUGIN:
+        factor = np.asarray(list(inner["base_color"]), dtype=np.float64)
+        img = texture.image.double().numpy() * factor
+        inner["base_color_texture"] = mi.load_dict(
+            {
+                "type": "bitmap",
+                "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "repeat",
+            }
+        )
+        return {"type": "twosided", "bsdf": inner} if bsdf.get("type") == "twosided" else inner
+    slot = {"diffuse": "reflectance", "principled": "base_color"}.get(inner["type"])
+    if slot is None:
+        raise SceneError(
+            f"material of type {material.get('type')!r} with a texture has no Mitsuba translation; "
+            "textured: lambert, metallic_roughness"
+        )
+    factor = np.asarray(inner[slot]["value"], dtype=np.float64).reshape(-1)
+    img = texture.image.double().numpy() * factor
+    inner[slot] = {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "repeat",
+    }
+    return {"type": "twosided", "bsdf": inner} if bsdf.get("type") == "twosided" else inner
 
 
 def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, variant: str | None = None) -> dict:
@@ -373,7 +520,7 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
     meshes and BSDFs in the dict are objects of that variant.
 
     Args:
-        scene: objects with ``lambert`` / ``blinn_phong`` materials; area, directional and
+        scene: objects with ``lambert`` / ``blinn_phong`` / ``metallic_roughness`` materials; area, directional and
             environment-map lights; the pinhole camera gives an (H, W) film.
         spp: samples per pixel (>= 1).
         max_bounces: surface vertices per path as in ``path_trace`` (>= 1);
@@ -425,7 +572,11 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
         if i in area:
             emitter = {"type": "area", "radiance": _rgb(area[i].radiance)}
         normals = np.asarray(obj.mesh.vertex_normals) if obj.smooth else None
-        out[f"obj_{i}"] = _mesh(mi, obj.name, obj.mesh.vertices, obj.mesh.faces, normals, bsdfs[obj.material], emitter)
+        bsdf = bsdfs[obj.material]
+        if "base_color" in obj.textures:
+            bsdf = _textured(mi, bsdf, scene.materials[obj.material], obj.textures["base_color"])
+        uv = obj.uv if obj.textures else None
+        out[f"obj_{i}"] = _mesh(mi, obj.name, obj.mesh.vertices, obj.mesh.faces, normals, bsdf, emitter, uv)
     for k, light in enumerate(scene.lights):
         key = f"light_{k}"
         if isinstance(light, AreaLight):
@@ -440,6 +591,12 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
                 "type": "directional",
                 "direction": [-float(c) for c in light.direction.tolist()],
                 "irradiance": _rgb(light.irradiance),
+            }
+        elif isinstance(light, PointLight):
+            out[key] = {
+                "type": "point",
+                "position": [float(c) for c in light.position.tolist()],
+                "intensity": _rgb(light.intensity),
             }
         elif isinstance(light, EnvironmentMap):
             out[key] = {

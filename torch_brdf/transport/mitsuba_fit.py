@@ -1,6 +1,6 @@
 r"""The peer of :func:`torch_brdf.render.fit_image`: Mitsuba 3's differentiable path tracer.
 
-The same inverse task as the polynomial fit (issue #16): recover the Blinn-Phong ``kd`` and
+The same inverse task as the polynomial fit: recover the Blinn-Phong ``kd`` and
 ``ks`` (RGB, exponent fixed) of one material of a scene from a target image, by Mitsuba's
 optimisation loop: every step re-renders the scene with path replay backpropagation
 (``prb`` integrator, Vicini et al. 2021) in ``llvm_ad_rgb``, back-propagates the weighted
@@ -74,7 +74,7 @@ class MitsubaBlinnPhongFit:
             are only the initial values of the scene description).
         material: the material key of the fitted objects.
         max_bounces: surface vertices per path (``prb``'s ``max_depth`` is one more).
-        variant: Mitsuba variant (``llvm_ad_rgb``: needs the LLVM of ../shared/FACTS.md).
+        variant: Mitsuba variant (``llvm_ad_rgb``: needs LLVM 19, Debian's ``libllvm19``).
     Raises:
         ImportError: Mitsuba is not installed.
         ValueRangeError: the material is not Blinn-Phong or no object uses it.
@@ -129,8 +129,11 @@ class MitsubaBlinnPhongFit:
             target: (H, W, 3) target image.
             weights: (H, W) painted-pixel weights >= 0 (default all ones); the loss is
                 :math:`\\sum_p w_p \\|I_p - T_p\\|^2 / (3\\sum_p w_p)`.
-            kd0, ks0: start (scalar or RGB).
-            steps, spp, lr: Adam steps, samples per pixel per step, learning rate.
+            kd0: start of ``kd`` (scalar or RGB).
+            ks0: start of ``ks`` (scalar or RGB).
+            steps: Adam steps.
+            spp: samples per pixel per step.
+            lr: learning rate.
             seed: step ``i`` renders with seed ``seed + i + 1``.
         Returns:
             :class:`MitsubaTrajectory`; the kernels are compiled by one untimed 1-spp

@@ -34,11 +34,13 @@ from tqdm.auto import tqdm
 
 from .._checks import check_count, check_seed
 from ..brdf import BRDF, create
+from ..brdf.textured import texturable, textured_eval_local
 from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
 from ..records.cache import ArraySpec, CacheSchema, Checkpoint, MetaSpec, settings_key
 from ..scene.scene import Scene
+from ..scene.textures import texture_at_hits
 from ._native import area_light_sample
 
 CHECKPOINT_KIND = "pathtrace-checkpoint"
@@ -53,7 +55,22 @@ def material_brdfs(scene: Scene) -> list[BRDF]:
                 cache[obj.material] = create(scene.materials[obj.material])
             except TorchBRDFError as exc:
                 raise SceneError(f"material {obj.material!r}: {exc}") from exc
-    return [cache[o.material] for o in scene.objects]
+    out = _BRDFList(cache[o.material] for o in scene.objects)
+    out.textured = {i for i, o in enumerate(scene.objects) if o.textures}
+    for i in out.textured:
+        model = scene.materials[scene.objects[i].material]["type"]
+        if not texturable(model):
+            raise SceneError(
+                f"object {scene.objects[i].name!r} has a base-colour texture but its material model {model!r} "
+                "has no base colour to scale"
+            )
+    return out
+
+
+class _BRDFList(list):
+    """The per-object BRDFs, and ``textured``: the ids of objects with a base-colour texture."""
+
+    textured: set[int]
 
 
 def rows_by_object(oid: torch.Tensor) -> list[tuple[int, torch.Tensor]]:
@@ -63,6 +80,14 @@ def rows_by_object(oid: torch.Tensor) -> list[tuple[int, torch.Tensor]]:
     order = torch.argsort(oid, stable=True)
     ids, counts = torch.unique_consecutive(oid[order], return_counts=True)
     return list(zip(ids.tolist(), torch.split(order, counts.tolist()), strict=True))
+
+
+def _eval(brdfs: list[BRDF], o: int, wi, wo, tex: torch.Tensor | None, rows) -> torch.Tensor:
+    """f of object ``o``'s BRDF at its rows ``rows`` of a batch, scaled by the base-colour texels
+    ``tex`` (rows of the whole batch) where object ``o`` is textured (``brdfs.textured``)."""
+    if tex is None or o not in getattr(brdfs, "textured", ()):
+        return brdfs[o].eval_local(wi, wo)
+    return textured_eval_local(brdfs[o], wi, wo, tex[rows])
 
 
 def _grouped(oid: torch.Tensor, fn, width: int) -> torch.Tensor:
@@ -201,6 +226,7 @@ def _radiance(
     idx = torch.nonzero(hits.hit).squeeze(1)
     d_in, pos = directions[idx], hits.position[idx]
     ng, ns, oid = hits.geometric_normal[idx], hits.normal[idx], hits.object_id[idx]
+    tex = texture_at_hits(scene, "base_color", oid, hits.prim_id[idx], hits.barycentrics[idx])
     beta = torch.ones(idx.numel(), 3)
     for bounce in range(max_bounces):
         if idx.numel() == 0:
@@ -211,7 +237,8 @@ def _radiance(
             if k.numel() == 0:
                 continue
             wi_k, wo_k = frame.to_local(ls.direction)[k], wo[k]
-            f = _grouped(oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k: brdfs[o].eval_local(wi_k[m], wo_k[m]), 3)
+            tex_k = None if tex is None else tex[k]
+            f = _grouped(oid[k], lambda o, m, wi_k=wi_k, wo_k=wo_k, t=tex_k: _eval(brdfs, o, wi_k[m], wo_k[m], t, m), 3)
             contrib = beta[k] * f * ls.weight[k] * cos[k, None]
             if id(light) in mis_lights:  # the BRDF sample below may find this light too
                 pdf_f = _grouped(
@@ -225,9 +252,9 @@ def _radiance(
         # continue the path by the BRDF's own importance sampling: beta *= f cos / pdf
         u = torch.rand(idx.numel(), 2, generator=gen)
 
-        def step(o, m, u=u, wo=wo):
+        def step(o, m, u=u, wo=wo, tex=tex):
             wi_l, pdf = brdfs[o].sample_local(wo[m], u[m])
-            f = brdfs[o].eval_local(wi_l, wo[m])
+            f = _eval(brdfs, o, wi_l, wo[m], tex, m)
             w = torch.where(pdf > 0, wi_l[:, 2].clamp_min(0) / pdf.clamp_min(1e-30), 0.0)
             return torch.cat((wi_l, f * w[:, None], pdf[:, None]), -1)
 
@@ -244,6 +271,8 @@ def _radiance(
         keep = ok[sub.hit]
         idx, beta, d_in = idx[keep], beta[keep], wi[keep]
         pos, ng, ns, oid = (x[sub.hit] for x in (sub.position, sub.geometric_normal, sub.normal, sub.object_id))
+        if tex is not None:
+            tex = texture_at_hits(scene, "base_color", oid, sub.prim_id[sub.hit], sub.barycentrics[sub.hit])
     return out
 
 
@@ -339,9 +368,12 @@ def reference_path_trace(
     measure what a BRDF series, diffuse equivalents and band projections cost.
 
     Args:
-        scene, spp, max_bounces, seed: as :func:`path_trace`; ``max_bounces`` counts surface
+        scene: as :func:`path_trace`; ``max_bounces`` counts surface
             vertices, so it matches a series of that length (Mitsuba's ``max_depth`` is
             ``max_bounces + 1``).
+        spp: as ``scene``.
+        max_bounces: as ``scene``.
+        seed: as ``scene``.
         mis: power-heuristic MIS of light and BRDF sampling (default ``True``); ``False``
             is next-event estimation alone (same expectation, more fireflies on glossy
             surfaces under large bright lights).

@@ -1,10 +1,10 @@
-r"""The GI precompute's rays cast straight into embree by the compiled kernel (#14).
+r"""The GI precompute's rays cast straight into embree by the compiled kernel.
 
 :class:`NativeRays` casts closest-hit rays and shadow rays of a scene's
 :class:`~torch_brdf.scene.raytrace.RayTracer` with ``tb_trace_hits`` and ``tb_occluded_rays`` of
-``_native.c``: one C call per batch, which calls embree's ``rtcIntersect1`` / ``rtcOccluded1``
+``csrc/rays.c``: one C call per batch, which calls embree's ``rtcIntersect1`` / ``rtcOccluded1``
 per ray (through the scene handle behind embreex, checked by
-:func:`~torch_brdf.scene.parallel.embree_entry`) and interpolates each hit at once, instead of
+:func:`~torch_brdf.scene.embree.embree_entry`) and interpolates each hit at once, instead of
 embreex's Python call per chunk, its result arrays and numpy's passes over them. The query per
 ray is the one :meth:`~torch_brdf.scene.raytrace.RayTracer.trace` and ``occluded`` make, and the
 hits come from the same per-triangle table with the same float32 formulas, so object and
@@ -79,7 +79,8 @@ class NativeRays:
         dtypes go to the tracer itself).
 
         Args:
-            origins, directions: (P, 3) float32.
+            origins: (P, 3) float32.
+            directions: (P, 3) float32.
         Returns:
             :class:`~torch_brdf.scene.raytrace.Hits` (float32 and int64 views of reused buffers).
         Raises:

@@ -18,7 +18,7 @@ Conventions (fixed here, relied on by :mod:`torch_brdf.render.triple`):
 
 :func:`precompute_visibility` works in chunks of vertices; each finished chunk is written
 atomically to a checkpoint folder, so an interrupted run resumes where it stopped and gives
-the same record. The chunks are the tiles of :func:`~torch_brdf.transport.executor.run_tiles`:
+the same record. The chunks are the tiles of :func:`~torch_brdf.parallel.tiles.run_tiles`:
 they run in this process (``executor="local"``) or as Ray tasks (``"ray"``). Ray casting is
 deterministic, so the record does not depend on the chunking, the executor or on the number
 of ray-casting processes.
@@ -41,16 +41,16 @@ import numpy as np
 import torch
 
 from .._checks import MAX_CUBEMAP_RESOLUTION, MAX_SUPERSAMPLE, check_count, check_int
-from .._threads import single_thread
 from ..data import progress_default
 from ..errors import FileFormatError, ValueRangeError
+from ..parallel.threads import single_thread
+from ..parallel.tiles import TileWork, run_tiles
 from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from . import _native
-from .executor import TileWork, run_tiles
 
 __all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices", "visibility_fraction"]
 
@@ -70,7 +70,8 @@ def visibility_fraction(
     Args:
         scene: the scene (its tracer casts the rays).
         geom: cubemap layout.
-        pos, nrm: (m, 3) vertex positions and unit normals.
+        pos: (m, 3) vertex positions.
+        nrm: (m, 3) unit vertex normals.
         supersample: k, rays per texel side.
     Returns:
         (m, NB, S^2) float32; encode it with
@@ -273,8 +274,10 @@ def precompute_visibility(
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
         keep_checkpoint: keep the finished chunks after success.
-        executor, address, max_retries: where the chunks run (``"local"`` or ``"ray"``), see
-            :func:`~torch_brdf.transport.executor.run_tiles`; the record is the same bit for bit.
+        executor: where the chunks run (``"local"`` or ``"ray"``), see
+            :func:`~torch_brdf.parallel.tiles.run_tiles`; the record is the same bit for bit.
+        address: as ``executor``.
+        max_retries: as ``executor``.
         processes: ``local`` only: chunks computed at once in forked processes (None: one per
             usable core; 1: one after another in this process, rays on ``scene.workers``).
     Returns:

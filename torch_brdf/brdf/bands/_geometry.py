@@ -31,7 +31,8 @@ def half_and_diff(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, tor
     is accurate everywhere and bitwise reciprocal.
 
     Args:
-        wi, wo: (*B, 3) local unit directions.
+        wi: (*B, 3) local unit directions.
+        wo: (*B, 3) local unit directions.
     Returns:
         h: (*B, 3) unit half vector (+z where undefined), cos_d: (*B,), theta_d: (*B,).
     """

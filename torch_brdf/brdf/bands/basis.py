@@ -240,7 +240,8 @@ class BandBasis(nn.Module):
 
         Args:
             c: (J, C) coefficients.
-            wi, wo: (*B, 3) local directions.
+            wi: (*B, 3) local directions.
+            wo: as ``wi``.
         Returns:
             (*B, C), differentiable in ``c``.
         """

@@ -70,10 +70,14 @@ class Factored1D(BRDF):
             ``spacing``, ``n_u``, ``symmetric`` (see :class:`BandBasis`).
         coefficients: (J, 3) RGB coefficients :math:`c` (or a scalar, (J,), (3,));
             default :math:`0.5/\pi` (with quotient ``"one"``: Lambert of albedo 0.5).
-            Stored raw behind ``Clamped(0, inf)`` and exposed as ``coefficients``
+            Stored raw behind ``Clamped(0, inf)`` and exposed as ``coefficients``.
             (non-negative, differentiable; :meth:`set_coefficients` edits in place).
         quotient: name or :class:`Quotient` (see the module docstring).
-        variable, J, spacing, n_u, symmetric: the basis, when ``basis`` is None.
+        variable: the basis, when ``basis`` is None.
+        J: as ``variable``.
+        spacing: as ``variable``.
+        n_u: as ``variable``.
+        symmetric: as ``variable``.
         sample_mix: probability of cosine-hemisphere sampling in the sampling mixture; the
             rest samples the band mixture (:meth:`sample_local`).
     """
@@ -318,7 +322,9 @@ class FresnelFactored1D(Factored1D):
     :class:`Factored1D` (the Fresnel factor is at most 1).
 
     Args:
-        basis, coefficients, quotient, ...: as :class:`Factored1D` (:math:`f` and :math:`\rho_q`).
+        basis: as :class:`Factored1D` (:math:`f` and :math:`\rho_q`).
+        coefficients: as ``basis``.
+        quotient: as ``basis``.
         f0: normal-incidence reflectance :math:`F` (scalar or RGB), exposed as ``f0``.
     """
 

@@ -13,20 +13,20 @@ import numpy as np
 import torch
 
 from ..._checks import MAX_BANDS, check_count, check_seed
-from ..._threads import available_memory, tile_processes
 from ...data import progress_default
 from ...errors import FileFormatError, ShapeError, ValueRangeError
+from ...parallel.threads import available_memory, tile_processes
+from ...parallel.tiles import run_tiles, single_process, tile_tick
 from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
 from ...records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
+from ...records.guides import GUIDE_VERSION
 from ...records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
-from ...scene.guides import GUIDE_VERSION
 from ...scene.lights import Light
 from ...scene.scene import Scene
 from .._native import Accumulator, TileSums, library
 from .._native import ptr as _p
-from ..executor import run_tiles, single_process, tile_tick
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
 from .plan import plan_bases
@@ -48,19 +48,19 @@ __all__ = ["TILE_KIND", "TILE_PIXELS", "plan_polynomial", "precompute_polynomial
 TILE_KIND = "multibounce-tile"
 
 #: peak memory of a tile per path (bytes): its transient entries set it (measured 0.6-0.9 kB
-#: on the 128² box at 64-1024 spp, ../shared/FACTS.md); bounds the tiles run at once.
+#: on the 128² box at 64-1024 spp); bounds the tiles run at once.
 TILE_BYTES_PER_PATH = 1024
 
 #: pixels of a default tile (whole rows: ``TILE_PIXELS // width`` of them, at least one). Small
 #: enough that the processes pulling tiles run out of work nearly together and the last tile's
 #: hand-back and assembly (serial after the tiles) are short: 16 tiles of 16 rows at 256²
-#: (until session 9: 16384 pixels, 4 tiles of 64 rows, which left one of two processes waiting
-#: for the last tile). Part of the random stream (each tile is seeded by its index).
+#: (16384 pixels, 4 tiles of 64 rows, left one of two processes waiting for the last tile).
+#: Part of the random stream (each tile is seeded by its index).
 TILE_PIXELS = 4096
 
 
 def _default_processes(tile_paths: int) -> int:
-    """Tiles at once by default: :func:`~torch_brdf._threads.tile_processes` (one per usable
+    """Tiles at once by default: :func:`~torch_brdf.parallel.threads.tile_processes` (one per usable
     core, 1 on a busy machine), fewer when that many tiles would not fit in the available
     memory (at least one)."""
     n = tile_processes()
@@ -103,7 +103,7 @@ def _offsets(n: int, gen: torch.Generator) -> torch.Tensor:
 def eye_rays(cam, pixels: torch.Tensor, rec: torch.Tensor, off: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """A pass group's eye rays: ``cam.rays_through`` at the raster positions of ``pixels[rec]``
     (flat indices) plus ``off`` (row, column) offsets. For a plain
-    :class:`~torch_brdf.scene.camera.Camera` with the compiled kernel (session 10): its
+    :class:`~torch_brdf.scene.camera.Camera` with the compiled kernel: its
     ``tb_camera_local`` and ``tb_camera_finish`` around the product with the camera frame and the
     row norms, which stay torch's (their rounding is BLAS's and torch's own), so the same rays bit
     for bit with a fraction of the passes over memory.
@@ -455,13 +455,13 @@ def precompute_polynomial(
         error: relative RMSE budget of ``plan="auto"``.
         time_budget: seconds budget of ``plan="auto"``.
         executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
-            :mod:`torch_brdf.transport.executor`); the tensors are the same bit for bit.
+            :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
             cluster address.
         max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
         guides: attach the view's denoiser guides (:func:`torch_brdf.transport.guides.guide_buffers`:
             one pixel-centre ray and its mirror ray per pixel, saved with the record and
-            versioned by :data:`~torch_brdf.scene.guides.GUIDE_VERSION`, also in
+            versioned by :data:`~torch_brdf.records.guides.GUIDE_VERSION`, also in
             ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
             False: no guides (``meta["guides"]`` None).
         processes: ``local`` only: tiles computed at once in forked processes (None: one per
@@ -665,7 +665,7 @@ def plan_polynomial(
     adaptive: bool = True,
     max_light_samples: int = 16,
 ) -> GIPlan:
-    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds`` (issue #17).
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
 
     Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
     runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
@@ -678,7 +678,8 @@ def plan_polynomial(
         error: relative RMSE budget (against the converged polynomial model).
         seconds: precompute time budget.
         edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp, pilot_bounces: the pilots' settings (all 1-band after the eye).
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
         seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
         env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
         progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).

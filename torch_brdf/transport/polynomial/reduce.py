@@ -298,9 +298,9 @@ class TermNumbering:
     significant), which is the order in which :func:`_local_blocks` (and the compiled
     ``tb_blocks``) already hold a block's terms whenever their multiset codes fit in 62 bits. Each
     block's ids are then increasing as they are; a block in another order (codes too wide: the
-    rows' own order) has its entries re-sorted. Until session 16 the ids were given in order of
-    first appearance while the tiles came in, and a block whose terms that order did not keep was
-    re-sorted on the driver: serial work per tile that bounded the speedup on a cluster.
+    rows' own order) has its entries re-sorted. Numbering the terms in order of first appearance while the tiles
+    come in would leave blocks to re-sort on the driver: serial work per tile that bounds the
+    speedup on a cluster.
 
     Args:
         num_objects: M, the width of a term's counts.

@@ -1,8 +1,8 @@
-r"""The per-vertex steps of the GI tracer in the compiled kernel (#14): one C call per step and
+r"""The per-vertex steps of the GI tracer in the compiled kernel: one C call per step and
 wavefront instead of ~40 torch ops per vertex.
 
 :class:`VertexKernel` wraps ``tb_frame``, ``tb_area_sample``, ``tb_light_gather``, ``tb_layers``,
-``tb_mixture`` and ``tb_advance`` of :mod:`torch_brdf.transport._native` (see ``_native.c``):
+``tb_mixture`` and ``tb_advance`` of :mod:`torch_brdf.transport._native` (see ``transport/csrc/vertex.c``):
 the shading frame, an area light's next-event sample and its shadow ray, the light samples in
 the local frame, the band slots and quotients of the editable objects, the direction mixture and
 the path's advance. They compute what the torch steps of :meth:`~.tracer._Tracer.run` compute
@@ -40,7 +40,7 @@ _F32, _I64 = {"dtype": torch.float32}, {"dtype": torch.int64}
 
 
 def quotient_code(q) -> int | None:
-    """The kernel's code of a quotient (``Q_*`` in ``_native.c``), None when it has none."""
+    """The kernel's code of a quotient (``Q_*`` in ``csrc/vertex.c``), None when it has none."""
     if type(q) in _BASE_CODES:
         return _BASE_CODES[type(q)]
     if type(q) is _q.SchlickFresnel and q.f0 is None and type(q.base) in _BASE_CODES:
@@ -282,7 +282,7 @@ def c_rand_matches(lib) -> bool:
 
 
 class Wavefront:
-    r"""The GI tracer's wavefront in buffers allocated once and reused (#14, session 8): the path
+    r"""The GI tracer's wavefront in buffers allocated once and reused: the path
     state, the vertices and every per-step output of :meth:`~.tracer._Tracer._run_wavefront`, so
     a bounce runs as a few kernel calls on them (frame, light samples with their uniforms drawn in
     the kernel, the light samples that reach their vertex with their factors, mixture, band slots,
@@ -330,7 +330,7 @@ class Wavefront:
                    "B_w": e(r, Lb, 3, **_F32), "d_in": e(r, 3, **_F32), "pos": e(r, 3, **_F32),
                    "ng": e(r, 3, **_F32), "ns": e(r, 3, **_F32), "counts": e(r, M, dtype=torch.int8)}  # fmt: skip
         self.fr, self.wo = e(r, 9, **_F32), e(r, 3, **_F32)
-        # the order of tb_wf in _native.c
+        # the order of tb_wf in csrc/wavefront.c
         ptrs = [x.data_ptr() for x in (*self.st.values(), self.fr, self.wo)]
         self._st_ptrs = (ctypes.c_void_p * 15)(*ptrs)
         # light samples: per vertex, candidates, the ones that reach their vertex
