@@ -405,6 +405,7 @@ _MODELS = (
     "factored_1d_fresnel",
     "lambert",
     "merl",
+    "metallic_roughness",
     "nbrdf",
     "phong",
     "ward",
