@@ -295,11 +295,12 @@ def _grazing_pairs(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(wi, dtype=dtype), torch.tensor(wo, dtype=dtype)
 
 
-def brdf_grazing(name: str) -> Outcome:
-    """Model ``name`` (default parameters) at theta = 90 degrees: finite, >= 0, float32 = float64."""
+def brdf_grazing(name: str, **params) -> Outcome:
+    """Model ``name`` (default parameters, or ``params``) at theta = 90 degrees: finite, >= 0,
+    float32 = float64."""
     from torch_brdf.brdf import base
 
-    brdf = _measured(name) if name in ("merl", "nbrdf") else base.create(name)
+    brdf = _measured(name) if name in ("merl", "nbrdf") else base.create(name, **params)
     vals = []
     with torch.no_grad():
         for dt in (F32, F64):
@@ -443,6 +444,11 @@ _CELLS: dict[str, list[tuple]] = {
     ],
     "BRDF models (theta = 90 deg)": [
         *((f"{name}, float32 and float64", lambda name=name: brdf_grazing(name)) for name in _MODELS),
+        ("cook_torrance roughness 0.01", lambda: brdf_grazing("cook_torrance", roughness=0.01, f0=1.0)),
+        (
+            "metallic_roughness metal, roughness 0.01",
+            lambda: brdf_grazing("metallic_roughness", metallic=1.0, roughness=0.01),
+        ),
         ("cook_torrance GGX roughness 1, mirror pair", lambda: ggx_grazing(1.0)),
         ("cook_torrance GGX roughness 1e-4, mirror pair", lambda: ggx_grazing(1e-4)),
     ],
