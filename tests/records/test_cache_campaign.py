@@ -120,13 +120,13 @@ def _box():
 
 
 def test_path_trace_checkpoints(tmp_path, rng):
-    from torch_brdf.transport.pathtrace import CHECKPOINT_KIND, path_trace
+    from torch_brdf.transport.pathtrace import CHECKPOINT_KIND, PathTraceSettings, path_trace
 
     ckpt = tmp_path / "c" / "render.ckpt.npz"
     scene = _box()
 
     def run():
-        return path_trace(scene, spp=2, max_bounces=2, seed=1, progress=False, checkpoint=ckpt)
+        return path_trace(scene, PathTraceSettings(spp=2, max_bounces=2), seed=1, progress=False, checkpoint=ckpt)
 
     tally = _campaign(run, ckpt.parent, [ckpt], CHECKPOINT_KIND, rng)
     assert tally["cases"] == PER_FILE
@@ -134,15 +134,15 @@ def test_path_trace_checkpoints(tmp_path, rng):
 
 def test_polynomial_tiles(tmp_path, rng, keep_tiles):
     from torch_brdf.scene.builtin import cornell_box
-    from torch_brdf.transport.polynomial import precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
     from torch_brdf.transport.polynomial.driver import TILE_KIND
 
     scene = cornell_box(6)
     folder = tmp_path / "tiles"
-    kw = dict(series="4,1", spp=2, seed=3, tile_rows=3, progress=False, processes=1, checkpoint=folder)
+    settings = PolynomialSettings("4,1", spp=2, tile_rows=3)
 
     def run():
-        t = precompute_polynomial(scene, **kw)
+        t = precompute_polynomial(scene, settings, seed=3, progress=False, processes=1, checkpoint=folder)
         return [t.emission, *[x for b in t.blocks for x in (b.values, b.pixels, b.terms, b.index)]]
 
     run()
@@ -152,13 +152,13 @@ def test_polynomial_tiles(tmp_path, rng, keep_tiles):
 
 
 def test_visibility_chunks(tmp_path, rng, keep_tiles):
-    from torch_brdf.transport.visibility import CHUNK_KIND, precompute_visibility
+    from torch_brdf.transport.visibility import CHUNK_KIND, VisibilitySettings, precompute_visibility
 
     scene = _box()
     folder = tmp_path / "vis"
 
     def run():
-        v = precompute_visibility(scene, resolution=16, chunk=4, progress=False, checkpoint=folder)
+        v = precompute_visibility(scene, VisibilitySettings(resolution=16, chunk=4), progress=False, checkpoint=folder)
         return [v.blocks.counts, v.blocks.index, v.blocks.states]
 
     run()
