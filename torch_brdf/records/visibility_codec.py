@@ -372,18 +372,31 @@ class BlockVisibility(Record):
     # -- construction -------------------------------------------------------------------
     @classmethod
     def _from_entries(cls, block_count, bits, counts, index, delta, meta=None) -> BlockVisibility:
-        """Build offsets and states from ``(P, NB)`` int16 counts and the flat entries."""
-        offsets = _offsets_from_counts(counts)
-        flat = counts.reshape(-1)
-        states = torch.full(flat.shape, PARTIAL, dtype=torch.uint8)
-        states[flat == 0] = OCCLUDED
-        if index.numel():
-            first = offsets[:-1].clamp(max=index.numel() - 1)
-            full = (flat == 1) & (index[first] == 0)
-            if bits:
-                full &= delta[first] == _levels(bits)
-            states[full] = UNOCCLUDED
-        return cls(block_count, bits, counts, offsets, index, delta, states.reshape(counts.shape), dict(meta or {}))
+        """Build offsets and states from ``(P, NB)`` int16 counts and the flat entries (in runs of
+        ``_CHUNK_PAIRS`` pairs: no temporary of the size of all pairs beside the results)."""
+        flat = counts.reshape(-1).numpy()
+        offsets = np.empty(flat.size + 1, dtype=np.int64)
+        offsets[0] = 0
+        np.cumsum(flat, dtype=np.int64, out=offsets[1:])
+        states = np.empty(flat.size, dtype=np.uint8)
+        idx = index.numpy()
+        dlt = delta.numpy() if bits else None
+        for q0 in range(0, flat.size, _CHUNK_PAIRS):
+            q1 = min(q0 + _CHUNK_PAIRS, flat.size)
+            f0, f1 = int(offsets[q0]), int(offsets[q1])
+            states[q0:q1] = _states(
+                flat[q0:q1], offsets[q0 : q1 + 1] - f0, idx[f0:f1], dlt[f0:f1] if bits else None, bits
+            )
+        return cls(
+            block_count,
+            bits,
+            counts,
+            torch.from_numpy(offsets),
+            index,
+            delta,
+            torch.from_numpy(states).reshape(counts.shape),
+            dict(meta or {}),
+        )
 
     @classmethod
     def encode(cls, visibility, bits: int = 0, meta: dict[str, Any] | None = None) -> BlockVisibility:
