@@ -90,7 +90,13 @@ from torch_brdf.scene.embree import CHUNK
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native
-from torch_brdf.transport.visibility import HORIZON_EPS, _chunk_entries, precompute_visibility, scene_vertices
+from torch_brdf.transport.visibility import (
+    HORIZON_EPS,
+    VisibilitySettings,
+    _chunk_entries,
+    precompute_visibility,
+    scene_vertices,
+)
 
 from ._timing import best_of
 
@@ -321,11 +327,13 @@ def main() -> None:
         for what in order[r % len(order) :] + order[: r % len(order)]:  # each goes first in turn
             t, c = time.perf_counter(), _cpu_seconds()
             if what == "precompute":
-                vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
+                vis = precompute_visibility(
+                    scene, VisibilitySettings(resolution=res, chunk=chunk), checkpoint=args.checkpoint, processes=procs
+                )
             elif what == "precompute_numpy":  # the numpy path (before the compiled loop), same run
                 os.environ[_native.ENV_VAR] = "0"
                 try:
-                    precompute_visibility(scene, res, chunk=chunk, processes=procs)
+                    precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=procs)
                 finally:
                     del os.environ[_native.ENV_VAR]
             elif what == "embree_c":
@@ -401,7 +409,7 @@ def main() -> None:
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
         t = time.perf_counter()
-        vis1 = precompute_visibility(scene, res, chunk=chunk, processes=1)
+        vis1 = precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=1)
         baseline["one_process_s"] = time.perf_counter() - t
         baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
         a, b = vis1.blocks, vis.blocks
