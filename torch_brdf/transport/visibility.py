@@ -252,6 +252,27 @@ def _visibility_chunk(work: TileWork, c: int):
     return entries, {"chunk": c}
 
 
+def _join_tiles(tiles: list, nb: int, bits: int) -> BlockVisibility:
+    """The record of the chunks' entries, in order, copied into arrays allocated once; each
+    chunk is dropped from ``tiles`` once copied, so the peak is the record plus the chunks
+    (not the chunks, their concatenation and the record's temporaries at once)."""
+    n_vertices = sum(a["counts"].shape[0] for a, _ in tiles)
+    n_entries = sum(a["index"].size for a, _ in tiles)
+    counts = np.empty((n_vertices, nb), dtype=np.int16)
+    index = np.empty(n_entries, dtype=np.uint8)
+    delta = np.empty(n_entries, dtype=np.int16) if bits else None
+    v, f = 0, 0
+    for i, (a, _) in enumerate(tiles):
+        m, k = a["counts"].shape[0], a["index"].size
+        counts[v : v + m] = a["counts"]
+        index[f : f + k] = a["index"]
+        if bits:
+            delta[f : f + k] = a["delta"]
+        v, f = v + m, f + k
+        tiles[i] = None
+    return BlockVisibility.from_entries(nb, bits, counts, index, delta)
+
+
 @dataclass(frozen=True)
 class VisibilitySettings:
     """The settings of :func:`precompute_visibility` (frozen; :meth:`key` feeds the resume key).
@@ -381,10 +402,7 @@ def precompute_visibility(
     if any(t is None for t in tiles):
         return None  # stopped by max_chunks
     with single_thread():  # small torch ops: a second thread only waits (milliseconds under load)
-        joined = {k: np.concatenate([a[k] for a, _ in tiles]) for k in tiles[0][0]}
-        blocks = BlockVisibility.from_entries(
-            geom.block_count, bits, joined["counts"], joined["index"], joined.get("delta")
-        )
+        blocks = _join_tiles(tiles, geom.block_count, bits)
     if not keep_checkpoint:
         cache.remove()
     return VertexVisibility(geom, verts, blocks, supersample, bits)
