@@ -27,7 +27,7 @@ from torch_brdf.scene import (  # noqa: E402
 )
 from torch_brdf.scene.builtin import cornell_box  # noqa: E402
 from torch_brdf.transport import mitsuba as tbm  # noqa: E402
-from torch_brdf.transport.pathtrace import path_trace  # noqa: E402
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace  # noqa: E402
 
 pytestmark = pytest.mark.reference
 
@@ -172,7 +172,7 @@ def test_orientation_and_direct_lighting_agree():
     on the left and the light at the top in both images (no mirroring or flipping), and the
     left/right half means of R and G agree within 5% (their noise is ~0.5% here)."""
     scene = cornell_box(32)
-    ours = path_trace(scene, spp=16, max_bounces=1, seed=0, progress=False)
+    ours = path_trace(scene, PathTraceSettings(spp=16, max_bounces=1), seed=0, progress=False)
     theirs = tbm.render_mitsuba(scene, spp=16, max_bounces=1, seed=0, variant="scalar_rgb")
     lit = ~_light_pixels(scene)
     for img in (ours, theirs):
@@ -205,7 +205,9 @@ def test_path_tracer_agrees_with_mitsuba_cornell_glossy():
     """
     K, spp, B = 4, 8, 8
     scene = _glossy_cornell(48)
-    ours = torch.stack([path_trace(scene, spp, 4, seed=s, progress=False) for s in range(K)]).double()
+    ours = torch.stack(
+        [path_trace(scene, PathTraceSettings(spp=spp, max_bounces=4), seed=s, progress=False) for s in range(K)]
+    ).double()
     theirs = torch.stack([tbm.render_mitsuba(scene, spp, 4, seed=s, variant="scalar_rgb") for s in range(K)])
     theirs = theirs.double()
 
@@ -269,7 +271,9 @@ def test_envmap_and_directional_light_agree():
     sky = EnvironmentMap.sky(height=32, sun_direction=(0.6, 0.5, -0.4), sun_angular_radius_deg=6.0)
     scene = _env_scene([sky.rotated(0.7), DirectionalLight((-0.5, 0.8, -0.3), (0.5, 0.4, 0.3))])
     K, spp = 4, 8
-    ours = torch.stack([path_trace(scene, spp, 1, seed=s, progress=False) for s in range(K)]).double()
+    ours = torch.stack(
+        [path_trace(scene, PathTraceSettings(spp=spp, max_bounces=1), seed=s, progress=False) for s in range(K)]
+    ).double()
     theirs = torch.stack([tbm.render_mitsuba(scene, spp, 1, seed=s, variant="scalar_rgb") for s in range(K)]).double()
     bo = torch.nn.functional.avg_pool2d(ours.permute(0, 3, 1, 2), 4)
     bm = torch.nn.functional.avg_pool2d(theirs.permute(0, 3, 1, 2), 4)

@@ -196,6 +196,29 @@ def _initial_jitter(x: torch.Tensor, lengthscale: float, mu: float, floor: float
     return jitter
 
 
+def _start_latents(s: torch.Tensor, q: int, init, generator: torch.Generator | None) -> torch.Tensor:
+    """(N, q) starting latents: ``init`` (checked), else PCA's, nudged by a tiny seeded noise."""
+    n = s.shape[0]
+    if init is None:
+        with small_matrix_mode(n):
+            x0 = pca_latents(s, q)
+        # duplicated rows give coincident PCA latents, a saddle of L with a symmetric gradient;
+        # a tiny seeded nudge lets the optimiser separate them (it does not change a good start)
+        noise = torch.randn(x0.shape, generator=generator, dtype=torch.float64)
+        return x0 + 1e-6 * noise * float(x0.std().clamp_min(1e-12))
+    x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
+    if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
+        raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
+    return x0
+
+
+def _check_warmup_and_window(warmup_fraction: float, tol_window, method: str) -> None:
+    if not 0 <= warmup_fraction < 1:
+        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
+    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
+        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+
+
 def fit_gplvm(
     s: torch.Tensor,
     d: int,
@@ -276,24 +299,10 @@ def fit_gplvm(
         raise ValueRangeError("Z is all zeros (tr(S) = 0): nothing to fit")
     s = s / scale
     t0 = time.perf_counter()  # the start (PCA, jitter) counts in ``seconds``
-    if init is None:
-        with small_matrix_mode(n):
-            x0 = pca_latents(s, q)
-        # duplicated rows give coincident PCA latents, a saddle of L with a symmetric gradient;
-        # a tiny seeded nudge lets the optimiser separate them (it does not change a good start)
-        noise = torch.randn(x0.shape, generator=generator, dtype=torch.float64)
-        x0 = x0 + 1e-6 * noise * float(x0.std().clamp_min(1e-12))
-    else:
-        x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
-        if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
-            raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
-    if not 0 <= warmup_fraction < 1:
-        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
-    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
-        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+    x0 = _start_latents(s, q, init, generator)
+    _check_warmup_and_window(warmup_fraction, tol_window, method)
     window = {"window": tol_window} if method == "lbfgs" else {}
-    meta = {}
-    n_warm = round(warmup_fraction * max_iter)
+    meta, n_warm = {}, round(warmup_fraction * max_iter)
     if method == "lbfgs" and warmup_mu is not None and mu <= WARMUP_RATIO * warmup_mu and n_warm > 0:
         jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
         with small_matrix_mode(n):

@@ -51,16 +51,19 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
+from .._checks import check_count
 from ..brdf import create
 from ..brdf.bands import BandBasis, Factored1D, equivalent_albedo, project, projection_error
 from ..brdf.bands.projection import PairQuadrature
 from ..errors import SceneError, ValueRangeError
 from ..records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ..scene.scene import Scene
+from ..transport.polynomial import PolynomialSettings, precompute_polynomial, with_fixed
 
 __all__ = [
     "GIPlan",
@@ -68,7 +71,9 @@ __all__ = [
     "choose_bands",
     "pilot_images",
     "plan_from_pilots",
+    "plan_polynomial",
     "planned_bases",
+    "precompute_planned",
     "unlit_mask",
     "with_fixed",
 ]
@@ -174,14 +179,6 @@ def planned_bases(
         bases.append(_basis(mat, J))
         errors[o.name] = e
     return bases, errors, tuple(fixed)
-
-
-def with_fixed(scene: Scene, fixed: tuple[str, ...]) -> Scene:
-    """A copy of ``scene`` whose objects named in ``fixed`` are not editable (same tracer)."""
-    if not fixed:
-        return scene
-    objs = [dataclasses.replace(o, editable=False) if o.name in fixed else o for o in scene.objects]
-    return dataclasses.replace(scene, objects=objs)
 
 
 def _coefficients(material: dict[str, Any], basis: ObjectBasis) -> tuple[torch.Tensor, torch.Tensor]:
@@ -409,10 +406,15 @@ class GIPlan:
             lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
         return "\n".join(lines)
 
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
+    def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
+        """The :class:`~torch_brdf.transport.polynomial.PolynomialSettings` that carry out the
+        plan: ``base`` (sampler, tiles, guides, storage; None: the defaults) with the plan's
+        series, spp (or spp map), bases, light samples and fixed objects."""
         spp = self.spp_map if self.spp_map is not None else self.spp
-        return {"series": self.series, "spp": spp, "bases": list(self.bases), "light_samples": self.light_samples}
+        base = PolynomialSettings() if base is None else base
+        return base.replace(
+            series=self.series, spp=spp, bases=self.bases, light_samples=self.light_samples, fixed=self.fixed
+        )
 
 
 def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
@@ -448,6 +450,95 @@ def _path_cost(pilots: list[PolynomialTensors], n_max: int) -> torch.Tensor:
     return (1 + 2 * reached.double().cumsum(0)).reshape(n_max + 1, h, w)
 
 
+def _check_pilots(error: float | None, seconds: float | None, pilots: list[PolynomialTensors]) -> None:
+    if error is None and seconds is None:
+        raise ValueRangeError("plan for an error, a time or both; got neither")
+    if error is not None and not error > 0:
+        raise ValueRangeError(f"error must be > 0; got {error}")
+    if len(pilots) < 2:
+        raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
+    if any(p.meta.get("spp_map") is not None for p in pilots):
+        raise ValueRangeError("pilot runs take one spp for every pixel")
+
+
+def _pilot_stats(bases, projection_errors: dict[str, float], pilots: list[PolynomialTensors], mats: dict):
+    """What the pilots measure (see the module): the counted pixels, the image's norm, the
+    bounces, the bounce tails, the per-object light by eye vertex, the
+    glossy-to-glossy light, the per-pixel noise and its relative sigma per bounce count, the
+    path cost per pixel, and the cost fit (seconds per spp, fixed seconds)."""
+    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
+    imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
+    s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
+    mean = (s[:, None, None, None, None] * imgs).sum(0) / s.sum()
+    norm = float((mean.sum(0)[keep] ** 2).sum()) ** 0.5
+    if norm == 0:
+        raise ValueRangeError("the pilot image is black: nothing to plan for")
+    n_max = pilots[0].series.bounces
+    # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
+    # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
+    tails = []
+    for n in range(n_max + 1):
+        noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
+        tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
+    names = list(pilots[0].object_names)
+    # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
+    # (cumulated over bounces 1..n: index n - 1)
+    eye_parts = {
+        name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
+    }
+    # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
+    glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
+    g2g = 0.0
+    if glossy and n_max >= 2:
+        part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
+        g2g = float((part**2).sum()) ** 0.5 / norm
+    # per-pixel noise of one path with the first n bounces (pooled over the pilots), 0 where
+    # the budget does not count; sigmas: the relative noise of the image at one spp
+    cum = imgs.cumsum(1)
+    pixvar = [_pooled_variance(cum[:, n], s) * keep for n in range(n_max + 1)]
+    sigmas = [float(v.sum()) ** 0.5 / norm for v in pixvar]
+    cost = _path_cost(pilots, n_max)
+    # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
+    # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
+    t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
+    rate_max = _slope(s, t)
+    fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
+
+    return keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s
+
+
+def _light_sample_ratios(split_pilots, mats: dict, pixvar: list, keep, n_max: int, max_light_samples: int):
+    """Per bounce count n: {k: V(k) / V(1)} for the light samples k a plan may take, and the
+    share B / V(1) of a path's variance the eye vertex's next-event estimate makes (from
+    ``split_pilots`` at K light samples; without them only k = 1, share 0)."""
+    ratios = {n: {1: 1.0} for n in range(n_max + 1)}
+    shares = [0.0] * (n_max + 1)
+    if split_pilots:
+        k_p = int(split_pilots[0].meta.get("light_samples", 1))
+        if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
+            raise ValueRangeError("split_pilots: at least two runs, all with the same light_samples >= 2")
+        s_k = torch.tensor([float(p.meta["spp"]) for p in split_pilots], dtype=torch.float64)
+        cum_k = torch.stack([pilot_images(p, mats) for p in split_pilots]).cumsum(1)
+        for n in range(1, n_max + 1):
+            v1, vk = float(pixvar[n].sum()), float((_pooled_variance(cum_k[:, n], s_k) * keep).sum())
+            b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
+            shares[n] = b / v1 if v1 > 0 else 0.0
+            ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
+    return ratios, shares
+
+
+def _planned_series(bases, bounces: int, g2g: float, budget: float) -> tuple[Series, list]:
+    """The series of ``bounces`` (a low-frequency second bounce where the glossy-to-glossy light
+    ``g2g`` exceeds its share of the budget) and the bases with its second-bounce bands."""
+    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
+    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
+        series_bands[1] = min(16, series_bands[0])
+    series = Series(tuple(series_bands))
+    if series.two_level:
+        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
+    return series, bases
+
+
 def plan_from_pilots(
     scene: Scene,
     bases: list[ObjectBasis | None],
@@ -479,36 +570,13 @@ def plan_from_pilots(
     Returns:
         :class:`GIPlan`.
     """
-    if error is None and seconds is None:
-        raise ValueRangeError("plan for an error, a time or both; got neither")
-    if error is not None and not error > 0:
-        raise ValueRangeError(f"error must be > 0; got {error}")
-    if len(pilots) < 2:
-        raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
-    if any(p.meta.get("spp_map") is not None for p in pilots):
-        raise ValueRangeError("pilot runs take one spp for every pixel")
+    _check_pilots(error, seconds, pilots)
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
-    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
-    imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
-    s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
-    mean = (s[:, None, None, None, None] * imgs).sum(0) / s.sum()
-    norm = float((mean.sum(0)[keep] ** 2).sum()) ** 0.5
-    if norm == 0:
-        raise ValueRangeError("the pilot image is black: nothing to plan for")
-    n_max = pilots[0].series.bounces
-    # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
-    # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
-    tails = []
-    for n in range(n_max + 1):
-        noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
-        tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
+    keep, norm, n_max, tails, eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
+        bases, projection_errors, pilots, mats
+    )
     budget = error if error is not None else 1.0
     names = list(pilots[0].object_names)
-    # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
-    # (cumulated over bounces 1..n: index n - 1)
-    eye_parts = {
-        name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
-    }
 
     def band_error_at(n: int) -> float:
         # the projection error weighted by the light whose eye vertex is on the object
@@ -517,44 +585,14 @@ def plan_from_pilots(
             / norm
         )
 
-    # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
-    glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
-    g2g = 0.0
-    if glossy and n_max >= 2:
-        part = pilot_images(pilots[0], mats, eye=glossy, through=glossy)[2, keep]
-        g2g = float((part**2).sum()) ** 0.5 / norm
-    # per-pixel noise of one path with the first n bounces (pooled over the pilots), 0 where
-    # the budget does not count; sigmas: the relative noise of the image at one spp
-    cum = imgs.cumsum(1)
-    pixvar = [_pooled_variance(cum[:, n], s) * keep for n in range(n_max + 1)]
-    sigmas = [float(v.sum()) ** 0.5 / norm for v in pixvar]
-    cost = _path_cost(pilots, n_max)
-    # cost: t = fixed + rate * spp, least squares through the pilots; the rate scales with
-    # bounces (each bounce casts a closest-hit and a shadow ray per live path: linear in them)
-    t = torch.tensor([float(p.meta["seconds"]) for p in pilots], dtype=torch.float64)
-    rate_max = _slope(s, t)
-    fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
-
     # light splitting at the eye vertex: a path's variance is V(k) = A + B / k with k light
     # samples (B: the variance of the eye vertex's next-event estimate), from the variance at
     # k = 1 (the pilots) and at k = K (``split_pilots``); each extra sample costs a path
     # EXTRA_SAMPLE_COST ray units per light where the eye ray hits something (the pilots'
     # seconds are too short to measure it on a loaded machine)
-    ratios = {n: {1: 1.0} for n in range(n_max + 1)}
-    shares = [0.0] * (n_max + 1)
+    ratios, shares = _light_sample_ratios(split_pilots, mats, pixvar, keep, n_max, max_light_samples)
     hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
     extra = EXTRA_SAMPLE_COST * len(scene.lights)
-    if split_pilots:
-        k_p = int(split_pilots[0].meta.get("light_samples", 1))
-        if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
-            raise ValueRangeError("split_pilots: at least two runs, all with the same light_samples >= 2")
-        s_k = torch.tensor([float(p.meta["spp"]) for p in split_pilots], dtype=torch.float64)
-        cum_k = torch.stack([pilot_images(p, mats) for p in split_pilots]).cumsum(1)
-        for n in range(1, n_max + 1):
-            v1, vk = float(pixvar[n].sum()), float((_pooled_variance(cum_k[:, n], s_k) * keep).sum())
-            b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
-            shares[n] = b / v1 if v1 > 0 else 0.0
-            ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
 
     def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float, float]:
         # the cheapest spp (map) with n bounces and k eye light samples for the error within the
@@ -601,13 +639,7 @@ def plan_from_pilots(
         bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
-    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
-    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
-        series_bands[1] = min(16, series_bands[0])
-    series = Series(tuple(series_bands))
-    if series.two_level:
-        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
-    bias2 = band_error**2 + tails[bounces] ** 2
+    series, bases = _planned_series(bases, bounces, g2g, budget)
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -618,7 +650,7 @@ def plan_from_pilots(
         seconds=seconds,
         band_error=band_error,
         bounce_error=tails[bounces],
-        noise_error=math.sqrt(max(0.0, predicted**2 - bias2)),
+        noise_error=math.sqrt(max(0.0, predicted**2 - (band_error**2 + tails[bounces] ** 2))),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
         predicted_seconds=predicted_seconds,
@@ -627,3 +659,128 @@ def plan_from_pilots(
         light_samples=light_samples,
         eye_light_share=shares[bounces],
     )
+
+
+def plan_polynomial(
+    scene: Scene,
+    error: float | None = 0.03,
+    seconds: float | None = None,
+    edit: list[str] | None = None,
+    pilot_spp: int = 4,
+    pilot_bounces: int = 8,
+    seed: int = 0,
+    env_point_lights: int | None = None,
+    progress: bool | None = None,
+    pilot_runs: int = 4,
+    adaptive: bool = True,
+    max_light_samples: int = 16,
+) -> GIPlan:
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
+
+    Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
+    runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
+    independent of ``seed``'s final run) measure the bounce tail, glossy-to-glossy transport,
+    the per-pixel Monte Carlo noise and the cost; the decisions are :func:`plan_from_pilots`'s.
+    The pilots are :func:`~torch_brdf.transport.polynomial.precompute_polynomial` runs; the
+    plan's :meth:`GIPlan.settings` carry it out.
+
+    Args:
+        scene: the scene.
+        error: relative RMSE budget (against the converged polynomial model).
+        seconds: precompute time budget.
+        edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :class:`~torch_brdf.transport.polynomial.PolynomialSettings` (the
+            pilots light the scene the same way).
+        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
+        pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
+        adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
+        max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
+            two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
+    Returns:
+        :class:`GIPlan` (``print(plan)`` shows choices, cost and error).
+    """
+    if check_count(pilot_runs, "pilot_runs") < 2:
+        raise ValueRangeError(f"the planner needs at least two pilot runs; got {pilot_runs}")
+    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
+    scene = with_fixed(scene, fixed)
+    eye = max([1] + [b.J for b in bases if b is not None])
+    pilot = PolynomialSettings(
+        series=Series((eye,) + (1,) * (pilot_bounces - 1)), bases=bases, env_point_lights=env_point_lights
+    )
+    pilots = [
+        precompute_polynomial(
+            scene, pilot.replace(spp=pilot_spp * (1, 2, 2, 4)[k % 4]), seed=seed + 7919 * (k + 1), progress=progress
+        )
+        for k in range(pilot_runs)
+    ]
+    split = []
+    if check_count(max_light_samples, "max_light_samples") > 1:
+        split = [
+            precompute_polynomial(
+                scene,
+                pilot.replace(spp=pilot_spp * (k + 1), light_samples=4),
+                seed=seed + 7919 * (pilot_runs + k + 1),
+                progress=progress,
+            )
+            for k in range(2)
+        ]
+    return plan_from_pilots(
+        scene,
+        bases,
+        errors,
+        fixed,
+        pilots,
+        error=error,
+        seconds=seconds,
+        adaptive=adaptive,
+        split_pilots=split,
+        max_light_samples=max_light_samples,
+    )
+
+
+def precompute_planned(
+    scene: Scene,
+    settings: PolynomialSettings | None = None,
+    *,
+    plan: GIPlan | None = None,
+    error: float | None = None,
+    seconds: float | None = None,
+    seed: int = 0,
+    progress: bool | None = None,
+    checkpoint: str | Path | None = None,
+    **run: Any,
+) -> PolynomialTensors:
+    """Plan the multibounce precomputation for ``error`` and/or ``seconds`` and carry it out.
+
+    Args:
+        scene: the scene.
+        settings: :class:`~torch_brdf.transport.polynomial.PolynomialSettings` whose sampler,
+            environment point lights, tiles, guides and storage the run keeps (the plan
+            decides series, spp, bases, light samples and fixed objects; the pilots use the
+            same environment point lights); None: the defaults.
+        plan: a :class:`GIPlan` to carry out instead of planning (``error`` and ``seconds``
+            are then not used).
+        error: relative RMSE budget; seconds: precompute time budget (see :func:`plan_polynomial`).
+        seed: the final run's seed (the pilots take seeds derived from it).
+        progress: tqdm bars (None: on when attached to a terminal or notebook).
+        checkpoint: the final run's tile folder (see
+            :func:`~torch_brdf.transport.polynomial.precompute_polynomial`).
+        run: the rest of ``precompute_polynomial``'s keywords (``executor``, ``processes``...).
+    Returns:
+        :class:`~torch_brdf.records.polynomial.PolynomialTensors` whose ``meta["plan"]`` prints the plan.
+    """
+    base = PolynomialSettings() if settings is None else settings
+    if not isinstance(base, PolynomialSettings):
+        raise ValueRangeError(f"settings must be a PolynomialSettings; got {settings!r}")
+    if plan is None:
+        plan = plan_polynomial(
+            scene, error=error, seconds=seconds, seed=seed, env_point_lights=base.env_point_lights, progress=progress
+        )
+    elif not isinstance(plan, GIPlan):
+        raise ValueRangeError(f"plan must be a GIPlan; got {plan!r}")
+    out = precompute_polynomial(scene, plan.settings(base), seed=seed, progress=progress, checkpoint=checkpoint, **run)
+    out.meta["plan"] = str(plan)
+    return out
