@@ -5,7 +5,7 @@ that come from users (scene files, command-line options) live here too, so one t
 documents them (``docs/guides/files-and-errors.md``):
 
 * :data:`MAX_IMAGE_SIDE` pixels per image side, :data:`MAX_IMAGE_PIXELS` pixels per image;
-* :data:`MAX_BANDS` bands per entry of a BRDF series;
+* :data:`MAX_BANDS` bands per entry of a BRDF series, :data:`MAX_BOUNCES` entries (bounces);
 * :data:`MAX_CUBEMAP_RESOLUTION` texels per cubemap face side, :data:`MAX_ENVMAP_HEIGHT` rows
   of a procedural environment map.
 
@@ -113,6 +113,10 @@ MAX_IMAGE_SIDE = 16384
 MAX_IMAGE_PIXELS = 8192 * 8192
 #: largest number of bands in one entry of a BRDF series (the papers use up to 256)
 MAX_BANDS = 4096
+#: most bounces (surface vertices per path) of a BRDF series; the papers use up to 4
+MAX_BOUNCES = 64
+#: most rays per cubemap texel side when visibility is supersampled (k x k rays per texel)
+MAX_SUPERSAMPLE = 16
 #: largest cubemap face side (texels); 1024 is 6 Mi texels per vertex
 MAX_CUBEMAP_RESOLUTION = 1024
 #: largest procedural environment map height (rows; the map is H x 2H, built in float64: 200 MB)

@@ -33,7 +33,7 @@ from ._checks import (
     check_image_size,
     check_real,
 )
-from .errors import SceneError, TorchBRDFError, ValueRangeError
+from .errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError, WriteError
 
 app = typer.Typer(
     add_completion=False,
@@ -114,7 +114,7 @@ def describe_failure(exc: BaseException) -> tuple[str, int]:
     """The one-line message and exit status of a failed command (module docstring)."""
     if isinstance(exc, KeyboardInterrupt):
         return "interrupted; finished tiles, chunks and checkpoints are kept for --resume", 130
-    if isinstance(exc, TorchBRDFError):
+    if isinstance(exc, TorchBRDFError) and not isinstance(exc, WriteError):
         return str(exc), 2
     if isinstance(exc, MemoryError):
         return "out of memory; lower --resolution, --spp or the series, or free memory", 1
@@ -353,6 +353,69 @@ def info(scene: str = typer.Argument(..., help="Built-in scene name or a scene f
 RAY = typer.Option(
     None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
 )
+#: seconds ``--ray ADDRESS`` may take to accept a connection before the command gives up
+RAY_CONNECT_TIMEOUT = 5.0
+_LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOST = re.compile(rf"(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*")
+
+
+def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """Refuse a ``--ray`` value before any work: ``auto``, or ``[ray://]HOST:PORT`` with a valid
+    IPv4 address or host name and a port in 1..65535 that accepts a TCP connection within
+    ``timeout`` seconds (Ray itself would retry for minutes).
+
+    Raises:
+        ValueRangeError: bad syntax, or nothing answers at the address.
+    """
+    import ipaddress
+    import socket
+
+    if address is None or address == "auto":
+        return
+    rest = address.removeprefix("ray://")
+    host, sep, port = rest.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        raise ValueRangeError(f"--ray must be 'auto' or HOST:PORT (e.g. 10.0.0.5:6379); got {address!r}")
+    if not 1 <= int(port) <= 65535:
+        raise ValueRangeError(f"--ray {address}: port must be in 1..65535; got {port}")
+    if host.startswith("[") and host.endswith("]"):  # [IPv6]:PORT
+        try:
+            host = str(ipaddress.IPv6Address(host[1:-1]))
+        except ValueError:
+            raise ValueRangeError(f"--ray {address}: {host!r} is not an IPv6 address") from None
+    elif host.replace(".", "").isdigit():
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise ValueRangeError(f"--ray {address}: {host!r} is not an IPv4 address") from None
+    elif not _HOST.fullmatch(host):
+        raise ValueRangeError(f"--ray {address}: {host!r} is not a host name")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as exc:
+        why = f"no answer within {timeout:g} s" if isinstance(exc, TimeoutError) else exc.strerror
+        raise ValueRangeError(f"--ray {address}: cannot connect ({(why or type(exc).__name__).lower()})") from None
+
+
+def _parse_series(text: str):
+    """``--series`` as a :class:`~torch_brdf.records.polynomial.Series`; its errors name the option."""
+    from .records.polynomial import Series
+
+    try:
+        return Series.parse(text)
+    except ValueRangeError as exc:
+        raise ValueRangeError(f"--series {text!r}: {exc}") from None
+
+
+def _check_record(path: Path | str, kind: str, option: str) -> None:
+    """Refuse ``path`` before any work unless it is a record file of ``kind``."""
+    from .io.arrays import read_kind
+
+    if not Path(path).is_file():
+        raise FileFormatError(f"{option}: no such file: {path}")
+    found = read_kind(path)
+    if found != kind:
+        raise FileFormatError(f"{option}: {path} holds a {found!r} record; expected {kind!r}")
 
 
 @app.command()
@@ -416,6 +479,7 @@ def precompute(
         env_point_lights=env_point_lights,
         storage=storage,
     )
+    check_ray_address(ray)
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
@@ -812,6 +876,7 @@ def fit_strokes(
     check_image_size(width, height, "--width/--height")
     for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate"), (keep_weight, "--keep-weight")):
         check_real(value, option)
+    check_ray_address(ray)
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
     constrained = not unconstrained
@@ -924,6 +989,7 @@ def precompute_visibility_cmd(
                    "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
         cubemap = resolution
     settings = _settings("visibility", resolution=cubemap, block=16, supersample=supersample, bits=bits, chunk=chunk)
+    check_ray_address(ray)
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
@@ -975,8 +1041,14 @@ def relight(
         check_real(exposure, "--exposure")
     if error is not None and psnr is not None:
         raise ValueRangeError("give --error or --psnr, not both")
+    # an error budget is a fraction of the peak in (0, 1]: PSNR = -20 log10(error) >= 0 dB; below
+    # 1e-7 (140 dB) lies float32 rounding, which no plan can reach
     if psnr is not None:
-        check_real(psnr, "--psnr")
+        check_real(psnr, "--psnr", 0.0, 140.0)
+    if error is not None:
+        check_real(error, "--error", 1e-7, 1.0)
+        if error == 0:
+            raise ValueRangeError("--error must be > 0 (a fraction of the peak)")
     sc = load_scene(scene, resolution, width, height)
     if sc.environment is None:  # before the record loads; the renderer's "pass envmap=" is the API's
         raise SceneError(f"relight needs an environment map; scene {sc.name!r} has none (add an envmap light)")
@@ -984,6 +1056,8 @@ def relight(
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
+    if error is None and psnr is None:  # a missing or wrong record: before the renderer is built
+        _check_record(visibility, "vertex-visibility", "--visibility")
     plan = None
     if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
         from .planner.relight_pilots import plan_relighting, planned_renderer
@@ -1030,6 +1104,7 @@ def editor(
     from .editor.server import serve
 
     _settings("polynomial", series=series, spp=spp)  # checked before the server starts
+    _check_editor_inputs(source, gplvm, relight, visibility)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     if (relight is None) != (visibility is None):
@@ -1041,6 +1116,26 @@ def editor(
     from .data import cache_dir
 
     serve({**config, "seed": 0, "cache_dir": str(cache or cache_dir() / "editor")}, port=port, echo=typer.echo)
+
+
+def _check_editor_inputs(source: str, gplvm: Path | None, relight: str | None, visibility: Path | None) -> None:
+    """Every file the editor will read exists and holds the record it needs, before the server
+    starts (the server would otherwise report them one page load later, or not at all)."""
+    from .records import GPLVMFit, PolynomialTensors
+    from .records.visibility import VertexVisibility
+    from .scene import BUILTIN_SCENES
+
+    for spec, option in ((source, "SOURCE"), (relight, "--relight")):
+        if spec is None:
+            continue
+        if spec.endswith(".npz") and option == "SOURCE":
+            _check_record(spec, PolynomialTensors.kind, "SOURCE")
+        elif spec not in BUILTIN_SCENES and not Path(spec).is_file():
+            raise SceneError(f"{option}: {spec!r} is neither a file nor one of {sorted(BUILTIN_SCENES)}")
+    if gplvm is not None:
+        _check_record(gplvm, GPLVMFit.kind, "--gplvm")
+    if visibility is not None:
+        _check_record(visibility, VertexVisibility.kind, "--visibility")
 
 
 @app.command("fetch-data")

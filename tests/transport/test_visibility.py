@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -242,3 +243,25 @@ def test_compiled_loop_casts_the_tracer_rays(scene):
     want = scene.occluded(o32.repeat_interleave(counts, dim=0), dirs[texels], float("inf"))
     assert torch.equal(torch.from_numpy(out).bool(), want) and hits == int(want.sum())
     assert 0 < hits < len(texels)  # both kinds of rays
+
+
+@pytest.mark.parametrize("bits", [0, 6])
+def test_joined_chunks_equal_the_record_of_all_entries(bits):
+    """The precompute's assembly (chunks copied into arrays allocated once, each chunk dropped
+    once copied) gives the record of the concatenated entries, bit for bit."""
+    gen = torch.Generator().manual_seed(3)
+    v = torch.rand(23, 6, 256, generator=gen) < 0.5
+    maps = v.float() * torch.rand(23, 6, 1, generator=gen) if bits else v
+    whole = BlockVisibility.encode(maps, bits)
+    tiles, cuts = [], [0, 5, 5, 16, 23]  # an empty chunk too
+    for s, e in itertools.pairwise(cuts):
+        r = whole.select(range(s, e))
+        entries = {"counts": r.counts.numpy(), "index": r.index.numpy()}
+        if bits:
+            entries["delta"] = r.delta.numpy()
+        tiles.append((entries, {"chunk": s}))
+    joined = visibility._join_tiles(tiles, 6, bits)
+    assert all(t is None for t in tiles)
+    for name in ("counts", "offsets", "index", "states"):
+        assert torch.equal(getattr(joined, name), getattr(whole, name)), name
+    assert (joined.delta is None) == (bits == 0) and (bits == 0 or torch.equal(joined.delta, whole.delta))

@@ -54,6 +54,17 @@ out-of-family target, rho_d -> 1) it solves every problem to the reference optim
 fixed ~15-25 iterations; ADMM needs 50-3600 iterations and fails on two of them without the
 fallback. Timings and success counts: ``benchmarks/inverse.py`` (and the inverse-design guide).
 
+Before the interior point method, the default first tries an *active-set* solve
+(:func:`_active_set_first`): the polishing step below started from every bound active (x = 0),
+freeing the most negative multiplier per pass as Lawson and Hanson's NNLS does (and adding the
+violated bounds and rows when a pass leaves them), for at most 60 passes. Its point is accepted
+only when it verifies every KKT condition of the normalised problem (feasible to 1e-10,
+stationary to 1e-9, multipliers >= 0, complementary), so a convex QP's answer is the optimum
+either way; when the passes run out, the interior point method runs as before. A solution with
+a few dozen non-zero coefficients is then a few dozen small linear solves (of the free
+coefficients only) instead of 15-30 Newton steps on all of them; ``benchmarks/inverse.py``
+times both against ProxQP on an easy set (targets the SRBF family reaches) and a hard set.
+
 When :math:`f \le 0` and :math:`h \ge 0`, :math:`x = 0` is an exact KKT point and is returned
 without iterating (both methods). The report gives the iterations, the objective and the
 largest constraint violation.
@@ -171,7 +182,83 @@ def solve_qp(
                     raise
             r = _interior_point(H, f, G, h, 1e-11, 100)  # the default method's answer
             return replace(r, fallback=True)
+        if polish:
+            first = _active_set_first(H, f, G, h)
+            if first is not None:
+                return first
         return _interior_point(H, f, G, h, 1e-11 if tol is None else tol, max_iter or 100, polish)
+
+
+def _scaled(H, f, G, h):
+    """The normalised problem of both methods' polishing: objective to unit size, rows to unit
+    norm, x in units of max h. Returns (Hp, fp, Gs, hp, s_obj, rn, s_x)."""
+    s_obj = max(float(H.abs().max()), float(f.abs().max()), 1e-300)
+    rn = G.norm(dim=1).clamp_min(1e-300)
+    Gs, hs = G / rn[:, None], h / rn
+    s_x = float(hs.max()) if G.shape[0] and float(hs.max()) > 0 else 1.0
+    return H / s_obj * (s_x * s_x), f / s_obj * s_x, Gs, hs / s_x, s_obj, rn, s_x
+
+
+#: how negative a bound multiplier of the active-set first try may be (normalised units): the
+#: passes accept -1e-11, which on a zero-residual target leaves 1e-10 of the optimum on the table
+DUAL_TOL = 1e-13
+
+
+def _refined(Hp, fp, Gs, hp, x, mu, y):
+    """The point of :func:`_polish` solved once more on its active set without the 1e-10
+    regularisation (minimum-norm least squares of the KKT system: H is singular where lobes are
+    unseen), so that a zero-residual optimum is met to rounding rather than to 1e-10; the
+    polished point when the refined one is not better or not feasible."""
+    fi, ri = (x > 0).nonzero()[:, 0], (y > 0).nonzero()[:, 0]
+    nf, nr = fi.numel(), ri.numel()
+    if nf == 0:
+        return x, mu, y
+    K = torch.zeros(nf + nr, nf + nr, dtype=torch.float64)
+    K[:nf, :nf] = Hp[fi][:, fi]
+    K[:nf, nf:] = Gs[ri][:, fi].T
+    K[nf:, :nf] = Gs[ri][:, fi]
+    v = torch.linalg.lstsq(K, torch.cat((fp[fi], hp[ri]))[:, None], driver="gelsd").solution[:, 0]
+    x2, y2 = torch.zeros_like(x), torch.zeros_like(y)
+    x2[fi], y2[ri] = v[:nf], v[nf:]
+    if bool((x2 < 0).any()) or bool((y2 < 0).any()):
+        return x, mu, y
+    mu2 = (Hp @ x2 - fp + Gs.T @ y2).clamp_min(0) * (x2 == 0)
+    obj = lambda z: 0.5 * float(z @ (Hp @ z)) - float(fp @ z)  # noqa: E731
+    if obj(x2) > obj(x) or (Gs.shape[0] and float((Gs @ x2 - hp).max()) > 1e-12):
+        return x, mu, y
+    return x2, mu2, y2
+
+
+def _active_set_first(H, f, G, h, passes: int = 60) -> QPResult | None:
+    """The active-set first try of the default method (see the module): :func:`_polish` from
+    every bound active (x = 0), freeing one coefficient per pass as Lawson and Hanson's NNLS
+    does, so that a pass solves a system of the free coefficients only; the verified KKT point,
+    or None after ``passes`` (then the interior point method runs)."""
+    Hp, fp, Gs, hp, s_obj, rn, s_x = _scaled(H, f, G, h)
+    J, M = H.shape[0], G.shape[0]
+    pol = _polish(Hp, fp, Gs, hp, torch.ones(J, dtype=torch.bool), torch.zeros(M, dtype=torch.bool), passes)
+    if pol is None:
+        return None
+    xs, mu, y = _refined(Hp, fp, Gs, hp, *pol)
+    # every KKT condition again, on every row (the passes check the rows outside their active
+    # set; an inconsistent active set, e.g. of infeasible rows, would pass unseen otherwise)
+    slack = Gs @ xs - hp
+    raw = Hp @ xs - fp + Gs.T @ y  # the bound multipliers where x = 0: none may be negative
+    grad = raw - mu
+    tol = 1e-10
+    if (
+        float(torch.where(xs == 0, raw, torch.zeros_like(raw)).min()) < -DUAL_TOL
+        or (M and float(y.min()) < 0)
+        or (M and float(slack.max()) > tol)
+        or (M and float((y * slack.clamp_max(0)).abs().max()) > tol)
+        or float((mu * xs).abs().max()) > tol
+        or float(grad.abs().max()) > 1e-9
+    ):
+        return None
+    x, zb, zr = xs * s_x, mu / s_x, y / s_x
+    viol = max(0.0, float((G @ x - h).max()) if M else 0.0)
+    objective = 0.5 * float(x @ (H @ x)) - float(f @ x)
+    return QPResult(x, zb * s_obj, zr * s_obj / rn, 0, objective, viol, True, "interior_point", True)
 
 
 def _interior_point(H, f, G, h, tol: float, max_iter: int, polish: bool = True) -> QPResult:
@@ -394,8 +481,8 @@ def _polish(Hs, fs, Gs, hs, bound_active, row_active, passes: int = 25):
         if bool(bad_x.any()) or bool(bad_row.any()):  # primal repair first: add the violated constraints
             B, R = B | bad_x, R | bad_row
         elif bool(bad_mu.any()) or bool(bad_y.any()):  # then release the most negative multiplier only
-            m_mu = float(torch.where(bad_mu, mu, torch.zeros_like(mu)).min())
-            m_y = float(torch.where(bad_y, y, torch.zeros_like(y)).min())
+            m_mu = float(torch.where(bad_mu, mu, torch.zeros_like(mu)).min()) if J else 0.0
+            m_y = float(torch.where(bad_y, y, torch.zeros_like(y)).min()) if y.numel() else 0.0
             if m_mu <= m_y:
                 B = B & (mu != m_mu)
             else:

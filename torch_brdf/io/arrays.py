@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FileFormatError
+from ..errors import FileFormatError, WriteError
 from .atomic import replacing
 
 FORMAT = "torch_brdf-arrays"
@@ -227,9 +227,13 @@ def encode_arrays(
 def write_encoded(path: str | Path, data: bytes) -> Path:
     """Write the bytes of :func:`encode_arrays` to ``path`` atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with replacing(path) as tmp, open(tmp, "wb") as f:
-        f.write(data)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with replacing(path) as tmp, open(tmp, "wb") as f:
+            f.write(data)
+    except OSError as exc:  # a full disk's error names no file: say which one was being written
+        reason = exc.strerror or type(exc).__name__
+        raise WriteError(exc.errno, f"cannot write {path}: {reason}", str(path)) from exc
     return path
 
 
@@ -420,6 +424,28 @@ def _header_int(header: dict, key: str, default: int, path) -> int:
     if type(value) is not int:
         raise FileFormatError(f"{path}: corrupt header ({key} = {value!r} is not an integer)")
     return value
+
+
+def read_kind(path: str | Path) -> str:
+    """The ``kind`` in the header of an array file, read without its arrays (a command checks
+    that a record is of the kind it needs before it starts anything).
+
+    Raises:
+        FileFormatError: missing, not an array file of this package, or a header without a kind.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"array file not found: {path}")
+    try:
+        with zipfile.ZipFile(path) as z:
+            info = z.getinfo(_HEADER + ".npy")
+            header = json.loads(_read_member(z, info, path).tobytes().decode())
+    except (zipfile.BadZipFile, KeyError, UnicodeDecodeError, json.JSONDecodeError, OSError, ValueError) as exc:
+        raise FileFormatError(f"{path}: not a torch_brdf array file ({type(exc).__name__})") from None
+    kind = header.get("kind") if isinstance(header, dict) else None
+    if not isinstance(kind, str):
+        raise FileFormatError(f"{path}: the header names no kind of record")
+    return kind
 
 
 def load_arrays(

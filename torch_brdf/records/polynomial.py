@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from .._checks import MAX_BANDS
+from .._checks import MAX_BANDS, MAX_BOUNCES
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
 from ..io.arrays import Converted
@@ -51,6 +51,11 @@ class Series:
         object.__setattr__(self, "bands", b)
         if not b or any(x < 1 for x in b):
             raise ValueRangeError(f"a BRDF series needs >= 1 bounce and bands >= 1; got {b}")
+        if len(b) > MAX_BOUNCES or max(b) > MAX_BANDS:
+            raise ValueRangeError(
+                f"a BRDF series has at most {MAX_BOUNCES} bounces of at most {MAX_BANDS} bands; got {len(b)} "
+                f"bounces, {max(b)} bands"
+            )
         if any(b[i] < b[i + 1] for i in range(len(b) - 1)):
             raise ValueRangeError(f"a BRDF series must not increase away from the eye (Eq. 17); got {b}")
         if any(x != 1 for x in b[2:]):
@@ -61,10 +66,14 @@ class Series:
         if isinstance(spec, Series):
             return spec
         if isinstance(spec, str):
+            # every entry is a number: "4,,1" or "64,1," is a typo, not the series (4, 1) or (64, 1)
+            parts = spec.strip().removeprefix("(").removesuffix(")").split(",")
             try:
-                spec = [int(s) for s in spec.replace("(", "").replace(")", "").split(",") if s.strip()]
+                if any(not p.strip() for p in parts):
+                    raise ValueError("an empty entry")
+                spec = [int(p) for p in parts]
             except ValueError as exc:
-                raise ValueRangeError(f"cannot parse BRDF series {spec!r}; expected e.g. '64,1,1,1'") from exc
+                raise ValueRangeError(f"cannot parse BRDF series {spec!r} ({exc}); expected e.g. '64,1,1,1'") from None
         return cls(tuple(spec))
 
     @property
@@ -112,8 +121,10 @@ class ObjectBasis:
                 f"precomputed bases must be one-hot in (wi, wo): variable in {_SUPPORTED_VARIABLES}; "
                 f"got {self.variable!r}"
             )
-        if self.J < 1 or not 1 <= self.second <= self.J:
-            raise ValueRangeError(f"need J >= 1 and 1 <= second <= J; got J={self.J}, second={self.second}")
+        if not 1 <= self.J <= MAX_BANDS or not 1 <= self.second <= self.J:
+            raise ValueRangeError(
+                f"need 1 <= J <= {MAX_BANDS} and 1 <= second <= J; got J={self.J}, second={self.second}"
+            )
 
     def spec(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("J", "variable", "spacing", "quotient", "fresnel", "second")}

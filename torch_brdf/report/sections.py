@@ -689,8 +689,25 @@ def others(results: dict) -> Section:
     )
 
 
+def scenes_out(results: dict) -> Section:
+    """Scenes in and materials out: the GI texture approximation (Sec. 5.3) against the path
+    tracer, and each export's fit error (numbers only)."""
+    sec = Section("scenes_out", "Textured scenes and exported materials", ["textures", "export"])
+    t, e = _Reader(results, "textures"), _Reader(results, "export")
+    for source in ("lambert", "cook_torrance_plastic", "blinn_phong_n50", "gltf_metal", "gltf_dielectric"):
+        for fmt in ("mitsuba", "gltf"):
+            value = num(e(fmt, source, "error"))
+            if value is not None:
+                sec.numbers[f"export.{fmt}.{source}.error"] = value
+    return _finish(
+        sec,
+        (t, "textured_rel_rmse untextured_rel_rmse texture_excess mean_ratio_textured"),
+        (e, "merl_seconds"),
+    )
+
+
 #: the report's sections, in page order
-CAPABILITIES = (gi_editing, denoise, relighting, manifold, inverse, inverse_gi, editor, scaleout, others)
+CAPABILITIES = (gi_editing, denoise, relighting, manifold, inverse, inverse_gi, editor, scaleout, scenes_out, others)
 
 
 def sections(results: dict[str, dict]) -> list[Section]:

@@ -39,7 +39,7 @@ from ..brdf.textured import texturable, textured_eval_local
 from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
-from ..records.cache import Checkpoint, settings_key
+from ..records.cache import ArraySpec, CacheSchema, Checkpoint, MetaSpec, settings_key
 from ..scene.scene import Scene
 from ..scene.textures import texture_at_hits
 from ._native import area_light_sample
@@ -363,7 +363,13 @@ def path_trace(
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
     key = settings_key(settings, scene)  # the scene's content too: an edited scene starts fresh
-    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, key, on_corrupt="recompute")
+    schema = CacheSchema(
+        arrays={"sum": ArraySpec("float64", ("P", 3), low=0.0)},  # radiance sums are >= 0
+        meta={"passes_done": MetaSpec(int, 1, spp), "settings": MetaSpec(dict, required=False)},
+    )
+    ckpt = None
+    if checkpoint is not None:
+        ckpt = Checkpoint(checkpoint, CHECKPOINT_KIND, key, "recompute", schema, {"P": h * w})
     saved = None if ckpt is None else ckpt.load()
     if saved is not None:
         total = torch.from_numpy(saved[0]["sum"])

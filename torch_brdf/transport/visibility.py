@@ -41,12 +41,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_fields, check_int
+from .._checks import MAX_CUBEMAP_RESOLUTION, MAX_SUPERSAMPLE, check_count, check_fields, check_int
 from ..data import progress_default
-from ..errors import ValueRangeError
+from ..errors import FileFormatError, ValueRangeError
 from ..parallel.threads import single_thread
 from ..parallel.tiles import TileWork, run_tiles
-from ..records.cache import TileCache, settings_key
+from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
 from ..scene.scene import Scene
@@ -219,6 +219,30 @@ def _chunk_entries(
     return {"counts": counts, "index": index}
 
 
+def _chunk_schema(block_count: int, bits: int) -> CacheSchema:
+    """What a finished chunk file must hold: ``n`` vertices' ``counts`` (n, NB) int16 that add
+    up to the ``index`` entries (increasing within each pair), graded maps their ``delta``."""
+    levels = (1 << bits) - 1 if bits else 1
+    arrays = {
+        "counts": ArraySpec("int16", ("n", block_count), low=0, high=BLOCK_TEXELS),
+        "index": ArraySpec("uint8", ("F",)),
+    }
+    if bits:
+        arrays["delta"] = ArraySpec("int16", ("F",), low=-levels, high=levels)
+
+    def check(arrays: dict, meta: dict, sizes: dict) -> None:
+        counts, index = arrays["counts"].astype(np.int64).reshape(-1), arrays["index"]
+        if int(counts.sum()) != index.size:
+            raise FileFormatError(f"chunk counts add up to {int(counts.sum())} entries; it holds {index.size}")
+        ends = np.cumsum(counts)[counts > 0] - 1  # each pair's last entry
+        rises = np.diff(index.astype(np.int16)) > 0
+        rises[ends[ends < index.size - 1]] = True  # a new pair may start anywhere
+        if not rises.all():
+            raise FileFormatError("chunk texel positions are not increasing within a pair")
+
+    return CacheSchema(arrays=arrays, meta={"chunk": MetaSpec(int, 0)}, check=check)
+
+
 def _visibility_chunk(work: TileWork, c: int):
     """Chunk ``c``: its entries (a pure function of the work: scene, geom, positions, normals,
     dirs, bits, chunk)."""
@@ -226,6 +250,27 @@ def _visibility_chunk(work: TileWork, c: int):
     e = min(s + work.chunk, work.positions.shape[0])
     entries = _chunk_entries(work.scene, work.geom, work.positions[s:e], work.normals[s:e], work.dirs, work.bits)
     return entries, {"chunk": c}
+
+
+def _join_tiles(tiles: list, nb: int, bits: int) -> BlockVisibility:
+    """The record of the chunks' entries, in order, copied into arrays allocated once; each
+    chunk is dropped from ``tiles`` once copied, so the peak is the record plus the chunks
+    (not the chunks, their concatenation and the record's temporaries at once)."""
+    n_vertices = sum(a["counts"].shape[0] for a, _ in tiles)
+    n_entries = sum(a["index"].size for a, _ in tiles)
+    counts = np.empty((n_vertices, nb), dtype=np.int16)
+    index = np.empty(n_entries, dtype=np.uint8)
+    delta = np.empty(n_entries, dtype=np.int16) if bits else None
+    v, f = 0, 0
+    for i, (a, _) in enumerate(tiles):
+        m, k = a["counts"].shape[0], a["index"].size
+        counts[v : v + m] = a["counts"]
+        index[f : f + k] = a["index"]
+        if bits:
+            delta[f : f + k] = a["delta"]
+        v, f = v + m, f + k
+        tiles[i] = None
+    return BlockVisibility.from_entries(nb, bits, counts, index, delta)
 
 
 @dataclass(frozen=True)
@@ -256,7 +301,7 @@ class VisibilitySettings:
             {
                 "resolution": lambda v: check_count(v, "resolution", MAX_CUBEMAP_RESOLUTION),
                 "block": lambda v: check_count(v, "block"),
-                "supersample": lambda v: check_count(v, "supersample"),
+                "supersample": lambda v: check_count(v, "supersample", MAX_SUPERSAMPLE),
                 "chunk": lambda v: check_count(v, "chunk"),
             },
         )
@@ -331,7 +376,9 @@ def precompute_visibility(
     # chunk files hold counts/index(/delta), not the varint stream ("tile": "entries")
     facts = {"vertices": len(verts), "fingerprint": verts.fingerprint, "tile": "entries"}
     key = settings_key({**s.key(), **facts}, scene, parts=("geometry",))  # every mesh (occluders too), not lights
-    cache = TileCache(checkpoint, CHUNK_KIND, key, prefix="vis")
+    schema = _chunk_schema(geom.block_count, bits)
+    nv = len(verts)
+    cache = TileCache(checkpoint, CHUNK_KIND, key, "vis", schema, lambda c: {"n": min(chunk, nv - c * chunk)})
     with single_thread():  # small torch ops: a second thread only waits (milliseconds under load)
         dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
     num = -(-len(verts) // chunk)
@@ -355,10 +402,7 @@ def precompute_visibility(
     if any(t is None for t in tiles):
         return None  # stopped by max_chunks
     with single_thread():  # small torch ops: a second thread only waits (milliseconds under load)
-        joined = {k: np.concatenate([a[k] for a, _ in tiles]) for k in tiles[0][0]}
-        blocks = BlockVisibility.from_entries(
-            geom.block_count, bits, joined["counts"], joined["index"], joined.get("delta")
-        )
+        blocks = _join_tiles(tiles, geom.block_count, bits)
     if not keep_checkpoint:
         cache.remove()
     return VertexVisibility(geom, verts, blocks, supersample, bits)

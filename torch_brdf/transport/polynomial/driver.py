@@ -6,17 +6,19 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..._checks import check_seed
 from ...data import progress_default
-from ...errors import ShapeError, ValueRangeError
+from ...errors import FileFormatError, ShapeError, ValueRangeError
 from ...parallel.threads import available_memory, tile_processes
 from ...parallel.tiles import run_tiles, single_process, tile_tick
-from ...records.cache import TileCache, settings_key
+from ...records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ...records.guides import GUIDE_VERSION
 from ...records.polynomial import ObjectBasis, PolynomialTensors
 from ...scene.camera import Camera
@@ -291,6 +293,49 @@ def spp_map_of(tensors: PolynomialTensors) -> torch.Tensor:
 _BLOCK_ARRAYS = ("head", "upix", "tw", "tc", "key", "vals", "var")
 
 
+def _tile_schema(plan: Sequence, bounces: int) -> CacheSchema:
+    """What a finished tile file must hold: the ``emission`` of its ``P`` pixels and blocks
+    ``b0..b{n-1}`` whose heads name an object, a bounce and that object's basis size, whose
+    pixels lie in the tile and whose entry keys lie in their (term, basis, pixel) table."""
+    m = len(plan)
+    arrays = {"emission": ArraySpec("float64", ("P", 3), low=0.0)}
+    patterns = {
+        r"b\d+_head": ArraySpec("int64", (3,)),
+        r"b\d+_upix": ArraySpec("int64", (None,), low=0),
+        r"b\d+_tw": ArraySpec("int64", (None,), low=-1),
+        r"b\d+_tc": ArraySpec("int8", (None, m), low=0),
+        r"b\d+_key": ArraySpec("int64", (None,), low=0),
+        r"b\d+_vals": ArraySpec("float32", (3, None)),
+        r"b\d+_var": ArraySpec("float32", (3, None), low=0.0),
+    }
+    meta = {"rays": MetaSpec(dict, items=int), "split": MetaSpec(dict, required=False, items=(int, float))}
+
+    def check(arrays: dict, meta: dict, sizes: dict) -> None:
+        nblocks = sum(k.endswith("_head") for k in arrays)
+        if len(arrays) != 1 + nblocks * len(_BLOCK_ARRAYS) or any(
+            f"b{g}_{n}" not in arrays for g in range(nblocks) for n in _BLOCK_ARRAYS
+        ):
+            raise FileFormatError("tile blocks are incomplete (every block holds " + ", ".join(_BLOCK_ARRAYS) + ")")
+        for g in range(nblocks):
+            b = {n: arrays[f"b{g}_{n}"] for n in _BLOCK_ARRAYS}
+            obj, bounce, size = (int(v) for v in b["head"])
+            if not (0 <= obj < m and 1 <= bounce <= bounces) or size != (1 if plan[obj] is None else plan[obj].size):
+                raise FileFormatError(f"tile block {g} has head {b['head'].tolist()}; not of this run's objects")
+            p, z, e = b["upix"].size, b["tw"].size, b["key"].size
+            if b["tc"].shape[0] != z or b["vals"].shape[1] != e or b["var"].shape[1] != e:
+                raise FileFormatError(f"tile block {g}: term or entry tables of different lengths")
+            key, upix = b["key"], b["upix"]
+            if (p and int(upix.max()) >= sizes["P"]) or (e and int(key.max()) >= size * z * p):
+                raise FileFormatError(f"tile block {g}: a pixel or entry outside its tables")
+            # as written: pixels and entry keys ascending, every pixel and term used by an entry
+            if (np.diff(upix) <= 0).any() or (np.diff(key) <= 0).any():
+                raise FileFormatError(f"tile block {g}: pixels or entries not in ascending order")
+            if p and (np.unique(key % p).size != p or np.unique((key // p) % z).size != z):
+                raise FileFormatError(f"tile block {g}: a pixel or term that no entry uses")
+
+    return CacheSchema(arrays=arrays, patterns=patterns, meta=meta, check=check)
+
+
 def _polynomial_tile(work: _TileWork, k: int):
     """Tile ``k``: arrays (emission, its blocks with tile-local term and pixel numbers) and
     meta (rays cast, profile split, ``clock``: the process, wall-clock start and end (epoch
@@ -515,7 +560,8 @@ def precompute_polynomial(
         raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
     scene = with_fixed(scene, s.fixed)
     run = _prepare(scene, s, seed)
-    cache = TileCache(checkpoint, TILE_KIND, run.key)
+    schema = _tile_schema(run.bases, s.series.bounces)
+    cache = TileCache(checkpoint, TILE_KIND, run.key, schema=schema, sizes=lambda k: {"P": int(run.tiles[k].numel())})
     h, w = scene.camera.height, scene.camera.width
     # paths per tile: its expected cost (the executor starts the longest first) and memory
     tile_paths = [
