@@ -484,7 +484,8 @@ def precompute(
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
     run = {"seed": seed, "checkpoint": tiles, "progress": progress, "executor": "local" if ray is None else "ray"}
-    run["address"] = ray
+    # the tiles outlive the run until the record is written: a kill before the save resumes from them
+    run["address"], run["keep_checkpoint"] = ray, True
     if not fixed_series:  # the planner decides series, bases, spp and light samples
         error = DEFAULT_ERROR if error is None else error
         seconds = DEFAULT_SECONDS if seconds is None else seconds
@@ -993,7 +994,7 @@ def precompute_visibility_cmd(
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
-    run = {"executor": "local" if ray is None else "ray", "address": ray}
+    run = {"executor": "local" if ray is None else "ray", "address": ray, "keep_checkpoint": True}  # until saved
     vis = precompute_visibility(sc, settings, checkpoint=ck, progress=progress, **run)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -56,6 +56,7 @@ __all__ = [
     "area_light_sample",
     "build_name",
     "build_seconds",
+    "code_path",
     "key_bits",
     "library",
     "occluded_fans",
@@ -89,7 +90,7 @@ _FLAGS = [
 ]
 #: added to the flags of the sanitized build (``TORCH_BRDF_NATIVE_SANITIZE=1``)
 SANITIZE_FLAGS = ["-fsanitize=address,undefined", "-fno-omit-frame-pointer"]
-_state: dict = {"lib": None, "tried": False, "build_s": 0.0}
+_state: dict = {"lib": None, "tried": False, "build_s": 0.0, "name": None}
 
 
 def _compiler() -> list[str] | None:
@@ -180,6 +181,7 @@ def _compile(cc: list[str], flags: list[str], files: list[Path], sanitize: bool)
                 raise OSError(f"{cc[0]} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
             os.replace(part, out)  # atomic: concurrent builders leave one complete file
         _state["build_s"] = time.perf_counter() - t0
+    _state["name"] = out.name  # the lenient retry's name replaces the strict one's
     return out
 
 
@@ -205,6 +207,15 @@ def library() -> ctypes.CDLL | None:
                 stacklevel=2,
             )
     return _state["lib"]
+
+
+def code_path() -> str:
+    """The code path this process computes with, for resume keys: the loaded kernel's
+    :func:`build_name` (compiler, flags and every source's bytes), or ``"torch"`` without one
+    (``TORCH_BRDF_NATIVE=0`` or no compiler). The polynomial precompute's two paths agree only
+    to rounding, so tiles of one path must not complete a run of the other."""
+    lib = library()
+    return "torch" if lib is None else str(_state["name"])
 
 
 def build_seconds() -> float:

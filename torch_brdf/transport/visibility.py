@@ -349,7 +349,9 @@ def precompute_visibility(
             run with the same settings resumes from it; removed on success unless ``keep_checkpoint``.
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
         max_chunks: stop after this many new chunks (returns None); for tests of resuming.
-        keep_checkpoint: keep the finished chunks after success.
+        keep_checkpoint: keep the finished chunks after success (e.g. until the record is
+            saved, then :func:`~torch_brdf.records.cache.remove_cache` of the folder, as
+            ``torch-brdf precompute-visibility`` does: a kill before the save loses nothing).
         executor: where the chunks run (``"local"`` or ``"ray"``), see
             :func:`~torch_brdf.parallel.tiles.run_tiles`; the record is the same bit for bit.
         address: as ``executor``.

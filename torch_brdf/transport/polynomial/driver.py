@@ -25,7 +25,7 @@ from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
 from ...scene.scene import Scene
-from .._native import Accumulator, TileSums, library
+from .._native import Accumulator, TileSums, code_path, library
 from .._native import ptr as _p
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
@@ -450,8 +450,10 @@ def _prepare(scene: Scene, s: PolynomialSettings, seed: int) -> _Prepared:
     if s.light_samples != 1:  # likewise
         record["light_samples"] = s.light_samples
     # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries; the
-    # scene's content (meshes, materials, lights, camera) is in the key too
-    key = settings_key({"settings": s.key(), "scene": scene.name, "seed": seed, "tile_format": 2}, scene)
+    # scene's content (meshes, materials, lights, camera) is in the key too, and the code path
+    # (the kernel's build or torch: they agree only to rounding, so one must not finish the other's run)
+    facts = {"scene": scene.name, "seed": seed, "tile_format": 2, "code": code_path()}
+    key = settings_key({"settings": s.key(), **facts}, scene)
     return _Prepared(bases, mixture, lights, tiles, tile_spp, group_of, record, key)
 
 
@@ -525,10 +527,10 @@ def precompute_polynomial(
         seed: the result is a deterministic function of (scene, settings, seed).
         progress: tqdm bar over finished tiles (None: on when attached to a terminal or
             notebook, see :func:`~torch_brdf.records.cache.progress_default`).
-        checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`
-            keyed by ``settings.key()``, the seed and the scene's content); an interrupted run
-            resumes from it; removed on success unless ``keep_checkpoint``.
-        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
+        checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache` keyed by
+            ``settings.key()``, the seed, the scene's content and the code path: kernel build or torch);
+            an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
+        keep_checkpoint: keep the tiles (to extend the run, or until saved: ``save``, then ``remove_cache``).
         executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
             :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
         address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
