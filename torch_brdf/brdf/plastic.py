@@ -10,18 +10,21 @@ with the exact unpolarised dielectric Fresnel reflectance :math:`F` of the relat
 :math:`\eta` = interior / exterior IOR, :math:`D` GGX or Beckmann of roughness
 :math:`\alpha`, the separable Smith masking :math:`G_1` of that distribution (Heitz 2014),
 specular reflectance :math:`s` and diffuse reflectance :math:`\rho` (Mitsuba's
-``nonlinear = true`` divides by :math:`1 - \rho F_{dr}` instead). The coat's external
-transmittance :math:`T(\mu) = 1 - R_\alpha(\mu, \eta)` is one minus the directional albedo
-of the rough specular layer, and the internal diffuse reflectance
+``nonlinear = true`` divides by :math:`1 - \rho F_{dr}` instead); Beckmann's :math:`G_1` is
+Mitsuba's rational approximation (:class:`MitsubaBeckmannNDF`). The coat's external
+transmittance :math:`T(\mu)` is the single-scattering transmittance of the rough interface
+(:func:`coat_transmittance`; below :math:`1 - R` at high roughness, as masking loses energy),
+and the internal diffuse reflectance
 :math:`F_{dr} = 2\int_0^1 R_\alpha(\mu, 1/\eta)\,\mu\,d\mu` that of its underside. Like
 Mitsuba (``roughplastic.cpp``), :math:`T` is tabulated at the 64 cosines
 :math:`\mu_k = \max(10^{-6}, k/63)` and interpolated linearly in :math:`\cos\theta`, and
 :math:`F_{dr}` is twice the plain mean of :math:`R(\mu_k, 1/\eta)\,\mu_k` over the same
 cosines (a coarse rule; keeping it keeps the diffuse level of Mitsuba's). The albedos
-:math:`R_\alpha` come from a tensor-product Gauss-Legendre rule over half vectors drawn from
-:math:`D(h)\cos\theta_h` (:func:`coat_albedo`); Mitsuba integrates over visible normals
-instead, and the two rules differ by the residual that ``tests/brdf/test_plastic.py``
-measures against Mitsuba's own ``eval``.
+:math:`R_\alpha` come from a tensor-product Gauss-Legendre rule in float64 (:func:`coat_albedo`),
+over GGX's visible normals (Heitz 2018) or Beckmann's :math:`D(h)\cos\theta_h`; Mitsuba's
+rule (float32, its own visible-normal warps) differs by the residual that
+``tests/brdf/test_plastic.py`` measures against Mitsuba's own ``eval``: below 0.2% at every
+pair tested.
 
 ``smooth=True`` is Mitsuba's ``plastic``: the diffuse weights become the exact
 :math:`T(\mu) = 1 - F(\mu, \eta)` and :math:`F_{dr}` the accurate hemispherical integral of
@@ -30,7 +33,9 @@ evaluated at direction pairs cannot hold, is a sharp GGX lobe of the given rough
 
 Gradients reach every parameter: the tables are cached per (distribution, :math:`\alpha`,
 :math:`\eta`) with their derivatives, and enter the graph as a first-order expansion about
-the cached point (exact value, exact gradient).
+the cached point (exact value; the derivative is a central difference of the tables, whose
+quadrature is piecewise smooth in :math:`\alpha, \eta` where nodes cross the critical angle).
+A new (:math:`\alpha`, :math:`\eta`) costs five table integrations (about a second).
 
 Energy: Mitsuba's diffuse weights do not close the energy balance (the coat's single
 scattering loses energy, and :math:`(1 - F_{dr})\,\eta^2` is not the hemispherical mean of
@@ -138,8 +143,9 @@ def coat_albedo(
               \frac{(\omega\cdot h)_+ D(h)}{\cos\theta}\,d\omega_h,
               \quad \omega' = \mathrm{reflect}(\omega, h),\ \omega'_z > 0,
 
-    by an ``order`` x ``order`` Gauss-Legendre rule in the uniforms that map to half vectors
-    with density :math:`D(h)\cos\theta_h` (inverse CDF in :math:`\theta_h`, uniform
+    by an ``order`` x ``order`` Gauss-Legendre rule in the uniforms that map to half vectors:
+    GGX's visible normals of :math:`\omega` (:func:`~torch_brdf.brdf.microfacet.sample_ggx_vndf`),
+    Beckmann's density :math:`D(h)\cos\theta_h` (inverse CDF in :math:`\theta_h`, uniform
     :math:`\phi_h`).
 
     Args:
