@@ -257,7 +257,7 @@ class RoughPlastic(MicrofacetMixture):
     Args:
         distribution: ``"beckmann"`` (Mitsuba's default) or ``"ggx"``.
         roughness: :math:`\alpha` in :math:`[10^{-4}, 1]`.
-        eta: relative IOR (interior / exterior) in (1, 4]; default polypropylene in air.
+        eta: relative IOR (interior / exterior) in [1, 4]; default polypropylene in air.
         diffuse_reflectance: RGB :math:`\rho` in [0, 1].
         specular_reflectance: RGB :math:`s` in [0, 1] (Mitsuba's default 1).
         nonlinear: Mitsuba's ``nonlinear`` (divide by :math:`1 - \rho F_{dr}`).
@@ -265,7 +265,8 @@ class RoughPlastic(MicrofacetMixture):
     """
 
     ROUGHNESS_RANGE = (1e-4, 1.0)
-    ETA_RANGE = (1.0 + 1e-6, 4.0)
+    #: relative IOR bounds (Clamped: the editor's slider); at 1 the coat vanishes
+    ETA_RANGE = (1.0, 4.0)
 
     def __init__(
         self,
@@ -281,10 +282,9 @@ class RoughPlastic(MicrofacetMixture):
         if distribution not in _DISTRIBUTIONS:
             raise ValueRangeError(f"RoughPlastic.distribution must be one of {_DISTRIBUTIONS}; got {distribution!r}")
         check_range("RoughPlastic", "roughness", roughness, *self.ROUGHNESS_RANGE)
-        check_range("RoughPlastic", "eta", eta, *self.ETA_RANGE)
         self.distribution, self.nonlinear, self.smooth = distribution, bool(nonlinear), bool(smooth)
         self.register_constrained("roughness", roughness, Positive())
-        self.register_constrained("eta", eta, Positive(lower=1.0))
+        self.register_constrained("eta", eta, Clamped(*self.ETA_RANGE))
         self.register_constrained("diffuse_reflectance", diffuse_reflectance, Clamped(0.0, 1.0), shape=(3,))
         self.register_constrained("specular_reflectance", specular_reflectance, Clamped(0.0, 1.0), shape=(3,))
 
