@@ -256,6 +256,7 @@ ROW_ARGS = {
     "info": ["cornell_box_glossy"],
     "precompute": ["cornell_box_glossy", "--resolution", "8", "--spp", "2", "--series", "4,1"],
     "edit": ["out/tensors.npz", "--set", "back.exponent=400"],
+    "export": ["cornell_box:left", "out/left.xml"],
     "fit-strokes": ["teatray", "--object", "teapot", "--strokes", "strokes.json"]
     + ["--width", "64", "--height", "48", "--downsample", "2", "--samples", "32"],
     "precompute-visibility": ["tiny.toml", "--cubemap", "16", "--chunk", "4"],
@@ -269,7 +270,7 @@ ROW_ARGS = {
 }
 #: the commands that are quick at any size (dot products, JSON): no progress bar expected; report
 #: only reads saved JSON here (its benchmark runs have a bar per script: torch_brdf.report)
-QUICK = {"info", "edit", "report"}
+QUICK = {"info", "edit", "export", "report"}
 
 
 def _run_editor(args: list[str], cwd: Path) -> str:

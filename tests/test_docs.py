@@ -350,7 +350,7 @@ def test_getting_started_toml_scene_frames_its_subject(tmp_path):
 
     from torch_brdf.data import data_path
     from torch_brdf.scene import Scene
-    from torch_brdf.transport.pathtrace import path_trace
+    from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
     text = (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
     toml = [code for lang, _, code in blocks(text) if lang == "toml" and "bunny.ply" in code]
@@ -366,5 +366,5 @@ def test_getting_started_toml_scene_frames_its_subject(tmp_path):
     xy = scene.camera.project(torch.as_tensor(bunny.mesh.vertices, dtype=torch.float64))
     margin = 0.5  # pixels of the 32 x 32 frame
     assert bool((xy > margin).all() and (xy < 32 - margin).all()), "the camera crops the bunny"
-    image = path_trace(scene, spp=4, max_bounces=2, seed=0, progress=False)
+    image = path_trace(scene, PathTraceSettings(spp=4, max_bounces=2), seed=0, progress=False)
     assert 0.02 < float(image.mean()) < 1.0  # readable at exposure 0 (an unscaled probe gives 0.003)

@@ -46,8 +46,8 @@ from torch_brdf.scene import Camera, Scene, SceneObject
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.scene.lights import AreaLight
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 F32, F64 = torch.float32, torch.float64
 
@@ -92,7 +92,9 @@ def _max_rel(a: torch.Tensor, b: torch.Tensor) -> float:
 @cache
 def _box_tensors():
     """The 8x8 glossy Cornell box (every object editable), series 8,1,1 at 2 spp."""
-    return precompute_polynomial(glossy_box(8, fixed_box=False), "8,1,1", spp=2, seed=0, progress=False)
+    return precompute_polynomial(
+        glossy_box(8, fixed_box=False), PolynomialSettings("8,1,1", spp=2), seed=0, progress=False
+    )
 
 
 def _poly(materials: dict, dtype: torch.dtype, tensors=None) -> torch.Tensor:
@@ -144,7 +146,9 @@ def _scaled(sc: Scene, s: float) -> Scene:
 
 
 def poly_scale(s: float) -> Outcome:
-    T = precompute_polynomial(_scaled(glossy_box(8, fixed_box=False), s), "8,1,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(
+        _scaled(glossy_box(8, fixed_box=False), s), PolynomialSettings("8,1,1", spp=2), seed=0, progress=False
+    )
     a, b = _poly({}, F64, T), _poly({}, F64)
     mask = emitter_mask(_box_tensors())
     return Outcome([a], _rel(a, b, mask), 0.05, f"scale {s:g} vs scale 1, same seed (relative RMSE)")
@@ -160,7 +164,7 @@ def _bright_sky() -> EnvironmentMap:
 def poly_bright_sun() -> Outcome:
     sc = ball_on_plane(quads=4).with_resolution(12, 9)
     sc.lights[:] = [_bright_sky()]
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "sun 1e6 x sky, box on plane; float32 vs float64")
 
 
@@ -169,14 +173,14 @@ def poly_grazing_view() -> Outcome:
     sc = glossy_box(8, fixed_box=False)
     c = sc.camera
     sc.camera = Camera((278.0, 1.0, -800.0), (278.0, 1.0, 559.0), c.up, c.fov_deg, c.width, c.height)
-    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("8,1,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "eye 1 unit above the floor; float32 vs float64")
 
 
 def poly_grazing_light() -> Outcome:
     sc = ball_on_plane(quads=4).with_resolution(12, 9)
     sc.lights[:] = [EnvironmentMap.sky(height=32, sun_direction=(1.0, 0.01, 0.0), sun_angular_radius_deg=2.0)]
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     return _poly_dtypes({}, 1e-4, T, "sun 0.6 deg above the horizon; float32 vs float64")
 
 
@@ -201,7 +205,7 @@ def pathtrace_bright_sun() -> Outcome:
 def _triple_setup():
     sc = ball_on_plane(quads=8)
     sc.lights[:] = [sky()]
-    return sc, precompute_visibility(sc, resolution=32, chunk=64, progress=False)
+    return sc, precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=64), progress=False)
 
 
 def _triple(dtype=F64, box="phong", floor="lambert", env: EnvironmentMap | None = None) -> TripleProductRenderer:
@@ -254,6 +258,83 @@ def triple_dtype() -> Outcome:
 
 def triple_bright_sun() -> Outcome:
     return _triple_vs_standard(_triple(F32, floor="phong", env=_bright_sky()), 0.05, note="float32, sun 1e6 x sky")
+
+
+# -- every BRDF model at exactly theta = 90 degrees ---------------------------------------------------
+def _measured(name: str):
+    """A small MERL table or NBRDF network of made-up values (the data folder is not needed)."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from torch_brdf.brdf.measured import NBRDF, MERLTabulated
+    from torch_brdf.io.merl import write_merl_table
+
+    folder = Path(tempfile.mkdtemp())
+    if name == "merl":
+        values = torch.rand(1, 3, 3, 2, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
+        path = write_merl_table(folder / "t.npz", values, ["x"], [0, 50, 89], [0, 2], [0, 90, 179], "merl-binary")
+        return MERLTabulated(path, "x")
+    rng = np.random.default_rng(0)
+    w = {"names": np.array(["x"])}
+    for k, shape in (("W1", (1, 6, 4)), ("b1", (1, 4)), ("W2", (1, 4, 4)), ("b2", (1, 4)), ("W3", (1, 4, 3))):
+        w[k] = (0.3 * rng.standard_normal(shape)).astype(np.float32)
+    w["b3"] = np.zeros((1, 3), np.float32)
+    np.savez(folder / "w.npz", **w)
+    return NBRDF("x", folder / "w.npz")
+
+
+def _grazing_pairs(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pairs with theta = 90 degrees exactly (z = cos(pi/2), 6e-17, as a caller computes it):
+    the grazing mirror pair (the sum is 1e-16 long), grazing to normal and back, grazing to 45
+    degrees, at four azimuths."""
+    wi, wo = [], []
+    for phi in (0.0, 0.5, 1.7, 3.0):
+        c, s = math.cos(phi), math.sin(phi)
+        for ti, to in ((90, 90), (90, 0), (0, 90), (90, 45), (45, 90)):
+            a, b = math.radians(ti), math.radians(to)
+            wi.append([math.sin(a) * c, math.sin(a) * s, math.cos(a)])
+            wo.append([-math.sin(b) * c, -math.sin(b) * s, math.cos(b)])
+    return torch.tensor(wi, dtype=dtype), torch.tensor(wo, dtype=dtype)
+
+
+def brdf_grazing(name: str, **params) -> Outcome:
+    """Model ``name`` (default parameters, or ``params``) at theta = 90 degrees: finite, >= 0,
+    float32 = float64."""
+    from torch_brdf.brdf import base
+
+    brdf = _measured(name) if name in ("merl", "nbrdf") else base.create(name, **params)
+    vals = []
+    with torch.no_grad():
+        for dt in (F32, F64):
+            vals.append(brdf.to(dt).eval(*_grazing_pairs(dt)))
+    a, b = vals
+    neg = float(torch.clamp(-torch.cat([a.double().flatten(), b.flatten()]), min=0).max())
+    if name in ("merl", "nbrdf"):
+        # a lookup (or a network of the bin angles): at a bin edge (phi_d = +-pi) the two
+        # dtypes may pick neighbouring bins, so only finite, >= 0 and bounded is asked
+        bound = 2.0 * float(b.max())
+        return Outcome([a, b], max(float(a.max()) - bound, neg), 0.0, f"finite, >= 0; max f {float(b.max()):.3g}")
+    return Outcome([a, b], max(_max_rel(a, b), neg), 1e-4, f"float32 vs float64, max f {float(b.max()):.3g}")
+
+
+def ggx_grazing(roughness: float) -> Outcome:
+    """Cook-Torrance GGX at the grazing mirror pair: f = F / (pi alpha^4) (the Smith terms
+    give 1/alpha^2 with D = 1/(pi alpha^2)), in float32 and float64."""
+    from torch_brdf.brdf.microfacet import CookTorrance
+
+    brdf = CookTorrance("ggx", roughness=roughness, f0=1.0)
+    exact = 1.0 / (math.pi * roughness**4)
+    vals = []
+    with torch.no_grad():
+        for dt in (F32, F64):
+            z = math.cos(math.pi / 2)
+            vals.append(
+                brdf.to(dt).eval(torch.tensor([[1.0, 0.0, z]], dtype=dt), torch.tensor([[-1.0, 0.0, z]], dtype=dt))
+            )
+    err = max(float((v.double() - exact).abs().max()) / exact for v in vals)
+    return Outcome(vals, err, 1e-5, f"exact {exact:.4g} (float32 gave 1.7e25 at roughness 1 before)")
 
 
 # -- the GPLVM manifold fit --------------------------------------------------------------------------
@@ -319,6 +400,23 @@ def qp_cond() -> Outcome:
     return Outcome([ip.x, ad.x], gap, 1e-6, "cond(H) = 1e12: interior point vs ADMM objective")
 
 
+#: every registered BRDF model (the extremes table has a cell for each)
+_MODELS = (
+    "ashikhmin_shirley",
+    "blinn_phong",
+    "cook_torrance",
+    "distribution_based",
+    "factored_1d",
+    "factored_1d_fresnel",
+    "lambert",
+    "merl",
+    "metallic_roughness",
+    "nbrdf",
+    "phong",
+    "ward",
+    "ward_aniso",
+)
+
 #: the cells, by renderer or solver: (extreme, run[, the errors class it must raise])
 _CELLS: dict[str, list[tuple]] = {
     "polynomial (GI editing)": [
@@ -347,6 +445,16 @@ _CELLS: dict[str, list[tuple]] = {
         ("albedo 1", lambda: triple_albedo(1.0)),
         ("float32 vs float64", triple_dtype),
         ("sun 1e6", triple_bright_sun),
+    ],
+    "BRDF models (theta = 90 deg)": [
+        *((f"{name}, float32 and float64", lambda name=name: brdf_grazing(name)) for name in _MODELS),
+        ("cook_torrance roughness 0.01", lambda: brdf_grazing("cook_torrance", roughness=0.01, f0=1.0)),
+        (
+            "metallic_roughness metal, roughness 0.01",
+            lambda: brdf_grazing("metallic_roughness", metallic=1.0, roughness=0.01),
+        ),
+        ("cook_torrance GGX roughness 1, mirror pair", lambda: ggx_grazing(1.0)),
+        ("cook_torrance GGX roughness 1e-4, mirror pair", lambda: ggx_grazing(1e-4)),
     ],
     "GPLVM (manifold)": [
         ("duplicated materials", lambda: gplvm("duplicates")),
@@ -390,6 +498,12 @@ def evaluate(case: Case) -> dict:
     within = out["error"] is None or out["bound"] is None or out["error"] <= out["bound"]
     out["ok"] = out["status"] == case.expect and (case.expect != "finite" or within)
     return out
+
+
+def test_every_model_has_a_grazing_cell():
+    from torch_brdf.brdf import base
+
+    assert sorted(_MODELS) == sorted(base.available())
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])

@@ -14,6 +14,7 @@ package through its ``__init__`` from outside is still found).
 from __future__ import annotations
 
 import ast
+import itertools
 import re
 from pathlib import Path
 
@@ -24,8 +25,9 @@ LAYERS = (
     {"errors", "_checks", "parallel", "data", "io", "sphere", "frame", "metrics", "linalg"},
     {"brdf", "scene", "export"},
     {"records"},
-    {"transport", "manifold", "inverse", "denoise", "planner"},
+    {"transport", "manifold", "inverse", "denoise"},
     {"render"},
+    {"planner"},
     {"cli", "editor", "report", "__main__"},
 )
 
@@ -219,3 +221,182 @@ def test_the_checker_finds_upward_imports_cycles_and_loose_packages(tmp_path):
         "torch_brdf.transport",
         "torch_brdf.transport.polynomial",
     ] in found
+
+
+def _folder_edges(root: Path) -> dict[str, set[str]]:
+    """Top-level folder (or module) -> the other top-level folders its modules import."""
+    out: dict[str, set[str]] = {}
+    for m, t, *_ in imports(modules(root)):
+        a, b = m.split("."), t.split(".")
+        if len(a) > 1 and len(b) > 1 and a[1] != b[1]:
+            out.setdefault(a[1], set()).add(b[1])
+    return out
+
+
+def _folder_cycles(edges: dict[str, set[str]]) -> list[str]:
+    """Folders that reach themselves through other folders' imports."""
+
+    def reach(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for w in edges.get(todo.pop(), ()):
+                if w not in seen:
+                    seen.add(w)
+                    todo.append(w)
+        return seen
+
+    return sorted(f for f in edges if f in reach(f))
+
+
+#: the packages below the planner (the producers it measures and what they build on); none may ask it
+PRODUCERS = tuple(sorted(f for layer in LAYERS[: LAYERS.index({"planner"})] for f in layer))
+
+
+def test_folder_level_flow():
+    """At folder level the imports run one way: no producer imports the planner, and no folder
+    reaches itself through others (as transport -> planner -> inverse -> transport once did)."""
+    edges = _folder_edges(PACKAGE)
+    asking = sorted(f for f in PRODUCERS if "planner" in edges.get(f, ()))
+    assert not asking, f"producers that import the planner: {asking}"
+    assert not _folder_cycles(edges), f"folders in an import cycle: {_folder_cycles(edges)}"
+
+
+def test_the_folder_check_finds_a_producer_asking_the_planner(tmp_path):
+    root = _write(
+        tmp_path,
+        {
+            "torch_brdf/__init__.py": "",
+            "torch_brdf/planner/__init__.py": "from ..inverse import solve\n",
+            "torch_brdf/inverse/__init__.py": "from ..transport import run\n",
+            "torch_brdf/transport/__init__.py": "def f():\n    from ..planner import gi\n",
+        },
+    )
+    edges = _folder_edges(root)
+    assert [f for f in PRODUCERS if "planner" in edges.get(f, ())] == ["transport"]
+    assert _folder_cycles(edges) == ["inverse", "planner", "transport"]
+
+
+#: the longest function the library may have (lines from ``def`` to its last line)
+MAX_FUNCTION_LINES = 120
+#: benchmark runs shipped with the package (for ``torch-brdf report``) still longer than that:
+#: each is one script's sequence of measurements; this list may only shrink
+LONG_BENCHMARK_RUNS = {
+    "torch_brdf.report.benchmarks.denoise.run_scene",
+    "torch_brdf.report.benchmarks.triple_product.main",
+}
+
+
+def _long_functions(root: Path) -> list[str]:
+    out = []
+    for m, path in modules(root).items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    out.append(f"{m}.{node.name} ({n} lines, line {node.lineno})")
+    return sorted(out)
+
+
+def test_no_function_is_over_120_lines(tmp_path):
+    long = [f for f in _long_functions(PACKAGE) if f.split(" (")[0] not in LONG_BENCHMARK_RUNS]
+    assert {f.split(" (")[0] for f in _long_functions(PACKAGE)} >= LONG_BENCHMARK_RUNS, "split: shrink the list"
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines (split them):\n  " + "\n  ".join(long)
+    body = "".join("    x = 1\n" for _ in range(MAX_FUNCTION_LINES))
+    root = _write(tmp_path, {"torch_brdf/__init__.py": "", "torch_brdf/m.py": f"def f():\n{body}"})
+    assert _long_functions(root) == [f"torch_brdf.m.f ({MAX_FUNCTION_LINES + 1} lines, line 1)"]
+
+
+#: the lowest layer the call-flow check follows: the producers (transport, inverse, manifold,
+#: denoise) and above. The layers below are libraries every layer calls, and they call back what
+#: they are handed (the tile executor a producer's tile function, a record's methods): that is
+#: not the flow between the command line, the planner and the producers
+FLOW_LAYER = 3
+
+
+class _FolderStack:
+    """A profiler that follows the torch_brdf folder (of the producers' layer and above, see
+    :data:`FLOW_LAYER`) of every Python frame on this thread's stack and keeps each distinct
+    folder path (consecutive frames of one folder counted once) that enters a folder twice or
+    climbs back up the layers on the way down."""
+
+    def __init__(self):
+        self.stack: list[str | None] = []  # the folder of each frame (None: not torch_brdf)
+        self.bad: set[tuple[str, ...]] = set()
+        self.paths: set[tuple[str, ...]] = set()
+
+    def path(self) -> tuple[str, ...]:
+        out: list[str] = []
+        for f in self.stack:
+            if f is not None and (not out or out[-1] != f):
+                out.append(f)
+        return tuple(out)
+
+    def __call__(self, frame, event, arg):
+        if event == "call":
+            name = frame.f_globals.get("__name__", "")
+            parts = name.split(".")
+            folder = parts[1] if parts[0] == "torch_brdf" and len(parts) > 1 else None
+            if frame.f_code.co_name == "<module>":  # an import runs module code: not the call flow
+                folder = None
+            if folder is not None and (layer_of(f"torch_brdf.{folder}") or 0) < FLOW_LAYER:
+                folder = None
+            self.stack.append(folder)
+            if folder is not None:
+                path = self.path()
+                self.paths.add(path)
+                layers = [layer_of(f"torch_brdf.{f}") for f in path]
+                if len(set(path)) < len(path) or any(b > a for a, b in itertools.pairwise(layers)):
+                    self.bad.add(path)
+        elif event == "return" and self.stack:
+            self.stack.pop()
+
+
+def test_a_planned_precompute_goes_down_once(tmp_path):
+    """``torch-brdf precompute --error`` on a tiny scene: the calls go CLI -> planner ->
+    transport (and lower) and back; along every call stack no folder is entered twice and the
+    layers never climb back up (the planner runs the transport's pilots, not the reverse)."""
+    import sys
+
+    from typer.testing import CliRunner
+
+    import torch_brdf.planner.gi  # noqa: F401 (imported before profiling: imports are not calls)
+    from torch_brdf.cli import app
+
+    args = ["precompute", "cornell_box_glossy", "--resolution", "8", "--error", "0.3", "--no-progress"]
+    prof = _FolderStack()
+    sys.setprofile(prof)
+    try:
+        res = CliRunner().invoke(app, [*args, "--no-resume", "--out", str(tmp_path / "t.npz")])
+    finally:
+        sys.setprofile(None)
+    assert res.exit_code == 0, res.output
+    assert not prof.bad, "call paths that enter a folder twice or climb up:\n  " + "\n  ".join(
+        " -> ".join(p) for p in sorted(prof.bad)
+    )
+    into_transport = {p[: p.index("transport") + 1] for p in prof.paths if "transport" in p}
+    assert ("cli", "planner", "transport") in into_transport
+
+
+def test_the_call_check_finds_a_climb_and_a_second_entry():
+    """Functions whose globals name torch_brdf folders: transport -> planner (a climb) ->
+    transport (a second entry) is caught; planner -> transport -> inverse is not, nor a
+    producer's function called back by a lower layer (transport -> records -> transport)."""
+    import sys
+
+    def made(folder: str):
+        ns = {"__name__": f"torch_brdf.{folder}.m"}
+        exec("def f(g):\n    return g()\n", ns)
+        return ns["f"]
+
+    inverse, transport, planner, records = made("inverse"), made("transport"), made("planner"), made("records")
+    prof = _FolderStack()
+    sys.setprofile(prof)
+    try:
+        planner(lambda: transport(lambda: records(lambda: transport(lambda: inverse(lambda: 1)))))
+        transport(lambda: planner(lambda: transport(lambda: inverse(lambda: 1))))
+    finally:
+        sys.setprofile(None)
+    assert ("planner", "transport", "inverse") in prof.paths
+    assert not {p for p in prof.bad if p[0] == "planner"}
+    assert ("transport", "planner") in prof.bad  # a climb
+    assert ("transport", "planner", "transport", "inverse") in prof.bad  # a second entry

@@ -5,7 +5,7 @@ that come from users (scene files, command-line options) live here too, so one t
 documents them (``docs/guides/files-and-errors.md``):
 
 * :data:`MAX_IMAGE_SIDE` pixels per image side, :data:`MAX_IMAGE_PIXELS` pixels per image;
-* :data:`MAX_BANDS` bands per entry of a BRDF series;
+* :data:`MAX_BANDS` bands per entry of a BRDF series, :data:`MAX_BOUNCES` entries (bounces);
 * :data:`MAX_CUBEMAP_RESOLUTION` texels per cubemap face side, :data:`MAX_ENVMAP_HEIGHT` rows
   of a procedural environment map.
 
@@ -19,9 +19,10 @@ from __future__ import annotations
 import math
 import numbers
 import sys
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
-from .errors import ShapeError, ValueRangeError
+from .errors import ShapeError, TorchBRDFError, ValueRangeError
 
 if TYPE_CHECKING:  # torch is imported where it is used: the CLI reads the caps below without it
     import torch
@@ -112,6 +113,10 @@ MAX_IMAGE_SIDE = 16384
 MAX_IMAGE_PIXELS = 8192 * 8192
 #: largest number of bands in one entry of a BRDF series (the papers use up to 256)
 MAX_BANDS = 4096
+#: most bounces (surface vertices per path) of a BRDF series; the papers use up to 4
+MAX_BOUNCES = 64
+#: most rays per cubemap texel side when visibility is supersampled (k x k rays per texel)
+MAX_SUPERSAMPLE = 16
 #: largest cubemap face side (texels); 1024 is 6 Mi texels per vertex
 MAX_CUBEMAP_RESOLUTION = 1024
 #: largest procedural environment map height (rows; the map is H x 2H, built in float64: 200 MB)
@@ -176,3 +181,23 @@ def check_image_size(width, height, name: str = "image") -> tuple[int, int]:
             f"{name} size {w}x{h} = {w * h} pixels exceeds the cap of {MAX_IMAGE_PIXELS} (8192 x 8192)"
         )
     return w, h
+
+
+def check_bool(value, name: str) -> bool:
+    """``value`` if it is True or False (not 0, 1 or a string)."""
+    if not isinstance(value, bool):
+        raise ValueRangeError(f"{name} must be True or False; got {value!r}")
+    return value
+
+
+def check_fields(obj: Any, checks: Mapping[str, Callable[[Any], Any]]) -> None:
+    """Check and normalise the fields of a frozen settings dataclass (from its ``__post_init__``):
+    ``checks[name](value)`` returns the value kept; the exception of a refused value gets a
+    ``setting`` attribute naming the field (so the command line can name it as its option)."""
+    for name, check in checks.items():
+        try:
+            value = check(getattr(obj, name))
+        except TorchBRDFError as exc:
+            exc.setting = name
+            raise
+        object.__setattr__(obj, name, value)

@@ -29,15 +29,11 @@ from pathlib import Path
 import typer
 
 from ._checks import (
-    MAX_BANDS,
-    MAX_CUBEMAP_RESOLUTION,
     MAX_IMAGE_SIDE,
-    check_count,
     check_image_size,
-    check_int,
     check_real,
 )
-from .errors import SceneError, TorchBRDFError, ValueRangeError
+from .errors import FileFormatError, SceneError, TorchBRDFError, ValueRangeError, WriteError
 
 app = typer.Typer(
     add_completion=False,
@@ -118,7 +114,7 @@ def describe_failure(exc: BaseException) -> tuple[str, int]:
     """The one-line message and exit status of a failed command (module docstring)."""
     if isinstance(exc, KeyboardInterrupt):
         return "interrupted; finished tiles, chunks and checkpoints are kept for --resume", 130
-    if isinstance(exc, TorchBRDFError):
+    if isinstance(exc, TorchBRDFError) and not isinstance(exc, WriteError):
         return str(exc), 2
     if isinstance(exc, MemoryError):
         return "out of memory; lower --resolution, --spp or the series, or free memory", 1
@@ -191,6 +187,32 @@ def load_scene(
     return scene.with_resolution(width or scene.camera.width, height or scene.camera.height)
 
 
+#: per settings kind: its class (module, name) and the options named otherwise than their field
+_SETTINGS = {
+    "polynomial": ("torch_brdf.transport.polynomial.settings", "PolynomialSettings", {"mixture": "--sampler"}),
+    "visibility": ("torch_brdf.transport.visibility", "VisibilitySettings", {"resolution": "--cubemap"}),
+    "path": ("torch_brdf.transport.pathtrace", "PathTraceSettings", {"max_bounces": "--bounces"}),
+}
+
+
+def _settings(kind: str, **options):
+    """The settings object of a producer (``kind`` in :data:`_SETTINGS`) from command-line
+    options, checked by the object itself; a refused value is named as its option (``--series ...``)."""
+    import importlib
+
+    from .errors import TorchBRDFError
+
+    module, name, renamed = _SETTINGS[kind]
+    try:
+        return getattr(importlib.import_module(module), name)(**options)
+    except TorchBRDFError as exc:
+        field = getattr(exc, "setting", None)
+        if field is not None:
+            option, message = renamed.get(field, "--" + field.replace("_", "-")), str(exc)
+            exc.args = (option + message[len(field) :] if message.startswith(field + " ") else f"{option}: {message}",)
+        raise
+
+
 def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resolution, width, height):
     """SCENE, or ``--mesh FILE`` (:func:`torch_brdf.scene.mesh_scene`); ``--envmap FILE`` replaces
     the scene's lights by that lat-long map."""
@@ -214,9 +236,9 @@ def _quick_scene(spec: str | None, mesh: Path | None, envmap: Path | None, resol
     return sc if env is None else dataclasses.replace(sc, lights=[env])
 
 
-def _render_to(
-    scene, out: Path, spp: int, bounces: int, seed: int, exposure, checkpoint: bool, progress: bool | None = None
-) -> dict:
+def _render_to(scene, out: Path, settings, seed: int, exposure, checkpoint: bool, progress: bool | None = None) -> dict:
+    """Path-trace ``scene`` at ``settings`` (a :class:`~torch_brdf.transport.pathtrace.PathTraceSettings`)
+    to ``out`` .exr and .png."""
     from .io import write_exr
     from .transport.pathtrace import path_trace
 
@@ -224,7 +246,7 @@ def _render_to(
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ckpt = out.parent / (out.name + ".ckpt.npz") if checkpoint else None
-    image = path_trace(scene, spp=spp, max_bounces=bounces, seed=seed, checkpoint=ckpt, progress=progress)
+    image = path_trace(scene, settings, seed=seed, checkpoint=ckpt, progress=progress)
     seconds = time.perf_counter() - t0
     write_exr(out.with_suffix(".exr"), image)
     stops = _preview(out.with_suffix(".png"), image, exposure)
@@ -234,8 +256,8 @@ def _render_to(
         "exr": str(out.with_suffix(".exr")),
         "png": str(out.with_suffix(".png")),
         "seconds": round(seconds, 3),
-        "spp": spp,
-        "max_bounces": bounces,
+        "spp": settings.spp,
+        "max_bounces": settings.max_bounces,
         "size": [scene.camera.width, scene.camera.height],
         "exposure": stops,
     }
@@ -285,8 +307,9 @@ def demo(
 ):
     """Path-trace the built-in Cornell box and write an EXR and an sRGB PNG."""
     _file_out(out)
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     scene = load_scene("cornell_box", resolution, width, height)
-    info = _render_to(scene, out, spp, bounces, seed, exposure=0.0, checkpoint=False, progress=progress)
+    info = _render_to(scene, out, settings, seed, exposure=0.0, checkpoint=False, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -313,8 +336,9 @@ def render(
     _file_out(out)
     if exposure is not None:
         check_real(exposure, "--exposure")
+    settings = _settings("path", spp=spp, max_bounces=bounces)
     sc = _quick_scene(scene, mesh, envmap, resolution, width, height)
-    info = _render_to(sc, out, spp, bounces, seed, exposure, checkpoint=resume, progress=progress)
+    info = _render_to(sc, out, settings, seed, exposure, checkpoint=resume, progress=progress)
     typer.echo(json.dumps(info))
 
 
@@ -325,11 +349,73 @@ def info(scene: str = typer.Argument(..., help="Built-in scene name or a scene f
     typer.echo(json.dumps(load_scene(scene).info(), indent=2))
 
 
-_STORAGES = ("float32", "float16")
 #: ``--ray`` of the three precomputations (their tiles run as Ray tasks; default: this process)
 RAY = typer.Option(
     None, help="Run tiles on Ray: 'auto' (start a local instance) or a cluster ADDRESS (pip install .[cluster])."
 )
+#: seconds ``--ray ADDRESS`` may take to accept a connection before the command gives up
+RAY_CONNECT_TIMEOUT = 5.0
+_LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOST = re.compile(rf"(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*")
+
+
+def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """Refuse a ``--ray`` value before any work: ``auto``, or ``[ray://]HOST:PORT`` with a valid
+    IPv4 address or host name and a port in 1..65535 that accepts a TCP connection within
+    ``timeout`` seconds (Ray itself would retry for minutes).
+
+    Raises:
+        ValueRangeError: bad syntax, or nothing answers at the address.
+    """
+    import ipaddress
+    import socket
+
+    if address is None or address == "auto":
+        return
+    rest = address.removeprefix("ray://")
+    host, sep, port = rest.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        raise ValueRangeError(f"--ray must be 'auto' or HOST:PORT (e.g. 10.0.0.5:6379); got {address!r}")
+    if not 1 <= int(port) <= 65535:
+        raise ValueRangeError(f"--ray {address}: port must be in 1..65535; got {port}")
+    if host.startswith("[") and host.endswith("]"):  # [IPv6]:PORT
+        try:
+            host = str(ipaddress.IPv6Address(host[1:-1]))
+        except ValueError:
+            raise ValueRangeError(f"--ray {address}: {host!r} is not an IPv6 address") from None
+    elif host.replace(".", "").isdigit():
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise ValueRangeError(f"--ray {address}: {host!r} is not an IPv4 address") from None
+    elif not _HOST.fullmatch(host):
+        raise ValueRangeError(f"--ray {address}: {host!r} is not a host name")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as exc:
+        why = f"no answer within {timeout:g} s" if isinstance(exc, TimeoutError) else exc.strerror
+        raise ValueRangeError(f"--ray {address}: cannot connect ({(why or type(exc).__name__).lower()})") from None
+
+
+def _parse_series(text: str):
+    """``--series`` as a :class:`~torch_brdf.records.polynomial.Series`; its errors name the option."""
+    from .records.polynomial import Series
+
+    try:
+        return Series.parse(text)
+    except ValueRangeError as exc:
+        raise ValueRangeError(f"--series {text!r}: {exc}") from None
+
+
+def _check_record(path: Path | str, kind: str, option: str) -> None:
+    """Refuse ``path`` before any work unless it is a record file of ``kind``."""
+    from .io.arrays import read_kind
+
+    if not Path(path).is_file():
+        raise FileFormatError(f"{option}: no such file: {path}")
+    found = read_kind(path)
+    if found != kind:
+        raise FileFormatError(f"{option}: {path} holds a {found!r} record; expected {kind!r}")
 
 
 @app.command()
@@ -337,8 +423,11 @@ RAY = typer.Option(
 def precompute(
     scene: str = typer.Argument(..., help="Built-in scene name or a scene file: .toml .gltf .glb .xml .obj."),
     out: Path = typer.Option(Path("out/tensors.npz"), help="Output tensor file (.npz, versioned, checksummed)."),
-    series: str = typer.Option("64,1,1,1", help="BRDF series (J_N,...,J_1) from the eye; its length = bounces."),
-    spp: int = typer.Option(64, **_SPP, help="Paths per pixel."),
+    series: str = typer.Option(
+        None,
+        help="A fixed BRDF series (J_N,...,J_1) from the eye, its length = bounces, instead of a plan (e.g. 64,16,1).",
+    ),
+    spp: int = typer.Option(None, **_SPP, help="Paths per pixel of a fixed series (default 64)."),
     resolution: int = typer.Option(None, **_RESOLUTION, help="Override the image size (square)."),
     width: int = WIDTH,
     height: int = HEIGHT,
@@ -351,7 +440,10 @@ def precompute(
     ),
     progress: bool = PROGRESS,
     error: float = typer.Option(
-        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (--series/--spp/--bases ignored)."
+        None, min=0.0, help="Plan series, bases and spp for this relative RMSE (default 0.03 when planning)."
+    ),
+    seconds: float = typer.Option(
+        None, min=0.0, help="The plan's precompute time budget in seconds (default 600 when planning)."
     ),
     ray: str = RAY,
     sampler: str = typer.Option(
@@ -361,43 +453,48 @@ def precompute(
         "and direction samples stratified over each pixel's paths).",
     ),
 ):
-    """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008)."""
+    """Precompute the multibounce polynomial tensors of a scene's view (Ben-Artzi et al. 2008).
+
+    By default the planner chooses series, bases, spp and light samples for a relative RMSE of
+    0.03 within 600 s (--error, --seconds); --series (with --spp, --bases) runs a fixed series
+    instead. The plan is printed and saved in the record."""
     _file_out(out)
+    from .planner.gi import DEFAULT_ERROR, DEFAULT_SECONDS, precompute_planned
     from .records.cache import remove_cache
-    from .transport.polynomial import LobeMixture, Series, precompute_polynomial
-    from .transport.polynomial.plan import check_basis_overrides
+    from .transport.polynomial import LobeMixture, precompute_polynomial
 
     # every option is checked before the scene is loaded and the precompute starts
     samplers = {"default": None, "lobes": LobeMixture(), "stratified": LobeMixture(stratified=True)}
     if sampler not in samplers:
         raise ValueRangeError(f"--sampler must be one of {tuple(samplers)}; got {sampler!r}")
-    parsed = Series.parse(series)
-    check_count(parsed.eye, "--series bands per bounce", MAX_BANDS)
-    if storage not in _STORAGES:
-        raise ValueRangeError(f"--storage must be one of {_STORAGES}; got {storage!r}")
-    overrides = check_basis_overrides(_json_object(bases, "--bases"), "--bases")
+    fixed_series = series is not None or spp is not None or bases is not None
+    if fixed_series and (error is not None or seconds is not None):
+        raise ValueRangeError("--error/--seconds plan the series; --series/--spp/--bases fix it: give one or the other")
+    settings = _settings(
+        "polynomial",
+        series="64,1,1,1" if series is None else series,
+        spp=64 if spp is None else spp,
+        bases=_json_object(bases, "--bases"),
+        mixture=samplers[sampler],
+        env_point_lights=env_point_lights,
+        storage=storage,
+    )
+    check_ray_address(ray)
     sc = load_scene(scene, resolution, width, height)
     tiles = out.with_suffix(".tiles") if resume else None
     t0 = time.perf_counter()
-    T = precompute_polynomial(
-        sc,
-        parsed,
-        spp=spp,
-        seed=seed,
-        bases=overrides,
-        mixture=samplers[sampler],
-        env_point_lights=env_point_lights,
-        checkpoint=tiles,
-        progress=progress,
-        plan="auto" if error is not None else None,
-        error=error,
-        executor="local" if ray is None else "ray",
-        address=ray,
-    )
+    run = {"seed": seed, "checkpoint": tiles, "progress": progress, "executor": "local" if ray is None else "ray"}
+    run["address"] = ray
+    if not fixed_series:  # the planner decides series, bases, spp and light samples
+        error = DEFAULT_ERROR if error is None else error
+        seconds = DEFAULT_SECONDS if seconds is None else seconds
+        T = precompute_planned(sc, settings, error=error, seconds=seconds, **run)
+    else:
+        T = precompute_polynomial(sc, settings, **run)
     if "plan" in T.meta:
         typer.echo(T.meta["plan"], err=True)
     seconds = time.perf_counter() - t0
-    T.save(out, storage=storage)
+    T.save(out, storage=settings.storage)
     remove_cache(tiles)
     mb = {str(k): round(v / 2**20, 3) for k, v in T.memory_per_bounce().items()}
     info = {"out": str(out), "seconds": round(seconds, 3), "series": T.series.key, "spp": T.meta["spp"]}
@@ -476,8 +573,9 @@ def edit(
     """Render saved polynomial tensors with edited materials (no path tracing: dot products per pixel)."""
     _file_out(out)
     targets = [_parse_export(e) for e in exports]
-    if save_scene is not None and not save_scene.parent.is_dir():
-        raise ValueRangeError(f"--save-scene: folder {save_scene.parent} does not exist")
+    if save_scene is not None:
+        _file_out(save_scene)
+        save_scene.parent.mkdir(parents=True, exist_ok=True)
     from .records import PolynomialTensors
     from .render import PolynomialRenderer, apply_scene_textures
 
@@ -550,8 +648,8 @@ def _parse_export(item: str) -> tuple[str, str, Path]:
     if fmt not in FORMATS:
         raise ValueRangeError(f"--export {item!r}: unknown format {fmt!r}; choose from {list(FORMATS)}")
     path = Path(file)
-    if not path.parent.is_dir():
-        raise ValueRangeError(f"--export {item!r}: folder {path.parent} does not exist")
+    _file_out(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     return obj, fmt, path
 
 
@@ -576,8 +674,8 @@ def export_cmd(
     """Export a material (exact where a stock model matches, else fitted) or a whole scene (Mitsuba XML)."""
     from .export import export_material, export_scene_mitsuba
 
-    if not out.parent.is_dir():
-        raise ValueRangeError(f"OUT: folder {out.parent} does not exist")
+    _file_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     if material.lstrip().startswith("{"):
         try:
             spec = json.loads(material)
@@ -778,6 +876,7 @@ def fit_strokes(
     check_image_size(width, height, "--width/--height")
     for value, option in ((kd, "--kd"), (f0, "--f0"), (rotate, "--rotate"), (keep_weight, "--keep-weight")):
         check_real(value, option)
+    check_ray_address(ray)
     st, size = load_strokes(strokes)
     sc = load_scene(scene).with_resolution(width, height)
     constrained = not unconstrained
@@ -827,7 +926,7 @@ def fit_image_cmd(
         sc = _tensors_scene(T, scene, T.width)
     else:
         sc = load_scene(source, resolution)
-        T = precompute_polynomial(sc, series, spp=spp, seed=0, progress=progress)
+        T = precompute_polynomial(sc, _settings("polynomial", series=series, spp=spp), seed=0, progress=progress)
     pre = time.perf_counter() - t0
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
@@ -883,22 +982,19 @@ def precompute_visibility_cmd(
     """Per-vertex visibility cubemaps for all-frequency relighting (Inger et al.)."""
     _file_out(out)
     from .records.cache import remove_cache
-    from .sphere.cubemap import CubemapBlocks
-    from .transport.visibility import BITS, precompute_visibility
+    from .transport.visibility import precompute_visibility
 
     if resolution is not None:  # the old name: a cubemap size here, an image size everywhere else
         typer.echo(f"warning: precompute-visibility --resolution is deprecated; use --cubemap {resolution} "
                    "(elsewhere --resolution is the image size)", err=True)  # fmt: skip
         cubemap = resolution
-    resolution = check_int(cubemap, "--cubemap", 16, MAX_CUBEMAP_RESOLUTION)
-    CubemapBlocks(resolution, 16)  # a multiple of the block size
-    if bits not in BITS:
-        raise ValueRangeError(f"--bits must be one of {BITS}; got {bits}")
+    settings = _settings("visibility", resolution=cubemap, block=16, supersample=supersample, bits=bits, chunk=chunk)
+    check_ray_address(ray)
     sc = load_scene(scene)
     ck = out.with_suffix(".chunks") if resume else None  # out/vis.npz -> out/vis.chunks/
     t0 = time.perf_counter()
     run = {"executor": "local" if ray is None else "ray", "address": ray}
-    vis = precompute_visibility(sc, resolution, 16, supersample, bits, chunk, checkpoint=ck, progress=progress, **run)
+    vis = precompute_visibility(sc, settings, checkpoint=ck, progress=progress, **run)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     vis.save(out)
@@ -906,7 +1002,7 @@ def precompute_visibility_cmd(
     info = {
         "out": str(out),
         "vertices": len(vis.vertices),
-        "cubemap": f"{resolution}x{resolution}x6",
+        "cubemap": f"{settings.resolution}x{settings.resolution}x6",
         "bytes_per_vertex": round(vis.bytes_per_vertex, 1),
         "seconds": round(seconds, 3),
     }
@@ -945,8 +1041,14 @@ def relight(
         check_real(exposure, "--exposure")
     if error is not None and psnr is not None:
         raise ValueRangeError("give --error or --psnr, not both")
+    # an error budget is a fraction of the peak in (0, 1]: PSNR = -20 log10(error) >= 0 dB; below
+    # 1e-7 (140 dB) lies float32 rounding, which no plan can reach
     if psnr is not None:
-        check_real(psnr, "--psnr")
+        check_real(psnr, "--psnr", 0.0, 140.0)
+    if error is not None:
+        check_real(error, "--error", 1e-7, 1.0)
+        if error == 0:
+            raise ValueRangeError("--error must be > 0 (a fraction of the peak)")
     sc = load_scene(scene, resolution, width, height)
     if sc.environment is None:  # before the record loads; the renderer's "pass envmap=" is the API's
         raise SceneError(f"relight needs an environment map; scene {sc.name!r} has none (add an envmap light)")
@@ -954,9 +1056,11 @@ def relight(
     if coarse:  # lighting is computed per vertex and interpolated: a big triangle shows one smooth gradient
         typer.echo(f"warning: relight shades per vertex; {', '.join(coarse)} too coarse to show shadows or "
                    "highlights on (tessellate the mesh, e.g. the bunny_relight scene)", err=True)  # fmt: skip
+    if error is None and psnr is None:  # a missing or wrong record: before the renderer is built
+        _check_record(visibility, "vertex-visibility", "--visibility")
     plan = None
     if error is not None or psnr is not None:  # plan, then the visibility at the plan's settings
-        from .render.relight_plan import plan_relighting, planned_renderer
+        from .planner.relight_pilots import plan_relighting, planned_renderer
 
         env = sc.environment.rotated(rotate) if rotate and sc.environment is not None else None
         plan = plan_relighting(sc, error=error, psnr=psnr, envmap=env)
@@ -998,9 +1102,9 @@ def editor(
 ):
     """Serve the interactive material editor (Voila) on 127.0.0.1 and print its URL."""
     from .editor.server import serve
-    from .transport.polynomial import Series
 
-    check_count(Series.parse(series).eye, "--series bands per bounce", MAX_BANDS)
+    _settings("polynomial", series=series, spp=spp)  # checked before the server starts
+    _check_editor_inputs(source, gplvm, relight, visibility)
     config = {"source": source, "scene": scene, "resolution": resolution, "spp": spp, "series": series}
     config["gplvm"] = str(gplvm.resolve()) if gplvm else None
     if (relight is None) != (visibility is None):
@@ -1012,6 +1116,26 @@ def editor(
     from .data import cache_dir
 
     serve({**config, "seed": 0, "cache_dir": str(cache or cache_dir() / "editor")}, port=port, echo=typer.echo)
+
+
+def _check_editor_inputs(source: str, gplvm: Path | None, relight: str | None, visibility: Path | None) -> None:
+    """Every file the editor will read exists and holds the record it needs, before the server
+    starts (the server would otherwise report them one page load later, or not at all)."""
+    from .records import GPLVMFit, PolynomialTensors
+    from .records.visibility import VertexVisibility
+    from .scene import BUILTIN_SCENES
+
+    for spec, option in ((source, "SOURCE"), (relight, "--relight")):
+        if spec is None:
+            continue
+        if spec.endswith(".npz") and option == "SOURCE":
+            _check_record(spec, PolynomialTensors.kind, "SOURCE")
+        elif spec not in BUILTIN_SCENES and not Path(spec).is_file():
+            raise SceneError(f"{option}: {spec!r} is neither a file nor one of {sorted(BUILTIN_SCENES)}")
+    if gplvm is not None:
+        _check_record(gplvm, GPLVMFit.kind, "--gplvm")
+    if visibility is not None:
+        _check_record(visibility, VertexVisibility.kind, "--visibility")
 
 
 @app.command("fetch-data")

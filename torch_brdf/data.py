@@ -163,8 +163,6 @@ def fetch_data(
     """
     import pooch
 
-    from .errors import FileFormatError
-
     base_url = base_url or os.environ.get(URL_ENV_VAR)
     if not base_url:
         raise DataNotFoundError(
@@ -178,23 +176,48 @@ def fetch_data(
     if unknown:
         raise DataNotFoundError(f"not in the data registry: {unknown}; known: {sorted(REGISTRY)}")
     out = []
-    for name in names:
-        url = f"{base_url.rstrip('/')}/{name}"
-        target = dest / name
-        try:
-            path = pooch.retrieve(
-                url,
-                known_hash=f"sha256:{REGISTRY[name]}",
-                fname=target.name,
-                path=target.parent,
-                progressbar=progress_default(progress),
-            )
-        except ValueError as exc:
-            if "does not match" not in str(exc):  # pooch: an unusable URL (protocol, ...)
-                raise DataNotFoundError(f"{name}: cannot download from {url}: {exc}") from None
-            # pooch: hash mismatch (the file was deleted)
-            raise FileFormatError(f"{name}: downloaded file does not match its pinned SHA-256 ({exc})") from None
-        except Exception as exc:  # requests' HTTP and connection errors
-            raise DataNotFoundError(f"{name}: download from {url} failed: {exc}") from None
-        out.append(Path(path))
+    # pooch logs "Downloading data from ..." at INFO: the progress bar says it, and a failure
+    # must stay the one line of the error below
+    logger = pooch.get_logger()
+    level = logger.level
+    logger.setLevel("WARNING")
+    try:
+        for name in names:
+            out.append(_fetch_one(pooch, base_url, name, dest, progress))
+    finally:
+        logger.setLevel(level)
     return out
+
+
+def _reason(exc: BaseException) -> str:
+    """The innermost cause of a download failure in a few words (requests wraps it thrice)."""
+    while exc.__cause__ is not None or exc.__context__ is not None:
+        exc = exc.__cause__ or exc.__context__
+    text = str(exc)
+    if "] " in text:  # "[Errno 111] Connection refused" -> "Connection refused"
+        text = text.rsplit("] ", 1)[1]
+    return text.rstrip(")\"'") or type(exc).__name__
+
+
+def _fetch_one(pooch, base_url: str, name: str, dest: Path, progress: bool | None) -> Path:
+    """Download and verify one registry file (see :func:`fetch_data`)."""
+    from .errors import FileFormatError
+
+    url = f"{base_url.rstrip('/')}/{name}"
+    target = dest / name
+    try:
+        path = pooch.retrieve(
+            url,
+            known_hash=f"sha256:{REGISTRY[name]}",
+            fname=target.name,
+            path=target.parent,
+            progressbar=progress_default(progress),
+        )
+    except ValueError as exc:
+        if "does not match" not in str(exc):  # pooch: an unusable URL (protocol, ...)
+            raise DataNotFoundError(f"{name}: cannot download from {url}: {exc}") from None
+        # pooch: hash mismatch (the file was deleted)
+        raise FileFormatError(f"{name}: downloaded file does not match its pinned SHA-256 ({exc})") from None
+    except Exception as exc:  # requests' HTTP and connection errors
+        raise DataNotFoundError(f"{name}: download from {url} failed ({_reason(exc)})") from None
+    return Path(path)

@@ -41,6 +41,12 @@ class DataNotFoundError(TorchBRDFError, FileNotFoundError):
     """Optional shared data (meshes, env maps, MERL) is not where it was looked for."""
 
 
+class WriteError(TorchBRDFError, OSError):
+    """A file could not be written (disk full, read-only file system, permission denied): an
+    :class:`OSError` with the ``errno`` of the cause and ``filename`` the file that was being
+    written, whose message names it."""
+
+
 class NumericalError(TorchBRDFError, ArithmeticError):
     """A computation cannot be carried out stably (e.g. a Cholesky factorisation still fails
     at the largest allowed jitter); the message names the quantity and the limit reached."""

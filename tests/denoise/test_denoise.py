@@ -38,7 +38,7 @@ from torch_brdf.records.guides import GUIDE_NAMES, GUIDE_VERSION
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.transport.guides import light_lobe_images
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed (optional extra 'denoise')")
 SIZE = 24
@@ -49,7 +49,7 @@ def setup():
     sc = cornell_box(SIZE)
     sc.materials["glossy"] = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 100.0}
     sc.objects[sc.object_id("back")].material = "glossy"
-    tensors = precompute_polynomial(sc, "8,1,1", spp=4, seed=2, progress=False)
+    tensors = precompute_polynomial(sc, PolynomialSettings("8,1,1", spp=4), seed=2, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     guides = guide_buffers(sc)
     return sc, tensors, mats, guides
@@ -168,7 +168,7 @@ def _glossy(tensors):
 def halves(setup):
     """Two independent 2-spp records of the setup's scene and their frames (C, H, W)."""
     sc, _, mats, _ = setup
-    recs = [precompute_polynomial(sc, "8,1,1", spp=2, seed=s, progress=False) for s in (3, 4)]
+    recs = [precompute_polynomial(sc, PolynomialSettings("8,1,1", spp=2), seed=s, progress=False) for s in (3, 4)]
     frames = [PolynomialRenderer(r, mats, dtype=torch.float64).evaluate().permute(2, 0, 1) for r in recs]
     return recs, frames
 
@@ -295,7 +295,7 @@ def test_cumulative_oidn_by_name(setup):
 
 def test_precompute_without_guides(setup):
     sc = setup[0]
-    t = precompute_polynomial(sc, "2,1", spp=1, seed=0, progress=False, guides=False)
+    t = precompute_polynomial(sc, PolynomialSettings("2,1", spp=1, guides=False), seed=0, progress=False)
     assert t.guides is None and t.meta["guides"] is None
 
 
@@ -542,7 +542,7 @@ def test_mean_tensors_render_the_mean_frame(setup, halves, gen):
     for k in range(2):
         expected = (frames[0][k] + frames[1][k]) / 2
         assert _rel(frames[2][k], expected) < 1e-6
-    other = precompute_polynomial(setup[0], "4,1,1", spp=1, seed=1, progress=False)
+    other = precompute_polynomial(setup[0], PolynomialSettings("4,1,1", spp=1), seed=1, progress=False)
     with pytest.raises(ValueRangeError):
         mean_tensors([recs[0], other])
     with pytest.raises(ValueRangeError):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from torch_brdf.scene import cornell_box_glossy
-from torch_brdf.transport import precompute_polynomial
+from torch_brdf.transport import PolynomialSettings, precompute_polynomial
 
 SIZE = 32
 
@@ -18,7 +18,7 @@ def small_scene():
 @pytest.fixture(scope="session")
 def small_tensors_file(tmp_path_factory, small_scene):
     """(path of the saved tensors, the tensors): series 64,1,1,1, 4 spp, seed 0."""
-    tensors = precompute_polynomial(small_scene, "64,1,1,1", spp=4, seed=0, progress=False)
+    tensors = precompute_polynomial(small_scene, PolynomialSettings("64,1,1,1", spp=4), seed=0, progress=False)
     path = tmp_path_factory.mktemp("editor") / "cb32.npz"
     tensors.save(path)
     return path, tensors
@@ -60,7 +60,7 @@ def relight_files(tmp_path_factory):
 
     from torch_brdf.scene import load_scene
     from torch_brdf.scene.builtin import grid_plane
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     box = trimesh.creation.box(extents=(0.6, 0.3, 0.6))
     box.apply_translation([0.1, 0.45, 0.0])
@@ -84,7 +84,7 @@ objects = [
 lights = [{{ type = "envmap", procedural = "sky", height = 32, {sun} }}]
 """
     )
-    vis = precompute_visibility(load_scene(str(toml)), resolution=32, chunk=64, progress=False)
+    vis = precompute_visibility(load_scene(str(toml)), VisibilitySettings(resolution=32, chunk=64), progress=False)
     path = d / "vis.npz"
     vis.save(path)
     return toml, path

@@ -23,7 +23,7 @@ from torch_brdf.editor import (
 from torch_brdf.editor.params import hex_to_linear, linear_to_hex
 from torch_brdf.editor.session import FAST_QUADRATURE
 from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
-from torch_brdf.transport import path_trace
+from torch_brdf.transport import PathTraceSettings, path_trace
 
 
 @pytest.fixture(scope="module")
@@ -138,9 +138,11 @@ def test_bad_edits_raise_readable_errors(session):
 
 
 def test_fresnel_layer_f0(small_scene):
-    from torch_brdf.transport import precompute_polynomial
+    from torch_brdf.transport import PolynomialSettings, precompute_polynomial
 
-    t = precompute_polynomial(small_scene, "8,1", spp=1, seed=0, bases={"back": {"fresnel": True}}, progress=False)
+    t = precompute_polynomial(
+        small_scene, PolynomialSettings("8,1", spp=1, bases={"back": {"fresnel": True}}), seed=0, progress=False
+    )
     s = EditorSession(t, small_scene)
     s.select("back")
     mat = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 50.0}
@@ -190,8 +192,10 @@ def test_reference_averages_passes_and_cancels(small_scene):
     seen = []
     job = ReferenceJob(sc, 2, 2, seed=3, on_progress=lambda d, n: seen.append((d, n))).start()
     assert job.wait(300) and job.error is None
-    manual = (path_trace(sc, 1, 2, 3 * 1_000_003, progress=False).double()) / 2
-    manual += path_trace(sc, 1, 2, 3 * 1_000_003 + 1, progress=False).double() / 2
+    manual = (path_trace(sc, PathTraceSettings(spp=1, max_bounces=2), seed=3 * 1_000_003, progress=False).double()) / 2
+    manual += (
+        path_trace(sc, PathTraceSettings(spp=1, max_bounces=2), seed=3 * 1_000_003 + 1, progress=False).double() / 2
+    )
     assert torch.allclose(job.image.double(), manual, rtol=1e-6, atol=1e-7)
     assert seen == [(1, 2), (2, 2)]
     job = ReferenceJob(sc, 1000, 2)

@@ -29,7 +29,7 @@ def test_export_errors_are_one_line(tmp_path):
     cases = [
         (["export", "cornell_box:nope", str(tmp_path / "m.gltf")], "no object 'nope'"),
         (["export", "{not json", str(tmp_path / "m.xml")], "not valid JSON"),
-        (["export", '{"type": "lambert"}', str(tmp_path / "missing" / "m.xml")], "does not exist"),
+        (["export", '{"type": "lambert"}', str(tmp_path / "m.txt")], "format"),
         (
             ["export", '{"type": "blinn_phong", "exponent": 50}', str(tmp_path / "m.xml"), "--tolerance", "0.01"],
             "above the tolerance 0.01",
@@ -40,6 +40,13 @@ def test_export_errors_are_one_line(tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert message in res.output and "Traceback" not in res.output
     assert not (tmp_path / "m.xml").exists()
+
+
+def test_export_creates_the_output_folder(tmp_path):
+    """Like every other command's ``--out``, OUT's missing folders are made."""
+    res = runner.invoke(app, ["export", '{"type": "lambert", "albedo": 0.5}', str(tmp_path / "new" / "m.xml")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "new" / "m.xml").is_file()
 
 
 def test_edit_export_is_checked_before_work(tmp_path):

@@ -16,7 +16,7 @@ from torch_brdf.brdf import create  # noqa: E402
 from torch_brdf.export import FitPairs, export_scene_mitsuba  # noqa: E402
 from torch_brdf.export import _mitsuba_error as mitsuba_error  # noqa: E402
 from torch_brdf.scene import Camera, DirectionalLight, Scene, SceneObject, mesh_from_arrays  # noqa: E402
-from torch_brdf.transport.pathtrace import path_trace  # noqa: E402
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace  # noqa: E402
 
 pytestmark = pytest.mark.reference
 
@@ -76,7 +76,9 @@ def _compare(tmp_path, floor: dict, ball: dict = GOLD) -> tuple[float, float, li
     mi.set_variant("scalar_rgb")
     loaded = mi.load_file(str(out))
     K = 4
-    ours = torch.stack([path_trace(scene, 8, 2, seed=s, progress=False) for s in range(K)]).double()
+    ours = torch.stack(
+        [path_trace(scene, PathTraceSettings(spp=8, max_bounces=2), seed=s, progress=False) for s in range(K)]
+    ).double()
     theirs = torch.stack(
         [torch.from_numpy(mi.TensorXf(mi.render(loaded, seed=s, spp=8)).numpy()[..., :3]) for s in range(K)]
     ).double()

@@ -206,3 +206,20 @@ def test_interior_point_polishing_is_exact(gen):
     assert pol.polished and not raw.polished
     _kkt(H, f, G, h, pol, tol=1e-10)
     assert pol.objective <= raw.objective + 1e-12 * abs(raw.objective)
+
+
+@pytest.mark.parametrize("singular", [False, True])
+def test_active_set_first_try_meets_the_interior_point_optimum(gen, singular):
+    """A zero-residual target of a sparse coefficient vector: the default's active-set first
+    try answers without Newton steps, at the interior point method's optimum and KKT point."""
+    from torch_brdf.inverse.qp import _interior_point, _prepare
+
+    H, _, G, h = _problem(gen, singular=singular)
+    c = torch.zeros(H.shape[0], dtype=torch.float64)
+    c[[3, 40, 41, 90, 120]] = torch.tensor([0.02, 0.05, 0.01, 0.03, 0.04], dtype=torch.float64)
+    f = H @ c  # the target the coefficients c render: zero residual at the optimum
+    r = solve_qp(H, f, G, h)
+    ip = _interior_point(*_prepare(H, f, G, h), 1e-11, 100)
+    assert r.iterations == 0 and r.polished  # the first try's answer
+    assert r.objective <= ip.objective + 1e-12 * abs(ip.objective)
+    _kkt(H, f, G, h, r)

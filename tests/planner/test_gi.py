@@ -10,12 +10,20 @@ from typer.testing import CliRunner
 from torch_brdf.cli import app
 from torch_brdf.errors import SceneError, ValueRangeError
 from torch_brdf.metrics import relative_rmse
-from torch_brdf.planner import GIPlan, choose_bands, pilot_images, plan_from_pilots, planned_bases
+from torch_brdf.planner import (
+    GIPlan,
+    choose_bands,
+    pilot_images,
+    plan_from_pilots,
+    plan_polynomial,
+    planned_bases,
+    precompute_planned,
+)
 from torch_brdf.planner.gi import MIN_SPP, _error_at, allocate_spp, spp_levels, with_fixed
 from torch_brdf.records.polynomial import ObjectBasis, PolynomialTensors, Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import plan_polynomial, precompute_polynomial, spp_map_of
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial, spp_map_of
 
 GLOSSY = {"type": "blinn_phong", "kd": 0.25, "ks": 0.6, "exponent": 100.0}
 
@@ -51,7 +59,7 @@ def test_pilot_images_equal_the_renderer_per_bounce():
         None if o.name == "light" else ObjectBasis(J=8 if o.name == "back" else 1, spacing="lobe:100")
         for o in sc.objects
     ]
-    T = precompute_polynomial(sc, Series((8, 1, 1)), spp=4, seed=3, bases=bases, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings(Series((8, 1, 1)), spp=4, bases=bases), seed=3, progress=False)
     mats = _materials(sc)
     ours = pilot_images(T, mats)
     R = PolynomialRenderer(T, mats, dtype=torch.float64)
@@ -70,7 +78,7 @@ def test_plan_needs_a_budget_and_two_pilots():
     with pytest.raises(ValueRangeError):
         plan_polynomial(sc, error=0.1, pilot_runs=1)
     with pytest.raises(ValueRangeError):
-        precompute_polynomial(sc, plan="manual", error=0.1, progress=False)
+        precompute_planned(sc, plan="manual", error=0.1, progress=False)
 
 
 def test_plan_shows_progress_by_default(monkeypatch, capsys):
@@ -87,9 +95,11 @@ def planned():
     an error of 0.2 in quadrature)."""
     sc = cornell_box_glossy(24)
     plan = plan_polynomial(sc, error=0.2, seed=0)
-    T = precompute_polynomial(sc, plan=plan, seed=1, progress=False)
+    T = precompute_planned(sc, plan=plan, seed=1, progress=False)
     ref_bases = [None if b is None else ObjectBasis(J=64, spacing=b.spacing) if b.J > 1 else b for b in plan.bases]
-    R = precompute_polynomial(sc, Series((64,) + (1,) * 5), spp=128, seed=99, bases=ref_bases, progress=False)
+    R = precompute_polynomial(
+        sc, PolynomialSettings(Series((64,) + (1,) * 5), spp=128, bases=ref_bases), seed=99, progress=False
+    )
     mats = _materials(sc)
     img = PolynomialRenderer(T, mats, dtype=torch.float64)()
     ref = PolynomialRenderer(R, mats, dtype=torch.float64)()
@@ -114,6 +124,7 @@ def test_plan_models_only_what_the_scene_requires(planned):
     assert not plan.series.two_level  # a flat glossy wall cannot light itself
     assert plan.glossy_to_glossy == 0.0
     assert 1 < plan.series.bounces < 8 and plan.spp >= 1
+    assert plan.series.bounces <= plan.needed_bounces  # never more bounces than the light needs
     assert plan.predicted_error <= 0.2 * 1.001
     assert T.series == plan.series and "predicted error" in T.meta["plan"]
     # adaptive sampling: the record carries the plan's map; pixels that the budget does not
@@ -166,7 +177,7 @@ def test_allocation_follows_sigma_over_sqrt_cost_and_meets_the_noise():
 def test_uniform_plan_on_request(planned):
     sc, plan, _, _ = planned
     flat = plan_polynomial(sc, error=0.2, seed=0, adaptive=False)
-    assert flat.spp_map is None and isinstance(flat.spp, int) and flat.kwargs()["spp"] == flat.spp
+    assert flat.spp_map is None and isinstance(flat.spp, int) and flat.settings().spp == flat.spp
     assert flat.series == plan.series  # the same pilots, bands and bounces; only the spp differ
 
 
@@ -181,7 +192,7 @@ def test_a_sun_lit_scene_splits_its_light_samples():
     assert f"{plan.light_samples} light samples per eye vertex" in str(plan)
     one = plan_polynomial(sc, error=0.1, seed=0, max_light_samples=1)
     assert one.light_samples == 1 and one.eye_light_share == 0.0
-    T = precompute_polynomial(sc, plan=plan, seed=1, progress=False, guides=False)
+    T = precompute_planned(sc, PolynomialSettings(guides=False), plan=plan, seed=1, progress=False)
     assert T.meta["light_samples"] == plan.light_samples
 
 
@@ -193,17 +204,13 @@ def test_env_lit_achieved_error_within_1_5x_of_predicted():
 
     sc = teatray(24)
     plan = plan_polynomial(sc, error=0.2, seed=0)
-    T = precompute_polynomial(sc, plan=plan, seed=1, progress=False, guides=False)
+    T = precompute_planned(sc, PolynomialSettings(guides=False), plan=plan, seed=1, progress=False)
     ref_bases = [None if b is None else ObjectBasis(J=64, spacing=b.spacing) if b.J > 1 else b for b in plan.bases]
     R = precompute_polynomial(
         with_fixed(sc, plan.fixed),
-        Series((64,) + (1,) * 5),
-        spp=128,
+        PolynomialSettings(Series((64,) + (1,) * 5), spp=128, bases=ref_bases, light_samples=16, guides=False),
         seed=99,
-        bases=ref_bases,
-        light_samples=16,
         progress=False,
-        guides=False,
     )
     mats = _materials(sc)
     img = PolynomialRenderer(T, mats, dtype=torch.float64)()

@@ -17,7 +17,9 @@ from torch_brdf.manifold.data import MERLGrid
 from torch_brdf.planner import manifold as planner_manifold
 from torch_brdf.planner.manifold import STATISTICS, _crossfit, bootstrap_interval, plan_manifold
 
-FIT = {"metric": "weighted", "max_iter": 100}
+#: the seed's unconstrained weights: the budget of 0.01 is below what convex blends of the pool reach
+#: on this smooth family (a member between samples needs weights outside the simplex)
+FIT = {"metric": "weighted", "max_iter": 100, "valid": "none"}
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ import torch
 
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.planner.relight import RelightPilot, error_from_psnr, plan_from_relight_pilots
+from torch_brdf.planner.relight_pilots import make_rule, plan_relighting, planned_renderer, shade_vertices
 from torch_brdf.planner.table import Plan
-from torch_brdf.render.relight_plan import make_rule, plan_relighting, planned_renderer, shade_vertices
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule
 from torch_brdf.scene import bunny_relight
 from torch_brdf.scene.gbuffer import trace_gbuffer

@@ -19,7 +19,7 @@ from tests.records.contract import corrupt_payload
 from torch_brdf.records import CorruptCacheWarning, settings_key
 from torch_brdf.scene import Scene
 from torch_brdf.transport import pathtrace
-from torch_brdf.transport.pathtrace import path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
 
 def _box_desc(albedo: float, radiance: float) -> dict:
@@ -73,7 +73,7 @@ def test_content_digest_sees_every_part():
 
 def test_render_resume_after_scene_edit_equals_fresh_render(tmp_path, monkeypatch):
     old, new = Scene.from_dict(_box_desc(0.5, 1.0)), Scene.from_dict(_box_desc(0.8, 2.5))
-    kw = dict(spp=6, max_bounces=2, seed=5, progress=False, checkpoint_every=2)
+    kw = dict(settings=PathTraceSettings(spp=6, max_bounces=2), seed=5, progress=False, checkpoint_every=2)
     ckpt = tmp_path / "render.ckpt.npz"
     _interrupt_after(pathtrace, "_radiance", 5, monkeypatch)  # killed in pass 5, after the pass-4 checkpoint
     with pytest.raises(KeyboardInterrupt):
@@ -88,7 +88,7 @@ def test_render_resume_after_scene_edit_equals_fresh_render(tmp_path, monkeypatc
 
 def test_damaged_render_checkpoint_is_moved_aside_and_recomputed(tmp_path):
     scene = Scene.from_dict(_box_desc(0.5, 1.0))
-    kw = dict(spp=4, max_bounces=2, seed=1, progress=False, checkpoint_every=2)
+    kw = dict(settings=PathTraceSettings(spp=4, max_bounces=2), seed=1, progress=False, checkpoint_every=2)
     ckpt = tmp_path / "render.ckpt.npz"
     full = path_trace(scene, checkpoint=ckpt, **kw)
     corrupt_payload(ckpt, ckpt)
@@ -101,7 +101,7 @@ def test_damaged_render_checkpoint_is_moved_aside_and_recomputed(tmp_path):
 def test_precompute_tiles_after_scene_edit_equal_fresh_precompute(tmp_path, monkeypatch):
     from torch_brdf.scene.builtin import cornell_box
     from torch_brdf.scene.lights import AreaLight
-    from torch_brdf.transport.polynomial import driver, precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, driver, precompute_polynomial
 
     old = cornell_box(8)
     old.objects[old.object_id("short_box")].editable = False  # its albedo is baked into the tensors
@@ -115,7 +115,7 @@ def test_precompute_tiles_after_scene_edit_equal_fresh_precompute(tmp_path, monk
     )
     # processes=1: the interruption counts tile calls in this process (on a quiet machine tiles
     # would otherwise run in forked processes, which the monkeypatch does not count)
-    kw = dict(series="8,1", spp=2, seed=3, tile_rows=2, progress=False, processes=1)
+    kw = dict(settings=PolynomialSettings(series="8,1", spp=2, tile_rows=2), seed=3, progress=False, processes=1)
     _interrupt_after(driver, "_tile_entries", 3, monkeypatch)  # two tiles saved, then killed
     with pytest.raises(KeyboardInterrupt):
         precompute_polynomial(old, checkpoint=tmp_path, **kw)

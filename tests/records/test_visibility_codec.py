@@ -454,3 +454,29 @@ def test_packed_entries_and_from_entries(gen):
         packed_entries(np.zeros((2, 3, 31), np.uint8))
     with pytest.raises(ShapeError, match="packed visibility"):
         packed_entries(np.zeros((2, 3, 32), np.int8))
+
+
+def test_run_by_run_decoding_matches_one_parse(gen, monkeypatch):
+    """Decoding a few bytes of the stream at a time (runs of one or a few vertices) gives the
+    same arrays as one run over the whole stream, and errors name vertices of the whole stream."""
+    from torch_brdf.records import visibility_codec
+
+    v = random_spans(9, 6, gen)
+    streams = {bits: BlockVisibility.encode(v.float() * (0.6 if bits else 1.0), bits).to_bytes() for bits in (0, 6)}
+    whole = {bits: BlockVisibility.from_bytes(s, o, 6, bits) for bits, (s, o) in streams.items()}
+    for small in (1, 7, 40):
+        monkeypatch.setattr(visibility_codec, "_DECODE_MIN_BYTES", small)
+        monkeypatch.setattr(visibility_codec, "_DECODE_MAX_BYTES", small)
+        for bits, (stream, offsets) in streams.items():
+            assert_same(BlockVisibility.from_bytes(stream, offsets, 6, bits), whole[bits])
+            ids = [8, 2, 2, 5]
+            assert_same(BlockVisibility.from_bytes(stream, offsets, 6, bits, vertices=ids), whole[bits].select(ids))
+        stream, offsets = streams[0]
+        bad = stream.copy()
+        bad[offsets[7]] = 0x7F  # vertex 7's first count: more entries than the vertex holds
+        with pytest.raises(FileFormatError, match="vertex 7 "):
+            BlockVisibility.from_bytes(bad, offsets, 6)
+        bad = stream.copy()
+        bad[offsets[5] - 1] |= 0x80  # vertex 4 ends inside a varint
+        with pytest.raises(FileFormatError, match="runs off the end of vertex 4"):
+            BlockVisibility.from_bytes(bad, offsets, 6)

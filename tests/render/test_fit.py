@@ -10,13 +10,13 @@ from torch_brdf.render import PolynomialRenderer, fit_image, object_mask
 from torch_brdf.render.fit import energy_row
 from torch_brdf.render.polynomial import emitter_mask
 from torch_brdf.scene import cornell_box_glossy
-from torch_brdf.transport import precompute_polynomial, reference_path_trace
+from torch_brdf.transport import PolynomialSettings, precompute_polynomial, reference_path_trace
 
 
 @pytest.fixture(scope="module")
 def box():
     sc = cornell_box_glossy(24)
-    T = precompute_polynomial(sc, "8,1,1,1", spp=4, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("8,1,1,1", spp=4), seed=0, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     return sc, T, mats
 
@@ -137,7 +137,7 @@ def test_cli_fit_image(tmp_path):
     from torch_brdf.io import load_arrays, write_exr
 
     sc = cornell_box_glossy(16)
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     R = PolynomialRenderer(T, mats, dtype=torch.float64)
     R.set_material("back", {"type": "blinn_phong", "kd": 0.1, "ks": 0.3, "exponent": 60.0})
@@ -181,13 +181,13 @@ def test_family_fit_error_is_the_tensors_noise_not_the_series():
     sc = cornell_box_glossy(24)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     truth_mat = {"type": "blinn_phong", "kd": 0.3, "ks": 0.5, "exponent": 100.0}
-    Tt = precompute_polynomial(sc, "64,1,1,1", spp=256, seed=99, progress=False)
+    Tt = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=256), seed=99, progress=False)
     Rt = PolynomialRenderer(Tt, mats, dtype=torch.float64)
     Rt.set_material("back", truth_mat)
     target, mask = Rt().detach(), object_mask(Tt, "back")
 
     def fit(series, spp, seed):  # (2, C) fitted (kd, ks)
-        T = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=False)
+        T = precompute_polynomial(sc, PolynomialSettings(series, spp=spp), seed=seed, progress=False)
         R = PolynomialRenderer(T, mats, dtype=torch.float64)
         fam = {"back": blinn_phong_family(R, "back", 100.0)}
         return fit_image(R, "back", target, weights=mask, families=fam).parameters["back"]
@@ -265,7 +265,7 @@ def test_cli_fit_image_strokes(tmp_path):
     from torch_brdf.cli import app
 
     sc = cornell_box_glossy(16)
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=0, progress=False)
     T.save(tmp_path / "cb.npz")
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     before = PolynomialRenderer(T, mats, dtype=torch.float64).d[T.object_id("back")]

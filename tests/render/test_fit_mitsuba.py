@@ -12,8 +12,8 @@ pytest.importorskip("mitsuba")
 
 from torch_brdf.render import PolynomialRenderer, blinn_phong_family, fit_image, object_mask
 from torch_brdf.scene import cornell_box_glossy
+from torch_brdf.transport import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport import mitsuba as tbm
-from torch_brdf.transport import precompute_polynomial
 
 pytestmark = pytest.mark.reference
 
@@ -28,7 +28,7 @@ def task():
     from torch_brdf.transport.mitsuba_fit import MitsubaBlinnPhongFit
 
     sc = cornell_box_glossy(RES)
-    T = precompute_polynomial(sc, "64,1,1,1", spp=64, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=64), seed=0, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     sc.materials["glossy_back"] = dict(TRUTH)
     M = MitsubaBlinnPhongFit(sc, "glossy_back", max_bounces=4)
@@ -48,7 +48,9 @@ def test_polynomial_render_equals_mitsuba_within_noise(task):
     # the tensors' own noise: 4 independent 16-spp precomputes of the same scene
     reps = []
     for s in range(4):
-        Tk = precompute_polynomial(cornell_box_glossy(RES), "64,1,1,1", spp=16, seed=10 + s, progress=False)
+        Tk = precompute_polynomial(
+            cornell_box_glossy(RES), PolynomialSettings("64,1,1,1", spp=16), seed=10 + s, progress=False
+        )
         Rk = PolynomialRenderer(Tk, mats, dtype=torch.float64)
         Rk.set_material("back", TRUTH)
         reps.append(Rk().detach())

@@ -9,7 +9,7 @@ from torch_brdf.brdf import create
 from torch_brdf.brdf.bands import Factored1D
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +19,9 @@ def tensors():
     sc.objects[sc.object_id("back")].material = "glossy"
     box = sc.objects[sc.object_id("short_box")]
     box.editable = False
-    out = {s: precompute_polynomial(sc, s, spp=3, seed=4, progress=False) for s in ("8,1,1,1", "8,4,1")}
+    out = {
+        s: precompute_polynomial(sc, PolynomialSettings(s, spp=3), seed=4, progress=False) for s in ("8,1,1,1", "8,4,1")
+    }
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     return out, mats
 

@@ -13,7 +13,7 @@ from torch_brdf.render import PolynomialRenderer, apply_scene_textures
 from torch_brdf.scene import Scene
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.textures import Texture, surface_mean, texture_weight_map
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 
 def textured(sc: Scene, image: torch.Tensor) -> Scene:
@@ -30,7 +30,7 @@ def textured(sc: Scene, image: torch.Tensor) -> Scene:
 @pytest.fixture(scope="module")
 def setup():
     sc = cornell_box(8)
-    T = precompute_polynomial(sc, "4,1", spp=2, seed=1, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=2), seed=1, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     return sc, T, mats
 
@@ -90,11 +90,11 @@ def test_relighting_samples_the_texture_per_vertex():
     from tests.transport.test_visibility import ball_on_plane
     from torch_brdf.render.triple import TripleProductRenderer
     from torch_brdf.scene import EnvironmentMap, SceneObject
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = ball_on_plane(quads=2, box=False)
     sc.lights[:] = [EnvironmentMap.constant(1.0, 16)]
-    vis = precompute_visibility(sc, resolution=16, progress=False)
+    vis = precompute_visibility(sc, VisibilitySettings(resolution=16), progress=False)
     plain = TripleProductRenderer(sc, vis, dtype=torch.float64)
     i = sc.object_id("floor")
     o = sc.objects[i]

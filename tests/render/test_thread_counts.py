@@ -13,8 +13,8 @@ from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.render.triple import PhongRule
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.envmap import EnvironmentMap
-from torch_brdf.transport.polynomial import precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 COUNTS = (1, 2, 3)  # 3 > the cores of a 2-core machine: oversubscribed, still the same result
 
@@ -24,7 +24,7 @@ def polynomial():
     sc = cornell_box(32)  # large enough that the products and scatters run in parallel
     sc.materials["glossy"] = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 100.0}
     sc.objects[sc.object_id("back")].material = "glossy"
-    t = precompute_polynomial(sc, "8,4,1", spp=2, seed=5, progress=False)
+    t = precompute_polynomial(sc, PolynomialSettings("8,4,1", spp=2), seed=5, progress=False)
     return t, {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
 
 
@@ -74,7 +74,7 @@ def test_polynomial_paths_run_under_the_measured_count(polynomial, monkeypatch):
 def test_triple_product_frame_is_bitwise_equal_for_any_thread_count():
     sc = ball_on_plane(quads=24)  # ~15k (vertex, block) pairs: parallel kernels
     sc.lights[:] = [EnvironmentMap.sky(height=32, sun_radiance=(400.0, 380.0, 350.0), sun_angular_radius_deg=4.0)]
-    vis = precompute_visibility(sc, resolution=32, chunk=64, progress=False)
+    vis = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=64), progress=False)
     out = []
     for n in COUNTS:
         r = triple_renderer(sc, vis, dtype=torch.float32)

@@ -15,7 +15,7 @@ from tests.transport.test_visibility import ball_on_plane
 from torch_brdf.brdf.analytic import Phong
 from torch_brdf.records import BasisImage
 from torch_brdf.render import BasisImageRenderer, PolynomialRenderer, TripleProductRenderer
-from torch_brdf.transport import precompute_polynomial, precompute_visibility
+from torch_brdf.transport import PolynomialSettings, VisibilitySettings, precompute_polynomial, precompute_visibility
 
 
 def _round_trip(module, render):
@@ -46,7 +46,7 @@ def test_basis_image_renderer_to(gen):
 
 @pytest.fixture(scope="module")
 def tensors():
-    return precompute_polynomial(glossy_box(8), "4,2,1", spp=2, seed=1, progress=False)
+    return precompute_polynomial(glossy_box(8), PolynomialSettings("4,2,1", spp=2), seed=1, progress=False)
 
 
 @pytest.mark.parametrize("frozen", [False, True])
@@ -66,7 +66,7 @@ def test_polynomial_renderer_to(tensors, frozen):
 def test_triple_product_renderer_to():
     scene = ball_on_plane(quads=4)
     scene.lights[:] = [sky()]
-    vis = precompute_visibility(scene, resolution=16, chunk=64, progress=False)
+    vis = precompute_visibility(scene, VisibilitySettings(resolution=16, chunk=64), progress=False)
     r = TripleProductRenderer(scene, vis)
     r.set_material("box", Phong(0.3, 0.5, 60.0))
 

@@ -1,5 +1,9 @@
 """EnvironmentMap: pdf/sampling consistency, exact sums, rotation, median cut, bad input.
 
+Tests of the piecewise-constant reading pass ``lookup="nearest"``; the bilinear (default)
+reading has its own oracles in ``test_envmap_bilinear.py`` and shares the lookup-agnostic ones
+here through the ``env`` fixture.
+
 Real maps come from the data folder (``$TORCH_BRDF_DATA``)
 and are skipped when it is absent; every other test uses procedural maps.
 """
@@ -52,12 +56,15 @@ def sky():
     scope="module",
     params=[
         "sky",
+        "sky-nearest",
         pytest.param(QUARRY, marks=pytest.mark.data),
         pytest.param(OVERCAST, marks=pytest.mark.data),
     ],
 )
 def env(request, sky):
-    """The three acceptance maps: procedural sky with sun, sunny quarry, overcast sky."""
+    """The acceptance maps: procedural sky with sun (both lookups), sunny quarry, overcast sky."""
+    if request.param == "sky-nearest":
+        return EnvironmentMap.sky(lookup="nearest")
     return sky if request.param == "sky" else load(request.param)
 
 
@@ -78,10 +85,10 @@ def texel_pdf_sum(e: EnvironmentMap) -> float:
 @pytest.mark.parametrize(
     "make",
     [
-        lambda: EnvironmentMap.sky(height=64),
-        lambda: EnvironmentMap(random_map(16)),
-        lambda: EnvironmentMap(random_map(16, sparse=True)),
-        lambda: EnvironmentMap.constant(0.0, height=8),
+        lambda: EnvironmentMap.sky(height=64, lookup="nearest"),
+        lambda: EnvironmentMap(random_map(16), lookup="nearest"),
+        lambda: EnvironmentMap(random_map(16, sparse=True), lookup="nearest"),
+        lambda: EnvironmentMap.constant(0.0, height=8, lookup="nearest"),
     ],
     ids=["sky", "random", "sparse", "black"],
 )
@@ -91,13 +98,16 @@ def test_pdf_sums_to_one_over_texels(make):
 
 
 def test_pdf_sums_to_one_on_real_map(env):
+    if env.bilinear:
+        env = EnvironmentMap(env.radiance, lookup="nearest")
     assert abs(texel_pdf_sum(env) - 1) < 1e-6
 
 
+@pytest.mark.parametrize("lookup", ["bilinear", "nearest"])
 @pytest.mark.parametrize("which", ["random", pytest.param(OVERCAST, marks=pytest.mark.data)])
-def test_pdf_mc_with_uniform_directions(which):
+def test_pdf_mc_with_uniform_directions(which, lookup):
     """E[4 pi pdf(w)] over uniform directions = integral of the pdf = 1 (within 5 sigma)."""
-    e = EnvironmentMap(random_map(16, seed=5)) if which == "random" else load(which)
+    e = EnvironmentMap(random_map(16, seed=5) if which == "random" else load(which).radiance, lookup=lookup)
     n = 200_000
     w = square_to_uniform_sphere(torch.rand(n, 2, generator=gen(6), dtype=torch.float64))
     f = 4 * math.pi * e.pdf(w)
@@ -118,7 +128,7 @@ def test_samples_land_in_texels_with_positive_pdf(env):
     d, p = env.sample_directions(20_000, gen(2), dtype=torch.float64)
     assert torch.allclose(d.norm(dim=-1), torch.ones((), dtype=d.dtype), atol=1e-14)
     assert bool((p > 0).all())
-    assert torch.equal(env.pdf(d), p)  # the lookup finds the texel that was sampled
+    assert torch.equal(env.pdf(d), p)  # the lookup finds the density that was sampled
     assert bool((luminance(env.eval_miss(d)) > 0).all())
 
 
@@ -127,7 +137,7 @@ def test_sampling_chi2_texels_and_within_texel():
     H, W, n = 4, 8, 200_000
     L = random_map(H, seed=3, sparse=True) + torch.tensor([0.0, 0.02, 0.0])
     L[1, 2] = 0.0  # one texel exactly black: must never be sampled
-    e = EnvironmentMap(L)
+    e = EnvironmentMap(L, lookup="nearest")
     d, _ = e.sample_directions(n, gen(4), dtype=torch.float64)
     row, col = direction_to_texel(d, H, W)
     assert not bool(((row == 1) & (col == 2)).any())
@@ -141,7 +151,7 @@ def test_sampling_chi2_texels_and_within_texel():
 
 
 def test_black_map_falls_back_to_uniform_sphere():
-    e = EnvironmentMap.constant(0.0, height=8)
+    e = EnvironmentMap.constant(0.0, height=8, lookup="nearest")
     d, p = e.sample_directions(50_000, gen(7), dtype=torch.float64)
     assert torch.allclose(p, torch.full_like(p, 1 / (4 * math.pi)))
     assert abs(float(d[:, 1].mean())) < 5 / math.sqrt(3 * 50_000)  # y uniform in [-1, 1]
@@ -166,35 +176,38 @@ def test_light_interface(dtype):
 
 def test_eval_miss_is_nearest_texel():
     L = random_map(8)
-    e = EnvironmentMap(L)
+    e = EnvironmentMap(L, lookup="nearest")
     c = texel_centers(8, 16)
     assert torch.equal(e.eval_miss(c), L.double())
     assert torch.equal(e.eval_miss(c.float()), L)
 
 
 # ---------------------------------------------------------------- rotation
+@pytest.mark.parametrize("lookup", ["bilinear", "nearest"])
 @pytest.mark.parametrize("k", [1, 5, -3])
-def test_rotation_by_k_columns_is_roll_by_minus_k(k):
+def test_rotation_by_k_columns_is_roll_by_minus_k(k, lookup):
     """rotation_y = 2 pi k / W turns features from azimuth phi to phi - 2 pi k / W."""
     H, W = 8, 16
     L = random_map(H, seed=11)
     alpha = 2 * math.pi * k / W
-    rot, rolled = EnvironmentMap(L, rotation_y=alpha), EnvironmentMap(torch.roll(L, -k, dims=1))
+    rot = EnvironmentMap(L, rotation_y=alpha, lookup=lookup)
+    rolled = EnvironmentMap(torch.roll(L, -k, dims=1), lookup=lookup)
     c = texel_centers(H, W).reshape(-1, 3)
-    assert torch.equal(rot.eval_miss(c), rolled.eval_miss(c))
-    assert torch.allclose(rot.pdf(c), rolled.pdf(c), rtol=1e-12)
-    assert torch.equal(EnvironmentMap(L).rotated(alpha).eval_miss(c), rot.eval_miss(c))
+    same = torch.equal if lookup == "nearest" else lambda a, b: torch.allclose(a, b, rtol=1e-6, atol=1e-6)
+    assert same(rot.eval_miss(c), rolled.eval_miss(c))
+    assert torch.allclose(rot.pdf(c), rolled.pdf(c), rtol=1e-9)
+    assert torch.equal(EnvironmentMap(L, lookup=lookup).rotated(alpha).eval_miss(c), rot.eval_miss(c))
     assert torch.allclose(rot.integral(), rolled.integral(), rtol=1e-12)
     # same seed: rotated samples are the unrotated ones turned by R_y(alpha)
-    d0, p0 = EnvironmentMap(L).sample_directions(1000, gen(12), dtype=torch.float64)
+    d0, p0 = EnvironmentMap(L, lookup=lookup).sample_directions(1000, gen(12), dtype=torch.float64)
     d1, p1 = rot.sample_directions(1000, gen(12), dtype=torch.float64)
     ca, sa = math.cos(alpha), math.sin(alpha)
     R = torch.tensor([[ca, 0, sa], [0, 1, 0], [-sa, 0, ca]], dtype=torch.float64)
-    assert torch.allclose(d1, d0 @ R.T, atol=1e-14) and torch.equal(p0, p1)
+    assert torch.allclose(d1, d0 @ R.T, atol=1e-14) and torch.allclose(p0, p1, rtol=1e-9)
     n = square_to_uniform_sphere(torch.rand(20, 2, generator=gen(13), dtype=torch.float64))
     assert torch.allclose(rot.irradiance(n), rolled.irradiance(n), rtol=1e-10)
     pl0, pl1 = (
-        EnvironmentMap(L).point_lights(16, torch.float64),
+        EnvironmentMap(L, lookup=lookup).point_lights(16, torch.float64),
         rot.point_lights(16, torch.float64),
     )
     assert torch.allclose(pl1.directions, pl0.directions @ R.T, atol=1e-14)
@@ -204,7 +217,7 @@ def test_rotation_moves_a_bright_texel_to_lower_azimuth():
     H, W, j0, k = 8, 16, 6, 2
     L = torch.zeros(H, W, 3)
     L[3, j0] = 1.0
-    e = EnvironmentMap(L, rotation_y=2 * math.pi * k / W)
+    e = EnvironmentMap(L, rotation_y=2 * math.pi * k / W, lookup="nearest")
     lit = luminance(e.eval_miss(texel_centers(H, W))) > 0
     assert lit.nonzero().tolist() == [[3, j0 - k]]
 
@@ -217,11 +230,12 @@ def test_constant_map_sums():
     assert torch.allclose(e.irradiance(n), math.pi * torch.tensor([1.0, 0.5, 0.25]).double(), rtol=1e-3)
 
 
-def test_sky_sun_power_independent_of_resolution():
+@pytest.mark.parametrize("lookup", ["bilinear", "nearest"])
+def test_sky_sun_power_independent_of_resolution(lookup):
     r = 1.5
     for height in (64, 128, 256):
-        with_sun = EnvironmentMap.sky(height=height, sun_angular_radius_deg=r).integral()
-        no_sun = EnvironmentMap.sky(height=height, sun_radiance=0.0, sun_angular_radius_deg=r).integral()
+        with_sun = EnvironmentMap.sky(height=height, sun_angular_radius_deg=r, lookup=lookup).integral()
+        no_sun = EnvironmentMap.sky(height=height, sun_radiance=0.0, sun_angular_radius_deg=r, lookup=lookup).integral()
         want = (
             torch.tensor([3000.0, 2850.0, 2600.0], dtype=torch.float64) * 2 * math.pi * (1 - math.cos(math.radians(r)))
         )
@@ -244,7 +258,7 @@ def test_point_lights_are_exact_and_deterministic(env):
 def test_point_lights_one_per_texel():
     H, W = 4, 8
     L = random_map(H, seed=15)
-    pl = EnvironmentMap(L).point_lights(H * W, dtype=torch.float64)
+    pl = EnvironmentMap(L, lookup="nearest").point_lights(H * W, dtype=torch.float64)
     got = {tuple(torch.round(d, decimals=9).tolist()) for d in pl.directions}
     want = {tuple(torch.round(d, decimals=9).tolist()) for d in texel_centers(H, W).reshape(-1, 3)}
     assert got == want

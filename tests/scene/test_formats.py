@@ -376,7 +376,7 @@ def test_hdr_round_trip_and_run_length_scanlines(tmp_path):
 def test_constant_texture_equals_scaled_albedo_in_the_path_tracer():
     """Shared random numbers: a texture of constant c on albedo a renders as albedo a * c."""
     from torch_brdf.scene import Camera, Scene, SceneObject, mesh_from_arrays
-    from torch_brdf.transport.pathtrace import path_trace
+    from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
     m = mesh_from_arrays([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]], "f")
     box = mesh_from_arrays([[-0.3, 0, 0], [0.3, 0, 0], [0, 0.6, 0]], [[0, 1, 2]], "t")
@@ -390,7 +390,7 @@ def test_constant_texture_equals_scaled_albedo_in_the_path_tracer():
     textured = Scene([tex, SceneObject("t", box, "a")], mats, light, cam, workers=1)
     mats2 = {"a": mats["a"], "b": {**mats["a"], "albedo": (torch.tensor(mats["a"]["albedo"]) * c).tolist()}}
     plain = Scene([SceneObject("f", m, "b"), SceneObject("t", box, "a")], mats2, light, cam, workers=1)
-    a = path_trace(textured, spp=4, max_bounces=3, progress=False)
-    b = path_trace(plain, spp=4, max_bounces=3, progress=False)
+    a = path_trace(textured, PathTraceSettings(spp=4, max_bounces=3), progress=False)
+    b = path_trace(plain, PathTraceSettings(spp=4, max_bounces=3), progress=False)
     torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
     assert textured.content_digest() != plain.content_digest()

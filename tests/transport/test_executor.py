@@ -25,9 +25,9 @@ from torch_brdf.parallel import tiles as executor
 from torch_brdf.parallel.tiles import TileError, run_tiles, tile_tick
 from torch_brdf.records.cache import TileCache
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
-SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 4, "progress": False}
+SETTINGS = {"settings": PolynomialSettings(series="64,1,1,1", spp=4, tile_rows=4), "seed": 3, "progress": False}
 
 
 def _arrays(T) -> dict[str, np.ndarray]:
@@ -137,7 +137,7 @@ def test_tiles_at_once_bounded_by_memory(scene, local, monkeypatch):
     from torch_brdf.transport.polynomial import driver
 
     monkeypatch.setattr(driver, "tile_processes", lambda: 2)
-    tile_bytes = 4 * 16 * SETTINGS["spp"] * driver.TILE_BYTES_PER_PATH  # tile_rows x width x spp
+    tile_bytes = 4 * 16 * SETTINGS["settings"].spp * driver.TILE_BYTES_PER_PATH  # tile_rows x width x spp
     monkeypatch.setattr(driver, "available_memory", lambda: tile_bytes + 1)
     one = precompute_polynomial(scene, **SETTINGS)
     assert one.meta["processes"] == 1
@@ -216,7 +216,7 @@ def test_forked_tiles_start_longest_first(scene, local, monkeypatch):
         run_tiles(_tile_or_fail, 99, 5, cache, progress=False, processes=2, cost=[1, 2])
     spp = torch.full((16, 16), 2, dtype=torch.long)
     spp[8:12] = 6  # tile 2 (rows 8-11) takes the most paths, then the uniform ones in tile order
-    kw = {**SETTINGS, "spp": spp}
+    kw = {**SETTINGS, "settings": SETTINGS["settings"].replace(spp=spp)}
     two = precompute_polynomial(scene, **kw, processes=2)
     assert started[-1] == [2, 0, 1, 3]
     _assert_identical(two, precompute_polynomial(scene, **kw, processes=1))
@@ -269,7 +269,8 @@ def test_precompute_bar_counts_pass_groups(scene, monkeypatch, processes):
     4 spp, one pass per group: 4 tiles x 4 groups), forked tiles included."""
     monkeypatch.setattr(executor, "tqdm", _Bar)
     _Bar.made.clear()
-    T = precompute_polynomial(scene, **{**SETTINGS, "progress": True}, group=1, processes=processes)
+    settings = SETTINGS["settings"].replace(group=1)
+    T = precompute_polynomial(scene, **{**SETTINGS, "settings": settings, "progress": True}, processes=processes)
     bar = _Bar.made[-1]
     assert bar.total == 16 and sum(bar.updates) == 16 and max(bar.updates) == 1, bar.updates
     assert T.meta["processes"] == processes
@@ -315,7 +316,7 @@ def test_ray_equals_local(ray_instance, scene, local):
 
 def test_ray_worker_killed_loses_nothing(ray_instance):
     sc = cornell_box_glossy(32)
-    settings = {**SETTINGS, "spp": 8, "tile_rows": 2}  # 16 tiles
+    settings = {**SETTINGS, "settings": SETTINGS["settings"].replace(spp=8, tile_rows=2)}  # 16 tiles
     box: dict = {}
     run = threading.Thread(target=lambda: box.update(T=precompute_polynomial(sc, **settings, executor="ray")))
     run.start()
@@ -353,7 +354,7 @@ def test_ray_driver_restart_resumes(ray_instance, scene, local, tmp_path, monkey
 
 def test_ray_retries_exhausted_names_the_tile(ray_instance):
     sc = cornell_box_glossy(32)
-    settings = {**SETTINGS, "spp": 8, "tile_rows": 2}
+    settings = {**SETTINGS, "settings": SETTINGS["settings"].replace(spp=8, tile_rows=2)}
     box: dict = {}
 
     def go():
@@ -425,11 +426,11 @@ def test_transfer_tiles_equal_the_untiled_sum(teapot_view, tmp_path):
 
 def test_visibility_ray_equals_local(ray_instance):
     from tests.transport.test_visibility import ball_on_plane
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = ball_on_plane()
-    a = precompute_visibility(sc, 32, chunk=16, progress=False)
-    b = precompute_visibility(sc, 32, chunk=16, progress=False, executor="ray")
+    a = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=16), progress=False)
+    b = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=16), progress=False, executor="ray")
     assert -(-len(a.vertices) // 16) >= 3  # several chunks
     xa, xb = a.to_arrays()[0], b.to_arrays()[0]
     assert sorted(xa) == sorted(xb) and all(np.array_equal(xa[k], xb[k]) for k in xa)

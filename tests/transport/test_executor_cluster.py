@@ -23,14 +23,16 @@ import pytest
 from tests.transport._ray import private_ray_env
 from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
-SETTINGS = {"series": "64,1,1,1", "spp": 4, "seed": 3, "tile_rows": 2, "progress": False}
+#: the run, as keywords here and as source in the driver script
+SOURCE = 'settings=PolynomialSettings(series="64,1,1,1", spp=4, tile_rows=2), seed=3, progress=False'
+SETTINGS = {"settings": PolynomialSettings(series="64,1,1,1", spp=4, tile_rows=2), "seed": 3, "progress": False}
 START_S = 600  # a node start under load 15-20 on 2 cores can take minutes
 DRIVER = """
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import precompute_polynomial
-T = precompute_polynomial(cornell_box_glossy(16), **{settings}, executor="ray", address="{address}")
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
+T = precompute_polynomial(cornell_box_glossy(16), {settings}, executor="ray", address="{address}")
 T.save("{out}")
 print(T.meta["ray_nodes"])
 """
@@ -118,7 +120,7 @@ def test_two_node_cluster_equals_local(tmp_path):
             # the driver in a process of its own, as `torch-brdf precompute --ray ADDRESS` runs
             # (a process that ran another Ray instance before keeps stale Ray state)
             out = Path(tmp) / "T.npz"
-            code = DRIVER.format(settings=SETTINGS, address=address, out=str(out))
+            code = DRIVER.format(settings=SOURCE, address=address, out=str(out))
             run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=START_S)
             assert run.returncode == 0, run.stdout + run.stderr
             T = PolynomialTensors.load(out)

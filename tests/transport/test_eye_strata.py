@@ -13,7 +13,7 @@ import torch
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.lights import AreaLight
-from torch_brdf.transport.polynomial import EyeStrata, LobeMixture, precompute_polynomial
+from torch_brdf.transport.polynomial import EyeStrata, LobeMixture, PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.polynomial.driver import eye_strata
 
 from .test_polynomial import check_oracle, glossy_box
@@ -139,12 +139,19 @@ def test_tensors_equal_explicit_path_tracer_when_stratified(gen):
     spp = 4
     mix = LobeMixture(0.4, ((0.3, 200.0), (0.3, 2000.0)), stratified=True)
     T = precompute_polynomial(
-        sc, "8,1,1,1", spp=spp, seed=3, mixture=mix, tile_rows=sc.camera.height, progress=False, paths=paths
+        sc,
+        PolynomialSettings("8,1,1,1", spp=spp, mixture=mix, tile_rows=sc.camera.height),
+        seed=3,
+        progress=False,
+        paths=paths,
     )
     assert T.meta["mixture"][-1] == "stratified"
     check_oracle(sc, T, paths, spp, gen, repeats=2)
     plain = precompute_polynomial(
-        sc, "8,1,1,1", spp=spp, seed=3, mixture=dataclasses.replace(mix, stratified=False), progress=False
+        sc,
+        PolynomialSettings("8,1,1,1", spp=spp, mixture=dataclasses.replace(mix, stratified=False)),
+        seed=3,
+        progress=False,
     )
     assert not torch.equal(T.blocks[0].values, plain.blocks[0].values)  # the samples did move
 
@@ -163,7 +170,10 @@ def test_stratified_equals_unstratified_in_expectation_with_less_noise():
         rows, fr = [], []
         for seed in range(10):
             T = precompute_polynomial(
-                sc, "8,1,1", spp=16, seed=200 + seed, mixture=LobeMixture(stratified=strat), progress=False
+                sc,
+                PolynomialSettings("8,1,1", spp=16, mixture=LobeMixture(stratified=strat)),
+                seed=200 + seed,
+                progress=False,
             )
             wall = T.guides.object_id == back
             R = PolynomialRenderer(T, mats, dtype=torch.float64)
@@ -186,7 +196,9 @@ def test_stratified_spp_map_runs(gen):
     """An adaptive spp map: each pixel's cells follow its own count."""
     sc = glossy_box(8)
     spp = torch.tensor([1, 2, 5, 9], dtype=torch.long).repeat(16)[:64].view(8, 8)
-    T = precompute_polynomial(sc, "4,1", spp=spp, seed=1, mixture=LobeMixture(stratified=True), progress=False)
+    T = precompute_polynomial(
+        sc, PolynomialSettings("4,1", spp=spp, mixture=LobeMixture(stratified=True)), seed=1, progress=False
+    )
     img = PolynomialRenderer(T, {o.name: sc.materials[o.material] for o in sc.objects if o.editable}).evaluate()
     assert bool(torch.isfinite(img).all()) and float(img.sum()) > 0
 
@@ -220,7 +232,7 @@ def test_shares_reach_the_tracer_and_the_key():
     out = []
     for k in range(2):
         mix = LobeMixture(stratified=True, share=(k, 2))
-        T = precompute_polynomial(sc, "4,1", spp=4, seed=9, mixture=mix, progress=False)
+        T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=4, mixture=mix), seed=9, progress=False)
         assert T.meta["mixture"][-1] == ["share", k, 2]
         out.append(T)
     assert not torch.equal(out[0].blocks[0].values, out[1].blocks[0].values)

@@ -29,7 +29,7 @@ mi = pytest.importorskip("mitsuba")
 from tests.brdf.test_plastic import ROUGH_RTOL  # noqa: E402
 from torch_brdf.scene import load_scene  # noqa: E402
 from torch_brdf.transport import mitsuba as tbm  # noqa: E402
-from torch_brdf.transport.pathtrace import path_trace  # noqa: E402
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace  # noqa: E402
 
 pytestmark = pytest.mark.reference
 
@@ -48,7 +48,9 @@ def _mitsuba_file(path: Path, spp: int = SPP) -> torch.Tensor:
 
 
 def _ours(scene, bounces: int) -> torch.Tensor:
-    return torch.stack([path_trace(scene, SPP, bounces, seed=s, progress=False) for s in range(K)]).double()
+    return torch.stack(
+        [path_trace(scene, PathTraceSettings(spp=SPP, max_bounces=bounces), seed=s, progress=False) for s in range(K)]
+    ).double()
 
 
 def compare(ours: torch.Tensor, theirs: torch.Tensor, allowance: float = 0.0) -> dict:

@@ -11,7 +11,7 @@ import torch
 
 from torch_brdf.errors import SceneError, ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
-from torch_brdf.transport.polynomial import LobeMixture, Mixture, precompute_polynomial
+from torch_brdf.transport.polynomial import LobeMixture, Mixture, PolynomialSettings, precompute_polynomial
 
 from .test_polynomial import check_oracle, glossy_box
 
@@ -55,14 +55,16 @@ def test_lobe_mixture_checks_its_input():
         LobeMixture(0.5, ((0.75, 200.0), (-0.25, 10.0)))
     sc = glossy_box(8)
     with pytest.raises(SceneError, match="unknown objects"):
-        precompute_polynomial(sc, "4,1", spp=1, mixture=LobeMixture(objects=("nope",)), progress=False)
+        precompute_polynomial(
+            sc, PolynomialSettings("4,1", spp=1, mixture=LobeMixture(objects=("nope",))), progress=False
+        )
     with pytest.raises(ValueRangeError, match="resolve"):
         LobeMixture().sample(torch.zeros(1, 3), torch.zeros(1, 3), torch.zeros(1, dtype=torch.long))
 
 
 def test_resolve_defaults_to_the_banded_objects():
     sc = glossy_box(8)
-    T = precompute_polynomial(sc, "4,1", spp=1, mixture=LobeMixture(), progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=1, mixture=LobeMixture()), progress=False)
     banded = [k for k, b in enumerate(T.bases) if b is not None and b.J > 1]
     assert banded == [sc.object_id("back")]
     assert T.meta["mixture"][2] == banded  # the resolved ids enter the resume key
@@ -78,13 +80,21 @@ def test_tensors_equal_explicit_path_tracer_with_lobe_mixture(series, gen):
     spp = 4
     mix = LobeMixture(0.4, ((0.3, 200.0), (0.3, 2000.0)))
     T = precompute_polynomial(
-        sc, series, spp=spp, seed=3, mixture=mix, tile_rows=sc.camera.height, progress=False, paths=paths
+        sc,
+        PolynomialSettings(series, spp=spp, mixture=mix, tile_rows=sc.camera.height),
+        seed=3,
+        progress=False,
+        paths=paths,
     )
     # the eye vertex's MIS entries (what the mixture's samples find on the light) are recorded
     plain: dict = {}
     no_mis = dataclasses.replace(mix, mis=False)
     precompute_polynomial(
-        sc, series, spp=spp, seed=3, mixture=no_mis, tile_rows=sc.camera.height, progress=False, paths=plain
+        sc,
+        PolynomialSettings(series, spp=spp, mixture=no_mis, tile_rows=sc.camera.height),
+        seed=3,
+        progress=False,
+        paths=plain,
     )
     eye = [sum(int((r["bounce"] == 1).sum()) for r in p["rows"]) for p in (paths, plain)]
     assert eye[0] > eye[1] > 0, eye
@@ -104,7 +114,9 @@ def test_lobe_mixture_equals_default_mixture_in_expectation():
     for name, mix in (("default", None), ("lobes", LobeMixture())):
         rows = []
         for seed in range(12):
-            T = precompute_polynomial(sc, "8,1,1", spp=16, seed=100 + seed, mixture=mix, progress=False)
+            T = precompute_polynomial(
+                sc, PolynomialSettings("8,1,1", spp=16, mixture=mix), seed=100 + seed, progress=False
+            )
             wall = T.guides.object_id == back
             R = PolynomialRenderer(T, mats, dtype=torch.float64)
             a = R.evaluate()[wall].mean()

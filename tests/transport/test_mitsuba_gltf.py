@@ -16,7 +16,7 @@ mi = pytest.importorskip("mitsuba")
 from torch_brdf.brdf import create  # noqa: E402
 from torch_brdf.scene import Camera, DirectionalLight, EnvironmentMap, Scene, SceneObject, mesh_from_arrays  # noqa: E402
 from torch_brdf.transport import mitsuba as tbm  # noqa: E402
-from torch_brdf.transport.pathtrace import path_trace  # noqa: E402
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace  # noqa: E402
 
 pytestmark = pytest.mark.reference
 
@@ -100,7 +100,9 @@ def test_path_tracer_agrees_with_mitsuba():
     scene = _scene()
     variant = tbm.default_variant()
     K, spp = 4, 8
-    ours = torch.stack([path_trace(scene, spp, 2, seed=s, progress=False) for s in range(K)]).double()
+    ours = torch.stack(
+        [path_trace(scene, PathTraceSettings(spp=spp, max_bounces=2), seed=s, progress=False) for s in range(K)]
+    ).double()
     theirs = torch.stack([tbm.render_mitsuba(scene, spp, 2, seed=s, variant=variant) for s in range(K)]).double()
     bo = torch.nn.functional.avg_pool2d(ours.permute(0, 3, 1, 2), 4)
     bm = torch.nn.functional.avg_pool2d(theirs.permute(0, 3, 1, 2), 4)

@@ -12,7 +12,7 @@ import torch
 
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
-from torch_brdf.transport.polynomial import Mixture, driver, precompute_polynomial
+from torch_brdf.transport.polynomial import Mixture, PolynomialSettings, driver, precompute_polynomial
 from torch_brdf.transport.polynomial.reduce import (
     NativeEntries,
     _code_fits,
@@ -174,7 +174,7 @@ def test_entries_equal_torch(series):
     equivalents with fixed objects), made in the kernel and in torch, reduce to the same sums."""
     sc = cornell_box_glossy(8)
     sc.objects[sc.object_id("short_box")].editable = False  # a fixed object: its full BRDF
-    T = precompute_polynomial(sc, series, spp=1, progress=False, processes=1, guides=False)
+    T = precompute_polynomial(sc, PolynomialSettings(series, spp=1, guides=False), progress=False, processes=1)
     tracer = _Tracer(sc, T.bases, T.series, Mixture(), list(sc.lights))
     g = torch.Generator().manual_seed(7)
     n, p = 300, 200
@@ -216,10 +216,11 @@ def test_precompute_equals_torch_entries(series, group, monkeypatch):
     compiled entries as with the torch entries, on the same paths (both with the compiled
     per-vertex steps; tests/transport/test_vertex.py compares those with the torch steps)."""
     sc = cornell_box_glossy(16)
-    kw = {"spp": 6, "seed": 5, "progress": False, "processes": 1, "guides": False, "tile_rows": 8, "group": group}
-    native = precompute_polynomial(sc, series, **kw).to_arrays()[0]
+    settings = PolynomialSettings(series, spp=6, guides=False, tile_rows=8, group=group)
+    kw = {"seed": 5, "progress": False, "processes": 1}
+    native = precompute_polynomial(sc, settings, **kw).to_arrays()[0]
     monkeypatch.setattr(driver, "library", lambda: None)  # the entries in torch; the tracer keeps its kernel
-    plain = precompute_polynomial(sc, series, **kw).to_arrays()[0]
+    plain = precompute_polynomial(sc, settings, **kw).to_arrays()[0]
     assert sorted(native) == sorted(plain)
     for k in native:
         assert native[k].dtype == plain[k].dtype and (native[k] == plain[k]).all(), k
@@ -233,7 +234,9 @@ def test_missing_compiler_falls_back_with_one_warning(monkeypatch, tmp_path):
         assert _native.library() is None
         assert _native.library() is None
     assert len(rec) == 1
-    T = precompute_polynomial(cornell_box_glossy(8), spp=2, progress=False, processes=1, guides=False)
+    T = precompute_polynomial(
+        cornell_box_glossy(8), PolynomialSettings(spp=2, guides=False), progress=False, processes=1
+    )
     assert T.num_entries > 0
     assert not (tmp_path / "native").exists() or not list((tmp_path / "native").glob("*.so"))
 

@@ -11,7 +11,7 @@ import trimesh
 from torch_brdf.errors import ValueRangeError
 from torch_brdf.scene import AreaLight, Camera, DirectionalLight, EnvironmentMap, Scene, SceneObject, mesh_from_arrays
 from torch_brdf.transport import pathtrace
-from torch_brdf.transport.pathtrace import path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
 
 
 def _sphere_in_env(albedo: float, size: int = 32) -> Scene:
@@ -25,7 +25,7 @@ def _sphere_in_env(albedo: float, size: int = 32) -> Scene:
 def test_white_furnace(albedo):
     """A convex Lambert object in a constant environment L = 1 has radiance albedo * L."""
     scene = _sphere_in_env(albedo, size=64)
-    img = path_trace(scene, spp=64, max_bounces=3, seed=1, progress=False)
+    img = path_trace(scene, PathTraceSettings(spp=64, max_bounces=3), seed=1, progress=False)
     o, d = scene.camera.generate_rays()
     on = scene.trace(o, d).hit.reshape(img.shape[:2]).float()[None]
     # pixels whose whole 3x3 neighbourhood is on (off) the ball: jittered rays cannot leave it
@@ -60,7 +60,9 @@ def test_closed_emissive_box_geometric_series(bounces):
     """Inside a closed box whose walls all emit Le and reflect rho, the radiance after B
     bounces is Le * (1 + rho + ... + rho^B), whatever the geometry."""
     rho, le = 0.6, 2.0
-    img = path_trace(_closed_cube(rho, le, size=32), spp=96, max_bounces=bounces, seed=3, progress=False)
+    img = path_trace(
+        _closed_cube(rho, le, size=32), PathTraceSettings(spp=96, max_bounces=bounces), seed=3, progress=False
+    )
     _assert_mean(img, le * sum(rho**k for k in range(bounces + 1)))
 
 
@@ -71,7 +73,7 @@ def test_directional_light_on_plane_is_exact():
     sun = DirectionalLight((math.sin(theta), math.cos(theta), 0.0), (2.0, 1.0, 0.5))
     cam = Camera((0.0, 2.0, -2.0), (0.0, 0.0, 0.0), width=16, height=16)
     scene = Scene([SceneObject("plane", plane, "m")], {"m": {"type": "lambert", "albedo": 0.5}}, [sun], cam)
-    img = path_trace(scene, spp=2, max_bounces=3, seed=0, progress=False)
+    img = path_trace(scene, PathTraceSettings(spp=2, max_bounces=3), seed=0, progress=False)
     expected = 0.5 / math.pi * torch.tensor([2.0, 1.0, 0.5]) * math.cos(theta)
     hit = img.sum(-1) > 0
     assert bool(hit.all())
@@ -80,7 +82,7 @@ def test_directional_light_on_plane_is_exact():
 
 def test_interrupted_render_resumes_bit_exactly(tmp_path, monkeypatch):
     scene = _closed_cube(0.5, 1.0, size=8)
-    full = path_trace(scene, spp=6, max_bounces=2, seed=5, progress=False)
+    full = path_trace(scene, PathTraceSettings(spp=6, max_bounces=2), seed=5, progress=False)
     ckpt = tmp_path / "render.ckpt.npz"
     real = pathtrace._radiance
     calls = {"n": 0}
@@ -93,21 +95,25 @@ def test_interrupted_render_resumes_bit_exactly(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pathtrace, "_radiance", flaky)
     with pytest.raises(KeyboardInterrupt):
-        path_trace(scene, spp=6, max_bounces=2, seed=5, progress=False, checkpoint=ckpt, checkpoint_every=2)
+        path_trace(
+            scene, PathTraceSettings(spp=6, max_bounces=2), seed=5, progress=False, checkpoint=ckpt, checkpoint_every=2
+        )
     monkeypatch.setattr(pathtrace, "_radiance", real)
     assert ckpt.exists()
-    resumed = path_trace(scene, spp=6, max_bounces=2, seed=5, progress=False, checkpoint=ckpt, checkpoint_every=2)
+    resumed = path_trace(
+        scene, PathTraceSettings(spp=6, max_bounces=2), seed=5, progress=False, checkpoint=ckpt, checkpoint_every=2
+    )
     assert torch.equal(resumed, full)
 
 
 def test_seeded_and_validated():
     scene = _closed_cube(0.5, 1.0, size=8)
-    a = path_trace(scene, spp=2, max_bounces=2, seed=9, progress=False)
-    b = path_trace(scene, spp=2, max_bounces=2, seed=9, progress=False)
-    c = path_trace(scene, spp=2, max_bounces=2, seed=10, progress=False)
+    a = path_trace(scene, PathTraceSettings(spp=2, max_bounces=2), seed=9, progress=False)
+    b = path_trace(scene, PathTraceSettings(spp=2, max_bounces=2), seed=9, progress=False)
+    c = path_trace(scene, PathTraceSettings(spp=2, max_bounces=2), seed=10, progress=False)
     assert torch.equal(a, b) and not torch.equal(a, c)
     with pytest.raises(ValueRangeError):
-        path_trace(scene, spp=0)
+        path_trace(scene, PathTraceSettings(spp=0))
 
 
 @pytest.mark.parametrize(
@@ -126,7 +132,7 @@ def test_glossy_furnace_equals_directional_albedo(material):
 
     scene = _sphere_in_env(0.5, size=48)
     scene.materials["m"] = material
-    img = path_trace(scene, spp=48, max_bounces=2, seed=2, progress=False)
+    img = path_trace(scene, PathTraceSettings(spp=48, max_bounces=2), seed=2, progress=False)
     o, d = scene.camera.generate_rays()
     hits = scene.trace(o, d)
     on = hits.hit.reshape(48, 48).float()[None]
@@ -157,8 +163,10 @@ def test_glossy_furnace_equals_directional_albedo(material):
 def test_counts_and_seeds_are_checked_before_rendering(kwargs, name):
     # unchecked, chunk=-1 would return a black image and the others raise raw errors mid-render
     scene = _closed_cube(0.5, 1.0, size=8)
+    run = {k: v for k, v in kwargs.items() if k in ("seed", "checkpoint_every")}
     with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
-        path_trace(scene, **{"spp": 1, "max_bounces": 1, "progress": False, **kwargs})
+        fields = {"spp": 1, "max_bounces": 1, **{k: v for k, v in kwargs.items() if k not in run}}
+        path_trace(scene, PathTraceSettings(**fields), progress=False, **run)
 
 
 @pytest.mark.parametrize(
@@ -166,13 +174,14 @@ def test_counts_and_seeds_are_checked_before_rendering(kwargs, name):
     [({"group": -1}, "group"), ({"tile_rows": -1}, "tile_rows"), ({"seed": -1}, "seed"), ({"spp": 0}, "spp")],
 )
 def test_precompute_counts_are_checked(kwargs, name):
-    from torch_brdf.transport.polynomial import precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
     scene = _closed_cube(0.5, 1.0, size=8)
     with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
-        precompute_polynomial(scene, "2,1", **{"spp": 1, "progress": False, **kwargs})
+        fields = {"spp": 1, **{k: v for k, v in kwargs.items() if k != "seed"}}
+        precompute_polynomial(scene, PolynomialSettings("2,1", **fields), seed=kwargs.get("seed", 0), progress=False)
     with pytest.raises(ValueRangeError, match="series bands per bounce must be <= 4096"):
-        precompute_polynomial(scene, "1000000000,1", spp=1, progress=False)
+        precompute_polynomial(scene, PolynomialSettings("1000000000,1", spp=1), progress=False)
 
 
 @pytest.mark.parametrize(
@@ -180,7 +189,7 @@ def test_precompute_counts_are_checked(kwargs, name):
     [({"resolution": 16.0}, "resolution"), ({"resolution": 2**20}, "resolution"), ({"chunk": 0}, "chunk")],
 )
 def test_visibility_sizes_are_checked(kwargs, name):
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     with pytest.raises(ValueRangeError, match=rf"^{name} must be"):
-        precompute_visibility(_closed_cube(0.5, 1.0, size=8), **{"progress": False, **kwargs})
+        precompute_visibility(_closed_cube(0.5, 1.0, size=8), VisibilitySettings(**kwargs), progress=False)

@@ -10,7 +10,7 @@ import trimesh
 
 from torch_brdf.scene import Camera, EnvironmentMap, Scene, SceneObject, mesh_from_arrays
 from torch_brdf.scene.builtin import cornell_box
-from torch_brdf.transport.pathtrace import path_trace, power_heuristic, reference_path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace, power_heuristic, reference_path_trace
 
 GLOSSY_BALL = {"type": "blinn_phong", "kd": 0.1, "ks": 0.6, "exponent": 3000.0}
 GLOSSY_PLANE = {"type": "blinn_phong", "kd": (0.3, 0.25, 0.2), "ks": 0.3, "exponent": 30.0}
@@ -92,8 +92,18 @@ def test_mis_equals_nee_in_expectation(scene_fn, bounces):
     of the block mean, so a 25% bias in a block fails it."""
     scene = scene_fn()
     K, spp = 8, 8
-    mis = torch.stack([path_trace(scene, spp, bounces, seed=s, progress=False, mis=True) for s in range(K)])
-    nee = torch.stack([path_trace(scene, spp, bounces, seed=100 + s, progress=False, mis=False) for s in range(K)])
+    mis = torch.stack(
+        [
+            path_trace(scene, PathTraceSettings(spp=spp, max_bounces=bounces, mis=True), seed=s, progress=False)
+            for s in range(K)
+        ]
+    )
+    nee = torch.stack(
+        [
+            path_trace(scene, PathTraceSettings(spp=spp, max_bounces=bounces, mis=False), seed=100 + s, progress=False)
+            for s in range(K)
+        ]
+    )
     t, rel_se = _block_t(mis, nee, 4)
     assert rel_se < 0.06, rel_se
     assert float((t.abs() <= 4).double().mean()) >= 0.95, t.abs().max()
@@ -122,7 +132,12 @@ def test_mis_removes_fireflies_of_a_sharp_lobe_under_the_sky():
     ball = (scene.trace(o, d).object_id == scene.object_id("ball")).reshape(24, 24)
     var = {}
     for mis in (True, False):
-        imgs = torch.stack([path_trace(scene, 2, 1, seed=s, progress=False, mis=mis) for s in range(K)]).double()
+        imgs = torch.stack(
+            [
+                path_trace(scene, PathTraceSettings(spp=2, max_bounces=1, mis=mis), seed=s, progress=False)
+                for s in range(K)
+            ]
+        ).double()
         var[mis] = float(imgs.var(0)[ball].mean())
     assert var[True] < 0.5 * var[False], var
 

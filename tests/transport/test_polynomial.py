@@ -13,10 +13,11 @@ from torch_brdf.errors import FileFormatError, SceneError, ValueRangeError
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.transport import polynomial as poly
-from torch_brdf.transport.pathtrace import material_brdfs, path_trace
+from torch_brdf.transport.pathtrace import PathTraceSettings, material_brdfs, path_trace
 from torch_brdf.transport.polynomial import (
     Mixture,
     ObjectBasis,
+    PolynomialSettings,
     PolynomialTensors,
     Series,
     driver,
@@ -85,7 +86,11 @@ def test_tensors_equal_explicit_path_tracer_on_the_same_paths(series, fresnel, g
     spp = 4
     over = {"back": {"fresnel": True}} if fresnel else None
     T = precompute_polynomial(
-        sc, series, spp=spp, seed=3, bases=over, tile_rows=sc.camera.height, progress=False, paths=paths
+        sc,
+        PolynomialSettings(series, spp=spp, bases=over, tile_rows=sc.camera.height),
+        seed=3,
+        progress=False,
+        paths=paths,
     )
     assert T.bases[T.object_id("back")].fresnel == fresnel
     check_oracle(sc, T, paths, spp, gen)
@@ -114,7 +119,7 @@ def check_oracle(sc, T, paths, spp, gen, repeats=3):
 
 def test_per_bounce_images_sum_and_direct_only(gen):
     sc = glossy_box()
-    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("8,1,1", spp=2), seed=0, progress=False)
     R = PolynomialRenderer(T, {o.name: sc.materials[o.material] for o in sc.objects if o.editable})
     parts = R.evaluate(per_bounce=True)
     assert len(parts) == 4
@@ -131,10 +136,10 @@ def test_lambert_scene_matches_path_tracer():
     estimates exactly what the path tracer estimates (different sampling, same integral)."""
     sc = cornell_box(8)
     spp = 256
-    T = precompute_polynomial(sc, "1,1,1", spp=spp, seed=1, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("1,1,1", spp=spp), seed=1, progress=False)
     mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
     img = PolynomialRenderer(T, mats, dtype=torch.float64).evaluate()
-    ref = path_trace(sc, spp=spp, max_bounces=3, seed=2, progress=False).double()
+    ref = path_trace(sc, PathTraceSettings(spp=spp, max_bounces=3), seed=2, progress=False).double()
     # rows 0-1 see the light itself, whose few jittered hits dominate the noise: compare the rest.
     # Two seeds of each estimator differ by ~0.5% in the mean of these 48 pixels x 256 paths.
     img, ref = img[2:], ref[2:]
@@ -148,7 +153,7 @@ def test_lambert_scene_matches_path_tracer():
 # -- storage, checkpoints ------------------------------------------------------------------------
 def test_save_load_roundtrip_and_float16(tmp_path):
     sc = glossy_box()
-    T = precompute_polynomial(sc, "8,4,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("8,4,1", spp=2), seed=0, progress=False)
     back = PolynomialTensors.load(T.save(tmp_path / "t.npz"))
     R1, R2 = PolynomialRenderer(T), PolynomialRenderer(back)
     torch.testing.assert_close(R1.evaluate(), R2.evaluate(), rtol=0, atol=0)
@@ -166,7 +171,7 @@ def test_save_load_roundtrip_and_float16(tmp_path):
 def test_interrupted_run_resumes_bit_exactly(tmp_path, monkeypatch):
     sc = glossy_box()
     # processes=1: the monkeypatch below counts tile calls in this process
-    kw = dict(series="8,1,1", spp=3, seed=5, tile_rows=4, progress=False, processes=1)
+    kw = dict(settings=PolynomialSettings(series="8,1,1", spp=3, tile_rows=4), seed=5, progress=False, processes=1)
     full = precompute_polynomial(sc, **kw)
     calls = {"n": 0}
     real = driver._tile_entries
@@ -192,8 +197,8 @@ def test_interrupted_run_resumes_bit_exactly(tmp_path, monkeypatch):
 
 def test_deterministic_and_tiling_independent_structure():
     sc = glossy_box()
-    a = precompute_polynomial(sc, "8,1", spp=2, seed=9, progress=False)
-    b = precompute_polynomial(sc, "8,1", spp=2, seed=9, progress=False)
+    a = precompute_polynomial(sc, PolynomialSettings("8,1", spp=2), seed=9, progress=False)
+    b = precompute_polynomial(sc, PolynomialSettings("8,1", spp=2), seed=9, progress=False)
     assert all(torch.equal(x.values, y.values) for x, y in zip(a.blocks, b.blocks, strict=True))
     assert a.meta["rays"]["closest"] > 0 and a.meta["rays"]["shadow"] > 0
 
@@ -218,8 +223,10 @@ def test_terms_are_numbered_in_one_canonical_order_without_moving_entries():
     c_0), the order the tiles' blocks already hold them in: every block's term ids and entry
     indices are increasing as the tiles left them, whatever the tiling."""
     sc = glossy_box(16)
-    a = precompute_polynomial(sc, "8,2,1,1", spp=3, seed=4, progress=False, tile_rows=3)
-    b = precompute_polynomial(sc, "8,2,1,1", spp=3, seed=4, progress=False, tile_rows=3, processes=1)
+    a = precompute_polynomial(sc, PolynomialSettings("8,2,1,1", spp=3, tile_rows=3), seed=4, progress=False)
+    b = precompute_polynomial(
+        sc, PolynomialSettings("8,2,1,1", spp=3, tile_rows=3), seed=4, progress=False, processes=1
+    )
     for n, tt in a.terms.items():
         rows = [(w, *reversed(c)) for w, c in zip(tt.w.tolist(), tt.counts.tolist(), strict=True)]
         assert rows == sorted(set(rows)), n  # canonical and distinct
@@ -313,7 +320,7 @@ def test_mixture_pdf_integrates_to_one_and_matches_samples(gen):
 @pytest.mark.parametrize("series", ["4", "4,1,1,1,1,1"])
 def test_extremes_finite(series):
     sc = glossy_box(8)
-    T = precompute_polynomial(sc, series, spp=2, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings(series, spp=2), seed=0, progress=False)
     R = PolynomialRenderer(T)
     for mat in (
         {"type": "lambert", "albedo": 0.0},
@@ -334,8 +341,8 @@ def test_extremes_finite(series):
 def test_bad_input():
     sc = glossy_box(8)
     with pytest.raises(ValueRangeError):
-        precompute_polynomial(sc, "4,1", spp=0, progress=False)
-    T = precompute_polynomial(sc, "4,1", spp=1, seed=0, progress=False)
+        precompute_polynomial(sc, PolynomialSettings("4,1", spp=0), progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=1), seed=0, progress=False)
     R = PolynomialRenderer(T)
     with pytest.raises(ValueRangeError):
         R.set_coefficients("back", torch.full((4, 3), float("nan")))
@@ -349,8 +356,10 @@ def test_fresnel_layers_follow_f0():
     """A Fresnel-layered object (Eq. 31-32): f0 = 1 renders the BRDF as given, lower f0 dims
     normal incidence more than grazing angles, and f0 outside [0, 1] is refused."""
     sc = glossy_box(8)
-    T = precompute_polynomial(sc, "8,1", spp=2, seed=0, bases={"back": {"fresnel": True}}, progress=False)
-    plain = precompute_polynomial(sc, "8,1", spp=2, seed=0, progress=False)
+    T = precompute_polynomial(
+        sc, PolynomialSettings("8,1", spp=2, bases={"back": {"fresnel": True}}), seed=0, progress=False
+    )
+    plain = precompute_polynomial(sc, PolynomialSettings("8,1", spp=2), seed=0, progress=False)
     mat = {"type": "blinn_phong", "kd": 0.0, "ks": 1.0, "exponent": 50.0}
     R, P = PolynomialRenderer(T, dtype=torch.float64), PolynomialRenderer(plain, dtype=torch.float64)
     R.set_material("back", mat)
@@ -374,7 +383,11 @@ def test_environment_lit_scene_bookkeeping_is_exact(points, gen):
     sc = teatray(10)
     paths: dict = {}
     T = precompute_polynomial(
-        sc, "8,1,1", spp=2, seed=1, env_point_lights=points, tile_rows=10, progress=False, paths=paths
+        sc,
+        PolynomialSettings("8,1,1", spp=2, env_point_lights=points, tile_rows=10),
+        seed=1,
+        progress=False,
+        paths=paths,
     )
     R = PolynomialRenderer(T, dtype=torch.float64)
     c, c_hat, d = {}, {}, torch.zeros(len(sc.objects), 3, dtype=torch.float64)

@@ -19,12 +19,13 @@ from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.scene.lights import DirectionalLight
-from torch_brdf.transport.polynomial import precompute_polynomial, spp_map_of
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial, spp_map_of
 
 from .test_polynomial import _oracle
 
 SIZE, ROWS = 12, 4
-KW = {"series": "8,1,1", "seed": 3, "tile_rows": ROWS, "progress": False, "guides": False}
+SETTINGS = PolynomialSettings(series="8,1,1", tile_rows=ROWS, guides=False)
+RUN = {"seed": 3, "progress": False}
 
 
 def _band_map(levels: list[int]) -> torch.Tensor:
@@ -53,8 +54,8 @@ def _entries(T: PolynomialTensors, rows: range) -> dict[tuple, tuple[torch.Tenso
 def runs():
     sc = cornell_box_glossy(SIZE)
     spp = _band_map([3, 5, 2])
-    adaptive = precompute_polynomial(sc, spp=spp, **KW)
-    uniform = {s: precompute_polynomial(sc, spp=s, **KW) for s in (2, 3, 5)}
+    adaptive = precompute_polynomial(sc, SETTINGS.replace(spp=spp), **RUN)
+    uniform = {s: precompute_polynomial(sc, SETTINGS.replace(spp=s), **RUN) for s in (2, 3, 5)}
     return sc, spp, adaptive, uniform
 
 
@@ -87,7 +88,7 @@ def test_levels_scattered_over_the_image_trace_each_pixel_at_its_spp():
     """A checkerboard of two levels: one bounce casts exactly one closest-hit ray per path."""
     sc = cornell_box_glossy(8)
     spp = 1 + 3 * ((torch.arange(8)[:, None] + torch.arange(8)) % 2)
-    T = precompute_polynomial(sc, "1", spp=spp, seed=0, progress=False, guides=False)
+    T = precompute_polynomial(sc, PolynomialSettings("1", spp=spp, guides=False), seed=0, progress=False)
     assert T.meta["rays"]["closest"] == int(spp.sum()) == 160
     assert torch.equal(spp_map_of(T), spp)
 
@@ -103,7 +104,9 @@ def test_mixed_spp_tiles_are_exact_on_the_same_paths(gen):
     sc = teatray(10)
     spp = _checkerboard(10, 1, 3)
     paths: dict = {}
-    T = precompute_polynomial(sc, "8,1,1", spp=spp, seed=2, light_samples=2, tile_rows=4, progress=False, paths=paths)
+    T = precompute_polynomial(
+        sc, PolynomialSettings("8,1,1", spp=spp, light_samples=2, tile_rows=4), seed=2, progress=False, paths=paths
+    )
     assert torch.equal(spp_map_of(T), spp)
     R, coef, d = _renderer_at_random_coefficients(T, gen)
     with torch.no_grad():
@@ -121,7 +124,7 @@ def test_mixed_spp_tiles_take_each_pixels_own_variance():
     of 4 paths in the same tile do not, and the closest-hit rays are one per path."""
     sc = cornell_box_glossy(8)
     spp = _checkerboard(8, 1, 4)
-    T = precompute_polynomial(sc, "4,1", spp=spp, seed=0, tile_rows=4, progress=False, guides=False)
+    T = precompute_polynomial(sc, PolynomialSettings("4,1", spp=spp, tile_rows=4, guides=False), seed=0, progress=False)
     one = spp.reshape(-1) == 1
     seen = torch.zeros(64, dtype=torch.bool)
     for b in T.blocks:
@@ -136,19 +139,19 @@ def test_mixed_spp_tiles_take_each_pixels_own_variance():
 def test_resume_key_includes_the_map(tmp_path):
     sc = cornell_box_glossy(SIZE)
     a, b = _band_map([2, 3, 2]), _band_map([3, 2, 2])
-    first = precompute_polynomial(sc, spp=a, checkpoint=tmp_path, keep_checkpoint=True, **KW)
-    again = precompute_polynomial(sc, spp=a, checkpoint=tmp_path, keep_checkpoint=True, **KW)
+    first = precompute_polynomial(sc, SETTINGS.replace(spp=a), checkpoint=tmp_path, keep_checkpoint=True, **RUN)
+    again = precompute_polynomial(sc, SETTINGS.replace(spp=a), checkpoint=tmp_path, keep_checkpoint=True, **RUN)
     assert again.meta["tiles_cached"] == 3
     assert torch.equal(again.emission, first.emission)
-    other = precompute_polynomial(sc, spp=b, checkpoint=tmp_path, keep_checkpoint=True, **KW)
+    other = precompute_polynomial(sc, SETTINGS.replace(spp=b), checkpoint=tmp_path, keep_checkpoint=True, **RUN)
     assert other.meta["tiles_cached"] == 0
     # tiles of mixed spp resume bit for bit: one of three tiles lost, two loaded
     mixed, folder = _checkerboard(SIZE, 2, 3), tmp_path / "mixed"
-    full = precompute_polynomial(sc, spp=mixed, checkpoint=folder, keep_checkpoint=True, **KW)
+    full = precompute_polynomial(sc, SETTINGS.replace(spp=mixed), checkpoint=folder, keep_checkpoint=True, **RUN)
     tiles = sorted(folder.glob("tile*.npz"))
     assert len(tiles) == 3
     tiles[1].unlink()
-    again = precompute_polynomial(sc, spp=mixed, checkpoint=folder, **KW)
+    again = precompute_polynomial(sc, SETTINGS.replace(spp=mixed), checkpoint=folder, **RUN)
     assert again.meta["tiles_cached"] == 2
     assert torch.equal(again.emission, full.emission) and len(again.blocks) == len(full.blocks)
     for x, y in zip(full.blocks, again.blocks, strict=True):
@@ -158,11 +161,11 @@ def test_resume_key_includes_the_map(tmp_path):
 def test_bad_maps_are_refused():
     sc = cornell_box_glossy(8)
     with pytest.raises(ShapeError):
-        precompute_polynomial(sc, "1,1", spp=torch.ones(8, 7, dtype=torch.long), progress=False)
+        precompute_polynomial(sc, PolynomialSettings("1,1", spp=torch.ones(8, 7, dtype=torch.long)), progress=False)
     with pytest.raises(ShapeError):
-        precompute_polynomial(sc, "1,1", spp=torch.ones(8, 8), progress=False)  # float
+        precompute_polynomial(sc, PolynomialSettings("1,1", spp=torch.ones(8, 8)), progress=False)  # float
     with pytest.raises(ValueRangeError):
-        precompute_polynomial(sc, "1,1", spp=torch.zeros(8, 8, dtype=torch.long), progress=False)
+        precompute_polynomial(sc, PolynomialSettings("1,1", spp=torch.zeros(8, 8, dtype=torch.long)), progress=False)
 
 
 # -- light splitting at the eye vertex ---------------------------------------------------------
@@ -181,7 +184,9 @@ def test_light_splitting_is_exact_on_the_same_paths(gen):
     """k light samples per eye vertex, each weighted 1/k: the exactness oracle still holds."""
     sc = teatray(10)
     paths: dict = {}
-    T = precompute_polynomial(sc, "8,1,1", spp=2, seed=1, light_samples=3, tile_rows=10, progress=False, paths=paths)
+    T = precompute_polynomial(
+        sc, PolynomialSettings("8,1,1", spp=2, light_samples=3, tile_rows=10), seed=1, progress=False, paths=paths
+    )
     assert T.meta["light_samples"] == 3
     R, coef, d = _renderer_at_random_coefficients(T, gen)
     with torch.no_grad():
@@ -194,8 +199,8 @@ def test_light_splitting_weights_average_to_one_sample():
     """A directional light is sampled without random numbers: k copies of the same sample
     weighted 1/k give the 1-sample record up to rounding, on the same paths."""
     sc = dataclasses.replace(teatray(10), lights=[DirectionalLight((0.3, 1.0, 0.4), 2.0)])
-    kw = {"series": "4,1,1", "spp": 2, "seed": 1, "progress": False, "guides": False}
-    one, three = (precompute_polynomial(sc, light_samples=k, **kw) for k in (1, 3))
+    settings = PolynomialSettings(series="4,1,1", spp=2, guides=False)
+    one, three = (precompute_polynomial(sc, settings.replace(light_samples=k), seed=1, progress=False) for k in (1, 3))
     with torch.no_grad():
         a, b = (
             torch.stack(

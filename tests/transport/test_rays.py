@@ -10,7 +10,7 @@ from torch_brdf.errors import ShapeError, ValueRangeError
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.scene.raytrace import RayTracer
 from torch_brdf.transport import _native
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.rays import NativeRays
 
 _FIELDS = ("t", "object_id", "prim_id", "barycentrics", "position", "geometric_normal", "normal")
@@ -120,14 +120,14 @@ def test_precompute_with_and_without_the_compiled_rays(monkeypatch):
     if _native.library() is None:
         pytest.skip("no C compiler here")
     sc = cornell_box_glossy(16)
-    kw = {"spp": 4, "seed": 0, "progress": False, "processes": 1}
+    settings, kw = PolynomialSettings("8,1,1", spp=4), {"seed": 0, "progress": False, "processes": 1}
     calls, trace, occluded = [], NativeRays.trace, NativeRays.occluded
     monkeypatch.setattr(NativeRays, "trace", lambda self, *a: calls.append("t") or trace(self, *a))
     monkeypatch.setattr(NativeRays, "occluded", lambda self, *a: calls.append("o") or occluded(self, *a))
-    fast = precompute_polynomial(sc, "8,1,1", **kw)
+    fast = precompute_polynomial(sc, settings, **kw)
     assert {"t", "o"} <= set(calls)
     monkeypatch.setattr(NativeRays, "make", classmethod(lambda cls, rt: None))
-    slow = precompute_polynomial(sc, "8,1,1", **kw)
+    slow = precompute_polynomial(sc, settings, **kw)
     a, b = fast.to_arrays()[0], slow.to_arrays()[0]
     assert sorted(a) == sorted(b)
     for k in a:

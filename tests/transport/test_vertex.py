@@ -17,7 +17,7 @@ from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
 from torch_brdf.transport.pathtrace import shading_frame
-from torch_brdf.transport.polynomial import Mixture, ObjectBasis, Series, precompute_polynomial
+from torch_brdf.transport.polynomial import Mixture, ObjectBasis, PolynomialSettings, Series, precompute_polynomial
 from torch_brdf.transport.polynomial.tracer import _Tracer
 from torch_brdf.transport.polynomial.vertex import VertexKernel, quotient_code
 
@@ -225,10 +225,11 @@ def test_precompute_close_to_torch_path(series, monkeypatch):
     (almost) every pixel; a path whose last-ulp difference lands it on the other side of a band
     or geometry edge may change a few pixels, and the oracles check those paths exactly."""
     sc = cornell_box_glossy(16)
-    kw = {"spp": 6, "seed": 5, "progress": False, "processes": 1, "guides": False, "tile_rows": 8}
-    fused = precompute_polynomial(sc, series, **kw)
+    settings = PolynomialSettings(series, spp=6, guides=False, tile_rows=8)
+    kw = {"seed": 5, "progress": False, "processes": 1}
+    fused = precompute_polynomial(sc, settings, **kw)
     monkeypatch.setenv(_native.ENV_VAR, "0")
-    plain = precompute_polynomial(sc, series, **kw)
+    plain = precompute_polynomial(sc, settings, **kw)
     for k in ("closest", "shadow"):
         assert abs(fused.meta["rays"][k] - plain.meta["rays"][k]) <= 0.01 * plain.meta["rays"][k]
     g = torch.Generator().manual_seed(0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -19,7 +20,13 @@ from torch_brdf.scene.mesh import mesh_from_arrays
 from torch_brdf.scene.scene import Scene, SceneObject
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native, visibility
-from torch_brdf.transport.visibility import HORIZON_EPS, VertexVisibility, precompute_visibility, scene_vertices
+from torch_brdf.transport.visibility import (
+    HORIZON_EPS,
+    VertexVisibility,
+    VisibilitySettings,
+    precompute_visibility,
+    scene_vertices,
+)
 
 
 def ball_on_plane(quads: int = 6, workers: int | None = 1, box: bool = True) -> Scene:
@@ -44,7 +51,7 @@ def scene():
 
 @pytest.fixture(scope="module")
 def record(scene):
-    return precompute_visibility(scene, resolution=32, chunk=16, progress=False)
+    return precompute_visibility(scene, VisibilitySettings(resolution=32, chunk=16), progress=False)
 
 
 def brute_force(scene: Scene, geom: CubemapBlocks, vertex: int, supersample: int = 1) -> torch.Tensor:
@@ -97,7 +104,7 @@ def test_unoccluded_plane_vertex_is_its_hemisphere(scene, record):
 def test_chunking_and_workers_do_not_change_the_record(scene, record):
     # one chunk of every vertex: ~40k rays, enough for the two-process ray casting path
     two = ball_on_plane(workers=2)
-    other = precompute_visibility(two, resolution=32, chunk=1000, progress=False)
+    other = precompute_visibility(two, VisibilitySettings(resolution=32, chunk=1000), progress=False)
     assert two.tracer._pool is not None
     for a, b in zip(other.blocks.to_bytes(), record.blocks.to_bytes(), strict=True):
         assert np.array_equal(a, b)
@@ -105,16 +112,30 @@ def test_chunking_and_workers_do_not_change_the_record(scene, record):
 
 def test_interrupted_precompute_resumes(scene, record, tmp_path):
     ck = tmp_path / "ck"
-    assert precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False, max_chunks=2) is None
+    assert (
+        precompute_visibility(
+            scene, VisibilitySettings(resolution=32, chunk=16), checkpoint=ck, progress=False, max_chunks=2
+        )
+        is None
+    )
     assert len(list(ck.glob("*.npz"))) == 2
-    resumed = precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False, keep_checkpoint=True)
+    resumed = precompute_visibility(
+        scene, VisibilitySettings(resolution=32, chunk=16), checkpoint=ck, progress=False, keep_checkpoint=True
+    )
     assert np.array_equal(resumed.blocks.to_bytes()[0], record.blocks.to_bytes()[0])
     assert len(list(ck.glob("*.npz"))) > 2  # kept on purpose
-    again = precompute_visibility(scene, 32, chunk=16, checkpoint=ck, progress=False)  # all chunks from the folder
+    again = precompute_visibility(
+        scene, VisibilitySettings(resolution=32, chunk=16), checkpoint=ck, progress=False
+    )  # all chunks from the folder
     assert np.array_equal(again.blocks.to_bytes()[0], record.blocks.to_bytes()[0])
     assert not ck.exists()  # removed once the run succeeded (keep_checkpoint=False)
     # a different setting does not pick up these chunks
-    assert precompute_visibility(scene, 32, chunk=8, checkpoint=ck, progress=False, max_chunks=0) is None
+    assert (
+        precompute_visibility(
+            scene, VisibilitySettings(resolution=32, chunk=8), checkpoint=ck, progress=False, max_chunks=0
+        )
+        is None
+    )
 
 
 def test_save_load_round_trip_and_scene_check(scene, record, tmp_path):
@@ -131,7 +152,7 @@ def test_save_load_round_trip_and_scene_check(scene, record, tmp_path):
 
 def test_graded_maps_within_quantisation_bound(scene):
     geom = CubemapBlocks(16, 16)
-    rec = precompute_visibility(scene, 16, supersample=3, bits=6, progress=False)
+    rec = precompute_visibility(scene, VisibilitySettings(resolution=16, supersample=3, bits=6), progress=False)
     v = scene_vertices(scene)
     floor = (v.object_ids == 1).nonzero().squeeze(-1)
     vid = int(floor[(v.positions[floor, [0]] - 0.1).abs().argmin()])
@@ -143,11 +164,11 @@ def test_graded_maps_within_quantisation_bound(scene):
 
 def test_bad_settings_raise(scene):
     with pytest.raises(ValueRangeError):
-        precompute_visibility(scene, 32, bits=3, supersample=2)
+        precompute_visibility(scene, VisibilitySettings(resolution=32, supersample=2, bits=3))
     with pytest.raises(ValueRangeError):
-        precompute_visibility(scene, 32, supersample=2, bits=0)
+        precompute_visibility(scene, VisibilitySettings(resolution=32, supersample=2, bits=0))
     with pytest.raises(ValueRangeError):
-        precompute_visibility(scene, 40)
+        precompute_visibility(scene, VisibilitySettings(resolution=40))
 
 
 def test_binary_storage_is_compact(record):
@@ -190,7 +211,9 @@ def test_record_equals_the_previous_pipeline(scene, supersample, bits, chunk, gr
         pytest.skip("no C compiler here: only the numpy path runs")
     assert (visibility._native_rays(scene) is not None) == (path == "compiled")
     monkeypatch.setattr(visibility, "GROUP", group)
-    got = precompute_visibility(scene, 32, supersample=supersample, bits=bits, chunk=chunk, progress=False)
+    got = precompute_visibility(
+        scene, VisibilitySettings(resolution=32, supersample=supersample, bits=bits, chunk=chunk), progress=False
+    )
     ref = previous_pipeline(scene, 32, supersample, bits)
     assert ref.num_entries > 0 and bool((ref.states == 2).any())  # real shadows, partial blocks
     for a, b in zip(got.blocks.to_bytes(), ref.to_bytes(), strict=True):
@@ -220,3 +243,25 @@ def test_compiled_loop_casts_the_tracer_rays(scene):
     want = scene.occluded(o32.repeat_interleave(counts, dim=0), dirs[texels], float("inf"))
     assert torch.equal(torch.from_numpy(out).bool(), want) and hits == int(want.sum())
     assert 0 < hits < len(texels)  # both kinds of rays
+
+
+@pytest.mark.parametrize("bits", [0, 6])
+def test_joined_chunks_equal_the_record_of_all_entries(bits):
+    """The precompute's assembly (chunks copied into arrays allocated once, each chunk dropped
+    once copied) gives the record of the concatenated entries, bit for bit."""
+    gen = torch.Generator().manual_seed(3)
+    v = torch.rand(23, 6, 256, generator=gen) < 0.5
+    maps = v.float() * torch.rand(23, 6, 1, generator=gen) if bits else v
+    whole = BlockVisibility.encode(maps, bits)
+    tiles, cuts = [], [0, 5, 5, 16, 23]  # an empty chunk too
+    for s, e in itertools.pairwise(cuts):
+        r = whole.select(range(s, e))
+        entries = {"counts": r.counts.numpy(), "index": r.index.numpy()}
+        if bits:
+            entries["delta"] = r.delta.numpy()
+        tiles.append((entries, {"chunk": s}))
+    joined = visibility._join_tiles(tiles, 6, bits)
+    assert all(t is None for t in tiles)
+    for name in ("counts", "offsets", "index", "states"):
+        assert torch.equal(getattr(joined, name), getattr(whole, name)), name
+    assert (joined.delta is None) == (bits == 0) and (bits == 0 or torch.equal(joined.delta, whole.delta))

@@ -14,7 +14,7 @@ import torch
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.scene.lights import DirectionalLight
 from torch_brdf.transport import _native
-from torch_brdf.transport.polynomial import Mixture, ObjectBasis, Series, precompute_polynomial
+from torch_brdf.transport.polynomial import Mixture, ObjectBasis, PolynomialSettings, Series, precompute_polynomial
 from torch_brdf.transport.polynomial import vertex as vx
 from torch_brdf.transport.polynomial.tracer import _Tracer
 
@@ -51,7 +51,9 @@ def test_rand_equals_torch(dtype, skip):
 
 
 def _arrays(sc, series, **kw):
-    t = precompute_polynomial(sc, series, spp=5, seed=3, progress=False, processes=1, guides=False, **kw)
+    t = precompute_polynomial(
+        sc, PolynomialSettings(series, spp=5, guides=False, **kw), seed=3, progress=False, processes=1
+    )
     return t.to_arrays()[0], t.meta["rays"]
 
 

@@ -36,6 +36,7 @@ from ..frame import half_terms
 from .base import BRDF, Clamped, ConstrainedModule, Positive, register
 from .microfacet import (
     ALPHA_MIN,
+    GRAZING_COS,
     AnisotropicPhongNDF,
     BeckmannNDF,
     BlinnNDF,
@@ -260,10 +261,10 @@ class _WardBase(MicrofacetMixture):
         # gradient of a plain quotient would overflow through the squared denominator
         log_norm = math.log(4.0 * math.pi) + torch.log(ax) + torch.log(ay)
         if self.normalization == "ward":
-            cc = (wi[..., 2].clamp_min(0.0) * wo[..., 2].clamp_min(0.0)).clamp_min(_floor(dt))
+            cc = (wi[..., 2].clamp_min(0.0) * wo[..., 2].clamp_min(0.0)).clamp_min(GRAZING_COS**2)
             log_lobe = -t_aniso - log_norm - 0.5 * torch.log(cc)
         else:
-            cd2 = (ht.cos_d**2).clamp_min(_floor(dt))
+            cd2 = (ht.cos_d**2).clamp_min(GRAZING_COS**2)
             log_lobe = -t_aniso + 2.0 * torch.log1p(ht.tan2) - log_norm - torch.log(cd2)
         lobe = torch.exp(log_lobe)
         return _masked(self.kd.to(dt) / math.pi + lobe.unsqueeze(-1) * self.ks.to(dt), up)
@@ -416,7 +417,7 @@ class AshikhminShirley(MicrofacetMixture):
         ht = half_terms(wi, wo)
         rs, rd = self.rs.to(dt), self.rd.to(dt)
         ci, co = wi[..., 2].clamp(0.0, 1.0), wo[..., 2].clamp(0.0, 1.0)
-        den = (4.0 * ht.cos_d * torch.maximum(ci, co)).clamp_min(_floor(dt))
+        den = 4.0 * (ht.cos_d * torch.maximum(ci, co)).clamp_min(GRAZING_COS**2)
         spec = (dist.pdf(wo, ht.s) / den).unsqueeze(-1) * schlick_fresnel(rs, ht.one_minus_cos_d)
         fi = 1.0 - (1.0 - 0.5 * ci) ** 5
         fo = 1.0 - (1.0 - 0.5 * co) ** 5
@@ -661,7 +662,7 @@ class DistributionBased(BRDF):
         wi, wo, up = safe_pair(wi, wo)
         ht = half_terms(wi, wo)
         ci, co = wi[..., 2].clamp(0.0, 1.0), wo[..., 2].clamp(0.0, 1.0)
-        den = (ci + co - ci * co).clamp_min(_tiny(dt)).unsqueeze(-1)
+        den = (ci + co - ci * co).clamp_min(GRAZING_COS).unsqueeze(-1)
         spec = self.p_values(ht.h) * schlick_fresnel(self.f0.to(dt), ht.one_minus_cos_d) / den
         return _masked(self.kd.to(dt) / math.pi + spec, up)
 

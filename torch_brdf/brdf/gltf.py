@@ -49,6 +49,7 @@ from .base import Clamped, register
 from .microfacet import (
     ALPHA_MIN,
     GGXNDF,
+    GRAZING_COS,
     MicrofacetMixture,
     _floor,
     ggx_log_d,
@@ -81,7 +82,9 @@ def ggx_correlated_visibility(wi: torch.Tensor, wo: torch.Tensor, alpha: torch.T
     fl = _floor(wi.dtype)
     root_i = (ci * ci + a2 * si2).clamp_min(fl).sqrt()
     root_o = (co * co + a2 * so2).clamp_min(fl).sqrt()
-    return 0.5 / (co * root_i + ci * root_o).clamp_min(fl)
+    # the denominator shrinks like cos at grazing mirror pairs (V grows like 1/cos): its floor is
+    # one value in every dtype (GRAZING_COS), so float32 and float64 agree at theta = 90 degrees
+    return 0.5 / (co * root_i + ci * root_o).clamp_min(GRAZING_COS**2)
 
 
 @register("metallic_roughness")

@@ -69,6 +69,12 @@ __all__ = [
 #: Safety clamp of roughness inside the math (below the documented 1e-4): finite in float32.
 ALPHA_MIN = 1e-5
 
+#: Smallest cosine the models divide by (Ward's, Ashikhmin-Shirley's and the distribution-based
+#: BRDF's 1/cos factors), the same in every dtype: at theta = 90 degrees cos(pi/2) rounds to
+#: 6e-17, and a dtype's own floor would let float32 and float64 give values 1e13 apart there.
+#: Below it (theta > 89.99994 degrees) those factors stop growing.
+GRAZING_COS = 1e-6
+
 
 # -- small numerical helpers ---------------------------------------------------------------
 def _tiny(dtype: torch.dtype) -> float:
@@ -150,10 +156,23 @@ def beckmann_d(h: torch.Tensor, alpha_x: torch.Tensor, alpha_y: torch.Tensor | N
         (*B,).
     """
     ay = alpha_x if alpha_y is None else alpha_y
+    h = _unit_scale(h)
     hz2 = (h[..., 2] ** 2).clamp_min(_floor(h.dtype))
     hx2, hy2 = h[..., 0] ** 2, h[..., 1] ** 2
     expo = -(hx2 / alpha_x**2 + hy2 / ay**2) / hz2 + 2.0 * torch.log1p((hx2 + hy2) / hz2)
     return torch.exp(expo) / (math.pi * alpha_x * ay)
+
+
+def _unit_scale(h: torch.Tensor) -> torch.Tensor:
+    """``h`` (*B, 3) rescaled so its largest component is 1 where its squared length would fall
+    under the dtype's floor (the sum of a nearly opposite pair, 1e-16 long at theta = 90 degrees),
+    +z where it is 0 (the half-vector policy of :mod:`torch_brdf.frame`); else unchanged, bit for bit."""
+    small = ((h * h).sum(-1) < _floor(h.dtype)).unsqueeze(-1)
+    m = h.abs().amax(-1, keepdim=True)
+    z = torch.zeros((3,), dtype=h.dtype, device=h.device)
+    z[2] = 1.0
+    scaled = torch.where(m > 0, h / m.clamp_min(_tiny(h.dtype)), z)
+    return torch.where(small, scaled, h)
 
 
 def ggx_d(h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -166,6 +185,7 @@ def ggx_d(h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     Returns:
         (*B,).
     """
+    h = _unit_scale(h)
     hz2 = h[..., 2] ** 2
     hxy2 = h[..., 0] ** 2 + h[..., 1] ** 2
     len2 = (hz2 + hxy2).clamp_min(_floor(h.dtype))

@@ -39,7 +39,7 @@ from ..render import PolynomialRenderer
 from ..render.material import MaterialProjector
 from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
-from ..transport import path_trace, precompute_polynomial
+from ..transport import PathTraceSettings, PolynomialSettings, path_trace, precompute_polynomial
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
@@ -148,7 +148,12 @@ class ReferenceJob:
             for s in range(self.spp):
                 if self._cancel.is_set():
                     break
-                img = path_trace(self.scene, 1, self.max_bounces, self.seed * 1_000_003 + s, progress=False)
+                img = path_trace(
+                    self.scene,
+                    PathTraceSettings(spp=1, max_bounces=self.max_bounces),
+                    seed=self.seed * 1_000_003 + s,
+                    progress=False,
+                )
                 total = img.double() if total is None else total + img.double()
                 self.done = s + 1
                 if self.on_progress is not None:
@@ -228,7 +233,7 @@ def load_source(
             return PolynomialTensors.load(cached), sc, f"cached precomputation {cached.name}"
         if Path(cache_dir).exists() and not Path(cache_dir).is_dir():  # before the precompute
             raise FileFormatError(f"the cache folder {str(cache_dir)!r} is a file (set TORCH_BRDF_CACHE to a folder)")
-    tensors = precompute_polynomial(sc, series, spp=spp, seed=seed, progress=progress)
+    tensors = precompute_polynomial(sc, PolynomialSettings(series, spp=spp), seed=seed, progress=progress)
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
         tensors.save(cached)

@@ -27,6 +27,7 @@ from ..errors import FileFormatError, TorchBRDFError
 from ..records.basis_image import BasisImage
 from ..records.cache import Checkpoint, settings_key
 from ..scene.scene import Scene
+from .energy import default_basis
 from .solve import fit, save_fit
 from .strokes import Brush, Stroke, paint
 from .transfer import CutOptions, LightSamples, object_pixels, precompute_transfer
@@ -97,6 +98,17 @@ class DesignConfig:
     seed: int = 0
 
 
+def _check_transfer(rec: BasisImage, px) -> None:
+    """A cached transfer record fits this run: its pixels are the object's, values finite."""
+    if rec.pixels.shape != px.pixels.shape or not torch.equal(rec.pixels, px.pixels.to(rec.pixels.dtype)):
+        raise FileFormatError(f"cached transfer covers {rec.pixels.numel()} other pixels; expected {px.count}")
+    want = f"srbf:{default_basis().K}+diffuse"  # the basis precompute_transfer uses here
+    if rec.basis != want or rec.values.shape[:2] != (3, default_basis().K + 1):
+        raise FileFormatError(f"cached transfer has basis {rec.basis!r}, {tuple(rec.values.shape)}; expected {want!r}")
+    if not bool(torch.isfinite(rec.values).all()):
+        raise FileFormatError("cached transfer holds NaN or infinite values")
+
+
 def design(
     scene: Scene,
     strokes: list[Stroke],
@@ -135,7 +147,7 @@ def design(
     settings = {"scene": scene.name, **asdict(config), "size": [solve_cam.width, solve_cam.height]}
     key = settings_key(settings, scene)  # an edited scene (mesh, env map, camera) recomputes
     cache = Checkpoint(out / "transfer.npz", BasisImage.kind, key, on_corrupt="recompute")
-    rec = cache.load_record(BasisImage, dtype=torch.float64)
+    rec = cache.load_record(BasisImage, check=lambda r: _check_transfer(r, px), dtype=torch.float64)
     if rec is None:
         g = torch.Generator().manual_seed(config.seed)
         ls = LightSamples.from_environment(scene.environment, config.light_samples, g)

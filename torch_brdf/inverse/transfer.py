@@ -62,11 +62,11 @@ from tqdm.auto import tqdm
 from .._checks import check_finite
 from ..brdf.srbf import SRBFBasis
 from ..data import progress_default
-from ..errors import ShapeError, ValueRangeError
+from ..errors import FileFormatError, ShapeError, ValueRangeError
 from ..frame import Frame, half_terms
 from ..parallel.tiles import TileWork, run_tiles
 from ..records.basis_image import BasisImage
-from ..records.cache import TileCache, settings_key
+from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..scene.camera import Camera
 from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.lights import LightSamples, luminance
@@ -341,6 +341,12 @@ def _cut_transfer(samples, vis, basis, f0t, frames, wo_l, cuts, T, progress) -> 
     }
 
 
+def _check_tile_pixels(arrays: dict, meta: dict, sizes: dict) -> None:
+    """A transfer tile's metadata names the pixels its values hold."""
+    if meta["pixels"] != sizes["p"]:
+        raise FileFormatError(f"transfer tile says {meta['pixels']} pixels; this run's tile has {sizes['p']}")
+
+
 def _transfer_tile(work: TileWork, k: int):
     """Tile ``k`` (pixels ``k * tile_pixels ...``): visibility and transfer functions, values
     (3, J + 1, p); ``work``: scene, px, samples, basis, f0, cuts, tile_pixels."""
@@ -399,7 +405,21 @@ def precompute_transfer(
         digest.update(t.detach().contiguous().numpy().tobytes())
     settings = {"inputs": digest.hexdigest(), "f0": f0, "bandwidth": basis.bandwidth, "tile_pixels": tile_pixels}
     settings["cuts"] = None if cuts is None else [cuts.tolerance, cuts.max_angle_deg]
-    cache = TileCache(checkpoint, "transfer-tile", settings_key(settings, scene))
+    schema = CacheSchema(
+        arrays={"values": ArraySpec("float64", (3, basis.K + 1, "p"))},
+        meta={
+            "pixels": MetaSpec(int, 0),
+            "seconds": MetaSpec(float, 0.0, required=False),
+            "mean_cut_size": MetaSpec(float, 0.0, required=cuts is not None),
+            "light_samples": MetaSpec(int, 1, required=False),
+            "f0": MetaSpec(list, required=False, items=(int, float)),
+            "method": MetaSpec(str, required=False),
+        },
+        check=_check_tile_pixels,
+    )
+    tp = int(tile_pixels)
+    key = settings_key(settings, scene)
+    cache = TileCache(checkpoint, "transfer-tile", key, "tile", schema, lambda k: {"p": min(tp, px.count - k * tp)})
     show = progress_default(progress)
     tiles = run_tiles(_transfer_tile, work, num, cache, executor, address, max_retries, "transfer functions", show)
     values = torch.cat([torch.from_numpy(a["values"]) for a, _ in tiles], 2) if tiles else None

@@ -8,7 +8,11 @@ dtype, shape and bytes. The zip's comment carries a second SHA-256, of every byt
 before its end-of-central-directory record, so a flipped byte anywhere (zip headers,
 timestamps, padding, metadata) is refused before any parsing. The write is atomic
 (temporary file in the same folder, then ``os.replace``), so an interrupted run leaves
-either the old file or the new one.
+either the old file or the new one. :func:`save_arrays` streams: the arrays go from memory
+to the file in chunks (no copy of an array, no image of the file in memory) and the file
+digest is a second, chunked pass over what was written, so saving holds little more than
+the arrays themselves; :func:`encode_arrays` builds the same bytes in memory for the small
+files a worker hands to its driver.
 :func:`load_arrays` refuses object arrays (no pickle), a wrong kind, a newer format
 version, another layout version of the kind or a checksum mismatch, with a clear error.
 
@@ -37,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FileFormatError
+from ..errors import FileFormatError, WriteError
 from .atomic import replacing
 
 FORMAT = "torch_brdf-arrays"
@@ -62,10 +66,33 @@ _READ_ERRORS = (
 )  # fmt: skip
 
 
+class Converted:
+    """An array to be saved in another dtype, converted only while it is checksummed and while
+    it is written (one converted array in memory at a time, see :func:`save_arrays`).
+
+    Args:
+        array: the array. dtype: the dtype it is saved in.
+    """
+
+    def __init__(self, array: np.ndarray, dtype):
+        self.array, self.dtype = array, np.dtype(dtype)
+
+    def __call__(self) -> np.ndarray:
+        return self.array.astype(self.dtype)
+
+
+def _materialise(v) -> np.ndarray:
+    """An array, or the array a deferred entry (a callable, see :func:`save_arrays`) makes."""
+    a = np.asarray(v() if callable(v) else v)
+    if a.dtype == object:
+        raise FileFormatError("an array of object dtype cannot be stored")
+    return a
+
+
 def _checksum(arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
+        a = np.ascontiguousarray(_materialise(arrays[name]))
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
         h.update(a.reshape(-1).view(np.uint8).data if a.size else b"")  # the bytes, not a copy
     return h.hexdigest()
@@ -83,7 +110,9 @@ def save_arrays(
 
     Args:
         path: destination (``.npz``).
-        arrays: name -> numeric array (no object dtype).
+        arrays: name -> numeric array (no object dtype), or a callable that returns one (e.g.
+            :class:`Converted`): the converted copy is then made once for the checksum and once
+            for the write, and freed in between, instead of held with all the others.
         kind: what the file holds, checked again on load (e.g. ``"pathtrace-checkpoint"``).
         meta: JSON-serialisable metadata (settings, progress).
         compress: zip-deflate the arrays (stored instead when an array would inflate more
@@ -91,7 +120,88 @@ def save_arrays(
         kind_version: version of the layout of ``kind`` (checked on load; files written
             before it was recorded count as version 1).
     """
-    return write_encoded(path, encode_arrays(arrays, kind, meta, compress, kind_version))
+    arrays, blob = _prepare(arrays, kind, meta, kind_version)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with replacing(path) as tmp:
+        with open(tmp, "w+b") as f:
+            _write_zip(f, arrays, blob, compress)
+            if compress and _has_bomb_like(f):  # would be refused as a zip bomb: store instead
+                f.seek(0)
+                f.truncate()
+                _write_zip(f, arrays, blob, False)
+            _append_digest(f)
+    return path
+
+
+def _prepare(arrays, kind: str, meta, kind_version: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The arrays (views, not copies) and the header blob with their checksum."""
+    arrays = {k: v if callable(v) else np.asarray(v) for k, v in arrays.items()}
+    for k, a in arrays.items():
+        if k == _HEADER or (not callable(a) and a.dtype == object):
+            raise FileFormatError(f"array {k!r} cannot be stored (object dtype or reserved name)")
+    header = {"format": FORMAT, "kind": kind, "version": VERSION, "meta": meta or {}, "checksum": _checksum(arrays)}
+    header["file_digest"] = True  # the zip comment holds the whole-file digest
+    if int(kind_version) != 1:  # absent means 1, so files of version-1 layouts keep their bytes
+        header["kind_version"] = int(kind_version)
+    return arrays, np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
+
+
+def _write_zip(f, arrays: dict[str, np.ndarray], blob: np.ndarray, compress: bool) -> None:
+    """The npz numpy's ``savez`` writes (``NAME.npy`` members in order, zip64 sizes, then the
+    header member), streamed into ``f`` without copying contiguous arrays."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(f, mode="w", compression=method, allowZip64=True) as z:
+        for name, a in [*arrays.items(), (_HEADER, blob)]:
+            with z.open(name + ".npy", "w", force_zip64=True) as out:
+                _write_npy(out, _materialise(a))
+
+
+def _write_npy(out, a: np.ndarray) -> None:
+    """``np.lib.format.write_array`` for numeric arrays, the bytes of a contiguous array passed
+    as views in :data:`_CHUNK` slices (numpy's writer copies each buffer)."""
+    fmt = np.lib.format
+    if not (a.flags.c_contiguous or a.flags.f_contiguous) or a.dtype.hasobject:
+        fmt.write_array(out, a, allow_pickle=False)
+        return
+    head = fmt.header_data_from_array_1_0(a)
+    try:
+        fmt.write_array_header_1_0(out, head)
+    except ValueError:  # a header too long for version 1.0
+        fmt.write_array_header_2_0(out, head)
+    flat = (a.T if head["fortran_order"] else a).reshape(-1)
+    data = memoryview(flat.view(np.uint8)) if flat.size else memoryview(b"")
+    for i in range(0, len(data), _CHUNK):
+        out.write(data[i : i + _CHUNK])
+
+
+def _has_bomb_like(f) -> bool:
+    f.seek(0)
+    with zipfile.ZipFile(f) as z:
+        return any(_bomb_like(i) for i in z.infolist())
+
+
+def _append_digest(f) -> None:
+    """Replace the (empty) comment length that ends the zip by the length and the digest of
+    every byte before it, hashed in chunks from the file."""
+    f.flush()
+    end = f.seek(0, os.SEEK_END)
+    f.seek(end - 2)
+    if f.read(2) != b"\x00\x00":
+        raise FileFormatError("internal: the zip written does not end with an empty comment")
+    h = hashlib.sha256()
+    f.seek(0)
+    left = end - 2
+    while left > 0:
+        chunk = f.read(min(left, _CHUNK))
+        if not chunk:
+            raise FileFormatError("internal: the zip written is shorter than its size")
+        h.update(chunk)
+        left -= len(chunk)
+    comment = _DIGEST + h.hexdigest().encode()
+    f.seek(end - 2)
+    f.write(len(comment).to_bytes(2, "little") + comment)
+    f.truncate()
 
 
 def encode_arrays(
@@ -101,36 +211,29 @@ def encode_arrays(
     compress: bool = False,
     kind_version: int = 1,
 ) -> bytes:
-    """The bytes :func:`save_arrays` writes (arguments as there): a tile executor's worker
-    encodes (checksums, zip) and the driver only writes them (:func:`write_encoded`)."""
-    arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    for k, a in arrays.items():
-        if a.dtype == object or k == _HEADER:
-            raise FileFormatError(f"array {k!r} cannot be stored (object dtype or reserved name)")
-    header = {"format": FORMAT, "kind": kind, "version": VERSION, "meta": meta or {}, "checksum": _checksum(arrays)}
-    header["file_digest"] = True  # the zip comment holds the whole-file digest
-    if int(kind_version) != 1:  # absent means 1, so files of version-1 layouts keep their bytes
-        header["kind_version"] = int(kind_version)
-    blob = np.frombuffer(json.dumps(header, sort_keys=True).encode(), dtype=np.uint8)
+    """The bytes :func:`save_arrays` writes (arguments as there), built in memory: a tile
+    executor's worker encodes (checksums, zip) and the driver only writes them
+    (:func:`write_encoded`). For small files: this holds the whole file in memory."""
+    arrays, blob = _prepare(arrays, kind, meta, kind_version)
     buf = io.BytesIO()
-    (np.savez_compressed if compress else np.savez)(buf, **arrays, **{_HEADER: blob})
-    if compress:
-        with zipfile.ZipFile(buf) as z:
-            if any(_bomb_like(i) for i in z.infolist()):  # would be refused as a zip bomb: store instead
-                buf = io.BytesIO()
-                np.savez(buf, **arrays, **{_HEADER: blob})
-    raw = buf.getbuffer()
-    comment = _DIGEST + hashlib.sha256(raw[:-2]).hexdigest().encode()
-    # the zip as numpy wrote it, up to its (empty) comment length, then the file digest
-    return bytes(raw[:-2]) + len(comment).to_bytes(2, "little") + comment
+    _write_zip(buf, arrays, blob, compress)
+    if compress and _has_bomb_like(buf):
+        buf = io.BytesIO()
+        _write_zip(buf, arrays, blob, False)
+    _append_digest(buf)
+    return buf.getvalue()
 
 
 def write_encoded(path: str | Path, data: bytes) -> Path:
     """Write the bytes of :func:`encode_arrays` to ``path`` atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with replacing(path) as tmp, open(tmp, "wb") as f:
-        f.write(data)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with replacing(path) as tmp, open(tmp, "wb") as f:
+            f.write(data)
+    except OSError as exc:  # a full disk's error names no file: say which one was being written
+        reason = exc.strerror or type(exc).__name__
+        raise WriteError(exc.errno, f"cannot write {path}: {reason}", str(path)) from exc
     return path
 
 
@@ -321,6 +424,28 @@ def _header_int(header: dict, key: str, default: int, path) -> int:
     if type(value) is not int:
         raise FileFormatError(f"{path}: corrupt header ({key} = {value!r} is not an integer)")
     return value
+
+
+def read_kind(path: str | Path) -> str:
+    """The ``kind`` in the header of an array file, read without its arrays (a command checks
+    that a record is of the kind it needs before it starts anything).
+
+    Raises:
+        FileFormatError: missing, not an array file of this package, or a header without a kind.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"array file not found: {path}")
+    try:
+        with zipfile.ZipFile(path) as z:
+            info = z.getinfo(_HEADER + ".npy")
+            header = json.loads(_read_member(z, info, path).tobytes().decode())
+    except (zipfile.BadZipFile, KeyError, UnicodeDecodeError, json.JSONDecodeError, OSError, ValueError) as exc:
+        raise FileFormatError(f"{path}: not a torch_brdf array file ({type(exc).__name__})") from None
+    kind = header.get("kind") if isinstance(header, dict) else None
+    if not isinstance(kind, str):
+        raise FileFormatError(f"{path}: the header names no kind of record")
+    return kind
 
 
 def load_arrays(

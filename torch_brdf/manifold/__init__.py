@@ -26,7 +26,7 @@ from .data import (
     split_names,
 )
 from .evaluate import HeldOut, heldout_reconstruction
-from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms
+from .gplvm import GPLVM, VALIDITY, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms, simplex_projection
 from .kernel import JitterWarning, cholesky_jitter, kernel_matrix
 from .materials import material_record, merl_material, random_record, sphere_scene, with_material
 from .paths import (
@@ -43,6 +43,7 @@ from .zh import ZHCoefficients, env_sh, rows_brdf, zh_coefficients, zh_shade
 
 __all__ = [
     "GPLVM",
+    "VALIDITY",
     "GPLVMFit",
     "HeldOut",
     "JitterWarning",
@@ -76,6 +77,7 @@ __all__ = [
     "read_split",
     "resample_path",
     "rows_brdf",
+    "simplex_projection",
     "sphere_scene",
     "split_names",
     "with_material",

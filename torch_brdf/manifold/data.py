@@ -47,7 +47,7 @@ from ..io.merl import MERL_FILE_BYTES, MERL_RES, MERL_SCALE, merl_index_to_angle
 from ..metrics import cosine_weighted_rmse as cosine_weighted_rmse  # re-exported
 from ..metrics import log_relative_rmse as log_relative_rmse  # re-exported
 from ..parallel.threads import single_thread
-from ..records.cache import Checkpoint
+from ..records.cache import ArraySpec, CacheSchema, Checkpoint, MetaSpec
 
 OBS_KIND = "merl-observations"
 
@@ -228,9 +228,12 @@ def nbrdf_observations(
     b = grid.num_valid
     z = np.zeros((len(names), 3 * b), dtype=np.float32)
     done = 0
-    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta, on_corrupt="recompute")
+    schema = CacheSchema(
+        arrays={"z": ArraySpec("float32", z.shape)}, meta={"done": MetaSpec(int, 0, len(names), required=False)}
+    )
+    ckpt = None if cache is None else Checkpoint(cache, OBS_KIND, meta, "recompute", schema)
     saved = None if ckpt is None else ckpt.load()
-    if saved is not None and saved[0].get("z", np.empty(0)).shape == z.shape:
+    if saved is not None:
         z = np.asarray(saved[0]["z"], dtype=np.float32).copy()
         done = int(saved[1].get("done", 0))
     valid = grid.valid()

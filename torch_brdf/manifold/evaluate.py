@@ -13,6 +13,7 @@ from ..metrics import cosine_weighted_rmse, log_relative_rmse
 from .data import Observations, fit_pca
 from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, projection_terms, small_matrix_mode
 from .kernel import se_kernel
+from .paths import directional_albedo
 
 
 @dataclass(frozen=True)
@@ -183,8 +184,8 @@ def project_perceptual(
                 return e
 
             opt.step(closure)
-            with torch.no_grad():
-                for cand in (x.detach(), model.latents[i]):
+            with torch.no_grad():  # a non-finite end (line search on a plateau of valid weights) is dropped
+                for cand in (x.detach(), model.latents[i]) if bool(torch.isfinite(x).all()) else (model.latents[i],):
                     e = error(cand)
                     if e < best_e:
                         best_x, best_e = cand.clone(), e
@@ -192,9 +193,9 @@ def project_perceptual(
 
 
 def _weights_differentiable(model: GPLVM, x: torch.Tensor) -> torch.Tensor:
-    """b(x) = K^-1 k(x) with gradients in x (the smooth mean's k: no delta term off the data)."""
-    k = se_kernel(x[None], model.latents, model.fit.lengthscale)[0]
-    return torch.cholesky_solve(k[:, None], model.chol)[:, 0]
+    """b(x) = K^-1 k(x), made valid as the model's ``valid`` says, with gradients in x (the smooth mean's k)."""
+    k = se_kernel(x[None], model.latents, model.fit.lengthscale)
+    return model.constrain(torch.cholesky_solve(k.T, model.chol).T)[0]
 
 
 def heldout_reconstruction(
@@ -211,6 +212,8 @@ def heldout_reconstruction(
     negatives: str = "penalise",
     negative_weight: float = NEGATIVE_WEIGHT,
     max_columns: int | None = 8192,
+    valid: str = "simplex",
+    albedo: torch.Tensor | None = None,
     **fit_kwargs,
 ) -> HeldOut:
     r"""Fit the GPLVM on ``train``, then place every ``test`` material at its best manifold point.
@@ -237,6 +240,9 @@ def heldout_reconstruction(
             predicted values and how many columns its search evaluates (``metric="log"`` only).
         negative_weight: as ``negatives``.
         max_columns: as ``negatives``.
+        valid: the blend weights of the reconstructions and of their placement (:class:`GPLVM`'s
+            ``valid``: ``"simplex"``, ``"energy"``, ``"none"`` = the seed's).
+        albedo: (N_train, K, C) training albedos, for ``valid="energy"`` (computed when None).
     """
     if metric not in ("log", "weighted"):
         raise ValueRangeError(f"metric must be 'log' or 'weighted'; got {metric!r}")
@@ -246,7 +252,9 @@ def heldout_reconstruction(
     z_te = obs.rows(test).to(torch.float64)
     s, d = gram(z_tr, w)
     fit = fit_gplvm(s, d, q, names=train, generator=generator, **fit_kwargs)
-    model = GPLVM(fit, z_tr, continuous=continuous)
+    if valid == "energy" and albedo is None:
+        albedo = directional_albedo(z_tr, obs.grid)
+    model = GPLVM(fit, z_tr, continuous=continuous, valid=valid, albedo=albedo)
     lat, var, preds, nearest = [], [], [], []
     train_map = _logmap(z_tr, cos) if metric == "log" else None
     for z in z_te:

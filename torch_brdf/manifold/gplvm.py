@@ -54,6 +54,8 @@ from .linesearch import strong_wolfe
 
 FIT_KIND = GPLVMFit.kind
 _METHODS = ("lbfgs", "adam", "hooke-jeeves")
+#: blend-weight constraints of :class:`GPLVM` (its ``valid`` argument)
+VALIDITY = ("none", "simplex", "energy")
 #: the default warm-up mu of :func:`fit_gplvm`: fits at a mu 100x smaller or less start there (chosen
 #: among 1e-6 ... 1e-4 on a MERL budget map of ``benchmarks/manifold.py``: a selection, not a law)
 WARMUP_MU = 3e-6
@@ -194,6 +196,29 @@ def _initial_jitter(x: torch.Tensor, lengthscale: float, mu: float, floor: float
     return jitter
 
 
+def _start_latents(s: torch.Tensor, q: int, init, generator: torch.Generator | None) -> torch.Tensor:
+    """(N, q) starting latents: ``init`` (checked), else PCA's, nudged by a tiny seeded noise."""
+    n = s.shape[0]
+    if init is None:
+        with small_matrix_mode(n):
+            x0 = pca_latents(s, q)
+        # duplicated rows give coincident PCA latents, a saddle of L with a symmetric gradient;
+        # a tiny seeded nudge lets the optimiser separate them (it does not change a good start)
+        noise = torch.randn(x0.shape, generator=generator, dtype=torch.float64)
+        return x0 + 1e-6 * noise * float(x0.std().clamp_min(1e-12))
+    x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
+    if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
+        raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
+    return x0
+
+
+def _check_warmup_and_window(warmup_fraction: float, tol_window, method: str) -> None:
+    if not 0 <= warmup_fraction < 1:
+        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
+    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
+        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+
+
 def fit_gplvm(
     s: torch.Tensor,
     d: int,
@@ -274,24 +299,10 @@ def fit_gplvm(
         raise ValueRangeError("Z is all zeros (tr(S) = 0): nothing to fit")
     s = s / scale
     t0 = time.perf_counter()  # the start (PCA, jitter) counts in ``seconds``
-    if init is None:
-        with small_matrix_mode(n):
-            x0 = pca_latents(s, q)
-        # duplicated rows give coincident PCA latents, a saddle of L with a symmetric gradient;
-        # a tiny seeded nudge lets the optimiser separate them (it does not change a good start)
-        noise = torch.randn(x0.shape, generator=generator, dtype=torch.float64)
-        x0 = x0 + 1e-6 * noise * float(x0.std().clamp_min(1e-12))
-    else:
-        x0 = torch.as_tensor(init, dtype=torch.float64).clone().contiguous()
-        if x0.shape != (n, q) or not bool(torch.isfinite(x0).all()):
-            raise ValueRangeError(f"init must be finite of shape ({n}, {q}); got {tuple(x0.shape)}")
-    if not 0 <= warmup_fraction < 1:
-        raise ValueRangeError(f"warmup_fraction must be in [0, 1); got {warmup_fraction}")
-    if not isinstance(tol_window, int) or tol_window < 1 or (tol_window > 1 and method != "lbfgs"):
-        raise ValueRangeError(f"tol_window must be an int >= 1 (> 1 only with method='lbfgs'); got {tol_window!r}")
+    x0 = _start_latents(s, q, init, generator)
+    _check_warmup_and_window(warmup_fraction, tol_window, method)
     window = {"window": tol_window} if method == "lbfgs" else {}
-    meta = {}
-    n_warm = round(warmup_fraction * max_iter)
+    meta, n_warm = {}, round(warmup_fraction * max_iter)
     if method == "lbfgs" and warmup_mu is not None and mu <= WARMUP_RATIO * warmup_mu and n_warm > 0:
         jw = _initial_jitter(x0, lengthscale, warmup_mu, jitter_floor, jitter_cap)
         with small_matrix_mode(n):
@@ -683,12 +694,40 @@ class GPLVM(torch.nn.Module):
             term (continuous in :math:`x_*`; at a training latent it returns
             :math:`z_i - \mu (K^{-1}Z)_i` instead of :math:`z_i`). Default False: the seed's
             interpolant, exact at the training latents and discontinuous next to them.
+        valid: which blend weights :meth:`weights` (and so :meth:`blend`, :meth:`predict`)
+            return; every option keeps the BRDF a weighted blend of the training rows, so blended
+            images stay blends of the per-material images.
+
+            * ``"simplex"`` (default): :math:`b(x_*)` projected onto the probability simplex
+              (:func:`simplex_projection`: non-negative weights summing to one, the closest such
+              vector in the Euclidean norm). A convex blend of non-negative BRDFs is non-negative
+              and its directional albedo is at most the largest training albedo at every angle,
+              so every latent point is a valid BRDF when every training BRDF is. At a training
+              latent the seed's weights are :math:`e_i`, which the projection keeps: training
+              rows are still reproduced exactly (``continuous=False``).
+            * ``"energy"``: ``"simplex"``, then scaled by :math:`\min(1, 1/\max a)`, with
+              :math:`a` the blended directional albedo over the angles and channels of
+              ``albedo`` (the missing weight goes to a black material): albedo <= 1 even where
+              a training row's own albedo exceeds 1 (e.g. fits loose at grazing angles).
+              Needs ``albedo``.
+            * ``"none"``: the seed's unconstrained weights :math:`K^{-1}k(x_*)` (of both signs
+              and any sum: negative values and albedos above 1 between the materials).
+        albedo: (N, K, C) per-material directional albedos (:func:`~.paths.directional_albedo`);
+            required by ``valid="energy"``, kept as a buffer.
     """
 
-    def __init__(self, fit: GPLVMFit, z: torch.Tensor | None = None, continuous: bool = False):
+    def __init__(
+        self,
+        fit: GPLVMFit,
+        z: torch.Tensor | None = None,
+        continuous: bool = False,
+        valid: str = "simplex",
+        albedo: torch.Tensor | None = None,
+    ):
         super().__init__()
         self.fit = fit
         self.continuous = bool(continuous)
+        self.valid = _check_valid(valid, albedo)
         x = fit.latents.to(torch.float64)
         if not bool(torch.isfinite(x).all()):
             raise ValueRangeError("GPLVM latents hold NaN/Inf")
@@ -706,6 +745,14 @@ class GPLVM(torch.nn.Module):
             if z.shape[0] != x.shape[0]:
                 raise ShapeError(f"z has {z.shape[0]} rows but the fit has {x.shape[0]} latents")
         self.register_buffer("z", z)
+        if albedo is not None:
+            albedo = torch.as_tensor(albedo, dtype=torch.float64)
+            if albedo.ndim < 2 or albedo.shape[0] != x.shape[0]:
+                raise ShapeError(f"Expected albedo of shape ({x.shape[0]}, K, C); got {tuple(albedo.shape)}")
+            if not bool(torch.isfinite(albedo).all()) or bool((albedo < 0).any()):
+                raise ValueRangeError("albedo must be finite and >= 0")
+            albedo = albedo.reshape(x.shape[0], -1)
+        self.register_buffer("albedo", albedo)
 
     @property
     def mu(self) -> float:
@@ -735,18 +782,30 @@ class GPLVM(torch.nn.Module):
     def _cross(self, xs: torch.Tensor) -> torch.Tensor:
         return cross_kernel(xs, self.latents, self.fit.lengthscale, 0.0 if self.continuous else self._mu)
 
-    def weights(self, xs) -> torch.Tensor:
-        r"""Blending weights :math:`b(x_*) = K^{-1} k(x_*)` (seed Eq. 4), batched.
+    def weights(self, xs, valid: str | None = None) -> torch.Tensor:
+        r"""Blending weights :math:`b(x_*) = K^{-1} k(x_*)` (seed Eq. 4), made valid, batched.
 
         Args:
             xs: (M, Q) or (Q,) latent points.
+            valid: ``"simplex"``, ``"energy"`` or ``"none"`` (see :class:`GPLVM`); None = the model's.
         Returns:
             (M, N) or (N,) float64.
         """
         xs, single = self._queries(xs)
         k = self._cross(xs)
-        b = torch.cholesky_solve(k.T, self.chol).T
+        b = self.constrain(torch.cholesky_solve(k.T, self.chol).T, valid)
         return b[0] if single else b
+
+    def constrain(self, b: torch.Tensor, valid: str | None = None) -> torch.Tensor:
+        """Make raw weights valid: (M, N) -> (M, N), differentiable (see :class:`GPLVM`'s ``valid``)."""
+        valid = self.valid if valid is None else _check_valid(valid, self.albedo)
+        if valid == "none":
+            return b
+        b = simplex_projection(b)
+        if valid == "energy":
+            top = (b @ self.albedo.to(b.dtype)).max(-1, keepdim=True).values
+            b = b / top.clamp_min(1.0)
+        return b
 
     def variance(self, xs) -> torch.Tensor:
         r"""Predictive variance :math:`\sigma^2(x_*) = 1 + \mu - k^\top K^{-1} k` (seed Eq. 2), >= 0.
@@ -760,10 +819,10 @@ class GPLVM(torch.nn.Module):
         v = (1.0 + self._mu - (k * b).sum(-1)).clamp_min(0)
         return v[0] if single else v
 
-    def blend(self, xs, values: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    def blend(self, xs, values: torch.Tensor, chunk: int = 4096, valid: str | None = None) -> torch.Tensor:
         """Blend any per-material quantity with :math:`b(x_*)`: ``(M, *F)`` from ``values`` ``(N, *F)``.
 
-        Computed in float64, returned in the dtype of ``values``.
+        Computed in float64, returned in the dtype of ``values``; ``valid`` as in :meth:`weights`.
         """
         xs, single = self._queries(xs)
         values = torch.as_tensor(values)
@@ -774,16 +833,19 @@ class GPLVM(torch.nn.Module):
         flat = values.reshape(values.shape[0], -1)
         out = []
         for a in range(0, xs.shape[0], chunk):
-            b = self.weights(xs[a : a + chunk])
+            b = self.weights(xs[a : a + chunk], valid)
             out.append((b @ flat.to(torch.float64)).to(values.dtype))
         res = torch.cat(out).reshape(xs.shape[0], *values.shape[1:])
         return res[0] if single else res
 
-    def predict(self, xs, chunk: int = 4096) -> torch.Tensor:
-        """Interpolated observations :math:`z_* = b(x_*)^\\top Z`: (M, d) (or (d,)) from the stored ``z``."""
+    def predict(self, xs, chunk: int = 4096, valid: str | None = None) -> torch.Tensor:
+        """Interpolated observations :math:`z_* = b(x_*)^\\top Z`: (M, d) (or (d,)) from the stored ``z``.
+
+        ``valid`` as in :meth:`weights` (None = the model's).
+        """
         if self.z is None:
             raise ValueRangeError("this GPLVM holds no observation matrix z; use blend(xs, values)")
-        return self.blend(xs, self.z, chunk)
+        return self.blend(xs, self.z, chunk, valid)
 
     def project(
         self, target_gram: torch.Tensor, target_cross: torch.Tensor, target_sq: float = 0.0, starts: int = 4,
@@ -822,15 +884,19 @@ class GPLVM(torch.nn.Module):
             def closure(x=x, opt=opt):
                 opt.zero_grad()
                 k = se_kernel(x[None], self.latents, self.fit.lengthscale)[0]
-                b = torch.cholesky_solve(k[:, None], self.chol)[:, 0]
+                b = self.constrain(torch.cholesky_solve(k[:, None], self.chol).T)[0]
                 e = b @ g_mat @ b - 2 * b @ g_vec
                 e.backward()
                 return e
 
             opt.step(closure)
-            with torch.no_grad():
-                e = float(self._error(x.detach(), g_mat, g_vec))
-            for cand, ce in ((x.detach(), e), (self.latents[i], float(at_data[i]))):
+            cands = [(self.latents[i], float(at_data[i]))]
+            # the valid weights are constant on plateaus (a vertex of the simplex), where the line
+            # search can divide by a zero curvature: a non-finite end point is not a candidate
+            if bool(torch.isfinite(x).all()):
+                with torch.no_grad():
+                    cands.append((x.detach(), float(self._error(x.detach(), g_mat, g_vec))))
+            for cand, ce in cands:
                 if ce < best_e:
                     best_x, best_e = cand.clone(), ce
         return best_x, best_e + float(target_sq)
@@ -838,6 +904,34 @@ class GPLVM(torch.nn.Module):
     def _error(self, x, g_mat, g_vec) -> torch.Tensor:
         b = self.weights(x)
         return b @ g_mat @ b - 2 * b @ g_vec
+
+
+def _check_valid(valid: str, albedo: torch.Tensor | None) -> str:
+    if valid not in VALIDITY:
+        raise ValueRangeError(f"valid must be one of {VALIDITY}; got {valid!r}")
+    if valid == "energy" and albedo is None:
+        raise ValueRangeError("valid='energy' needs per-material albedos: GPLVM(..., albedo=directional_albedo(...))")
+    return valid
+
+
+def simplex_projection(b: torch.Tensor) -> torch.Tensor:
+    r"""Euclidean projection of each row onto the probability simplex :math:`\{w \ge 0, \sum w = 1\}`.
+
+    :math:`w = \max(b - \tau, 0)` with the threshold :math:`\tau` found by sorting (Held, Wolfe
+    and Crowder 1974; Duchi et al. 2008): :math:`O(N \log N)` per row, exact, differentiable almost
+    everywhere (autograd through the sort). A row already on the simplex is returned unchanged.
+
+    Args:
+        b: (..., N) weights.
+    Returns:
+        (..., N), same dtype.
+    """
+    u = torch.sort(b, dim=-1, descending=True).values
+    css = u.cumsum(-1) - 1
+    k = torch.arange(1, b.shape[-1] + 1, dtype=b.dtype, device=b.device)
+    rho = ((u - css / k) > 0).sum(-1, keepdim=True).clamp_min(1)  # the last index kept (>= 1)
+    tau = css.gather(-1, rho - 1) / rho.to(b.dtype)
+    return (b - tau).clamp_min(0)
 
 
 def projection_terms(

@@ -138,18 +138,16 @@ def zh_matrices(order: int) -> list[torch.Tensor]:
 
 
 def env_sh(envmap, order: int) -> torch.Tensor:
-    """SH coefficients of an :class:`~torch_brdf.scene.envmap.EnvironmentMap` (texel-centre quadrature).
+    """SH coefficients of an :class:`~torch_brdf.scene.envmap.EnvironmentMap` (quadrature on its entries).
 
-    :math:`E_{lm} = \\sum_t L_t Y_{lm}(\\omega_t)\\,\\Omega_t`, the same discretisation as
-    ``EnvironmentMap.irradiance``.
+    :math:`E_{lm} = \\sum_t L_t Y_{lm}(\\omega_t)\\,\\Omega_t` over the map's entries (texel
+    centres or bilinear nodes, :meth:`~torch_brdf.scene.envmap.EnvironmentMap.entry_directions`),
+    the same discretisation as ``EnvironmentMap.irradiance``.
 
     Returns:
         ((L+1)^2, 3) float64, in world coordinates.
     """
-    from ..sphere.latlong import texel_centers
-
-    h, w = envmap.radiance.shape[:2]
-    dirs = texel_centers(h, w).reshape(-1, 3) @ envmap.to_world.T.double()
+    dirs = envmap.entry_directions().reshape(-1, 3)
     lo = (envmap.radiance.double() * envmap.solid_angle[..., None]).reshape(-1, 3)
     out = torch.zeros(num_coeffs(order), 3, dtype=torch.float64)
     for a in range(0, dirs.shape[0], 8192):

@@ -184,6 +184,41 @@ def _run_in_worker(fn: TileFn, key: str, holder: list, index: int, cache: TileCa
     return arrays, tile_meta, data, ray.get_runtime_context().get_node_id()
 
 
+def _once(work: Callable[[], None] | None) -> Callable[[], None]:
+    """``work`` with one torch thread on the first call; later calls (and None) do nothing."""
+    left = [work]
+
+    def run() -> None:
+        todo, left[0] = left[0], None
+        if todo is not None:
+            with single_thread():
+                todo()
+
+    return run
+
+
+def _pending(
+    cache: TileCache, num_tiles: int, max_new: int | None, cost: Sequence[float] | None
+) -> tuple[Tiles, list[int], list[int]]:
+    """The cached tiles loaded (``meta["cached"]`` True), the tiles to compute in tile order (at
+    most ``max_new``) and the order workers start them in (decreasing ``cost``, ties in tile order)."""
+    out = Tiles([None] * num_tiles)
+    todo = []
+    for k in range(num_tiles):
+        done = cache.load(k)
+        if done is None:
+            todo.append(k)
+        else:
+            out[k] = (done[0], {**done[1], "cached": True})
+    if max_new is not None:
+        todo = todo[: max(0, max_new)]
+    if cost is not None and len(cost) != num_tiles:
+        raise ValueRangeError(f"cost has {len(cost)} numbers for {num_tiles} tiles")
+    # the order in which workers start them (one process computes them in tile order instead)
+    start = todo if cost is None else sorted(todo, key=lambda k: -float(cost[k]))  # ties: tile order
+    return out, todo, start
+
+
 def run_tiles(
     fn: TileFn,
     context: Any,
@@ -250,30 +285,13 @@ def run_tiles(
         raise ValueRangeError(f"executor must be one of {EXECUTORS}; got {executor!r}")
     if max_retries < 0:
         raise ValueRangeError(f"max_retries must be >= 0; got {max_retries}")
-    out = Tiles([None] * num_tiles)
-    todo = []
-    for k in range(num_tiles):
-        done = cache.load(k)
-        if done is None:
-            todo.append(k)
-        else:
-            out[k] = (done[0], {**done[1], "cached": True})
-    if max_new is not None:
-        todo = todo[: max(0, max_new)]
-    if cost is not None and len(cost) != num_tiles:
-        raise ValueRangeError(f"cost has {len(cost)} numbers for {num_tiles} tiles")
-    # the order in which workers start them (one process computes them in tile order instead)
-    start = todo if cost is None else sorted(todo, key=lambda k: -float(cost[k]))  # ties: tile order
+    out, todo, start = _pending(cache, num_tiles, max_new, cost)
     steps = [1] * num_tiles if steps_per_tile is None else [max(1, int(n)) for n in steps_per_tile]
     if len(steps) != num_tiles:
         raise ValueRangeError(f"steps_per_tile has {len(steps)} counts for {num_tiles} tiles")
     ticked = [0] * num_tiles  # units of each tile already shown
-    bar = tqdm(
-        total=sum(steps),
-        initial=sum(n for n, x in zip(steps, out, strict=True) if x is not None),
-        desc=desc,
-        disable=not progress,
-    )
+    initial = sum(n for n, x in zip(steps, out, strict=True) if x is not None)
+    bar = tqdm(total=sum(steps), initial=initial, desc=desc, disable=not progress)
     nxt = [0]  # the next tile to consume
 
     def advance(k: int, n: int) -> None:
@@ -305,14 +323,7 @@ def run_tiles(
             ray_context = context.for_ray() if hasattr(context, "for_ray") else context
         nproc = max(1, min(tile_processes(processes), len(todo))) if executor == "local" else 0
         out.processes = nproc
-
-        def run_idle() -> None:  # once: the first call takes it
-            nonlocal idle
-            work, idle = idle, None
-            if work is not None:
-                with single_thread():
-                    work()
-
+        run_idle = _once(idle)
         if executor == "local" and nproc > 1:
             _run_forked(fn, ray_context, start, finish, advance, nproc, cache, meta or {}, run_idle)
         elif executor == "local":

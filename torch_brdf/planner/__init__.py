@@ -1,22 +1,25 @@
 """Error-budget planners: cheap pilot measurements in, the cheapest settings for an error out.
 
+The planner sits above the producers it measures (transport, inverse, manifold, render): it
+runs their pilots and hands them settings objects; no producer imports it.
+
 * :mod:`.gi` plans the multibounce precomputation of BRDF editing with global illumination
-  (bands per object, bounces, a second bounce, spp, fixed objects). It decides from records
-  (:class:`~torch_brdf.records.polynomial.PolynomialTensors` of a pilot run) and the BRDF layer;
-  it does not trace: :func:`torch_brdf.transport.polynomial.plan_polynomial` runs the pilot and
-  calls it (so ``precompute_polynomial(scene, plan="auto", error=0.03)`` can live in transport
-  without an import cycle).
+  (bands per object, bounces, a second bounce, spp, fixed objects): :func:`plan_polynomial`
+  runs pilot :func:`~torch_brdf.transport.polynomial.precompute_polynomial` runs,
+  :func:`plan_from_pilots` decides from their records, and :meth:`GIPlan.settings` is the
+  :class:`~torch_brdf.transport.polynomial.PolynomialSettings` that carries the plan out
+  (:func:`precompute_planned` does both).
 * :mod:`.inverse` plans inverse BRDF design (light samples, SRBF count, visibility-cut
-  tolerance): ``from torch_brdf.planner.inverse import plan_inverse`` (not imported here, so
-  that transport's import of :mod:`.gi` does not pull in the inverse package).
+  tolerance): ``from torch_brdf.planner.inverse import plan_inverse`` (not imported here: it
+  pulls in the inverse package).
 * :mod:`.relight` decides all-frequency relighting (cubemap resolution, visibility bits, BRDF-
-  sampling rule) for a PSNR from pilot measurements that
-  :func:`torch_brdf.render.relight_plan.plan_relighting` makes with the renderer (a layer above).
+  sampling rule) for a PSNR from pilot measurements that :mod:`.relight_pilots`
+  (:func:`~.relight_pilots.plan_relighting`) makes with the renderer.
 * :mod:`.table`: the candidate table, the choice for an error and/or time budget and the
   printed :class:`Plan` that the capability planners share.
 """
 
-from .gi import GIPlan, choose_bands, pilot_images, plan_from_pilots, planned_bases
+from .gi import GIPlan, choose_bands, pilot_images, plan_from_pilots, plan_polynomial, planned_bases, precompute_planned
 from .table import Option, Plan, choose, pareto, power_law
 
 __all__ = [
@@ -28,6 +31,8 @@ __all__ = [
     "pareto",
     "pilot_images",
     "plan_from_pilots",
+    "plan_polynomial",
     "planned_bases",
     "power_law",
+    "precompute_planned",
 ]

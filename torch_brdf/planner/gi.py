@@ -12,10 +12,16 @@ requires, from cheap measurements:
   band error and the noise of the first :math:`N` bounces; the spp that reach the budget with
   :math:`N` bounces follow, and the plan takes the :math:`N` of least cost in ray units
   (:func:`_path_cost` x spp: a shorter series is cheaper per path but leaves the noise less of
-  the budget), among those whose tail is at most :math:`0.6e`;
+  the budget), among those whose tail is at most :math:`0.6e` and never more than the light
+  needs: the last bounce whose own light (measured in the pilots, less their noise) exceeds
+  :math:`0.1e` (:data:`LAST_BOUNCE_SHARE`);
 * **second bounce**: low-frequency bands at the second vertex only where the pilot shows
   glossy-to-glossy transport (bounce-2 energy whose eye and second vertex are both glossy),
-  weighted by the diffuse equivalent's projection error, above :math:`0.3e`;
+  weighted by the diffuse equivalent's projection error, above :math:`0.3e`; its noise is
+  then measured with two pilots that have the banded second bounce (the 1-band pilots'
+  diffuse equivalent varies far less than the glossy lobe's bands: they under-predicted the
+  noise of glossy-to-glossy scenes) and the plan is made again with it
+  (:func:`banded_noise_scale`);
 * **spp**: from :math:`K \ge 2` independent pilot runs of :math:`s_k` spp (four by default:
   more paths make the estimate steadier where the variance is heavy-tailed, as under a sun),
   the per-pixel variance of one path is the pooled
@@ -51,24 +57,31 @@ import dataclasses
 import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
+from .._checks import check_count
 from ..brdf import create
 from ..brdf.bands import BandBasis, Factored1D, equivalent_albedo, project, projection_error
 from ..brdf.bands.projection import PairQuadrature
 from ..errors import SceneError, ValueRangeError
 from ..records.polynomial import ObjectBasis, PolynomialTensors, Series
 from ..scene.scene import Scene
+from ..transport.polynomial import PolynomialSettings, precompute_polynomial, with_fixed
 
 __all__ = [
+    "DEFAULT_ERROR",
+    "DEFAULT_SECONDS",
     "GIPlan",
     "allocate_spp",
     "choose_bands",
     "pilot_images",
     "plan_from_pilots",
+    "plan_polynomial",
     "planned_bases",
+    "precompute_planned",
     "unlit_mask",
     "with_fixed",
 ]
@@ -86,6 +99,8 @@ AIM = 0.95
 #: on the benchmark scenes (glossy Cornell box, teatray at 32^2)
 AIM_ADAPTIVE = 0.9
 SECOND_SHARE = 0.3
+#: a bounce whose own light is at most this share of the budget is not one the light needs
+LAST_BOUNCE_SHARE = 0.1
 MAX_BANDS = 128
 #: adaptive sampling: a pixel's noise estimate is averaged over the SMOOTH x SMOOTH window's
 #: counted pixels and DEFENSIVE x the image's mean is added (a pilot pixel has few paths and a
@@ -101,6 +116,14 @@ LEVELS_PER_OCTAVE = 2
 #: 2.8-ray path per extra sample, ~1 ray; 1.5 leaves room for the bookkeeping of 32-band entries)
 LIGHT_SAMPLES = (1, 2, 4, 8, 16)
 EXTRA_SAMPLE_COST = 1.5
+#: what :func:`precompute_planned` and ``torch-brdf precompute`` plan for when told nothing: a
+#: relative RMSE of 3% against the converged model (edits inherit it) within 10 minutes of
+#: precompute (the time budget wins when both cannot be met: the plan then says its error)
+DEFAULT_ERROR = 0.03
+DEFAULT_SECONDS = 600.0
+#: the most paths per pixel (on average) a time budget alone may buy: a generous budget on a small
+#: view would otherwise ask for more memory than any machine has
+MAX_PLANNED_SPP = 1 << 14
 
 
 def _quadrature(basis: BandBasis) -> PairQuadrature:
@@ -174,14 +197,6 @@ def planned_bases(
         bases.append(_basis(mat, J))
         errors[o.name] = e
     return bases, errors, tuple(fixed)
-
-
-def with_fixed(scene: Scene, fixed: tuple[str, ...]) -> Scene:
-    """A copy of ``scene`` whose objects named in ``fixed`` are not editable (same tracer)."""
-    if not fixed:
-        return scene
-    objs = [dataclasses.replace(o, editable=False) if o.name in fixed else o for o in scene.objects]
-    return dataclasses.replace(scene, objects=objs)
 
 
 def _coefficients(material: dict[str, Any], basis: ObjectBasis) -> tuple[torch.Tensor, torch.Tensor]:
@@ -356,6 +371,11 @@ class GIPlan:
         light_samples: next-event samples per light at the eye vertex.
         eye_light_share: the share of a path's variance that the eye vertex's next-event
             estimate makes (what light samples divide), at the planned bounces.
+        needed_bounces: the bounces the light needs: the last whose own light (measured in the
+            pilots, less their noise) is above :data:`LAST_BOUNCE_SHARE` of the budget.
+        last_bounce_light: the planned last bounce's light (relative to the image).
+        banded_noise: the factor a banded second bounce put on the predicted noise variance
+            (measured with banded pilots, :func:`banded_noise_scale`; 1 without one).
     """
 
     series: Series
@@ -375,6 +395,9 @@ class GIPlan:
     spp_map: torch.Tensor | None = None
     light_samples: int = 1
     eye_light_share: float = 0.0
+    needed_bounces: int = 0
+    last_bounce_light: float = 0.0
+    banded_noise: float = 1.0
 
     @property
     def predicted_error(self) -> float:
@@ -401,6 +424,12 @@ class GIPlan:
         for name, J, e in self.projection_errors:
             lines.append(f"  {name}: {J} band{'s' if J > 1 else ''} (projection error {e:.4f})")
         lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
+        if self.series.two_level:
+            lines.append(f"  the banded second bounce multiplies the noise variance by {self.banded_noise:.2f}")
+        lines.append(
+            f"  the light needs {self.needed_bounces} bounce{'s' if self.needed_bounces > 1 else ''}"
+            f" (the planned last bounce carries {self.last_bounce_light:.4f} of the image)"
+        )
         lines.append(
             f"  {self.light_samples} light sample{'s' if self.light_samples > 1 else ''} per eye vertex"
             f" (its next-event estimate makes {self.eye_light_share:.0%} of a path's variance)"
@@ -409,10 +438,37 @@ class GIPlan:
             lines.append(f"  fixed (not edited): {', '.join(self.fixed)}")
         return "\n".join(lines)
 
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``precompute_polynomial`` that carry out the plan."""
+    def summary(self) -> dict[str, Any]:
+        """The plan as JSON-ready values (what a planned record saves in ``meta["plan_summary"]``)."""
+        return {
+            "error": self.error,
+            "seconds": self.seconds,
+            "series": self.series.key,
+            "spp": self.spp,
+            "adaptive": self.spp_map is not None,
+            "light_samples": self.light_samples,
+            "fixed": list(self.fixed),
+            "predicted_error": self.predicted_error,
+            "band_error": self.band_error,
+            "bounce_error": self.bounce_error,
+            "noise_error": self.noise_error,
+            "predicted_seconds": self.predicted_seconds,
+            "pilot_seconds": self.pilot_seconds,
+            "glossy_to_glossy": self.glossy_to_glossy,
+            "needed_bounces": self.needed_bounces,
+            "last_bounce_light": self.last_bounce_light,
+            "banded_noise": self.banded_noise,
+        }
+
+    def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
+        """The :class:`~torch_brdf.transport.polynomial.PolynomialSettings` that carry out the
+        plan: ``base`` (sampler, tiles, guides, storage; None: the defaults) with the plan's
+        series, spp (or spp map), bases, light samples and fixed objects."""
         spp = self.spp_map if self.spp_map is not None else self.spp
-        return {"series": self.series, "spp": spp, "bases": list(self.bases), "light_samples": self.light_samples}
+        base = PolynomialSettings() if base is None else base
+        return base.replace(
+            series=self.series, spp=spp, bases=self.bases, light_samples=self.light_samples, fixed=self.fixed
+        )
 
 
 def _pooled_variance(x: torch.Tensor, spp: torch.Tensor) -> torch.Tensor:
@@ -448,37 +504,7 @@ def _path_cost(pilots: list[PolynomialTensors], n_max: int) -> torch.Tensor:
     return (1 + 2 * reached.double().cumsum(0)).reshape(n_max + 1, h, w)
 
 
-def plan_from_pilots(
-    scene: Scene,
-    bases: list[ObjectBasis | None],
-    projection_errors: dict[str, float],
-    fixed: tuple[str, ...],
-    pilots: list[PolynomialTensors],
-    error: float | None = None,
-    seconds: float | None = None,
-    adaptive: bool = True,
-    split_pilots: list[PolynomialTensors] | None = None,
-    max_light_samples: int = max(LIGHT_SAMPLES),
-) -> GIPlan:
-    """Decide bounces, second bounce and spp from independent pilot records (see the module).
-
-    Args:
-        scene: the scene (with the plan's fixed objects already fixed).
-        bases: from :func:`planned_bases`.
-        projection_errors: as ``bases``.
-        fixed: as ``bases``.
-        pilots: at least two records of the same series and bases, different seeds and (for
-            the cost fit) at least two different spp; bounces >= the most the plan may
-            choose; no second-bounce level; uniform spp.
-        error: relative RMSE budget; seconds: precompute time budget (at least one).
-        adaptive: a per-pixel spp map (:func:`allocate_spp`); False: one spp for all pixels.
-        split_pilots: optional, at least two more records like ``pilots`` but with
-            ``light_samples`` K >= 2: the plan then also chooses the light samples per eye vertex
-            (one of :data:`LIGHT_SAMPLES`, at most ``max_light_samples``) from how much of the
-            noise they take away.
-    Returns:
-        :class:`GIPlan`.
-    """
+def _check_pilots(error: float | None, seconds: float | None, pilots: list[PolynomialTensors]) -> None:
     if error is None and seconds is None:
         raise ValueRangeError("plan for an error, a time or both; got neither")
     if error is not None and not error > 0:
@@ -487,7 +513,13 @@ def plan_from_pilots(
         raise ValueRangeError(f"the planner needs at least two independent pilot runs; got {len(pilots)}")
     if any(p.meta.get("spp_map") is not None for p in pilots):
         raise ValueRangeError("pilot runs take one spp for every pixel")
-    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+
+
+def _pilot_stats(bases, projection_errors: dict[str, float], pilots: list[PolynomialTensors], mats: dict):
+    """What the pilots measure (see the module): the counted pixels, the image's norm, the
+    bounces, the bounce tails, the per-object light by eye vertex, the
+    glossy-to-glossy light, the per-pixel noise and its relative sigma per bounce count, the
+    path cost per pixel, and the cost fit (seconds per spp, fixed seconds)."""
     keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
     imgs = torch.stack([pilot_images(p, mats) for p in pilots])  # (K, N + 1, H, W, C)
     s = torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64)
@@ -498,25 +530,19 @@ def plan_from_pilots(
     n_max = pilots[0].series.bounces
     # the tail's squared norm less what the pilots' own noise adds to it (E|mean|^2 = |B|^2 +
     # sum_i sigma_i^2 / sum_k s_k, with sigma_i^2 the pooled per-pixel variance)
-    tails = []
+    tails, lasts = [], [0.0]
     for n in range(n_max + 1):
         noise2 = float(_pooled_variance(imgs[:, n + 1 :].sum(1), s)[keep].sum()) / float(s.sum())
         tails.append(max(0.0, float((mean[n + 1 :].sum(0)[keep] ** 2).sum()) - noise2) ** 0.5 / norm)
-    budget = error if error is not None else 1.0
+        if n >= 1:  # bounce n's own light, measured the same way
+            noise2 = float(_pooled_variance(imgs[:, n], s)[keep].sum()) / float(s.sum())
+            lasts.append(max(0.0, float((mean[n][keep] ** 2).sum()) - noise2) ** 0.5 / norm)
     names = list(pilots[0].object_names)
     # per-object light whose eye vertex is on the object, per bounce (for the band error at N)
     # (cumulated over bounces 1..n: index n - 1)
     eye_parts = {
         name: pilot_images(pilots[0], mats, eye={names.index(name)})[1:, keep].cumsum(0) for name in projection_errors
     }
-
-    def band_error_at(n: int) -> float:
-        # the projection error weighted by the light whose eye vertex is on the object
-        return (
-            sum(eps**2 * float((eye_parts[name][n - 1] ** 2).sum()) for name, eps in projection_errors.items()) ** 0.5
-            / norm
-        )
-
     # glossy-to-glossy bounce-2 transport: eye vertex and second vertex both on glossy objects
     glossy = {m for m, bb in enumerate(bases) if bb is not None and bb.J > 1}
     g2g = 0.0
@@ -535,15 +561,15 @@ def plan_from_pilots(
     rate_max = _slope(s, t)
     fixed_s = max(0.0, float(t.mean()) - rate_max * float(s.mean()))
 
-    # light splitting at the eye vertex: a path's variance is V(k) = A + B / k with k light
-    # samples (B: the variance of the eye vertex's next-event estimate), from the variance at
-    # k = 1 (the pilots) and at k = K (``split_pilots``); each extra sample costs a path
-    # EXTRA_SAMPLE_COST ray units per light where the eye ray hits something (the pilots'
-    # seconds are too short to measure it on a loaded machine)
+    return keep, norm, n_max, (tails, lasts), eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s
+
+
+def _light_sample_ratios(split_pilots, mats: dict, pixvar: list, keep, n_max: int, max_light_samples: int):
+    """Per bounce count n: {k: V(k) / V(1)} for the light samples k a plan may take, and the
+    share B / V(1) of a path's variance the eye vertex's next-event estimate makes (from
+    ``split_pilots`` at K light samples; without them only k = 1, share 0)."""
     ratios = {n: {1: 1.0} for n in range(n_max + 1)}
     shares = [0.0] * (n_max + 1)
-    hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
-    extra = EXTRA_SAMPLE_COST * len(scene.lights)
     if split_pilots:
         k_p = int(split_pilots[0].meta.get("light_samples", 1))
         if k_p < 2 or any(int(p.meta.get("light_samples", 1)) != k_p for p in split_pilots) or len(split_pilots) < 2:
@@ -555,6 +581,139 @@ def plan_from_pilots(
             b = min(v1, max(0.0, (v1 - vk) * k_p / (k_p - 1))) if v1 > 0 else 0.0
             shares[n] = b / v1 if v1 > 0 else 0.0
             ratios[n] = {k: (v1 - b + b / k) / v1 if v1 > 0 else 1.0 for k in LIGHT_SAMPLES if k <= max_light_samples}
+    return ratios, shares
+
+
+def _needed_bounces(lasts: list[float], budget: float) -> int:
+    """The bounces the light needs: up to the last one whose own light (``lasts[n]``) is above
+    LAST_BOUNCE_SHARE of the budget. Beyond it more bounces only add cost: a longer series may
+    still look cheaper (it leaves the noise more of the budget), but it models light that is not
+    there."""
+    return max([1] + [n for n in range(1, len(lasts)) if lasts[n] > LAST_BOUNCE_SHARE * budget])
+
+
+def _choose(options: dict, tails: list[float], needed: int, budget: float, for_error: bool) -> tuple[int, int]:
+    """(bounces, light samples) among ``options`` ((n, k) -> spp_for's tuple), never more bounces
+    than ``needed``: for an error the cheapest whose tail is at most BOUNCE_SHARE of the budget
+    (else the fewest bounces whose tail fits), for a time alone the most accurate."""
+    if not for_error:
+        capped = [nk for nk in options if nk[0] <= needed] or list(options)
+        return min(capped, key=lambda nk: (options[nk][3], nk))
+    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget and nk[0] <= needed]
+    if not allowed:  # the tail at the needed bounces is still too large: the fewest whose tail fits
+        fits = [nk[0] for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [max(n for n, _ in options)]
+        allowed = [nk for nk in options if nk[0] == min(fits)]
+    return min(allowed, key=lambda nk: (options[nk][4], nk))
+
+
+def _two_level(bases, bounces: int, g2g: float, budget: float) -> bool:
+    """Whether :func:`_planned_series` gives ``bounces`` a banded second bounce."""
+    return _planned_series(bases, bounces, g2g, budget)[0].two_level
+
+
+def banded_noise_scale(
+    banded: list[PolynomialTensors], pilots: list[PolynomialTensors], mats: dict[str, dict[str, Any]]
+) -> dict[int, float]:
+    r"""How much a banded second bounce multiplies the noise, per number of bounces n >= 2:
+    :math:`\sum_i \sigma_{i,n}^2` of the banded pilots (rendered at the scene's materials) over
+    the same of the 1-band pilots, both pooled per pixel (:func:`_pooled_variance`) over the
+    counted pixels; at least 1 (a banded vertex cannot make the estimate steadier than its
+    diffuse equivalent beyond the pilots' own noise)."""
+    from ..render.polynomial import PolynomialRenderer
+
+    keep = unlit_mask(pilots[0]).reshape(pilots[0].height, pilots[0].width)
+
+    def cumulative(records):
+        imgs = []
+        for t in records:
+            parts = PolynomialRenderer(t, mats, dtype=torch.float64).evaluate(per_bounce=True)
+            imgs.append(torch.stack([p.double() for p in parts]).cumsum(0))
+        return torch.stack(imgs), torch.tensor([float(t.meta["spp"]) for t in records], dtype=torch.float64)
+
+    a, sa = cumulative(banded)
+    b, sb = (
+        torch.stack([pilot_images(p, mats).cumsum(0) for p in pilots]),
+        torch.tensor([float(p.meta["spp"]) for p in pilots], dtype=torch.float64),
+    )
+    out = {}
+    for n in range(2, min(a.shape[1], b.shape[1])):
+        den = float(_pooled_variance(b[:, n], sb)[keep].sum())
+        if den > 0:
+            out[n] = max(1.0, float(_pooled_variance(a[:, n], sa)[keep].sum()) / den)
+    return out
+
+
+def _planned_series(bases, bounces: int, g2g: float, budget: float) -> tuple[Series, list]:
+    """The series of ``bounces`` (a low-frequency second bounce where the glossy-to-glossy light
+    ``g2g`` exceeds its share of the budget) and the bases with its second-bounce bands."""
+    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
+    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
+        series_bands[1] = min(16, series_bands[0])
+    series = Series(tuple(series_bands))
+    if series.two_level:
+        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
+    return series, bases
+
+
+def plan_from_pilots(
+    scene: Scene,
+    bases: list[ObjectBasis | None],
+    projection_errors: dict[str, float],
+    fixed: tuple[str, ...],
+    pilots: list[PolynomialTensors],
+    error: float | None = None,
+    seconds: float | None = None,
+    adaptive: bool = True,
+    split_pilots: list[PolynomialTensors] | None = None,
+    max_light_samples: int = max(LIGHT_SAMPLES),
+    banded_noise: dict[int, float] | None = None,
+) -> GIPlan:
+    """Decide bounces, second bounce and spp from independent pilot records (see the module).
+
+    Args:
+        scene: the scene (with the plan's fixed objects already fixed).
+        bases: from :func:`planned_bases`.
+        projection_errors: as ``bases``.
+        fixed: as ``bases``.
+        pilots: at least two records of the same series and bases, different seeds and (for
+            the cost fit) at least two different spp; bounces >= the most the plan may
+            choose; no second-bounce level; uniform spp.
+        error: relative RMSE budget; seconds: precompute time budget (at least one).
+        adaptive: a per-pixel spp map (:func:`allocate_spp`); False: one spp for all pixels.
+        split_pilots: optional, at least two more records like ``pilots`` but with
+            ``light_samples`` K >= 2: the plan then also chooses the light samples per eye vertex
+            (one of :data:`LIGHT_SAMPLES`, at most ``max_light_samples``) from how much of the
+            noise they take away.
+        banded_noise: bounces -> the factor a banded second bounce puts on the noise variance
+            of the first n bounces (:func:`banded_noise_scale`; absent: 1).
+    Returns:
+        :class:`GIPlan`.
+    """
+    _check_pilots(error, seconds, pilots)
+    banded_noise = banded_noise or {}
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    keep, norm, n_max, (tails, lasts), eye_parts, g2g, pixvar, sigmas, cost, rate_max, fixed_s = _pilot_stats(
+        bases, projection_errors, pilots, mats
+    )
+    budget = error if error is not None else 1.0
+    needed = _needed_bounces(lasts, budget)
+    names = list(pilots[0].object_names)
+
+    def band_error_at(n: int) -> float:
+        # the projection error weighted by the light whose eye vertex is on the object
+        return (
+            sum(eps**2 * float((eye_parts[name][n - 1] ** 2).sum()) for name, eps in projection_errors.items()) ** 0.5
+            / norm
+        )
+
+    # light splitting at the eye vertex: a path's variance is V(k) = A + B / k with k light
+    # samples (B: the variance of the eye vertex's next-event estimate), from the variance at
+    # k = 1 (the pilots) and at k = K (``split_pilots``); each extra sample costs a path
+    # EXTRA_SAMPLE_COST ray units per light where the eye ray hits something (the pilots'
+    # seconds are too short to measure it on a loaded machine)
+    ratios, shares = _light_sample_ratios(split_pilots, mats, pixvar, keep, n_max, max_light_samples)
+    hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
+    extra = EXTRA_SAMPLE_COST * len(scene.lights)
 
     def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float, float]:
         # the cheapest spp (map) with n bounces and k eye light samples for the error within the
@@ -562,15 +721,16 @@ def plan_from_pilots(
         # plan minimises: the pilots' seconds are too short to rank options on a loaded machine)
         c = cost[n] + (k - 1) * extra * hit
         rate = rate_max * n / n_max * float(c.mean() / cost[n].mean())
-        var = pixvar[n] * ratios[n][k]
-        sigma = sigmas[n] * ratios[n][k] ** 0.5
+        scale = banded_noise.get(n, 1.0) if _two_level(bases, n, g2g, budget) else 1.0
+        var = pixvar[n] * ratios[n][k] * scale
+        sigma = sigmas[n] * (ratios[n][k] * scale) ** 0.5
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
         share2 = None
         if error is not None:
             share2 = ((AIM_ADAPTIVE if adaptive else AIM) * error) ** 2 - bias2
             if share2 <= 0:
                 share2 = (0.1 * error) ** 2  # the biases already exceed the budget: keep noise small
-        spp_time = None if seconds is None else max(1e-9, (seconds - fixed_s) / max(rate, 1e-12))
+        spp_time = None if seconds is None else min(MAX_PLANNED_SPP, max(1e-9, (seconds - fixed_s) / max(rate, 1e-12)))
         if adaptive:
             noise = None if share2 is None else share2 * norm**2
             shape = (_smoothed(var, keep) + DEFENSIVE * float(var[keep].mean())).sqrt() * keep
@@ -587,27 +747,11 @@ def plan_from_pilots(
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
         return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp), float(c.mean()) * spp
 
-    # bounces, eye light samples and spp together (a shorter series is cheaper per path but
-    # needs more paths for what its tail takes from the budget): for an error, the cheapest
-    # number of bounces whose tail is at most BOUNCE_SHARE of the budget; for a time alone,
-    # the most accurate
     options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
-    allowed = [nk for nk in options if tails[nk[0]] <= BOUNCE_SHARE * budget] or [
-        nk for nk in options if nk[0] == n_max
-    ]
-    if error is not None:
-        bounces, light_samples = min(allowed, key=lambda nk: (options[nk][4], nk))
-    else:
-        bounces, light_samples = min(options, key=lambda nk: (options[nk][3], nk))
+    bounces, light_samples = _choose(options, tails, needed, budget, error is not None)
     spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
     band_error = band_error_at(bounces)
-    series_bands = [max([1] + [bb.J for bb in bases if bb is not None])] + [1] * (bounces - 1)
-    if bounces >= 2 and g2g * 0.88 > SECOND_SHARE * budget:
-        series_bands[1] = min(16, series_bands[0])
-    series = Series(tuple(series_bands))
-    if series.two_level:
-        bases = [None if bb is None else dataclasses.replace(bb, second=min(series.second, bb.J)) for bb in bases]
-    bias2 = band_error**2 + tails[bounces] ** 2
+    series, bases = _planned_series(bases, bounces, g2g, budget)
     return GIPlan(
         series=series,
         bases=tuple(bases),
@@ -618,7 +762,7 @@ def plan_from_pilots(
         seconds=seconds,
         band_error=band_error,
         bounce_error=tails[bounces],
-        noise_error=math.sqrt(max(0.0, predicted**2 - bias2)),
+        noise_error=math.sqrt(max(0.0, predicted**2 - (band_error**2 + tails[bounces] ** 2))),
         projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
         glossy_to_glossy=g2g,
         predicted_seconds=predicted_seconds,
@@ -626,4 +770,146 @@ def plan_from_pilots(
         spp_map=spp_map,
         light_samples=light_samples,
         eye_light_share=shares[bounces],
+        needed_bounces=needed,
+        last_bounce_light=lasts[bounces],
+        banded_noise=banded_noise.get(bounces, 1.0) if series.two_level else 1.0,
     )
+
+
+def plan_polynomial(
+    scene: Scene,
+    error: float | None = 0.03,
+    seconds: float | None = None,
+    edit: list[str] | None = None,
+    pilot_spp: int = 4,
+    pilot_bounces: int = 8,
+    seed: int = 0,
+    env_point_lights: int | None = None,
+    progress: bool | None = None,
+    pilot_runs: int = 4,
+    adaptive: bool = True,
+    max_light_samples: int = 16,
+) -> GIPlan:
+    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
+
+    Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
+    runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
+    independent of ``seed``'s final run) measure the bounce tail, glossy-to-glossy transport,
+    the per-pixel Monte Carlo noise and the cost; the decisions are :func:`plan_from_pilots`'s.
+    The pilots are :func:`~torch_brdf.transport.polynomial.precompute_polynomial` runs; the
+    plan's :meth:`GIPlan.settings` carry it out.
+
+    Args:
+        scene: the scene.
+        error: relative RMSE budget (against the converged polynomial model).
+        seconds: precompute time budget.
+        edit: the objects to keep editable (default every editable object); the others are fixed.
+        pilot_spp: the pilots' samples per pixel.
+        pilot_bounces: the pilots' bounces (all 1-band after the eye).
+        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
+        env_point_lights: as :class:`~torch_brdf.transport.polynomial.PolynomialSettings` (the
+            pilots light the scene the same way).
+        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
+        pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
+        adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
+        max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
+            two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
+    Returns:
+        :class:`GIPlan` (``print(plan)`` shows choices, cost and error).
+    """
+    if check_count(pilot_runs, "pilot_runs") < 2:
+        raise ValueRangeError(f"the planner needs at least two pilot runs; got {pilot_runs}")
+    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
+    scene = with_fixed(scene, fixed)
+    eye = max([1] + [b.J for b in bases if b is not None])
+    pilot = PolynomialSettings(
+        series=Series((eye,) + (1,) * (pilot_bounces - 1)), bases=bases, env_point_lights=env_point_lights
+    )
+    pilots = [
+        precompute_polynomial(
+            scene, pilot.replace(spp=pilot_spp * (1, 2, 2, 4)[k % 4]), seed=seed + 7919 * (k + 1), progress=progress
+        )
+        for k in range(pilot_runs)
+    ]
+    split = []
+    if check_count(max_light_samples, "max_light_samples") > 1:
+        split = [
+            precompute_polynomial(
+                scene,
+                pilot.replace(spp=pilot_spp * (k + 1), light_samples=4),
+                seed=seed + 7919 * (pilot_runs + k + 1),
+                progress=progress,
+            )
+            for k in range(2)
+        ]
+    args = (scene, bases, errors, fixed, pilots)
+    kw = {"error": error, "seconds": seconds, "adaptive": adaptive, "split_pilots": split}
+    plan = plan_from_pilots(*args, **kw, max_light_samples=max_light_samples)
+    if not plan.series.two_level:
+        return plan
+    # a banded second bounce: its noise is measured with two pilots that have it (the 1-band
+    # pilots under-predict it), and the plan is made again with that noise
+    banded_series = Series((eye, plan.series.second) + (1,) * (pilot_bounces - 2))
+    second = [None if b is None else dataclasses.replace(b, second=min(plan.series.second, b.J)) for b in bases]
+    banded = [
+        precompute_polynomial(
+            scene,
+            pilot.replace(series=banded_series, bases=tuple(second), spp=pilot_spp * (k + 1)),
+            seed=seed + 7919 * (pilot_runs + 3 + k),
+            progress=progress,
+        )
+        for k in range(2)
+    ]
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    scale = banded_noise_scale(banded, pilots, mats)
+    return plan_from_pilots(*args, **kw, max_light_samples=max_light_samples, banded_noise=scale)
+
+
+def precompute_planned(
+    scene: Scene,
+    settings: PolynomialSettings | None = None,
+    *,
+    plan: GIPlan | None = None,
+    error: float | None = None,
+    seconds: float | None = None,
+    seed: int = 0,
+    progress: bool | None = None,
+    checkpoint: str | Path | None = None,
+    **run: Any,
+) -> PolynomialTensors:
+    """Plan the multibounce precomputation for ``error`` and/or ``seconds`` and carry it out.
+
+    Args:
+        scene: the scene.
+        settings: :class:`~torch_brdf.transport.polynomial.PolynomialSettings` whose sampler,
+            environment point lights, tiles, guides and storage the run keeps (the plan
+            decides series, spp, bases, light samples and fixed objects; the pilots use the
+            same environment point lights); None: the defaults.
+        plan: a :class:`GIPlan` to carry out instead of planning (``error`` and ``seconds``
+            are then not used).
+        error: relative RMSE budget; seconds: precompute time budget (see :func:`plan_polynomial`);
+            when neither is given, :data:`DEFAULT_ERROR` within :data:`DEFAULT_SECONDS`.
+        seed: the final run's seed (the pilots take seeds derived from it).
+        progress: tqdm bars (None: on when attached to a terminal or notebook).
+        checkpoint: the final run's tile folder (see
+            :func:`~torch_brdf.transport.polynomial.precompute_polynomial`).
+        run: the rest of ``precompute_polynomial``'s keywords (``executor``, ``processes``...).
+    Returns:
+        :class:`~torch_brdf.records.polynomial.PolynomialTensors` whose ``meta["plan"]`` prints the
+        plan and ``meta["plan_summary"]`` holds it as values (:meth:`GIPlan.summary`).
+    """
+    base = PolynomialSettings() if settings is None else settings
+    if not isinstance(base, PolynomialSettings):
+        raise ValueRangeError(f"settings must be a PolynomialSettings; got {settings!r}")
+    if plan is None and error is None and seconds is None:
+        error, seconds = DEFAULT_ERROR, DEFAULT_SECONDS
+    if plan is None:
+        plan = plan_polynomial(
+            scene, error=error, seconds=seconds, seed=seed, env_point_lights=base.env_point_lights, progress=progress
+        )
+    elif not isinstance(plan, GIPlan):
+        raise ValueRangeError(f"plan must be a GIPlan; got {plan!r}")
+    out = precompute_polynomial(scene, plan.settings(base), seed=seed, progress=progress, checkpoint=checkpoint, **run)
+    out.meta["plan"] = str(plan)
+    out.meta["plan_summary"] = plan.summary()
+    return out

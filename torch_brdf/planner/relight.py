@@ -5,8 +5,8 @@ The error is :math:`e = \mathrm{RMSE} / \mathrm{peak}` of the per-vertex radianc
 vertices the camera sees, against the *converged* relighting: the dense (standard-basis)
 triple product at the reference resolution with finely supersampled, 8-bit graded visibility;
 peak is the reference's maximum. PSNR is :math:`-20 \log_{10} e`. It is measured, not
-modelled: the pilots (:func:`torch_brdf.render.relight_plan.plan_relighting`, which runs
-them, the renderer living above this layer) shade a random sample of the seen vertices with
+modelled: the pilots (:func:`torch_brdf.planner.relight_pilots.plan_relighting`, which runs
+them with the renderer) shade a random sample of the seen vertices with
 every candidate (resolution, visibility, rule) and the reference, and give here, per
 candidate, the RMSE over the sample; the peak comes from the reference on the sample plus
 the brightest vertices of a cheap full-view pass (a highlight on few vertices sets it).
@@ -41,7 +41,7 @@ class RelightPilot:
         resolution: cubemap texels per face side.
         supersample: k (1: binary maps).
         bits: graded-visibility bits (0: binary).
-        rule: name of the BRDF-sampling rule (see :data:`torch_brdf.render.relight_plan.RULES`).
+        rule: name of the BRDF-sampling rule (see :data:`torch_brdf.planner.relight_pilots.RULES`).
         sq_error: the mean over the sampled vertices and channels of the squared error
             against the reference (RMSE^2, not yet divided by the peak).
         precompute_seconds: predicted seconds of the visibility of every scene vertex.

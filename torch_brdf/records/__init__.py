@@ -19,7 +19,16 @@ the one checkpoint / resume mechanism of every precomputation.
 """
 
 from .basis_image import BasisImage, float16_error
-from .cache import Checkpoint, CorruptCacheWarning, TileCache, remove_cache, settings_key
+from .cache import (
+    ArraySpec,
+    CacheSchema,
+    Checkpoint,
+    CorruptCacheWarning,
+    MetaSpec,
+    TileCache,
+    remove_cache,
+    settings_key,
+)
 from .codec import Member, Record, check_schema, load_record, save_record
 from .fits import FitResult, GPLVMFit
 from .guides import GuideBuffers
@@ -28,14 +37,17 @@ from .visibility import SceneVertices, VertexVisibility, scene_vertices
 from .visibility_codec import BlockVisibility
 
 __all__ = [
+    "ArraySpec",
     "BasisImage",
     "BlockVisibility",
+    "CacheSchema",
     "Checkpoint",
     "CorruptCacheWarning",
     "FitResult",
     "GPLVMFit",
     "GuideBuffers",
     "Member",
+    "MetaSpec",
     "ObjectBasis",
     "PolynomialTensors",
     "Record",

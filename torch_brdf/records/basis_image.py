@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from .._checks import as_float_tensor, check_finite
+from .._checks import as_float_tensor, check_finite, check_image_size
 from ..errors import ShapeError
 from .codec import Member, Record
 
@@ -66,6 +66,7 @@ class BasisImage(Record):
     }
 
     def __post_init__(self):
+        check_image_size(self.width, self.height, "basis image")  # the same cap as any image input
         v = self.values
         if v.ndim != 3:
             raise ShapeError(f"Expected values to have shape (C, J, P); got {tuple(v.shape)}")

@@ -29,7 +29,7 @@ __all__ = ["Arrays", "Member", "Record", "check_schema", "load_record", "save_re
 
 def save_record(path: str | Path, record: Record, extra: dict[str, Any] | None = None, **options) -> Path:
     """Write ``record`` atomically; ``extra`` is merged into the file's metadata (e.g. a cache key)."""
-    arrays, meta = record.to_arrays(**options)
+    arrays, meta = record.arrays_to_save(**options)
     return save_arrays(path, arrays, kind=record.kind, meta={**meta, **(extra or {})}, kind_version=record.version)
 
 
@@ -109,6 +109,12 @@ class Record:
     version: ClassVar[int] = 1
     #: every array the file may hold (name or pattern -> :class:`Member`); checked on load
     schema: ClassVar[dict[str, Member]] = {}
+
+    def arrays_to_save(self, **options) -> tuple[Arrays, dict[str, Any]]:
+        """What :meth:`save` writes: :meth:`to_arrays`, where a large record may defer its dtype
+        conversions (callables, see :func:`~torch_brdf.io.arrays.save_arrays`) so that they are
+        made one at a time while the file is written."""
+        return self.to_arrays(**options)
 
     def to_arrays(self, **options) -> tuple[Arrays, dict[str, Any]]:
         """-> (name -> numeric array, JSON-serialisable metadata)."""

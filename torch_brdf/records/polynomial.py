@@ -20,9 +20,10 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from .._checks import MAX_BANDS
+from .._checks import MAX_BANDS, MAX_BOUNCES
 from ..brdf.bands import BandBasis, Quotient, SchlickFresnel, make_quotient
 from ..errors import FileFormatError, SceneError, ValueRangeError
+from ..io.arrays import Converted
 from .basis_image import BasisImage
 from .codec import Member, Record
 from .guides import GuideBuffers
@@ -50,6 +51,11 @@ class Series:
         object.__setattr__(self, "bands", b)
         if not b or any(x < 1 for x in b):
             raise ValueRangeError(f"a BRDF series needs >= 1 bounce and bands >= 1; got {b}")
+        if len(b) > MAX_BOUNCES or max(b) > MAX_BANDS:
+            raise ValueRangeError(
+                f"a BRDF series has at most {MAX_BOUNCES} bounces of at most {MAX_BANDS} bands; got {len(b)} "
+                f"bounces, {max(b)} bands"
+            )
         if any(b[i] < b[i + 1] for i in range(len(b) - 1)):
             raise ValueRangeError(f"a BRDF series must not increase away from the eye (Eq. 17); got {b}")
         if any(x != 1 for x in b[2:]):
@@ -60,10 +66,14 @@ class Series:
         if isinstance(spec, Series):
             return spec
         if isinstance(spec, str):
+            # every entry is a number: "4,,1" or "64,1," is a typo, not the series (4, 1) or (64, 1)
+            parts = spec.strip().removeprefix("(").removesuffix(")").split(",")
             try:
-                spec = [int(s) for s in spec.replace("(", "").replace(")", "").split(",") if s.strip()]
+                if any(not p.strip() for p in parts):
+                    raise ValueError("an empty entry")
+                spec = [int(p) for p in parts]
             except ValueError as exc:
-                raise ValueRangeError(f"cannot parse BRDF series {spec!r}; expected e.g. '64,1,1,1'") from exc
+                raise ValueRangeError(f"cannot parse BRDF series {spec!r} ({exc}); expected e.g. '64,1,1,1'") from None
         return cls(tuple(spec))
 
     @property
@@ -111,8 +121,10 @@ class ObjectBasis:
                 f"precomputed bases must be one-hot in (wi, wo): variable in {_SUPPORTED_VARIABLES}; "
                 f"got {self.variable!r}"
             )
-        if self.J < 1 or not 1 <= self.second <= self.J:
-            raise ValueRangeError(f"need J >= 1 and 1 <= second <= J; got J={self.J}, second={self.second}")
+        if not 1 <= self.J <= MAX_BANDS or not 1 <= self.second <= self.J:
+            raise ValueRangeError(
+                f"need 1 <= J <= {MAX_BANDS} and 1 <= second <= J; got J={self.J}, second={self.second}"
+            )
 
     def spec(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("J", "variable", "spacing", "quotient", "fresnel", "second")}
@@ -351,13 +363,19 @@ class PolynomialTensors(Record):
         return BasisImage(vals, pix, self.height, self.width, None, var, basis, {"object": self.object_names[m]})
 
     # -- files ------------------------------------------------------------------------------
-    def to_arrays(self, storage: str = "float32") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def arrays_to_save(self, storage: str = "float32") -> tuple[dict[str, Any], dict[str, Any]]:
+        """:meth:`to_arrays` with the conversions of the entries deferred to the write."""
+        return self.to_arrays(storage, deferred=True)
+
+    def to_arrays(self, storage: str = "float32", deferred: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
         """Arrays and metadata for :meth:`save` (``save(path, storage=...)``).
 
         Args:
             storage: ``"float32"`` or ``"float16"`` (half the bytes; relative rounding error
                 <= 2^-11 = 4.9e-4 per entry; entries below ~6e-8 flush towards zero and
                 above 65504 overflow, which is checked: use float32 then).
+            deferred: converted arrays as callables that make them (what :meth:`save` passes);
+                arrays already of the stored dtype are views either way.
         """
         dt = {"float32": np.float32, "float16": np.float16}.get(storage)
         if dt is None:
@@ -371,13 +389,14 @@ class PolynomialTensors(Record):
             v = b.values.numpy()
             if dt is np.float16 and np.abs(v).max(initial=0) > 65504:
                 raise ValueRangeError("tensor entries exceed the float16 range; save with storage='float32'")
-            arrays[f"b{i}_values"] = v.astype(dt)
+            # conversions are deferred (made while saving, one array at a time), views passed as they are
+            arrays[f"b{i}_values"] = _stored(v, dt, deferred)
             small = math.prod(b.shape[1:]) < 2**31
-            arrays[f"b{i}_index"] = b.index.numpy().astype(np.int32 if small else np.int64)
+            arrays[f"b{i}_index"] = _stored(b.index.numpy(), np.int32 if small else np.int64, deferred)
             arrays[f"b{i}_pixels"] = b.pixels.numpy()
             arrays[f"b{i}_terms"] = b.terms.numpy()
             if b.variance is not None:
-                arrays[f"b{i}_variance"] = b.variance.numpy().astype(dt)
+                arrays[f"b{i}_variance"] = _stored(b.variance.numpy(), dt, deferred)
             index.append([b.object_id, b.bounce, b.J])
         if self.guides is not None:
             arrays.update(self.guides.to_arrays())
@@ -434,3 +453,11 @@ class PolynomialTensors(Record):
             dict(meta.get("meta", {})),
             GuideBuffers.from_arrays(arrays),
         )
+
+
+def _stored(a: np.ndarray, dtype, deferred: bool):
+    """``a`` itself when it has ``dtype``, else its conversion, made now or (``deferred``) by a
+    callable while the file is written (see ``save_arrays``)."""
+    if a.dtype == dtype:
+        return a
+    return Converted(a, dtype) if deferred else a.astype(dtype)

@@ -17,6 +17,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from .._checks import MAX_SUPERSAMPLE, check_count
 from ..errors import FileFormatError, SceneError
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
@@ -188,4 +189,5 @@ class VertexVisibility(Record):
             raise FileFormatError(f"{blocks.counts.shape[0]} maps for {len(verts)} vertices")
         if verts.fingerprint != meta["fingerprint"]:
             raise FileFormatError("vertex arrays do not match the stored fingerprint")
-        return cls(geom, verts, blocks, int(meta["supersample"]), int(meta["bits"]))
+        supersample = check_count(meta["supersample"], "supersample", MAX_SUPERSAMPLE)  # the input's cap
+        return cls(geom, verts, blocks, supersample, int(meta["bits"]))

@@ -40,7 +40,9 @@ Nothing here loops in Python over vertices, blocks or entries: encoding works on
 ``_CHUNK_PAIRS`` vertex-block pairs at a time (to bound the temporaries; each chunk is one
 set of numpy array operations, several times faster than the torch equivalents for the
 byte-sized masks and ``nonzero``), and parsing a stream finds the block starts by pointer
-doubling (``ceil(log2 NB)`` vectorised steps).
+doubling (``ceil(log2 NB)`` vectorised steps), a run of whole vertices (1/128 of the stream,
+16 KB to 1 MB) at a time, into arrays allocated once: a load's temporaries stay below the
+stream's size, where one parse of the whole stream held ~70 bytes per stream byte.
 """
 
 from __future__ import annotations
@@ -62,6 +64,9 @@ BLOCK_TEXELS = 256
 OCCLUDED, UNOCCLUDED, PARTIAL = 0, 1, 2
 #: vertex-block pairs per encoding chunk (16M texels): bounds the temporaries of ``encode``
 _CHUNK_PAIRS = 1 << 16
+#: stream bytes parsed at once when decoding: a 1/_DECODE_CHUNK_DIVISOR part of the stream,
+#: within [_DECODE_MIN_BYTES, _DECODE_MAX_BYTES] (see ``_decode_stream``)
+_DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES, _DECODE_MAX_BYTES = 128, 1 << 14, 1 << 20
 _MAX_BITS = 8
 _MAX_VARINT_BYTES = 10  # 64-bit values
 
@@ -144,13 +149,15 @@ def encode_varints(values) -> np.ndarray:
     return _encode_varints(a.astype(np.uint64).reshape(-1))[0]
 
 
-def _parse_varints(stream: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Values ``(N,)`` uint64 and terminator mask ``(S,)`` bool of a varint stream."""
+def _parse_varints(stream: np.ndarray, what: str, first_byte: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Values ``(N,)`` uint64 and terminator mask ``(S,)`` bool of a varint stream (a part of a
+    longer one from byte ``first_byte`` on: messages name bytes of the whole stream)."""
     term = stream < 0x80
     if stream.size and not term[-1]:
+        end = first_byte + stream.size
         raise FileFormatError(
             f"{what}: truncated stream, the last varint runs off the end "
-            f"(byte {stream.size - 1} of {stream.size} has its continuation bit set)"
+            f"(byte {end - 1} of {end} has its continuation bit set)"
         )
     ends = np.flatnonzero(term)
     starts = np.empty_like(ends)
@@ -160,11 +167,12 @@ def _parse_varints(stream: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarra
     if lengths.size and int(lengths.max()) > _MAX_VARINT_BYTES:
         i = int(np.argmax(lengths))
         raise FileFormatError(
-            f"{what}: varint at byte {int(starts[i])} is {int(lengths[i])} bytes long (at most 10 for 64 bits)"
+            f"{what}: varint at byte {first_byte + int(starts[i])} is {int(lengths[i])} bytes long "
+            "(at most 10 for 64 bits)"
         )
     long = np.flatnonzero((lengths == _MAX_VARINT_BYTES) & (stream[ends] > 1))
     if long.size:
-        raise FileFormatError(f"{what}: varint at byte {int(starts[long[0]])} overflows 64 bits")
+        raise FileFormatError(f"{what}: varint at byte {first_byte + int(starts[long[0]])} overflows 64 bits")
     if not ends.size:
         return np.zeros(0, dtype=np.uint64), term
     shift = (np.arange(stream.size, dtype=np.int64) - np.repeat(starts, lengths)) * 7
@@ -366,18 +374,31 @@ class BlockVisibility(Record):
     # -- construction -------------------------------------------------------------------
     @classmethod
     def _from_entries(cls, block_count, bits, counts, index, delta, meta=None) -> BlockVisibility:
-        """Build offsets and states from ``(P, NB)`` int16 counts and the flat entries."""
-        offsets = _offsets_from_counts(counts)
-        flat = counts.reshape(-1)
-        states = torch.full(flat.shape, PARTIAL, dtype=torch.uint8)
-        states[flat == 0] = OCCLUDED
-        if index.numel():
-            first = offsets[:-1].clamp(max=index.numel() - 1)
-            full = (flat == 1) & (index[first] == 0)
-            if bits:
-                full &= delta[first] == _levels(bits)
-            states[full] = UNOCCLUDED
-        return cls(block_count, bits, counts, offsets, index, delta, states.reshape(counts.shape), dict(meta or {}))
+        """Build offsets and states from ``(P, NB)`` int16 counts and the flat entries (in runs of
+        ``_CHUNK_PAIRS`` pairs: no temporary of the size of all pairs beside the results)."""
+        flat = counts.reshape(-1).numpy()
+        offsets = np.empty(flat.size + 1, dtype=np.int64)
+        offsets[0] = 0
+        np.cumsum(flat, dtype=np.int64, out=offsets[1:])
+        states = np.empty(flat.size, dtype=np.uint8)
+        idx = index.numpy()
+        dlt = delta.numpy() if bits else None
+        for q0 in range(0, flat.size, _CHUNK_PAIRS):
+            q1 = min(q0 + _CHUNK_PAIRS, flat.size)
+            f0, f1 = int(offsets[q0]), int(offsets[q1])
+            states[q0:q1] = _states(
+                flat[q0:q1], offsets[q0 : q1 + 1] - f0, idx[f0:f1], dlt[f0:f1] if bits else None, bits
+            )
+        return cls(
+            block_count,
+            bits,
+            counts,
+            torch.from_numpy(offsets),
+            index,
+            delta,
+            torch.from_numpy(states).reshape(counts.shape),
+            dict(meta or {}),
+        )
 
     @classmethod
     def encode(cls, visibility, bits: int = 0, meta: dict[str, Any] | None = None) -> BlockVisibility:
@@ -721,8 +742,9 @@ class BlockVisibility(Record):
                 f"block visibility: {vo.size - 1} vertices x {nb} blocks need at least {(vo.size - 1) * nb:,} "
                 f"count bytes; the stream has {stream.size:,}"
             )
-        counts, index, delta = _parse_stream(stream, vo, nb, bits)
-        return cls._from_entries(nb, bits, counts, index, delta, meta)
+        arrays = (torch.from_numpy(a) if a is not None else None for a in _decode_stream(stream, vo, nb, bits))
+        counts, offsets, index, delta, states = arrays
+        return cls(nb, bits, counts, offsets, index, delta, states, dict(meta or {}))
 
     # -- files --------------------------------------------------------------------------
     def to_arrays(self, meta: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -763,17 +785,95 @@ class BlockVisibility(Record):
         return rec
 
 
-def _parse_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int):
-    """Counts ``(P, NB)`` int16, index ``(F,)`` uint8, delta ``(F,)`` int16 or None of a stream."""
+def _decode_chunk_bytes(size: int) -> int:
+    """Stream bytes parsed at once for a stream of ``size`` bytes (see :func:`_decode_stream`)."""
+    return int(min(max(size // _DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES), _DECODE_MAX_BYTES))
+
+
+def _decode_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int):
+    """Counts, offsets, index, delta and states of a whole stream, parsed a run of vertices at a time.
+
+    Parsing one run costs ~70 bytes of temporaries per stream byte (int64 tokens, shifts,
+    pointer-doubling tables), so runs are kept to a small fraction of the stream (and at
+    most a few MB): the transient stays below the stream's own size. The results go into
+    arrays allocated once: ``index`` and ``delta`` at their upper bound (every entry costs at
+    least one stream byte, a graded one two), of which only the pages written become
+    resident, then shrunk in place to the entries found.
+
+    Returns:
+        numpy ``counts`` ``(P, NB)`` int16, ``offsets`` ``(P*NB+1,)`` int64, ``index`` ``(F,)``
+        uint8, ``delta`` ``(F,)`` int16 or None, ``states`` ``(P, NB)`` uint8: the arrays of
+        :class:`BlockVisibility`, the same as one parse of the whole stream.
+    """
+    n_vertices = vertex_offsets.size - 1
+    counts = np.empty((n_vertices, nb), dtype=np.int16)
+    states = np.empty((n_vertices, nb), dtype=np.uint8)
+    offsets = np.empty(n_vertices * nb + 1, dtype=np.int64)
+    offsets[0] = 0
+    index = np.empty(stream.size, dtype=np.uint8)
+    delta = np.empty(stream.size // 2, dtype=np.int16) if bits else None
+    step = _decode_chunk_bytes(stream.size)
+    v0, n_entries = 0, 0
+    while v0 < n_vertices:
+        # the run: whole vertices up to ``step`` bytes past its first byte (at least one vertex)
+        v1 = max(int(np.searchsorted(vertex_offsets, vertex_offsets[v0] + step, side="right")) - 1, v0 + 1)
+        v1 = min(v1, n_vertices)
+        b0, b1 = int(vertex_offsets[v0]), int(vertex_offsets[v1])
+        if b1 < stream.size:  # the run must end at a varint boundary (its inside is checked by the parse)
+            ends = vertex_offsets[v0 + 1 : v1 + 1]
+            split = np.flatnonzero((ends > 0) & (stream[np.maximum(ends - 1, 0)] >= 0x80))
+            if split.size:
+                raise FileFormatError(
+                    f"block visibility: a varint runs off the end of vertex {v0 + int(split[0])} "
+                    "(its bytes end inside a varint)"
+                )
+        c, i, d = _parse_stream(stream[b0:b1], vertex_offsets[v0 : v1 + 1] - b0, nb, bits, v0, b0)
+        q0, q1, f = v0 * nb, v1 * nb, i.size
+        counts[v0:v1] = c
+        flat = c.reshape(-1)
+        np.cumsum(flat, out=offsets[q0 + 1 : q1 + 1])
+        offsets[q0 + 1 : q1 + 1] += n_entries
+        index[n_entries : n_entries + f] = i
+        if bits:
+            delta[n_entries : n_entries + f] = d
+        states[v0:v1] = _states(flat, offsets[q0 : q1 + 1] - n_entries, i, d, bits).reshape(c.shape)
+        n_entries += f
+        v0 = v1
+    index.resize(n_entries, refcheck=False)  # in place: no copy, the untouched tail never was resident
+    if bits:
+        delta.resize(n_entries, refcheck=False)
+    return counts, offsets, index, delta, states
+
+
+def _states(counts: np.ndarray, offsets: np.ndarray, index: np.ndarray, delta, bits: int) -> np.ndarray:
+    """Block states ``(Q,)`` uint8 of ``Q`` pairs from their counts, CSR offsets and entries."""
+    states = np.full(counts.shape, PARTIAL, dtype=np.uint8)
+    states[counts == 0] = OCCLUDED
+    if index.size:
+        first = np.minimum(offsets[:-1], index.size - 1)
+        full = (counts == 1) & (index[first] == 0)
+        if bits:
+            full &= delta[first] == _levels(bits)
+        states[full] = UNOCCLUDED
+    return states
+
+
+def _parse_stream(
+    stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int, first_vertex: int = 0, first_byte: int = 0
+):
+    """Counts ``(P, NB)`` int16, index ``(F,)`` uint8, delta ``(F,)`` int16 or None of a stream
+    (numpy), which starts at vertex ``first_vertex`` and byte ``first_byte`` of the whole one:
+    messages name vertices and bytes of the whole stream."""
     n_vertices = vertex_offsets.size - 1
     width = 2 if bits else 1
-    tokens, term = _parse_varints(stream, "block visibility")
+    tokens, term = _parse_varints(stream, "block visibility", first_byte)
     # every vertex must end at a varint boundary
     inner = vertex_offsets[1:-1]
     split = np.flatnonzero((inner > 0) & ~term[np.maximum(inner - 1, 0)]) if inner.size else inner[:0]
     if split.size:
         raise FileFormatError(
-            f"block visibility: a varint runs off the end of vertex {int(split[0])} (its bytes end inside a varint)"
+            f"block visibility: a varint runs off the end of vertex {first_vertex + int(split[0])} "
+            "(its bytes end inside a varint)"
         )
     n_tokens = tokens.size
     tok = np.minimum(tokens, np.uint64(1 << 40)).astype(np.int64)  # caps garbage before arithmetic
@@ -800,21 +900,23 @@ def _parse_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits:
     if short.any():
         v, b = np.argwhere(short)[0]
         raise FileFormatError(
-            f"block visibility: vertex {int(v)} ends before its block {int(b)} of {nb} "
+            f"block visibility: vertex {first_vertex + int(v)} ends before its block {int(b)} of {nb} "
             "(counts inconsistent with the stream, or the stream is truncated)"
         )
     counts = tok[block_at]
     if counts.size and int(counts.max()) > BLOCK_TEXELS:
         v, b = np.argwhere(counts > BLOCK_TEXELS)[0]
         raise FileFormatError(
-            f"block visibility: vertex {int(v)} block {int(b)} claims {int(counts[v, b])} entries (at most 256)"
+            f"block visibility: vertex {first_vertex + int(v)} block {int(b)} claims {int(counts[v, b])} entries "
+            "(at most 256)"
         )
     last_end = block_at[:, -1] + 1 + width * counts[:, -1]
     extra = last_end != ends
     if extra.any():
         v = int(np.flatnonzero(extra)[0])
         raise FileFormatError(
-            f"block visibility: vertex {v} has {int(ends[v] - last_end[v])} tokens left after its {nb} blocks "
+            f"block visibility: vertex {first_vertex + v} has {int(ends[v] - last_end[v])} tokens left "
+            f"after its {nb} blocks "
             "(counts inconsistent with the stream)"
         )
     flat_counts = counts.reshape(-1)
@@ -827,7 +929,8 @@ def _parse_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits:
 
     def where(mask) -> tuple[int, str]:
         e = int(np.flatnonzero(mask)[0])
-        return e, f"block visibility: vertex {int(pair[e] // nb)} block {int(pair[e] % nb)} entry {int(rank[e])}"
+        vertex, block = first_vertex + int(pair[e] // nb), int(pair[e] % nb)
+        return e, f"block visibility: vertex {vertex} block {block} entry {int(rank[e])}"
 
     if gap.size and int(gap.max()) > BLOCK_TEXELS - 1:
         e, at_entry = where(gap > BLOCK_TEXELS - 1)
@@ -852,12 +955,8 @@ def _parse_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits:
         if out.any():
             e, at_entry = where(out)
             raise FileFormatError(f"{at_entry}: decoded visibility leaves [0, 1] (level {int(level[e])} of {levels})")
-        delta = torch.from_numpy(d.astype(np.int16))
-    return (
-        torch.from_numpy(counts.astype(np.int16)),
-        torch.from_numpy(index.astype(np.uint8)),
-        delta,
-    )
+        delta = d.astype(np.int16)
+    return counts.astype(np.int16), index.astype(np.uint8), delta
 
 
 def _segment_cumsum(x: np.ndarray, offsets: np.ndarray, pair: np.ndarray) -> np.ndarray:

@@ -281,6 +281,164 @@ class _Reduced:
         return torch.cat(cols, 2)
 
 
+def _fit_inputs(H: int, W: int, target, weights, albedo_max: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``fit_image``'s target (H, W, 3) and weights (H, W, 3), float64, checked."""
+    tgt = as_float_tensor(target, "target").to(torch.float64)
+    if tgt.shape != (H, W, 3):
+        raise ShapeError(f"Expected target of shape ({H}, {W}, 3); got {tuple(tgt.shape)}")
+    check_finite(tgt, "target")
+    w = torch.ones(H, W, 3, dtype=torch.float64) if weights is None else as_float_tensor(weights, "weights").double()
+    if w.ndim == 2:
+        w = w[..., None].expand(H, W, 3)
+    if w.shape != (H, W, 3):
+        raise ShapeError(f"Expected weights of shape ({H}, {W}[, 3]); got {tuple(w.shape)}")
+    check_finite(w, "weights")
+    if bool((w < 0).any()):
+        raise ValueRangeError("weights must be >= 0")
+    if not albedo_max > 0:
+        raise ValueRangeError(f"albedo_max must be > 0; got {albedo_max}")
+    return tgt, w
+
+
+def _family_blocks(families: dict, ids: list[int], labels: list[str], sizes: list[int]) -> list[torch.Tensor]:
+    """Per fitted object its matrix B (size, K): the family's, or the identity for a free curve."""
+    blocks = []
+    for k, (m, lab) in enumerate(zip(ids, labels, strict=True)):
+        fam = families.get(lab, families.get(m))
+        if fam is None:
+            blocks.append(torch.eye(sizes[k], dtype=torch.float64))
+        else:
+            fam = as_float_tensor(fam, "family").double()
+            if fam.ndim != 2 or fam.shape[0] != sizes[k] or bool((fam < 0).any()):
+                raise ShapeError(
+                    f"Expected a non-negative family matrix ({sizes[k]}, K) for {lab!r}; got {tuple(fam.shape)}"
+                )
+            blocks.append(fam)
+    return blocks
+
+
+def _losses(img: torch.Tensor, bp: torch.Tensor, wp: torch.Tensor) -> torch.Tensor:
+    """Per channel (C,): half the weighted squared residual of the painted pixels (P, C)."""
+    r = img - bp
+    return 0.5 * (wp * r * r).sum(0)
+
+
+def _gauss_newton_step(A, img, bp, wp, R2, y, G, h, scale, kkt) -> torch.Tensor:
+    """The next iterate (nt, C): per channel the QP of the Gauss-Newton model at ``y`` with the
+    Jacobian ``A`` (C, P, nt); fills ``scale`` and ``kkt`` (C,) (the KKT residual at ``y``)."""
+    nt = y.shape[0]
+    r = img - bp  # (P, C)
+    y_new = y.clone()
+    for ch in range(3):
+        Aw = A[ch].T * wp[:, ch]
+        Hc = Aw @ A[ch] + R2
+        scale[ch] = max(float((Aw @ bp[:, ch]).abs().max()), float(Hc.abs().max()), 1e-300)
+        mu = 1e-12 * max(float(Hc.diagonal().max()), 1e-300)
+        g = Aw @ r[:, ch] + R2 @ y[:, ch]  # gradient of the loss at y
+        f = Hc @ y[:, ch] - g + mu * y[:, ch]
+        yq, u, z = _qp_step(Hc + mu * torch.eye(nt, dtype=torch.float64), f, G[ch], h)
+        y_new[:, ch] = yq
+        # KKT at the iterate: g + G^T u - z = 0, z y = 0, u (G y - h) = 0
+        stat = (g + G[ch].T @ u - z).abs().max()
+        comp = max(float((z * y[:, ch]).abs().max()), float((u * (G[ch] @ y[:, ch] - h)).abs().max()))
+        kkt[ch] = max(float(stat), comp) / scale[ch]
+    return y_new
+
+
+def _backtrack(y, y_new, img, lc, frame, losses, reg):
+    """Backtracking per channel (the loss is separable in the channels): (iterate, its image,
+    its losses) of the longest step to ``y_new`` (halved per channel up to 40 times) that does
+    not raise the channel's loss; ``y`` itself when none does."""
+    step = y_new - y
+    alpha = torch.ones(3, dtype=torch.float64)
+    base = lc + reg(y)
+    for _ in range(40):
+        trial = y + step * alpha
+        timg = frame(trial)
+        tl = losses(timg)
+        bad = (tl + reg(trial)) > base * (1 + 1e-15) + 1e-300
+        if not bool(bad.any()):
+            return trial, timg, tl
+        alpha = torch.where(bad, alpha * 0.5, alpha)
+    return y, img, lc
+
+
+class _FitModel:
+    """The image of ``fit_image``'s variables y (c = B y) on the painted pixels and its exact
+    Jacobian: through the reduced tensors (``red``) when they exist, else the renderer."""
+
+    def __init__(self, renderer, ids, splits, pspl, sel, B, rows, rows_y, red):
+        self.renderer, self.ids, self.splits, self.pspl, self.sel = renderer, ids, splits, pspl, sel
+        self.B, self.rows, self.rows_y, self.red = B, rows, rows_y, red
+        self.n, self.dt = B.shape[0], renderer.dtype
+
+    def render(self, xc):
+        for k, m in enumerate(self.ids):
+            self.renderer.set_coefficients(m, xc[self.splits[k] : self.splits[k + 1]].to(self.dt))
+        return self.renderer()
+
+    def parts(self, yc):
+        """The fitted variables per object and the diffuse equivalents (M, C)."""
+        ys = [yc[self.pspl[k] : self.pspl[k + 1]] for k in range(len(self.ids))]
+        return ys, torch.stack([(r * v).sum(0) for r, v in zip(self.rows_y, ys, strict=True)])
+
+    def frame(self, yc):
+        """(P, C): the painted pixels."""
+        if self.red is not None:
+            return self.red.image(*self.parts(yc))
+        return self.render(self.B @ yc).detach().reshape(-1, 3)[self.sel].double()
+
+    def jacobian(self, xc):
+        """(C, P, nt): d image / d y, exact (y are the curves c or family parameters)."""
+        if self.red is not None:
+            return self.red.jacobian(*self.parts(xc), self.rows_y)
+        xc = self.B @ xc
+        if self.renderer.two_level:
+            return self._jacobian_dual(xc) @ self.B
+        # the image is linear in the eye coefficients c for fixed diffuse equivalents d
+        # (Eq. 26/28), and d = row . c: columns = (image(e_i; d) - image(0; d)) + dI/dd * row_i
+        renderer, ids, splits, dt, sel = self.renderer, self.ids, self.splits, self.dt, self.sel
+        self.render(xc)
+        ds = [renderer.d[m].detach().clone() for m in ids]
+
+        def plain(xe):
+            for k, m in enumerate(ids):
+                renderer.set_coefficients(m, xe[splits[k] : splits[k + 1]].to(dt), d=ds[k])
+            return renderer().detach().reshape(-1, 3)[sel].double()
+
+        zero = torch.zeros(self.n, 3, dtype=torch.float64)
+        base = plain(zero)
+        cols = []
+        for i in range(self.n):
+            e = zero.clone()
+            e[i] = 1.0
+            cols.append(plain(e) - base)
+        A = torch.stack(cols, -1)  # (P, C, n)
+        for k in range(len(ids)):
+            with fwAD.dual_level():
+                for q, mm in enumerate(ids):
+                    dq = ds[q].to(dt)
+                    if q == k:
+                        dq = fwAD.make_dual(dq, torch.ones_like(dq))
+                    renderer.set_coefficients(mm, xc[splits[q] : splits[q + 1]].to(dt), d=dq)
+                tangent = fwAD.unpack_dual(renderer()).tangent  # None: no bounce sees d (1 bounce)
+            if tangent is not None:
+                dd = tangent.reshape(-1, 3)[sel].double()  # (P, C)
+                A[:, :, splits[k] : splits[k + 1]] += dd[:, :, None] * self.rows[k].T[None]
+        return A.permute(1, 0, 2) @ self.B
+
+    def _jacobian_dual(self, xc):
+        """Forward mode, one pass per coefficient (all channels at once)."""
+        cols = []
+        for i in range(self.n):
+            with fwAD.dual_level():
+                t = torch.zeros(self.n, 3, dtype=torch.float64)
+                t[i] = 1.0
+                img = self.render(fwAD.make_dual(xc, t))
+                cols.append(fwAD.unpack_dual(img).tangent.reshape(-1, 3)[self.sel].double())
+        return torch.stack(cols, -1).permute(1, 0, 2)
+
+
 def fit_image(
     renderer: PolynomialRenderer,
     objects,
@@ -322,21 +480,7 @@ def fit_image(
     names = [objects] if isinstance(objects, (str, int)) else list(objects)
     if not names:
         raise ValueRangeError("fit_image needs at least one object")
-    H, W = renderer.height, renderer.width
-    tgt = as_float_tensor(target, "target").to(torch.float64)
-    if tgt.shape != (H, W, 3):
-        raise ShapeError(f"Expected target of shape ({H}, {W}, 3); got {tuple(tgt.shape)}")
-    check_finite(tgt, "target")
-    w = torch.ones(H, W, 3, dtype=torch.float64) if weights is None else as_float_tensor(weights, "weights").double()
-    if w.ndim == 2:
-        w = w[..., None].expand(H, W, 3)
-    if w.shape != (H, W, 3):
-        raise ShapeError(f"Expected weights of shape ({H}, {W}[, 3]); got {tuple(w.shape)}")
-    check_finite(w, "weights")
-    if bool((w < 0).any()):
-        raise ValueRangeError("weights must be >= 0")
-    if not albedo_max > 0:
-        raise ValueRangeError(f"albedo_max must be > 0; got {albedo_max}")
+    tgt, w = _fit_inputs(renderer.height, renderer.width, target, weights, albedo_max)
     sel = w.reshape(-1, 3).sum(1) > 0
     wp = w.reshape(-1, 3)[sel]  # (P, C)
     bp = tgt.reshape(-1, 3)[sel]
@@ -360,98 +504,22 @@ def fit_image(
     R2 = smoothness * (D.T @ D) if smoothness else torch.zeros(n, n, dtype=torch.float64)
     # the fitted variables y: c = B y (B = identity for free curves)
     families = families or {}
-    blocks, psizes = [], []
-    for k, (m, lab) in enumerate(zip(ids, labels, strict=True)):
-        fam = families.get(lab, families.get(m))
-        if fam is None:
-            blocks.append(torch.eye(sizes[k], dtype=torch.float64))
-        else:
-            fam = as_float_tensor(fam, "family").double()
-            if fam.ndim != 2 or fam.shape[0] != sizes[k] or bool((fam < 0).any()):
-                raise ShapeError(
-                    f"Expected a non-negative family matrix ({sizes[k]}, K) for {lab!r}; got {tuple(fam.shape)}"
-                )
-            blocks.append(fam)
-        psizes.append(blocks[-1].shape[1])
+    blocks = _family_blocks(families, ids, labels, sizes)
+    psizes = [b.shape[1] for b in blocks]
     B = torch.block_diag(*blocks)
     pspl = torch.tensor([0] + psizes).cumsum(0).tolist()
     y = torch.linalg.lstsq(B, x).solution.clamp_min(0) if families else x
     G, R2 = G @ B, B.T @ R2 @ B
     y = _project_start(y, G, h)
     x = B @ y
-    nt = y.shape[0]
     fast = not renderer.two_level and not renderer.weight_maps
     red = _Reduced(renderer, ids, sel, [blocks[k] if families else None for k in range(len(ids))]) if fast else None
     rows_y = [b.T @ r for b, r in zip(blocks, rows, strict=True)]  # d = rows_y . y
     if not fast and len(ids) == 1 and renderer.frozen_object != labels[0]:
         renderer.freeze(ids[0])
     dt = renderer.dtype
-
-    def render(xc):
-        for k, m in enumerate(ids):
-            renderer.set_coefficients(m, xc[splits[k] : splits[k + 1]].to(dt))
-        return renderer()
-
-    def parts(yc):  # the fitted variables per object and the diffuse equivalents (M, C)
-        ys = [yc[pspl[k] : pspl[k + 1]] for k in range(len(ids))]
-        return ys, torch.stack([(r * v).sum(0) for r, v in zip(rows_y, ys, strict=True)])
-
-    def frame(yc):  # (P, C): the painted pixels
-        if red is not None:
-            return red.image(*parts(yc))
-        return render(B @ yc).detach().reshape(-1, 3)[sel].double()
-
-    def losses(img):  # per channel (C,)
-        r = img - bp
-        return 0.5 * (wp * r * r).sum(0)
-
-    def jacobian(xc):  # (C, P, nt): d image / d y, exact (y are the curves c or family parameters)
-        if red is not None:
-            return red.jacobian(*parts(xc), rows_y)
-        xc = B @ xc
-        if renderer.two_level:
-            return _jacobian_dual(xc) @ B
-        # the image is linear in the eye coefficients c for fixed diffuse equivalents d
-        # (Eq. 26/28), and d = row . c: columns = (image(e_i; d) - image(0; d)) + dI/dd * row_i
-        render(xc)
-        ds = [renderer.d[m].detach().clone() for m in ids]
-
-        def plain(xe):
-            for k, m in enumerate(ids):
-                renderer.set_coefficients(m, xe[splits[k] : splits[k + 1]].to(dt), d=ds[k])
-            return renderer().detach().reshape(-1, 3)[sel].double()
-
-        zero = torch.zeros(n, 3, dtype=torch.float64)
-        base = plain(zero)
-        cols = []
-        for i in range(n):
-            e = zero.clone()
-            e[i] = 1.0
-            cols.append(plain(e) - base)
-        A = torch.stack(cols, -1)  # (P, C, n)
-        for k in range(len(ids)):
-            with fwAD.dual_level():
-                for q, mm in enumerate(ids):
-                    dq = ds[q].to(dt)
-                    if q == k:
-                        dq = fwAD.make_dual(dq, torch.ones_like(dq))
-                    renderer.set_coefficients(mm, xc[splits[q] : splits[q + 1]].to(dt), d=dq)
-                tangent = fwAD.unpack_dual(renderer()).tangent  # None: no bounce sees d (1 bounce)
-            if tangent is not None:
-                dd = tangent.reshape(-1, 3)[sel].double()  # (P, C)
-                A[:, :, splits[k] : splits[k + 1]] += dd[:, :, None] * rows[k].T[None]
-        return A.permute(1, 0, 2) @ B
-
-    def _jacobian_dual(xc):  # forward-mode, one pass per coefficient (all channels at once)
-        cols = []
-        for i in range(n):
-            with fwAD.dual_level():
-                t = torch.zeros(n, 3, dtype=torch.float64)
-                t[i] = 1.0
-                img = render(fwAD.make_dual(xc, t))
-                cols.append(fwAD.unpack_dual(img).tangent.reshape(-1, 3)[sel].double())
-        return torch.stack(cols, -1).permute(1, 0, 2)
-
+    model = _FitModel(renderer, ids, splits, pspl, sel, B, rows, rows_y, red)
+    frame, losses = model.frame, lambda img: _losses(img, bp, wp)
     reg = lambda yc: 0.5 * torch.einsum("jc,jk,kc->c", yc, R2, yc)  # noqa: E731
     img = frame(y)
     lc = losses(img)
@@ -461,36 +529,8 @@ def fit_image(
     converged, iters = False, 0
     bar = tqdm(total=max_iter, desc="fit image", unit="iter", disable=not progress_default(progress))
     for iters in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
-        A = jacobian(y)  # (C, P, nt)
-        r = img - bp  # (P, C)
-        y_new = y.clone()
-        for ch in range(3):
-            Aw = A[ch].T * wp[:, ch]
-            Hc = Aw @ A[ch] + R2
-            scale[ch] = max(float((Aw @ bp[:, ch]).abs().max()), float(Hc.abs().max()), 1e-300)
-            mu = 1e-12 * max(float(Hc.diagonal().max()), 1e-300)
-            g = Aw @ r[:, ch] + R2 @ y[:, ch]  # gradient of the loss at y
-            f = Hc @ y[:, ch] - g + mu * y[:, ch]
-            yq, u, z = _qp_step(Hc + mu * torch.eye(nt, dtype=torch.float64), f, G[ch], h)
-            y_new[:, ch] = yq
-            # KKT at the iterate: g + G^T u - z = 0, z y = 0, u (G y - h) = 0
-            stat = (g + G[ch].T @ u - z).abs().max()
-            comp = max(float((z * y[:, ch]).abs().max()), float((u * (G[ch] @ y[:, ch] - h)).abs().max()))
-            kkt[ch] = max(float(stat), comp) / scale[ch]
-        # backtracking per channel (the loss is separable in the channels)
-        step = y_new - y
-        alpha = torch.ones(3, dtype=torch.float64)
-        base = lc + reg(y)
-        for _ in range(40):
-            trial = y + step * alpha
-            timg = frame(trial)
-            tl = losses(timg)
-            bad = (tl + reg(trial)) > base * (1 + 1e-15) + 1e-300
-            if not bool(bad.any()):
-                break
-            alpha = torch.where(bad, alpha * 0.5, alpha)
-        else:
-            trial, timg, tl = y, img, lc
+        y_new = _gauss_newton_step(model.jacobian(y), img, bp, wp, R2, y, G, h, scale, kkt)
+        trial, timg, tl = _backtrack(y, y_new, img, lc, frame, losses, reg)
         moved = float((trial - y).abs().max())
         y, img, old = trial, timg, float(lc.sum())
         x = B @ y
@@ -514,7 +554,7 @@ def fit_image(
         renderer.set_coefficients(m, x[splits[k] : splits[k + 1]].to(dt))
 
     def final() -> torch.Tensor:
-        return render(x).detach()
+        return model.render(x).detach()
 
     return ImageFit(coeffs, alb, curve[-1], curve, float(kkt.max()), viol, iters, converged, final, params)
 

@@ -29,7 +29,7 @@ from ..manifold.materials import merl_material, with_material
 from ..metrics import relative_l1, relative_rmse
 from ..records.basis_image import BasisImage
 from ..scene.scene import Scene
-from ..transport.pathtrace import path_trace
+from ..transport.pathtrace import PathTraceSettings, path_trace
 
 
 def render_rows(
@@ -58,7 +58,7 @@ def render_rows(
     out = []
     for r in tqdm(rows, desc="render materials", disable=not progress_default(progress)):
         sc = with_material(scene, material_key, merl_material(r, grid))
-        out.append(path_trace(sc, spp=spp, max_bounces=max_bounces, seed=seed, progress=False))
+        out.append(path_trace(sc, PathTraceSettings(spp=spp, max_bounces=max_bounces), seed=seed, progress=False))
     return torch.stack(out)
 
 

@@ -525,14 +525,16 @@ def series_approximations(
     plus indirect light from a series of 1-band bases: Fig. 7a) and ``"direct"`` (direct
     lighting only: Fig. 7b), the two :class:`PolynomialTensors` and their precompute seconds.
     """
-    from ..transport.polynomial import Series, precompute_polynomial
+    from ..transport.polynomial import PolynomialSettings, Series, precompute_polynomial
 
     s = Series.parse(series)
     mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
-    full = precompute_polynomial(scene, s, spp=spp, seed=seed, progress=progress)
+    full = precompute_polynomial(scene, PolynomialSettings(s, spp=spp), seed=seed, progress=progress)
     ones = Series((1,) * s.bounces)
     flat = {o.name: {"J": 1, "spacing": "uniform"} for o in scene.objects if o.editable}
-    diffuse = precompute_polynomial(scene, ones, spp=spp, seed=seed + 1, bases=flat, progress=progress)
+    diffuse = precompute_polynomial(
+        scene, PolynomialSettings(ones, spp=spp, bases=flat), seed=seed + 1, progress=progress
+    )
     parts = PolynomialRenderer(full, mats).evaluate(per_bounce=True)
     dparts = PolynomialRenderer(diffuse, mats).evaluate(per_bounce=True)
     direct = parts[0] + parts[1]

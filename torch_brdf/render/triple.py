@@ -342,7 +342,7 @@ class GenericRule(SamplingRule):
         out[2] = (i2, sampler.coefficients(f4[i2], 2))
         i4 = (level == 4).nonzero().squeeze(-1)
         f16 = sampler.samples(brdf, _subset(pairs, i4), 4)
-        A = sampler.coefficients(f16, 4).view(len(i4), 4, 4, -1)
+        A = sampler.coefficients(f16, 4).view(len(i4), 4, 4, f16.shape[-1])  # explicit C: i4 may be empty
         high = torch.cat((A[:, 3, :, :], A[:, :3, 3, :]), 1).abs().amax((1, 2)) / geom.block
         missed = (peak[i4] - f16.amax(1)).amax(-1).clamp_min(0)
         fine = torch.maximum(high, missed) * weight[i4] > self.smooth

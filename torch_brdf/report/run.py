@@ -47,6 +47,8 @@ BENCHMARKS = (
     "editor",
     "load",
     "reduce_numba",
+    "textures",
+    "export",
 )
 
 #: extra environment per benchmark (as its docstring asks)

@@ -191,6 +191,55 @@ OTHER_PLANNERS = ("relight", "triple", "cubemap", "inverse", "srbf", "manifold",
 
 
 # -- capabilities ---------------------------------------------------------------------------------
+def _gi_planner_figures(sec: Section, pl) -> None:
+    """One figure per planned scene: the GI planner against fixed default series (its own scene
+    and reference)."""
+    for path, b in planner_choices(pl.res):
+        if any(w in path.lower() for w in OTHER_PLANNERS):  # another capability's planner
+            continue
+        ser = []
+        for key, rows in (b.get("defaults") or {}).items():
+            if isinstance(rows, list):
+                ser.append(
+                    Series(
+                        f"fixed {key}, spp in steps of sqrt 2",
+                        [p for row in rows for p in pt(row.get("seconds"), row.get("achieved_error"))],
+                    )
+                )
+        cli = [row for row in get(b, "defaults", "64,1,1,1") or [] if isinstance(row, dict) and row.get("spp") == 64]
+        if cli:
+            ser.append(
+                Series(
+                    "default: the CLI's 64,1,1,1 at 64 spp",
+                    pt(cli[0].get("seconds"), cli[0].get("achieved_error")),
+                    "default",
+                )
+            )
+        bd = b.get("best_default") or {}
+        ser.append(
+            Series(
+                f"cheapest fixed default reaching the error ({bd.get('series')}, {bd.get('spp')} spp)",
+                pt(bd.get("seconds"), bd.get("achieved_error")),
+                "default",
+            )
+        )
+        ser += _planner_series([(path, b)])
+        if num(b.get("predicted_error")) is not None and num(b.get("predicted_seconds")) is not None:
+            ser.append(Series("planner's prediction", pt(b["predicted_seconds"], b["predicted_error"]), "point"))
+        if num(b.get("error")) is not None:
+            ser.append(Series(f"requested error {b['error']:g}", style="default", hline=b["error"]))
+        scene = str(b.get("scene") or path.rsplit(".", 1)[-1])  # one figure per scene, named by it
+        key = "gi_planner_" + "".join(c if c.isalnum() else "_" for c in scene)
+        sec.add(
+            key,
+            f"GI planner vs fixed defaults ({scene})",
+            "precompute seconds",
+            "relative RMSE (achieved)",
+            ser,
+            f"benchmarks/planner.py, scene {scene}",
+        )
+
+
 def gi_editing(results: dict) -> Section:
     """Ben-Artzi et al.: the polynomial tensors (benchmarks/polynomial.py, planner.py, brdf.py)."""
     sec = Section("gi", "GI editing (polynomial multibounce tensors)", ["polynomial", "planner", "brdf"])
@@ -253,51 +302,7 @@ def gi_editing(results: dict) -> Section:
     )
     sec.add("gi_memory", "GI editing: error vs tensor memory", "MB per megapixel (float32 values)", "relative RMSE", m)
 
-    # the planner against fixed default series (its own scene and reference)
-    for path, b in planner_choices(pl.res):
-        if any(w in path.lower() for w in OTHER_PLANNERS):  # another capability's planner
-            continue
-        ser = []
-        for key, rows in (b.get("defaults") or {}).items():
-            if isinstance(rows, list):
-                ser.append(
-                    Series(
-                        f"fixed {key}, spp in steps of sqrt 2",
-                        [p for row in rows for p in pt(row.get("seconds"), row.get("achieved_error"))],
-                    )
-                )
-        cli = [row for row in get(b, "defaults", "64,1,1,1") or [] if isinstance(row, dict) and row.get("spp") == 64]
-        if cli:
-            ser.append(
-                Series(
-                    "default: the CLI's 64,1,1,1 at 64 spp",
-                    pt(cli[0].get("seconds"), cli[0].get("achieved_error")),
-                    "default",
-                )
-            )
-        bd = b.get("best_default") or {}
-        ser.append(
-            Series(
-                f"cheapest fixed default reaching the error ({bd.get('series')}, {bd.get('spp')} spp)",
-                pt(bd.get("seconds"), bd.get("achieved_error")),
-                "default",
-            )
-        )
-        ser += _planner_series([(path, b)])
-        if num(b.get("predicted_error")) is not None and num(b.get("predicted_seconds")) is not None:
-            ser.append(Series("planner's prediction", pt(b["predicted_seconds"], b["predicted_error"]), "point"))
-        if num(b.get("error")) is not None:
-            ser.append(Series(f"requested error {b['error']:g}", style="default", hline=b["error"]))
-        scene = str(b.get("scene") or path.rsplit(".", 1)[-1])  # one figure per scene, named by it
-        key = "gi_planner_" + "".join(c if c.isalnum() else "_" for c in scene)
-        sec.add(
-            key,
-            f"GI planner vs fixed defaults ({scene})",
-            "precompute seconds",
-            "relative RMSE (achieved)",
-            ser,
-            f"benchmarks/planner.py, scene {scene}",
-        )
+    _gi_planner_figures(sec, pl)
     # band projection error of the BRDF layer: the bands' share of the error budget
     pre = br("projection_rel_err") or {}
     fams: dict[str, list[tuple[float, float]]] = {}
@@ -684,8 +689,25 @@ def others(results: dict) -> Section:
     )
 
 
+def scenes_out(results: dict) -> Section:
+    """Scenes in and materials out: the GI texture approximation (Sec. 5.3) against the path
+    tracer, and each export's fit error (numbers only)."""
+    sec = Section("scenes_out", "Textured scenes and exported materials", ["textures", "export"])
+    t, e = _Reader(results, "textures"), _Reader(results, "export")
+    for source in ("lambert", "cook_torrance_plastic", "blinn_phong_n50", "gltf_metal", "gltf_dielectric"):
+        for fmt in ("mitsuba", "gltf"):
+            value = num(e(fmt, source, "error"))
+            if value is not None:
+                sec.numbers[f"export.{fmt}.{source}.error"] = value
+    return _finish(
+        sec,
+        (t, "textured_rel_rmse untextured_rel_rmse texture_excess mean_ratio_textured"),
+        (e, "merl_seconds"),
+    )
+
+
 #: the report's sections, in page order
-CAPABILITIES = (gi_editing, denoise, relighting, manifold, inverse, inverse_gi, editor, scaleout, others)
+CAPABILITIES = (gi_editing, denoise, relighting, manifold, inverse, inverse_gi, editor, scaleout, scenes_out, others)
 
 
 def sections(results: dict[str, dict]) -> list[Section]:

@@ -147,7 +147,7 @@ _LIGHTS: dict[str, dict[str, Check]] = {
     "directional": {"type": _str, "direction": _vec3, "irradiance": _rgb},
     "envmap": {},  # one of _ENVMAPS
 }
-_ENV_COMMON: dict[str, Check] = {"type": _str, "rotation_deg": _finite}
+_ENV_COMMON: dict[str, Check] = {"type": _str, "rotation_deg": _finite, "lookup": _choice("bilinear", "nearest")}
 #: envmap lights: the keys of each variant (a file, or a procedural constant or sky map)
 _ENVMAPS: dict[str, dict[str, Check]] = {
     "file": {**_ENV_COMMON, "file": _str, "scale": _real(0)},

@@ -151,8 +151,33 @@ class Scene:
                 raise SceneError(f"lights must be torch_brdf Light modules; got {type(light).__name__}")
         if sum(isinstance(li, EnvironmentMap) for li in self.lights) > 1:
             raise SceneError("a scene holds at most one environment map")
+        self._place_area_lights()
         self._tracer = RayTracer([o.mesh for o in self.objects], [o.smooth for o in self.objects], self.workers)
         self._traced = [(o.mesh, o.smooth) for o in self.objects]
+
+    def _place_area_lights(self) -> None:
+        """Give every :class:`AreaLight` without an object (``object_id < 0``) one, so that camera
+        and path rays see its emission, as in Mitsuba: the object whose triangles it is, or else a
+        new fixed (non-editable), black object ``area_light_<k>`` appended after the others (it
+        also casts shadows, as Mitsuba's emitter mesh does). The light is replaced by a copy that
+        names its object; the caller's light, object list and materials are left as they were."""
+        lights, objects, materials = [], list(self.objects), dict(self.materials)
+        for k, light in enumerate(self.lights):
+            if isinstance(light, AreaLight) and light.object_id < 0:
+                oid = next((i for i, o in enumerate(objects) if _same_triangles(o.mesh, light.triangles)), None)
+                if oid is None:
+                    name = f"area_light_{k}"
+                    if name in materials or any(o.name == name for o in objects):
+                        raise SceneError(f"area light {k} has no object and the name {name!r} is taken")
+                    tri = light.triangles.double().reshape(-1, 3).numpy()
+                    faces = np.arange(len(tri)).reshape(-1, 3)
+                    materials[name] = {"type": "lambert", "albedo": 0.0}
+                    objects.append(SceneObject(name, mesh_from_arrays(tri, faces), name, editable=False))
+                    oid = len(objects) - 1
+                light = copy.copy(light)
+                light.object_id = oid
+            lights.append(light)
+        self.lights, self.objects, self.materials = lights, objects, materials
 
     # -- pickling (tile executors ship a scene to other processes) ----------------------------
     def __getstate__(self) -> dict[str, Any]:
@@ -411,7 +436,7 @@ def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
     extra = {k: v for k, v in d.items() if k not in ("type", "file", "procedural", "scale", "rotation_deg", "radiance")}
     try:
         if "file" in d:
-            env = EnvironmentMap.from_file(base_dir / d["file"], scale=float(d.get("scale", 1.0)))
+            env = EnvironmentMap.from_file(base_dir / d["file"], scale=float(d.get("scale", 1.0)), **extra)
         elif d.get("procedural") == "constant":
             env = EnvironmentMap.constant(d.get("radiance", 1.0), **extra)
         elif d.get("procedural") == "sky":
@@ -423,6 +448,14 @@ def _envmap_from_dict(d: dict[str, Any], base_dir: Path) -> EnvironmentMap:
     if d.get("rotation_deg"):
         env = env.rotated(math.radians(float(d["rotation_deg"])))
     return env
+
+
+def _same_triangles(mesh: trimesh.Trimesh, triangles: torch.Tensor) -> bool:
+    """Whether ``mesh``'s non-degenerate triangles are ``triangles`` (F, 3, 3), in order, to float32."""
+    tri = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
+    tri = tri[np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=-1) > 0]
+    want = triangles.detach().cpu().numpy()
+    return tri.shape == want.shape and bool(np.allclose(tri.astype(np.float32), want, rtol=0, atol=1e-6))
 
 
 def _digest(h, value) -> None:

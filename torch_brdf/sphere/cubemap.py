@@ -273,7 +273,12 @@ class CubemapBlocks:
         return d.reshape(self.block_count, S * S, k * k, 3)
 
     def project(self, radiance_fn, samples: int = 4, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """Mean of a directional function over each texel, by a ``k x k`` grid per texel.
+        r"""Solid-angle mean of a directional function over each texel, by a ``k x k`` grid per texel.
+
+        The grid is uniform on the face, so each point is weighted by the face's Jacobian
+        :math:`d\omega/dA = (1 + a^2 + b^2)^{-3/2} = \max_i |\omega_i|^3`: the texel sums
+        :math:`\bar L_t\Omega_t` then converge to :math:`\int L\,d\omega` as ``k`` grows, even
+        for a feature (a sun) smaller than a texel.
 
         Args:
             radiance_fn: callable (M, 3) float64 directions -> (M, C) values.
@@ -283,4 +288,6 @@ class CubemapBlocks:
         """
         d = self.supersampled_directions(samples)
         v = radiance_fn(d.reshape(-1, 3))
-        return v.reshape(*d.shape[:3], -1).to(dtype).mean(2)
+        w = d.to(torch.float64).abs().amax(-1, keepdim=True) ** 3  # (NB, S^2, k^2, 1)
+        v = v.reshape(*d.shape[:3], -1).to(torch.float64)
+        return ((v * w).sum(2) / w.sum(2)).to(dtype)

@@ -12,9 +12,16 @@ The convention is fixed for the whole package. World :math:`+y` is up. A lat-lon
 so :math:`\phi = 0` looks down :math:`-z` and :math:`\phi = \pi/2` down :math:`+x`. This is
 Mitsuba 3's ``envmap`` emitter mapping (``uv_to_direction`` / ``direction_to_uv`` in
 ``src/emitters/envmap.cpp``) with an identity ``to_world``, so a map used here and handed to
-Mitsuba lights the scene from the same directions. (Mitsuba reconstructs the map bilinearly
-with rows on :math:`\theta = i\pi/(H-1)`; :class:`torch_brdf.scene.envmap.EnvironmentMap` is
-piecewise constant per texel, so individual pixels agree only up to that filter.)
+Mitsuba lights the scene from the same directions.
+
+Two readings of the same array exist:
+
+* **texels** (piecewise constant): entry ``(i, j)`` covers the cell above;
+* **nodes** (bilinear, Mitsuba's reading): entry ``(i, j)`` is the value *at*
+  :math:`\theta_i = i\pi/(H-1)` (row 0 on the zenith, row ``H-1`` on the nadir, "align
+  corners") and :math:`\phi_j = (j+\tfrac12)\,2\pi/W` (periodic), interpolated bilinearly in
+  :math:`(\phi, \theta)` between them (:func:`bilinear_lookup`, :func:`node_directions`,
+  :func:`node_solid_angles`).
 """
 
 from __future__ import annotations
@@ -27,9 +34,14 @@ from .._checks import as_float_tensor
 from ..errors import ShapeError
 
 __all__ = [
+    "bilinear_coordinates",
+    "bilinear_lookup",
     "direction_to_latlong",
     "direction_to_texel",
     "latlong_to_direction",
+    "node_directions",
+    "node_row_weights",
+    "node_solid_angles",
     "row_cos_bounds",
     "texel_centers",
     "texel_solid_angles",
@@ -143,3 +155,109 @@ def texel_centers(height: int, width: int, dtype: torch.dtype = torch.float64, d
     theta = (torch.arange(height, dtype=torch.float64, device=device) + 0.5) * (math.pi / height)
     phi = (torch.arange(width, dtype=torch.float64, device=device) + 0.5) * (2 * math.pi / width)
     return latlong_to_direction(theta[:, None], phi[None, :]).to(dtype)
+
+
+# ------------------------------------------------------------------ nodes (bilinear reading)
+def node_directions(height: int, width: int, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+    r"""Direction of every node :math:`(\theta_i, \phi_j) = (i\pi/(H-1), (j+\tfrac12)\,2\pi/W)`.
+
+    Args:
+        height: H >= 2.
+        width: W.
+        dtype: output dtype (computed in float64).
+    Returns:
+        (H, W, 3) unit vectors; rows 0 and H-1 are the poles :math:`\pm y`.
+    """
+    _check_size(height, width)
+    if int(height) < 2:
+        raise ShapeError(f"a bilinear lat-long map needs H >= 2 rows; got H={height}")
+    theta = torch.arange(height, dtype=torch.float64, device=device) * (math.pi / (height - 1))
+    phi = (torch.arange(width, dtype=torch.float64, device=device) + 0.5) * (2 * math.pi / width)
+    d = latlong_to_direction(theta[:, None], phi[None, :])
+    d[0, :, 0], d[0, :, 2], d[-1, :, 0], d[-1, :, 2] = 0.0, 0.0, 0.0, 0.0  # exactly the poles
+    return d.to(dtype)
+
+
+def node_row_weights(height: int, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+    r""":math:`w_i = \int \Lambda_i(\theta)\sin\theta\,d\theta` for the hat functions of the rows.
+
+    :math:`\Lambda_i` is 1 at :math:`\theta_i = i\Delta` (:math:`\Delta = \pi/(H-1)`) and falls
+    linearly to 0 at its neighbours. Closed forms per side (:math:`a < b` the interval):
+    :math:`\int_a^b \tfrac{\theta-a}{\Delta}\sin\theta = -\cos b + (\sin b - \sin a)/\Delta` and
+    :math:`\int_a^b \tfrac{b-\theta}{\Delta}\sin\theta = \cos a - (\sin b - \sin a)/\Delta`.
+    The weights sum to 2 (the integral of :math:`\sin\theta`) to rounding.
+
+    Returns:
+        (H,) float64 (or ``dtype``).
+    """
+    _check_size(height, 1)
+    if int(height) < 2:
+        raise ShapeError(f"a bilinear lat-long map needs H >= 2 rows; got H={height}")
+    delta = math.pi / (height - 1)
+    t = torch.arange(height, dtype=torch.float64, device=device) * delta
+    a, b = t[:-1], t[1:]
+    ds = (b.sin() - a.sin()) / delta
+    rising = -b.cos() + ds  # the hat of node i+1 on [a, b]
+    falling = a.cos() - ds  # the hat of node i on [a, b]
+    w = torch.zeros(height, dtype=torch.float64, device=device)
+    w[1:] += rising
+    w[:-1] += falling
+    return w.to(dtype)
+
+
+def node_solid_angles(height: int, width: int, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+    r"""The solid angle each node stands for: :math:`\Omega_{ij} = w_i\,2\pi/W` (:func:`node_row_weights`).
+
+    :math:`\int L\,d\omega = \sum_{ij} L_{ij}\Omega_{ij}` exactly for the bilinear map; the sum
+    of the table is :math:`4\pi`.
+
+    Returns:
+        (H, W) steradians.
+    """
+    w = node_row_weights(height, device=device) * (2 * math.pi / width)
+    return w[:, None].expand(height, width).to(dtype).contiguous()
+
+
+def bilinear_coordinates(d: torch.Tensor, height: int, width: int):
+    r"""Where directions fall in the node grid: the lower row and column and the weights.
+
+    Args:
+        d: (..., 3) directions (need not be unit length).
+        height: H >= 2.
+        width: W.
+    Returns:
+        ``(i0, j0, j1, fy, fx, theta)``: rows ``i0`` and ``i0 + 1``, columns ``j0`` and
+        ``j1 = (j0 + 1) mod W`` (int64), the fractions ``fy``, ``fx`` in [0, 1] towards the
+        second row and column, and the polar angle, all float64 (...).
+    """
+    _check_size(height, width)
+    if int(height) < 2:
+        raise ShapeError(f"a bilinear lat-long map needs H >= 2 rows; got H={height}")
+    theta, phi = direction_to_latlong(_check_dirs(d).to(torch.float64))
+    y = theta * ((height - 1) / math.pi)
+    i0 = y.floor().clamp_(0, height - 2)
+    fy = (y - i0).clamp_(0, 1)
+    x = phi * (width / (2 * math.pi)) - 0.5
+    j0 = x.floor()
+    fx = (x - j0).clamp_(0, 1)
+    j0 = torch.remainder(j0.long(), width)
+    return i0.long(), j0, torch.remainder(j0 + 1, width), fy, fx, theta
+
+
+def bilinear_lookup(values: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Mitsuba's ``envmap`` reconstruction: ``values`` read as nodes, interpolated bilinearly.
+
+    Args:
+        values: (H, W, C) or (H, W) node values.
+        d: (..., 3) directions.
+    Returns:
+        (..., C) or (...) in ``values``' dtype (weights in float64).
+    """
+    H, W = values.shape[:2]
+    i0, j0, j1, fy, fx, _ = bilinear_coordinates(d, H, W)
+    v = values.double()
+    if v.ndim == 3:
+        fy, fx = fy[..., None], fx[..., None]
+    top = v[i0, j0] * (1 - fx) + v[i0, j1] * fx
+    bottom = v[i0 + 1, j0] * (1 - fx) + v[i0 + 1, j1] * fx
+    return (top * (1 - fy) + bottom * fy).to(values.dtype)

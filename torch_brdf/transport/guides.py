@@ -137,7 +137,7 @@ def pixel_coverage(scene, samples: int = 8, object_id: torch.Tensor | None = Non
 def _brightest_light_directions(scene, points: torch.Tensor) -> torch.Tensor | None:
     """(P, 3) unit directions from ``points`` towards the most powerful light, or None."""
     from ..scene.envmap import EnvironmentMap
-    from ..scene.lights import AreaLight, DirectionalLight
+    from ..scene.lights import AreaLight, DirectionalLight, luminance
 
     if not scene.lights:
         return None
@@ -150,10 +150,8 @@ def _brightest_light_directions(scene, points: torch.Tensor) -> torch.Tensor | N
     if isinstance(light, DirectionalLight):
         return light.direction.float().expand_as(points)
     if isinstance(light, EnvironmentMap):
-        from ..sphere.latlong import texel_centers
-
-        k = int(torch.argmax(light.texel_pdf.reshape(-1)))
-        d = texel_centers(light.height, light.width).reshape(-1, 3)[k] @ light.to_world.T
+        k = int(torch.argmax(luminance(light.radiance.double()).reshape(-1)))  # the brightest entry
+        d = light.entry_directions().reshape(-1, 3)[k]
         return d.float().expand_as(points)
     return None
 

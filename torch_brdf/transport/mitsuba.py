@@ -32,9 +32,9 @@ Mapping (each point checked by ``tests/transport/test_mitsuba.py``):
   ``direction`` is the direction of travel: minus ours).
   :class:`~torch_brdf.scene.envmap.EnvironmentMap` becomes ``envmap`` with
   ``to_world = rotate_y(rotation_y)``; the direction convention is the same (row 0 = +y,
-  :math:`\phi = \operatorname{atan2}(x, -z)`), but Mitsuba's rows are vertex-centred and
-  bilinearly interpolated where ours are cell-centred, nearest-texel, so the bitmap is our
-  map upsampled to match (:func:`_envmap_bitmap`).
+  :math:`\phi = \operatorname{atan2}(x, -z)`). A map with the (default) bilinear lookup is
+  handed over as it is (the same reconstruction); a ``lookup="nearest"`` map, cell-centred and
+  piecewise constant, is upsampled to match (:func:`_envmap_bitmap`).
 * **Meshes** are ``mi.Mesh`` objects filled through ``mi.traverse`` (no temporary files);
   smooth objects carry trimesh's vertex normals, flat ones none (face normals), as in
   :class:`~torch_brdf.scene.raytrace.RayTracer`.
@@ -601,7 +601,11 @@ def to_mitsuba_dict(scene: Scene, spp: int, max_bounces: int, seed: int = 0, var
         elif isinstance(light, EnvironmentMap):
             out[key] = {
                 "type": "envmap",
-                "bitmap": mi.Bitmap(_envmap_bitmap(light.radiance)),
+                "bitmap": mi.Bitmap(
+                    np.ascontiguousarray(light.radiance.detach().cpu().numpy(), dtype=np.float32)
+                    if light.bilinear
+                    else _envmap_bitmap(light.radiance)
+                ),
                 "to_world": mi.ScalarTransform4f().rotate([0.0, 1.0, 0.0], math.degrees(light.rotation_y)),
             }
         else:

@@ -26,19 +26,20 @@ checkpoint equals the uninterrupted render bit for bit.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .._checks import check_count, check_seed
+from .._checks import check_bool, check_count, check_fields, check_seed
 from ..brdf import BRDF, create
 from ..brdf.textured import texturable, textured_eval_local
 from ..data import progress_default
 from ..errors import SceneError, TorchBRDFError
 from ..frame import Frame
-from ..records.cache import Checkpoint, settings_key
+from ..records.cache import ArraySpec, CacheSchema, Checkpoint, MetaSpec, settings_key
 from ..scene.scene import Scene
 from ..scene.textures import texture_at_hits
 from ._native import area_light_sample
@@ -276,25 +277,62 @@ def _radiance(
     return out
 
 
+@dataclass(frozen=True)
+class PathTraceSettings:
+    """The settings of :func:`path_trace` (frozen; :meth:`key` feeds the checkpoint's key).
+
+    Args:
+        spp: samples (paths) per pixel, each through a jittered point of the pixel.
+        max_bounces: surface vertices per path; 1 is direct lighting only.
+        chunk: rays traced together (memory vs. overhead; part of the random stream: the rays
+            of a chunk draw their numbers together).
+        mis: combine next-event estimation with BRDF sampling by multiple importance
+            sampling (power heuristic; default on): every vertex also counts the light its
+            BRDF-sampled ray finds (environment, emitter), both weighted, so sharp lobes
+            reflecting large bright lights converge without fireflies. ``False`` is plain
+            next-event estimation. Both are unbiased; only the noise differs.
+    Raises:
+        ValueRangeError: a count that is not a positive integer (the exception's ``setting``
+            names the field).
+    """
+
+    spp: int = 16
+    max_bounces: int = 4
+    chunk: int = 1 << 16
+    mis: bool = True
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            {
+                "spp": lambda v: check_count(v, "spp"),
+                "max_bounces": lambda v: check_count(v, "max_bounces"),
+                "chunk": lambda v: check_count(v, "chunk"),
+                "mis": lambda v: check_bool(v, "mis"),
+            },
+        )
+
+    def key(self) -> dict:
+        """Every field (what the checkpoint's key covers besides the scene and the seed)."""
+        return asdict(self)
+
+
 def path_trace(
     scene: Scene,
-    spp: int = 16,
-    max_bounces: int = 4,
+    settings: PathTraceSettings | None = None,
+    *,
     seed: int = 0,
-    chunk: int = 1 << 16,
     checkpoint: str | Path | None = None,
     checkpoint_every: int = 4,
     progress: bool | None = None,
-    mis: bool = True,
+    **old,
 ) -> torch.Tensor:
     """Render ``scene`` from its camera: (H, W, 3) float32 linear radiance.
 
     Args:
         scene: the scene (any BRDFs of the library; see the module docstring).
-        spp: samples (paths) per pixel, each through a jittered point of the pixel.
-        max_bounces: surface vertices per path; 1 is direct lighting only.
-        seed: the render is a deterministic function of (scene, spp, max_bounces, seed).
-        chunk: rays traced together (memory vs. overhead).
+        settings: :class:`PathTraceSettings` (spp, bounces, chunk, MIS; None: its defaults).
+        seed: the render is a deterministic function of (scene, settings, seed).
         checkpoint: file to save progress to every ``checkpoint_every`` passes and to
             resume from when it exists with matching settings and scene content (a
             :class:`~torch_brdf.records.cache.Checkpoint`: versioned, checksummed, atomic); a
@@ -303,33 +341,35 @@ def path_trace(
             starts afresh.
         checkpoint_every: passes between checkpoint saves.
         progress: show a tqdm bar over sample passes.
-        mis: combine next-event estimation with BRDF sampling by multiple importance
-            sampling (power heuristic; default on): every vertex also counts the light its
-            BRDF-sampled ray finds (environment, emitter), both weighted, so sharp lobes
-            reflecting large bright lights converge without fireflies. ``False`` is plain
-            next-event estimation. Both are unbiased; only the noise differs.
     Raises:
-        ValueRangeError: a count (``spp``, ``max_bounces``, ``chunk``, ``checkpoint_every``)
-            that is not a positive integer, or a seed outside ``[0, 2**63)``.
+        ValueRangeError: a ``checkpoint_every`` that is not a positive integer, or a seed
+            outside ``[0, 2**63)``.
+        TypeError: settings given one by one (``spp=``, ``max_bounces=``...).
     """
-    spp, max_bounces, seed = check_count(spp, "spp"), check_count(max_bounces, "max_bounces"), check_seed(seed)
-    chunk, checkpoint_every = check_count(chunk, "chunk"), check_count(checkpoint_every, "checkpoint_every")
+    if old or not isinstance(settings, (PathTraceSettings, type(None))):
+        given = sorted(old) + ([] if isinstance(settings, (PathTraceSettings, type(None))) else [repr(settings)])
+        raise TypeError(
+            "path_trace(scene, settings, *, seed, checkpoint, progress, ...) takes its settings from a "
+            f"PathTraceSettings, e.g. path_trace(scene, PathTraceSettings(spp=16, max_bounces=4), seed=0); "
+            f"got {', '.join(given)}"
+        )
+    s = PathTraceSettings() if settings is None else settings
+    seed, checkpoint_every = check_seed(seed), check_count(checkpoint_every, "checkpoint_every")
+    spp, max_bounces, chunk, mis = s.spp, s.max_bounces, s.chunk, s.mis
     cam = scene.camera
     h, w = cam.height, cam.width
     brdfs = material_brdfs(scene)
-    settings = {
-        "scene": scene.name,
-        "width": w,
-        "height": h,
-        "spp": spp,
-        "max_bounces": max_bounces,
-        "seed": seed,
-        "mis": mis,
-    }
+    settings = {**s.key(), "scene": scene.name, "width": w, "height": h, "seed": seed}
     total = torch.zeros(h * w, 3, dtype=torch.float64)
     start = 0
     key = settings_key(settings, scene)  # the scene's content too: an edited scene starts fresh
-    ckpt = None if checkpoint is None else Checkpoint(checkpoint, CHECKPOINT_KIND, key, on_corrupt="recompute")
+    schema = CacheSchema(
+        arrays={"sum": ArraySpec("float64", ("P", 3), low=0.0)},  # radiance sums are >= 0
+        meta={"passes_done": MetaSpec(int, 1, spp), "settings": MetaSpec(dict, required=False)},
+    )
+    ckpt = None
+    if checkpoint is not None:
+        ckpt = Checkpoint(checkpoint, CHECKPOINT_KIND, key, "recompute", schema, {"P": h * w})
     saved = None if ckpt is None else ckpt.load()
     if saved is not None:
         total = torch.from_numpy(saved[0]["sum"])
@@ -371,8 +411,11 @@ def reference_path_trace(
         mis: power-heuristic MIS of light and BRDF sampling (default ``True``); ``False``
             is next-event estimation alone (same expectation, more fireflies on glossy
             surfaces under large bright lights).
-        kwargs: ``chunk``, ``checkpoint``, ``checkpoint_every``, ``progress``.
+        kwargs: ``chunk`` (see :class:`PathTraceSettings`), ``checkpoint``,
+            ``checkpoint_every``, ``progress``.
     Returns:
         (H, W, 3) float32 linear radiance.
     """
-    return path_trace(scene, spp=spp, max_bounces=max_bounces, seed=seed, mis=mis, **kwargs)
+    chunk = {"chunk": kwargs.pop("chunk")} if "chunk" in kwargs else {}
+    settings = PathTraceSettings(spp=spp, max_bounces=max_bounces, mis=mis, **chunk)
+    return path_trace(scene, settings, seed=seed, **kwargs)

@@ -35,24 +35,32 @@ the numpy path below casts one embreex call per vertex. Both give the same recor
 from __future__ import annotations
 
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .._checks import MAX_CUBEMAP_RESOLUTION, check_count, check_int
+from .._checks import MAX_CUBEMAP_RESOLUTION, MAX_SUPERSAMPLE, check_count, check_fields, check_int
 from ..data import progress_default
-from ..errors import ValueRangeError
+from ..errors import FileFormatError, ValueRangeError
 from ..parallel.threads import single_thread
 from ..parallel.tiles import TileWork, run_tiles
-from ..records.cache import TileCache, settings_key
+from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
 from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from . import _native
 
-__all__ = ["SceneVertices", "VertexVisibility", "precompute_visibility", "scene_vertices", "visibility_fraction"]
+__all__ = [
+    "SceneVertices",
+    "VertexVisibility",
+    "VisibilitySettings",
+    "precompute_visibility",
+    "scene_vertices",
+    "visibility_fraction",
+]
 
 CHUNK_KIND = "vertex-visibility-chunk"
 BITS = (0, 2, 6, 8)
@@ -211,6 +219,30 @@ def _chunk_entries(
     return {"counts": counts, "index": index}
 
 
+def _chunk_schema(block_count: int, bits: int) -> CacheSchema:
+    """What a finished chunk file must hold: ``n`` vertices' ``counts`` (n, NB) int16 that add
+    up to the ``index`` entries (increasing within each pair), graded maps their ``delta``."""
+    levels = (1 << bits) - 1 if bits else 1
+    arrays = {
+        "counts": ArraySpec("int16", ("n", block_count), low=0, high=BLOCK_TEXELS),
+        "index": ArraySpec("uint8", ("F",)),
+    }
+    if bits:
+        arrays["delta"] = ArraySpec("int16", ("F",), low=-levels, high=levels)
+
+    def check(arrays: dict, meta: dict, sizes: dict) -> None:
+        counts, index = arrays["counts"].astype(np.int64).reshape(-1), arrays["index"]
+        if int(counts.sum()) != index.size:
+            raise FileFormatError(f"chunk counts add up to {int(counts.sum())} entries; it holds {index.size}")
+        ends = np.cumsum(counts)[counts > 0] - 1  # each pair's last entry
+        rises = np.diff(index.astype(np.int16)) > 0
+        rises[ends[ends < index.size - 1]] = True  # a new pair may start anywhere
+        if not rises.all():
+            raise FileFormatError("chunk texel positions are not increasing within a pair")
+
+    return CacheSchema(arrays=arrays, meta={"chunk": MetaSpec(int, 0)}, check=check)
+
+
 def _visibility_chunk(work: TileWork, c: int):
     """Chunk ``c``: its entries (a pure function of the work: scene, geom, positions, normals,
     dirs, bits, chunk)."""
@@ -220,13 +252,83 @@ def _visibility_chunk(work: TileWork, c: int):
     return entries, {"chunk": c}
 
 
+def _join_tiles(tiles: list, nb: int, bits: int) -> BlockVisibility:
+    """The record of the chunks' entries, in order, copied into arrays allocated once; each
+    chunk is dropped from ``tiles`` once copied, so the peak is the record plus the chunks
+    (not the chunks, their concatenation and the record's temporaries at once)."""
+    n_vertices = sum(a["counts"].shape[0] for a, _ in tiles)
+    n_entries = sum(a["index"].size for a, _ in tiles)
+    counts = np.empty((n_vertices, nb), dtype=np.int16)
+    index = np.empty(n_entries, dtype=np.uint8)
+    delta = np.empty(n_entries, dtype=np.int16) if bits else None
+    v, f = 0, 0
+    for i, (a, _) in enumerate(tiles):
+        m, k = a["counts"].shape[0], a["index"].size
+        counts[v : v + m] = a["counts"]
+        index[f : f + k] = a["index"]
+        if bits:
+            delta[f : f + k] = a["delta"]
+        v, f = v + m, f + k
+        tiles[i] = None
+    return BlockVisibility.from_entries(nb, bits, counts, index, delta)
+
+
+@dataclass(frozen=True)
+class VisibilitySettings:
+    """The settings of :func:`precompute_visibility` (frozen; :meth:`key` feeds the resume key).
+
+    Args:
+        resolution: R, texels per cubemap face side (64 or 128 in the seed).
+        block: S, texels per block side (R a multiple of it).
+        supersample: k; ``k x k`` rays per texel. ``k > 1`` needs ``bits`` in {2, 6, 8}.
+        bits: 0 for binary maps, else the derivative quantisation of graded maps.
+        chunk: vertices per work unit (and checkpoint file).
+    Raises:
+        ValueRangeError: bad resolution (not a positive integer multiple of ``block``, or
+            above :data:`~torch_brdf._checks.MAX_CUBEMAP_RESOLUTION`), supersample, bits or
+            chunk (the exception's ``setting`` names the field).
+    """
+
+    resolution: int = 64
+    block: int = 16
+    supersample: int = 1
+    bits: int = 0
+    chunk: int = 256
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            {
+                "resolution": lambda v: check_count(v, "resolution", MAX_CUBEMAP_RESOLUTION),
+                "block": lambda v: check_count(v, "block"),
+                "supersample": lambda v: check_count(v, "supersample", MAX_SUPERSAMPLE),
+                "chunk": lambda v: check_count(v, "chunk"),
+            },
+        )
+        check_fields(self, {"resolution": lambda v: CubemapBlocks(v, self.block).resolution, "bits": _check_bits})
+        if (self.supersample > 1) != (self.bits > 0):
+            exc = ValueRangeError(
+                f"graded visibility needs supersample > 1 and bits in (2, 6, 8); binary needs supersample = 1 and "
+                f"bits = 0; got supersample={self.supersample}, bits={self.bits}"
+            )
+            exc.setting = "supersample"
+            raise exc
+
+    def key(self) -> dict[str, int]:
+        """Every field (what the resume key covers besides the scene's vertices)."""
+        return asdict(self)
+
+
+def _check_bits(bits) -> int:
+    if bits not in BITS:
+        raise ValueRangeError(f"bits must be one of {BITS} (0 = binary); got {bits}")
+    return int(bits)
+
+
 def precompute_visibility(
     scene: Scene,
-    resolution: int = 64,
-    block: int = 16,
-    supersample: int = 1,
-    bits: int = 0,
-    chunk: int = 256,
+    settings: VisibilitySettings | None = None,
+    *,
     checkpoint: str | Path | None = None,
     progress: bool | None = None,
     max_chunks: int | None = None,
@@ -235,16 +337,14 @@ def precompute_visibility(
     address: str | None = None,
     max_retries: int = 3,
     processes: int | None = None,
+    **old,
 ) -> VertexVisibility:
     """Visibility cubemaps of every vertex of ``scene``.
 
     Args:
         scene: the scene (its tracer casts the rays; ``scene.workers`` processes).
-        resolution: R, texels per cubemap face side (64 or 128 in the seed).
-        block: S, texels per block side.
-        supersample: k; ``k x k`` rays per texel. ``k > 1`` needs ``bits`` in {2, 6, 8}.
-        bits: 0 for binary maps, else the derivative quantisation of graded maps.
-        chunk: vertices per work unit (and checkpoint file).
+        settings: :class:`VisibilitySettings` (cubemap resolution, block, supersampling, bits,
+            chunk; None: its defaults).
         checkpoint: folder for finished chunks (a :class:`~torch_brdf.records.cache.TileCache`); a
             run with the same settings resumes from it; removed on success unless ``keep_checkpoint``.
         progress: tqdm bar over chunks (None: on when attached to a terminal or notebook).
@@ -259,39 +359,26 @@ def precompute_visibility(
     Returns:
         :class:`VertexVisibility` (or None when stopped by ``max_chunks``).
     Raises:
-        ValueRangeError: bad resolution (not a positive integer multiple of ``block``, or
-            above :data:`~torch_brdf._checks.MAX_CUBEMAP_RESOLUTION`), supersample, bits or chunk.
+        TypeError: settings given one by one (``resolution=``, ``bits=``...).
     """
-    resolution = check_count(resolution, "resolution", MAX_CUBEMAP_RESOLUTION)
-    block, supersample, chunk = (
-        check_count(v, k) for v, k in ((block, "block"), (supersample, "supersample"), (chunk, "chunk"))
-    )
-    max_chunks = None if max_chunks is None else check_int(max_chunks, "max_chunks", 0)
-    geom = CubemapBlocks(resolution, block)
-    if bits not in BITS:
-        raise ValueRangeError(f"bits must be one of {BITS} (0 = binary); got {bits}")
-    if int(supersample) != supersample or supersample < 1:
-        raise ValueRangeError(f"supersample must be an integer >= 1; got {supersample}")
-    if (supersample > 1) != (bits > 0):
-        raise ValueRangeError(
-            f"graded visibility needs supersample > 1 and bits in (2, 6, 8); binary needs supersample = 1 and "
-            f"bits = 0; got supersample={supersample}, bits={bits}"
+    if old or not isinstance(settings, (VisibilitySettings, type(None))):
+        given = sorted(old) + ([] if isinstance(settings, (VisibilitySettings, type(None))) else [repr(settings)])
+        raise TypeError(
+            "precompute_visibility(scene, settings, *, checkpoint, progress, ...) takes its settings from a "
+            f"VisibilitySettings, e.g. precompute_visibility(scene, VisibilitySettings(resolution=32, chunk=64)); "
+            f"got {', '.join(given)}"
         )
-    if chunk < 1:
-        raise ValueRangeError(f"chunk must be >= 1; got {chunk}")
+    s = VisibilitySettings() if settings is None else settings
+    max_chunks = None if max_chunks is None else check_int(max_chunks, "max_chunks", 0)
+    geom = CubemapBlocks(s.resolution, s.block)
+    resolution, supersample, bits, chunk = s.resolution, s.supersample, s.bits, s.chunk
     verts = scene_vertices(scene)
-    settings = {
-        "resolution": resolution,
-        "block": block,
-        "supersample": supersample,
-        "bits": bits,
-        "vertices": len(verts),
-        "fingerprint": verts.fingerprint,
-        "chunk": chunk,
-        "tile": "entries",  # chunk files hold counts/index(/delta), not the varint stream
-    }
-    key = settings_key(settings, scene, parts=("geometry",))  # every mesh (occluders too), not lights
-    cache = TileCache(checkpoint, CHUNK_KIND, key, prefix="vis")
+    # chunk files hold counts/index(/delta), not the varint stream ("tile": "entries")
+    facts = {"vertices": len(verts), "fingerprint": verts.fingerprint, "tile": "entries"}
+    key = settings_key({**s.key(), **facts}, scene, parts=("geometry",))  # every mesh (occluders too), not lights
+    schema = _chunk_schema(geom.block_count, bits)
+    nv = len(verts)
+    cache = TileCache(checkpoint, CHUNK_KIND, key, "vis", schema, lambda c: {"n": min(chunk, nv - c * chunk)})
     with single_thread():  # small torch ops: a second thread only waits (milliseconds under load)
         dirs = geom.supersampled_directions(supersample).reshape(geom.block_count * geom.block_size, -1, 3).float()
     num = -(-len(verts) // chunk)
@@ -315,10 +402,7 @@ def precompute_visibility(
     if any(t is None for t in tiles):
         return None  # stopped by max_chunks
     with single_thread():  # small torch ops: a second thread only waits (milliseconds under load)
-        joined = {k: np.concatenate([a[k] for a, _ in tiles]) for k in tiles[0][0]}
-        blocks = BlockVisibility.from_entries(
-            geom.block_count, bits, joined["counts"], joined["index"], joined.get("delta")
-        )
+        blocks = _join_tiles(tiles, geom.block_count, bits)
     if not keep_checkpoint:
         cache.remove()
     return VertexVisibility(geom, verts, blocks, supersample, bits)

@@ -110,7 +110,7 @@ from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.guides import light_lobe_images
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import LobeMixture, precompute_polynomial
+from torch_brdf.transport.polynomial import LobeMixture, PolynomialSettings, precompute_polynomial
 
 METHODS = ("none", "linear", "oidn_basis", "oidn_frame", "regression", "selected", "oidn_cumulative")
 DENOISERS = {"linear": "linear", "oidn_basis": "oidn"}
@@ -228,7 +228,11 @@ def _interleaved_frame_times(renderers: dict, obj: str, repeat: int = 7) -> dict
 def _unit(scene, obj, mats, edited, series, spp, seed, full: bool, keep: dict | None = None):
     """One precompute at (spp, seed): its frames per method (only ``none`` unless ``full``);
     a full unit's record is left in ``keep["T"]`` for the extra part of the same run."""
-    T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False, **PRECOMPUTE))
+    T, pre_s = _secs(
+        lambda: precompute_polynomial(
+            scene, PolynomialSettings(series, spp=spp, **PRECOMPUTE), seed=seed, progress=False
+        )
+    )
     if full and keep is not None:
         keep["T"] = T
     R = PolynomialRenderer(T, mats)
@@ -266,7 +270,11 @@ def _extra_unit(scene, obj, mats, edited, series, spp, seed, noisy, T=None):
     frames, denoise seconds and frame seconds timed in turns with the noisy frozen frame of
     this run (the ratio's baseline)."""
     if T is None:
-        T, pre_s = _secs(lambda: precompute_polynomial(scene, series, spp=spp, seed=seed, progress=False, **PRECOMPUTE))
+        T, pre_s = _secs(
+            lambda: precompute_polynomial(
+                scene, PolynomialSettings(series, spp=spp, **PRECOMPUTE), seed=seed, progress=False
+            )
+        )
     else:
         pre_s = 0.0  # reused: same_as_cached_unit is then 0 by construction
     R = PolynomialRenderer(T, mats)
@@ -299,7 +307,7 @@ def _halves_unit(scene, obj, mats, edited, series, spp, seed):
     for k in range(2):
         T, t = _secs(
             lambda k=k: precompute_polynomial(
-                scene, series, spp=spp // 2, seed=1000 + 2 * seed + k, progress=False, **_half(k)[0]
+                scene, PolynomialSettings(series, spp=spp // 2, **_half(k)[0]), seed=1000 + 2 * seed + k, progress=False
             )
         )
         halves.append(T)
@@ -342,7 +350,9 @@ def half_records(scene, series: str, spp: int, seed: int, folder: Path) -> list:
         T = ck.load_record(PolynomialTensors)
         if T is None:
             print(f"[{scene.name}] half record {k} at {spp // 2} spp (load {_load()}) ...", flush=True)
-            T = precompute_polynomial(scene, series, spp=spp // 2, seed=s["seed"], progress=False, **_half(k)[0])
+            T = precompute_polynomial(
+                scene, PolynomialSettings(series, spp=spp // 2, **_half(k)[0]), seed=s["seed"], progress=False
+            )
             ck.save_record(T)
         else:
             print(f"[{scene.name}] half record {k}: cached", flush=True)

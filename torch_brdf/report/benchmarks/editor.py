@@ -48,12 +48,12 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads) -> dict:
 
     from torch_brdf.editor.server import EditorServer, launch_chromium
     from torch_brdf.scene import cornell_box_glossy
-    from torch_brdf.transport import precompute_polynomial
+    from torch_brdf.transport import PolynomialSettings, precompute_polynomial
 
     path = workdir / f"cornell_box_glossy_{size}_{spp}spp.npz"
     if not path.is_file():
         t0 = time.perf_counter()
-        precompute_polynomial(cornell_box_glossy(size), "64,1,1,1", spp=spp, seed=0).save(path)
+        precompute_polynomial(cornell_box_glossy(size), PolynomialSettings("64,1,1,1", spp=spp), seed=0).save(path)
         print(f"{size}²: precomputed in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     config = {"source": str(path), "display_width": 512, "threads": threads}
     with EditorServer(config, timeout=300) as server, sync_playwright() as p:

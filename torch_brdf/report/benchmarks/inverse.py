@@ -31,8 +31,14 @@ Prints progress lines, then one JSON object as the last line:
   rank-deficient H, an out-of-family Ward target, shared, rho_d -> 1) built on this view:
   ``problems``; per solver (``default`` = ``solve_qp`` interior point, ``admm`` without its
   fallback, ``admm_fallback``, ``proxqp`` at eps 1e-10, ``clarabel`` defaults): ``solved``
-  (objective within 1e-6 relative of the reference -- ProxQP at eps 1e-12, Clarabel where it
-  returns nothing -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
+  (objective at most 1e-6 relative above the reference -- ProxQP at eps 1e-12, Clarabel where
+  it returns nothing; a feasible point below it is solved, the reference being the less
+  accurate one there -- and violation <= 1e-8), ``total_s`` and ``median_s`` per QP.
+  The set is also split into ``easy`` (targets inside the SRBF family: ``exact-whole``,
+  ``exact-half``, ``few-pixels``; zero residual) and ``hard`` (the rest), each with ``solved``,
+  ``problems`` and ``total_s`` per solver (the default and ProxQP: best of ``repeats`` per
+  problem), and ``easy_over_proxqp`` / ``hard_over_proxqp`` = default total_s / ProxQP total_s.
+  ``--qp-set-only`` runs just this part.
 * ``ridge_effect``: lobes no pixel constrains (see :func:`ridge_effect`): a target inside the
   SRBF family weighted on central patches of 2 / 5 / 15 % of the object's pixels or on its left
   half, fitted with ``ridge`` 0 / 1e-8 (default) / 1e-6: coefficient error, max energy
@@ -155,35 +161,52 @@ def _qp_solvers():
     }
 
 
-def qp_set_benchmark(px, ls, vis, rec) -> dict:
-    """Success counts and times of every solver over the QP set (see the module docstring)."""
+#: the QP set's easy problems: targets the SRBF family reaches (zero residual at the optimum)
+EASY = ("exact-whole", "exact-half", "few-pixels")
+
+
+def qp_set_benchmark(px, ls, vis, rec, repeats: int = 3) -> dict:
+    """Success counts and times of every solver over the QP set (see the module docstring),
+    in all and split into the easy set (:data:`EASY`) and the hard set (the rest); the default
+    and ProxQP are timed as the best of ``repeats`` per problem (the machine is shared)."""
     try:
         solvers = _qp_solvers()
     except ImportError:
         return {"error": "qpsolvers not installed"}
     problems = qp_set(px, ls, vis, rec)
     refs = [reference_solution(pr)[0] for _, pr in problems]
-    out = {"problems": len(problems)}
+    out = {"problems": len(problems), "easy": [lb for lb, _ in problems if lb.split("/")[0] in EASY]}
     for name, solve in solvers.items():
         times, solved, failed = [], 0, []
+        sets = {"easy": [0, 0.0, 0], "hard": [0, 0.0, 0]}  # solved, seconds, problems
         for (label, pr), ref in zip(problems, refs, strict=True):
-            t0 = time.perf_counter()
-            try:
-                x = solve(pr)
-            except Exception:  # a failure is what is counted here
-                x = None
-            times.append(time.perf_counter() - t0)
-            ok = x is not None and abs(objective_gap(pr, x, ref)) <= 1e-6 and violation(pr, x) <= 1e-8
+            best, x = float("inf"), None
+            for _ in range(repeats if name in ("default", "proxqp") else 1):
+                t0 = time.perf_counter()
+                try:
+                    x = solve(pr)
+                except Exception:  # a failure is what is counted here
+                    x = None
+                best = min(best, time.perf_counter() - t0)
+            times.append(best)
+            # at most 1e-6 above the reference (below it: the reference was the less accurate)
+            ok = x is not None and objective_gap(pr, x, ref) <= 1e-6 and violation(pr, x) <= 1e-8
             solved += int(ok)
             if not ok:
                 failed.append(label)
+            s = sets["easy" if label.split("/")[0] in EASY else "hard"]
+            s[0], s[1], s[2] = s[0] + int(ok), s[1] + best, s[2] + 1
         out[name] = {
             "solved": solved,
             "total_s": round(sum(times), 4),
             "median_s": round(statistics.median(times), 5),
             "failed": failed,
+            **{k: {"solved": v[0], "problems": v[2], "total_s": round(v[1], 5)} for k, v in sets.items()},
         }
         print(f"QP set, {name}: {solved}/{len(problems)} solved, {sum(times):.2f} s", flush=True)
+    if "proxqp" in out and "default" in out:
+        for k in ("easy", "hard"):
+            out[f"{k}_over_proxqp"] = round(out["default"][k]["total_s"] / max(out["proxqp"][k]["total_s"], 1e-9), 3)
     return out
 
 
@@ -236,6 +259,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=None, help="light samples S (power of two)")
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--qp-set-only", action="store_true", help="only the QP set (easy and hard) against ProxQP")
     args = ap.parse_args()
     size = (80, 60) if args.quick else (160, 120)
     S = args.samples or (128 if args.quick else 512)
@@ -249,6 +273,11 @@ def main() -> None:
     t0 = time.perf_counter()
     vis = cosine_visibility(scene, px, ls)
     visibility_s = time.perf_counter() - t0
+    if args.qp_set_only:
+        rec = transfer_functions(px, ls, vis, f0=F0)
+        out = {"pixels": px.count, "light_samples": S, "qp_set": qp_set_benchmark(px, ls, vis, rec, repeats)}
+        print(json.dumps({**out, "load": os.getloadavg()[0], "quick": bool(args.quick)}))
+        return
     energy = energy_rows()  # precomputed once per basis (not timed below)
 
     tr = 1 if args.quick else 2  # best of 2: the machine is shared

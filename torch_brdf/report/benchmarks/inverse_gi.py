@@ -66,7 +66,7 @@ from torch_brdf.render.fit import blinn_phong_family
 from torch_brdf.render.polynomial import emitter_mask
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 TRUTH = {
     "back": {"type": "blinn_phong", "kd": 0.3, "ks": 0.5, "exponent": 100.0},
@@ -110,7 +110,7 @@ def _recovery(T, mats, objects, family=False):
 
 def _gi_vs_direct(res: int, spp: int, ref_spp: int, picture: str | None) -> dict:
     sc = cornell_box_glossy(res)
-    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=False)
+    T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=False)
     ggx = cornell_box_glossy(res)
     ggx.materials["glossy_back"] = {"type": "cook_torrance", "distribution": "ggx", "roughness": 0.2, "f0": 0.5}
     ggx.materials["glossy_back"]["kd"] = 0.25
@@ -255,14 +255,18 @@ def main() -> None:
     spp = spps[0]  # the in-family recoveries and the GGX target use the cheapest tensors
     out = {"series": "64,1,1,1", "spp": spp, "peer_spp": spps, "load_start": _load(), "runs": {}}
     warm = cornell_box_glossy(16)  # one-off imports (forward-mode AD) and thread tuning, not timed
-    _recovery(precompute_polynomial(warm, "8,1", spp=1, seed=0, progress=False), _materials(warm), ["back"])
+    _recovery(
+        precompute_polynomial(warm, PolynomialSettings("8,1", spp=1), seed=0, progress=False),
+        _materials(warm),
+        ["back"],
+    )
     solve_qp(torch.eye(2, dtype=torch.float64), -torch.ones(2, dtype=torch.float64), torch.ones(1, 2), torch.ones(1))
     for res in sizes:
         sc = cornell_box_glossy(res)
         tensors = {}
         for s in spps if not args.no_mitsuba else spps[:1]:
             t0 = time.perf_counter()
-            T = precompute_polynomial(sc, "64,1,1,1", spp=s, seed=0, progress=False)
+            T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=s), seed=0, progress=False)
             tensors[s] = (T, time.perf_counter() - t0)
             print(f"{res}: precompute {s} spp {tensors[s][1]:.1f} s (load {_load()})", flush=True)
         T, pre_s = tensors[spp]

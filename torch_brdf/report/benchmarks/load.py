@@ -128,21 +128,25 @@ def stage_embree(q: bool, ctx: dict):
 
 def stage_precompute(q: bool, ctx: dict):
     from torch_brdf.scene.builtin import cornell_box_glossy
-    from torch_brdf.transport.polynomial import precompute_polynomial
+    from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
     sc = ctx.setdefault("box", cornell_box_glossy(64 if q else 128))
     spp = 4 if q else 16
-    return (lambda: precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=False)), 3 if q else 2, 1
+    return (
+        (lambda: precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=False)),
+        3 if q else 2,
+        1,
+    )
 
 
 def _frozen_renderer(q: bool, ctx: dict):
     if "renderer" not in ctx:
         from torch_brdf.render.polynomial import PolynomialRenderer
         from torch_brdf.scene.builtin import cornell_box_glossy
-        from torch_brdf.transport.polynomial import precompute_polynomial
+        from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
         sc = cornell_box_glossy(128 if q else 512)
-        t = precompute_polynomial(sc, "64,1,1,1", spp=1 if q else 2, seed=1, progress=False)
+        t = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=1 if q else 2), seed=1, progress=False)
         mats = {o.name: sc.materials[o.material] for o in sc.objects if o.editable}
         ctx["renderer"] = PolynomialRenderer(t, mats)
     return ctx["renderer"]
@@ -173,10 +177,10 @@ def stage_frame(q: bool, ctx: dict):
 def stage_triple(q: bool, ctx: dict):
     from torch_brdf.render.triple import TripleProductRenderer
     from torch_brdf.scene.builtin import bunny_relight
-    from torch_brdf.transport.visibility import precompute_visibility
+    from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
     sc = bunny_relight((160, 120), plane_quads=16 if q else 32, use_data=False)
-    vis = precompute_visibility(sc, 16 if q else 32, chunk=512, progress=False)
+    vis = precompute_visibility(sc, VisibilitySettings(resolution=16 if q else 32, chunk=512), progress=False)
     r = TripleProductRenderer(sc, vis)
     view = r.view()
     return (lambda: r.shade(view)), 7, 2 * _threads.TRIALS

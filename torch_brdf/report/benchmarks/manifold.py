@@ -3,7 +3,8 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/manifold.py [--quick] [--cache PATH] [--no-peer]
         [--fits-only | --heldout-only] [--no-seed-config] [--max-iter N] [--tol T --tol-window W]
         [--negatives penalise|free] [--negative-weight L] [--max-columns C] [--peer-seconds S]
-        [--splits N] [--budget-map B1,B2,...]
+        [--splits N] [--budget-map B1,B2,...] [--valid none|simplex|energy]
+        [--validity-only] [--validity-splits N]
 
 Data: the 100 NBRDF fits of the MERL materials (an APPROXIMATION of MERL, shared data)
 tabulated on the default grid (theta_h / theta_d every 3rd index, phi_d every 6th; valid bins
@@ -81,6 +82,14 @@ Prints progress lines, then one JSON object as the LAST line:
 * ``heldout_cosrmse_mean`` / ``heldout_projected_cosrmse_mean`` (and ``pca_...``): cosine-weighted
   RMSE of the held-out reconstructions as they are and projected onto the non-negative cone
   (max(z, 0), no negative values left; the log-RMSE is the same both ways, it clamps at 0).
+* every latent point a valid BRDF (:func:`validity_study`, q = 2, the seed's configuration):
+  ``negative_fraction_{unconstrained,valid,energy}`` and ``max_albedo_*`` at 10,000 latents
+  uniform inside the hull of the training latents; ``heldout_logrmse_*``, ``heldout_negative_*``,
+  ``heldout_s_*`` over ``validity_splits`` random splits (5, quick 2); ``weights_us_per_point_*``.
+  ``unconstrained`` is the seed's weights (``GPLVM(valid="none")``), ``valid`` the default
+  simplex projection, ``energy`` the simplex scaled to albedo <= 1. Every other section measures
+  the seed's weights (``SEED``; ``--valid`` sets the held-out study's). ``--validity-only``: this
+  section only.
 * ``load_start`` / ``load_end``: 1-minute load average (the machine is shared; timings vary).
 """
 
@@ -111,6 +120,7 @@ from torch_brdf.manifold.data import (
 from torch_brdf.manifold.evaluate import NEGATIVE_WEIGHT, NEGATIVES, heldout_reconstruction
 from torch_brdf.manifold.gplvm import (
     GPLVM,
+    VALIDITY,
     fit_gplvm,
     gram,
     log_likelihood,
@@ -126,6 +136,9 @@ from torch_brdf.render.manifold import blend, gi_blend_error, render_rows
 ROOT = Path(__file__).resolve().parents[3]
 #: the kernel's mu for every fit here (the seed's 1e-6 is reported beside it in the held-out study)
 MU = 1e-10
+#: the blend weights of every section but the validity study: the seed's unconstrained interpolant
+#: (the keys measure the seed; ``--valid`` changes the held-out study's)
+SEED = "none"
 #: mu of the GPy comparison (the seed's): GPy adds 1e-8 to its noise, so MU = 1e-10 cannot be matched
 GPY_MU = 1e-6
 
@@ -156,7 +169,7 @@ def fit_all(obs: Observations, q: int, max_iter: int, method: str = "lbfgs", **k
         **kwargs,
     )  # fmt: skip
     cpu = time.process_time() - cpu0
-    model = GPLVM(fit, obs.z.double())
+    model = GPLVM(fit, obs.z.double(), valid=SEED)
     z = obs.z.double()
     pred = model.predict(model.latents)
     repro = float(((pred - z).abs().max(1).values / z.abs().max(1).values.clamp_min(1e-300)).max())
@@ -426,7 +439,7 @@ def heldout_study(
                 )  # fmt: skip
                 # why negatives: a placement on a training latent (variance ~0), where the smooth
                 # mean's weights are e_j - mu K^-1 e_j, with large entries of both signs
-                model = GPLVM(h.fit, obs.rows(train).double(), continuous=True)
+                model = GPLVM(h.fit, obs.rows(train).double(), continuous=True, valid=SEED)
                 w = model.weights(h.latents)
                 fam[f"{family}_q{q}"] = {
                     "on_training_latent": round(float((h.variance < 1e-6).double().mean()), 4),
@@ -496,6 +509,89 @@ def limitation(model: GPLVM, obs: Observations, ends: tuple, quick: bool) -> dic
     }
 
 
+def _hull_points(latents: torch.Tensor, m: int, generator: torch.Generator) -> torch.Tensor:
+    """(m, Q) latents uniform inside the convex hull of ``latents`` (rejection from the bounding box)."""
+    from scipy.spatial import Delaunay
+
+    tri = Delaunay(latents.numpy())
+    lo, hi = latents.min(0).values, latents.max(0).values
+    got: list[torch.Tensor] = []
+    n = 0
+    while n < m:
+        x = lo + (hi - lo) * torch.rand(4 * m, latents.shape[1], generator=generator, dtype=torch.float64)
+        x = x[torch.from_numpy(tri.find_simplex(x.numpy()) >= 0)]
+        got.append(x)
+        n += x.shape[0]
+    return torch.cat(got)[:m]
+
+
+def validity_study(obs: Observations, max_iter: int, splits: int, points: int = 10_000, **stop) -> dict:
+    """Every latent point a valid BRDF: the blend-weight options of :class:`GPLVM` (``valid``) compared.
+
+    q = 2, the seed's configuration (mu 1e-6, interpolant exact at the latents). On a fit to all
+    materials, ``points`` latents uniform inside the convex hull of the training latents (seeded):
+    ``negative_fraction_*`` (share of predicted BRDF values < 0), ``max_albedo_*`` (largest
+    directional albedo over points, angles and RGB, blended from the per-material albedos: exact, it
+    is linear in the BRDF), ``weights_us_per_point_*`` (best of 3, 10,000 points). Held-out:
+    ``heldout_logrmse_*`` / ``heldout_negative_*`` / ``heldout_s_*`` (fit + placements, CPU wall)
+    over ``splits`` random 80/20 splits (seeds 0..), each option placing with its own weights
+    (:func:`heldout_reconstruction` ``valid=``); ``nearest_`` / ``pca_heldout_logrmse_valid_study``
+    on the same splits. Suffixes: ``unconstrained`` = ``"none"``, ``valid`` = ``"simplex"`` (the
+    default), ``energy``.
+    """
+    options = {"unconstrained": "none", "valid": "simplex", "energy": "energy"}
+    alb = directional_albedo(obs.z, obs.grid)
+    z = obs.z.double()
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(s, d, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0), **stop)
+    model = GPLVM(fit, z, valid=SEED, albedo=alb)
+    xs = _hull_points(model.latents, points, torch.Generator().manual_seed(4))
+    out: dict = {"validity_points": points, "training_max_albedo_valid_study": float(alb.max())}
+    a_flat = alb.flatten(1)
+    for key, valid in options.items():
+        w = model.weights(xs, valid=valid)
+        neg = sum(int(((w[a : a + 1000] @ z) < 0).sum()) for a in range(0, points, 1000))
+        out[f"negative_fraction_{key}"] = neg / (points * z.shape[1])
+        out[f"max_albedo_{key}"] = float((w @ a_flat).max())
+        best = math.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            model.weights(xs, valid=valid)
+            best = min(best, time.perf_counter() - t0)
+        out[f"weights_us_per_point_{key}"] = 1e6 * best / points
+        _log(
+            f"validity {key}: negative {out[f'negative_fraction_{key}']:.4f}, max albedo {out[f'max_albedo_{key}']:.3g}"
+        )
+    names = list(obs.names)
+    per: dict = {k: [] for k in ("nearest", "pca", *(f"{m}_{o}" for m in ("rmse", "neg", "s") for o in options))}
+    for seed in range(splits):
+        perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
+        test = sorted(names[i] for i in perm[: len(names) // 5])
+        train = sorted(names[i] for i in perm[len(names) // 5 :])
+        train_alb = alb[[names.index(n) for n in train]]
+        for key, valid in options.items():
+            t0 = time.perf_counter()
+            h = heldout_reconstruction(
+                obs, train, test, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0),
+                valid=valid, albedo=train_alb, **stop,
+            )  # fmt: skip
+            per[f"s_{key}"].append(time.perf_counter() - t0)
+            per[f"rmse_{key}"].append(float(h.gplvm_logrmse.mean()))
+            per[f"neg_{key}"].append(float(h.gplvm_negative.mean()))
+            _log(f"validity split {seed} {key}: held-out log-RMSE {per[f'rmse_{key}'][-1]:.4f}")
+        per["nearest"].append(float(h.nearest_logrmse.mean()))
+        per["pca"].append(float(h.pca_logrmse.mean()))
+    if splits:
+        for key in options:
+            out[f"heldout_logrmse_{key}"] = float(np.mean(per[f"rmse_{key}"]))
+            out[f"heldout_negative_{key}"] = float(np.mean(per[f"neg_{key}"]))
+            out[f"heldout_s_{key}"] = float(np.mean(per[f"s_{key}"]))
+        out["nearest_heldout_logrmse_valid_study"] = float(np.mean(per["nearest"]))
+        out["pca_heldout_logrmse_valid_study"] = float(np.mean(per["pca"]))
+        out["validity_splits"] = splits
+    return out
+
+
 def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
     """Seed Eq. 12: blend GI renders of k materials; compare with a GI render of the interpolated BRDF.
 
@@ -513,7 +609,7 @@ def gi_experiment(obs: Observations, ends: tuple, quick: bool) -> dict:
         sub[-1] = i1
     zk = z[sub]
     s, d = gram(zk, obs.cosine_weights())
-    model = GPLVM(fit_gplvm(s, d, 2, max_iter=300, generator=torch.Generator().manual_seed(0)), zk)
+    model = GPLVM(fit_gplvm(s, d, 2, max_iter=300, generator=torch.Generator().manual_seed(0)), zk, valid=SEED)
     path = best_path(model, sub.index(i0), sub.index(i1), variance_weight=10.0, resolution=24)
     w = path.weights[len(path.weights) // 2]
     scene = sphere_scene(24 if quick else 48)
@@ -554,10 +650,10 @@ def _fit_section(obs: Observations, max_iter: int, stop: dict, out: dict) -> dic
             model2 = r["model"]
             ours_q2 = r
     z = obs.z.double()
-    smooth = GPLVM(model2.fit, z, continuous=True)
+    smooth = GPLVM(model2.fit, z, continuous=True, valid=SEED)
     s_all, d_all = gram(obs.z, obs.cosine_weights())
     seed_fit = fit_gplvm(s_all, d_all, 2, max_iter=max_iter, generator=torch.Generator().manual_seed(0))
-    jumps = row_jump(GPLVM(seed_fit, z))
+    jumps = row_jump(GPLVM(seed_fit, z, valid=SEED))
     out["continuity_max"] = float(row_jump(smooth).max())
     out["continuity_max_seed"] = float(jumps.max())
     out["continuity_seed_share_above_1pct"] = float((jumps > 0.01).double().mean())
@@ -597,10 +693,14 @@ def main(argv=None) -> dict:
         "--negative-weight", type=float, default=NEGATIVE_WEIGHT, help="placement: factor on negative values"
     )
     ap.add_argument("--max-columns", type=int, default=8192, help="columns the placement search sees (0 = all)")
+    ap.add_argument("--valid", choices=VALIDITY, default=SEED, help="blend weights of the held-out study")
+    ap.add_argument("--validity-only", action="store_true", help="the validity study only (no fits / peers)")
+    ap.add_argument("--validity-splits", type=int, default=None, help="validity study splits (default 5, quick 2)")
     args = ap.parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
     place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
     place["max_columns"] = args.max_columns or None
+    place["valid"] = args.valid
     quick = args.quick
     max_iter = args.max_iter or (200 if quick else 1000)
     out: dict = {"quick": quick, "threads": torch.get_num_threads(), "load_start": os.getloadavg()[0]}
@@ -609,6 +709,12 @@ def main(argv=None) -> dict:
     obs, desc = load_data(quick, args.cache)
     out["data"] = desc
     out["n_materials"], out["d"] = obs.z.shape
+    vsplits = args.validity_splits if args.validity_splits is not None else (2 if quick else 5)
+    out.update(validity_study(obs, max_iter, vsplits, **stop))
+    if args.validity_only:
+        out["load_end"] = os.getloadavg()[0]
+        print(json.dumps(out))
+        return out
     if not args.skip_fits:
         ours_q2 = _fit_section(obs, max_iter, stop, out)
     if args.budget_map:

@@ -94,17 +94,17 @@ from torch_brdf.io import save_arrays
 from torch_brdf.manifold import analytic_observations, heldout_reconstruction
 from torch_brdf.manifold.data import MERLGrid
 from torch_brdf.metrics import relative_rmse
-from torch_brdf.planner.gi import with_fixed
+from torch_brdf.planner.gi import plan_polynomial, precompute_planned, with_fixed
 from torch_brdf.planner.inverse import _basis, design_image, plan_inverse
 from torch_brdf.planner.manifold import STATISTICS, bootstrap_interval, plan_manifold
+from torch_brdf.planner.relight_pilots import DEFAULT_RULE, make_rule, plan_relighting, shade_vertices
 from torch_brdf.records.polynomial import Series
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
-from torch_brdf.render.relight_plan import DEFAULT_RULE, make_rule, plan_relighting, shade_vertices
 from torch_brdf.render.triple import TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight, cornell_box_glossy, teatray
 from torch_brdf.scene.gbuffer import trace_gbuffer
-from torch_brdf.transport.polynomial import plan_polynomial, precompute_polynomial
-from torch_brdf.transport.visibility import precompute_visibility
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
+from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
 
 def _rays(T) -> int:
@@ -144,7 +144,10 @@ def run_scene(
     print(f"reference: {ref_series.key} at 2 x {ref_spp // 2} spp", flush=True)
     refs = [
         precompute_polynomial(
-            with_fixed(sc, plan.fixed), ref_series, spp=ref_spp // 2, seed=99 + k, bases=ref_bases, progress=False
+            with_fixed(sc, plan.fixed),
+            PolynomialSettings(ref_series, spp=ref_spp // 2, bases=ref_bases),
+            seed=99 + k,
+            progress=False,
         )
         for k in range(2)
     ]
@@ -161,7 +164,7 @@ def run_scene(
         return math.sqrt(max(0.0, e * e - ref_noise * ref_noise))
 
     t0 = time.perf_counter()
-    T = precompute_polynomial(sc, plan=plan, seed=1, progress=False)
+    T = precompute_planned(sc, plan=plan, seed=1, progress=False)
     secs = time.perf_counter() - t0
     a = achieved(T)
     out["plan"] = str(plan)
@@ -183,7 +186,7 @@ def run_scene(
     # the same planner with one spp for every pixel (what adaptive sampling buys)
     flat = plan_polynomial(sc, error=error, seed=0, adaptive=False)
     t0 = time.perf_counter()
-    U = precompute_polynomial(sc, plan=flat, seed=1, progress=False)
+    U = precompute_planned(sc, plan=flat, seed=1, progress=False)
     u_secs, u = time.perf_counter() - t0, achieved(U)
     out["planned_uniform"] = {
         "series": flat.series.key,
@@ -202,7 +205,7 @@ def run_scene(
         rows = []
         for spp in _spp_grid(max_spp, fine=True):
             t0 = time.perf_counter()
-            D = precompute_polynomial(sc, key, spp=spp, seed=1, progress=False)
+            D = precompute_polynomial(sc, PolynomialSettings(key, spp=spp), seed=1, progress=False)
             s = time.perf_counter() - t0
             e = achieved(D)
             rows.append({"spp": spp, "achieved_error": e, "seconds": s, "rays": _rays(D)})
@@ -236,12 +239,12 @@ def retime(sc, plan, out: dict, repeats: int) -> dict:
     ``repeats`` times each, the least of each: one timing per setting on a shared machine
     scatters by 2x and more. Returns ``retimed`` (seconds per setting) and
     ``planner_cost_ratio_retimed`` / ``planner_cost_ratio_retimed_fine_spp``."""
-    runs = {"planned": lambda: precompute_polynomial(sc, plan=plan, seed=1, progress=False)}
+    runs = {"planned": lambda: precompute_planned(sc, plan=plan, seed=1, progress=False)}
     for name in ("", "_fine_spp"):
         b = out.get(f"best_default{name}")
         if b is not None:
             runs[f"best_default{name}"] = lambda b=b: precompute_polynomial(
-                sc, b["series"], spp=b["spp"], seed=1, progress=False
+                sc, PolynomialSettings(b["series"], spp=b["spp"]), seed=1, progress=False
             )
     best: dict[str, float] = {}
     for _ in range(repeats):
@@ -350,7 +353,9 @@ def run_relight(psnr: float, quick: bool, frames: int = 100) -> dict:
 
     def carry_out(R: int, k: int, b: int, rule: str) -> dict:
         t0 = time.perf_counter()
-        vis = precompute_visibility(scene, R, 16, k, b, progress=False)
+        vis = precompute_visibility(
+            scene, VisibilitySettings(resolution=R, block=16, supersample=k, bits=b), progress=False
+        )
         pre = time.perf_counter() - t0
         r = TripleProductRenderer(scene, vis, rule=make_rule(rule))
         view = r.view()
@@ -442,6 +447,32 @@ def statistic_table(pairs: list[tuple[torch.Tensor, torch.Tensor]], resamples: i
     return table
 
 
+def _manifold_carry_out(obs, train, test, q):
+    """Fit on ``train`` with ``q`` latent dimensions, place ``test``: (log-RMSE per held-out material, CPU s)."""
+    t0 = time.process_time()
+    h = heldout_reconstruction(obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT)
+    return h.gplvm_logrmse, time.process_time() - t0
+
+
+def _manifold_defaults(obs, pool, test, fam: int, stat, saved: dict) -> list[dict]:
+    """The fixed defaults (``MANIFOLD_DEFAULTS``, trained on the whole pool) carried out and scored."""
+    out = []
+    for q in MANIFOLD_DEFAULTS:
+        scores, secs = _manifold_carry_out(obs, pool, test, q)
+        saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
+        out.append(
+            {
+                "family": fam,
+                "q": q,
+                "n": len(pool),
+                "achieved_error": float(stat(scores)),
+                "achieved_mean": float(scores.mean()),
+                "cpu_s": secs,
+            }
+        )
+    return out
+
+
 def run_manifold(
     error: float,
     families: tuple[int, ...],
@@ -463,13 +494,7 @@ def run_manifold(
     kind ``manifold-planner-scores``), so another statistic can be studied without new fits;
     ``statistics`` in the output: :func:`statistic_table` of the plans' own scores."""
     stat = STATISTICS[statistic]
-
-    def carry_out(obs, train, test, q):
-        t0 = time.process_time()
-        h = heldout_reconstruction(
-            obs, list(train), test, q, generator=torch.Generator().manual_seed(q), **MANIFOLD_FIT
-        )
-        return h.gplvm_logrmse, time.process_time() - t0
+    carry_out = _manifold_carry_out
 
     runs, defaults, saved, pairs = [], [], {}, []
     for fam in families:
@@ -479,19 +504,7 @@ def run_manifold(
         names = list(obs.names)
         test, pool = names[:80] + names[80 + pool_size :], names[80 : 80 + pool_size]
         assert not set(test) & set(pool)
-        for q in MANIFOLD_DEFAULTS:
-            scores, secs = carry_out(obs, pool, test, q)
-            saved[f"f{fam}_default_q{q}_heldout"] = scores.numpy()
-            defaults.append(
-                {
-                    "family": fam,
-                    "q": q,
-                    "n": len(pool),
-                    "achieved_error": float(stat(scores)),
-                    "achieved_mean": float(scores.mean()),
-                    "cpu_s": secs,
-                }
-            )
+        defaults += _manifold_defaults(obs, pool, test, fam, stat, saved)
         for order in orders:
             t0 = time.process_time()
             pilots: dict = {}

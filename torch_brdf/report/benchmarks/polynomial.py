@@ -1,6 +1,7 @@
 """BRDF editing with global illumination: precomputation, freezing, frames, and accuracy.
 
     python benchmarks/polynomial.py [--quick] [--precompute-only] [--baseline] [--torch-path]
+    python benchmarks/polynomial.py --memory-only [--quick]
 
 Scene: the glossy Cornell box (Ben-Artzi et al. 2008, Fig. 6b: Blinn-Phong n = 100 back wall,
 coloured blocks, 7 editable objects). Prints progress, then one JSON object as the last line:
@@ -59,6 +60,18 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   ``seconds`` and ``rel_rmse`` against the same reference (the peer on the report's curve).
 * ``mitsuba_vs_reference_rel_rmse`` and ``reference_seed_rel_rmse`` (two seeds of our
   reference at the Mitsuba spp): agreement within noise means the first is about the second.
+* ``memory`` (with ``--memory`` or ``--memory-only``): peak RSS of precompute (with its save),
+  freeze and the denoised freeze (``freeze(obj, "linear")``), each in a fresh subprocess, at two
+  sizes (128² and 256², 8 spp; ``--quick``: 64² and 128²) of the glossy Cornell box
+  (:mod:`torch_brdf.report.benchmarks._memory`): per stage ``peak_mb``, ``above_start_mb``,
+  ``bytes_per_pixel``, ``bytes_per_pixel_sample`` and ``over_file`` at each size; per stage
+  ``growth_over_file`` (the growth of the peak between the two sizes over the growth of the saved
+  record: the multiple of the record a stage holds on large scenes) and
+  ``growth_bytes_per_pixel`` (the same growth per pixel), and ``predicted_gb`` for a 512², 64-spp
+  (0.26 GB record), a 1024², 64-spp (1.05 GB) and a 1024², 1024-spp (4.2 GB) scene: the
+  precompute scales with its record (entries grow with spp), freezing and denoising with the
+  pixels (the frozen object's dense basis images), each as the peak at the larger size plus the
+  growth.
 """
 
 from __future__ import annotations
@@ -81,7 +94,7 @@ from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, serie
 from torch_brdf.scene.builtin import cornell_box_glossy
 from torch_brdf.transport import _native
 from torch_brdf.transport.pathtrace import reference_path_trace
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.rays import NativeRays
 
 
@@ -210,105 +223,11 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
     return {"image": img, "seconds": secs, "variant": variant}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
-    ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
-    ap.add_argument(
-        "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
-    )
-    ap.add_argument(
-        "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
-    )
-    args = ap.parse_args()
-    q = args.quick
-    out: dict = {"quick": q}
-    t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
-    out["native"] = _native.library() is not None
-    out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()
-
-    # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
-    res, spp = (64, 8) if q else (256, 64)
-    sc = cornell_box_glossy(res)
-    t0 = time.perf_counter()
-    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
-    T = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **forked)
-    out["precompute_s"] = time.perf_counter() - t0
-    out["precompute_processes"] = T.meta["processes"]
-    tl = T.meta["timeline"]  # [tile, process, start, end, CPU s] of each tile, s after the call began
-    if tl:
-        out["tile_timeline"] = tl
-        out["serial_before_tiles_s"] = min(r[2] for r in tl)
-        out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
-        out["tiles_cpu_s"] = sum(r[4] for r in tl)
-        out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
-
-    def again(**kw):
-        """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
-        t0, c0 = time.perf_counter(), _cpu_seconds()
-        T_ = precompute_polynomial(sc, "64,1,1,1", spp=spp, seed=0, progress=True, **kw)
-        cpu[0] = _cpu_seconds() - c0
-        return T_, time.perf_counter() - t0
-
-    cpu = [0.0]
-
-    def same(one, other) -> bool:
-        a, b = one.to_arrays()[0], other.to_arrays()[0]
-        return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
-
-    if args.baseline:  # the same precompute with its tiles in this process, one after another
-        T1, out["one_process_s"] = again(processes=1)
-        out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
-        out["equals_one_process"] = same(T, T1)
-        out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
-        del T1
-    if args.torch_path:  # the same precompute with the kernel off, same processes
-        os.environ[_native.ENV_VAR] = "0"
-        T2, out["torch_path_s"] = again(**forked)
-        out["torch_path_cpu_s"] = cpu[0]
-        del os.environ[_native.ENV_VAR]
-        _, out["native_again_s"] = again(**forked)  # the kernel once more: both warm
-        out["native_again_cpu_s"] = cpu[0]
-        out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
-        out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
-        out["equals_torch_path"] = same(T, T2)
-        out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
-        del T2
-    # embree alone: the rays of a run in this process (tiles may run in forked processes),
-    # recorded after the timed run (which stays the first call in the process)
-    rec_spp = max(1, spp // 8)
-    rsc = cornell_box_glossy(res)
-    with _recording_rays(rsc, limit=1 << 20 if q else 1 << 22) as log:
-        precompute_polynomial(rsc, "64,1,1,1", spp=rec_spp, seed=1, progress=False, processes=1, guides=False)
-    out["precompute_resolution"], out["precompute_spp"] = res, spp
-    out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
-    out["rays"] = T.meta["rays"]
-    alone = _embree_seconds(sc, log, T.meta["rays"])
-    out["rays_s"], out["rays_embreex_s"], out["rays_c_s"] = alone["fastest"], alone["embreex"], alone.get("c")
-    out["precompute_over_rays"] = out["precompute_s"] / out["rays_s"]
-    # where the time went (exclusive seconds per stage, summed over tiles; meta["split"])
-    out["split_s"] = {k: round(v, 4) for k, v in T.meta["split"].items()}
-    out["split_other_s"] = out["precompute_s"] - sum(T.meta["split"].values())
-    out["mb_per_bounce"] = {str(k): v / 2**20 for k, v in T.memory_per_bounce().items()}
-    out["mb_variance_per_bounce"] = {
-        str(k): (v - T.memory_per_bounce()[k]) / 2**20 for k, v in T.memory_per_bounce(variance=True).items()
-    }
-    print(f"precompute {out['precompute_s']:.1f} s, rays alone {out['rays_s']:.1f} s", flush=True)
-    mi = _mitsuba(sc, spp, 4)
-    if mi is not None:
-        out["mitsuba_s"], out["mitsuba_variant"] = mi["seconds"], mi["variant"]
-        out["precompute_over_mitsuba"] = out["precompute_s"] / mi["seconds"]
-        print(f"mitsuba {mi['seconds']:.2f} s ({mi['variant']})", flush=True)
-    del T
-    if args.precompute_only:
-        out["load_avg"] = list(os.getloadavg())
-        print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()}))
-        return
-
-    # -- freezing and frames at 512^2 ------------------------------------------------------------
+def _freeze_and_frames(q: bool, out: dict) -> None:
+    """Freezing the back wall and its frames at 512² (128² quick) into ``out``."""
     fres, fspp = (128, 2) if q else (512, 4)
     sc5 = cornell_box_glossy(fres)
-    T5 = precompute_polynomial(sc5, "64,1,1,1", spp=fspp, seed=1, progress=True)
+    T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
     R = PolynomialRenderer(T5, _materials(sc5))
     out["freeze_resolution"], out["freeze_spp"] = fres, fspp
     out["freeze_entries"] = T5.num_entries
@@ -335,6 +254,199 @@ def main() -> None:
     print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
     del R, T5
 
+
+def _series_errors(q: bool, sca, ref, mask, rspp: int, out: dict) -> None:
+    """``out["rel_rmse"]``: each series' relative RMSE against the reference (a reference of the
+    same depth for series of other bounces), seconds and MB."""
+    rel, refs = {}, {}
+    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
+    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
+    for series, n, key in runs:
+        t0 = time.perf_counter()
+        Tk = precompute_polynomial(sca, PolynomialSettings(series, spp=n), seed=2, progress=False)
+        secs = time.perf_counter() - t0
+        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
+        bounces = Tk.series.bounces
+        r = ref
+        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
+            r = refs.get(bounces)
+            if r is None:
+                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
+                r = (
+                    hi["image"]
+                    if hi is not None
+                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
+                )
+                refs[bounces] = r
+        rel[key] = {
+            "rel_rmse": relative_rmse(img, r, mask),
+            "seconds": secs,
+            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
+            "bounces": bounces,
+        }
+        print(key, rel[key], flush=True)
+    out["rel_rmse"] = rel
+
+
+def _args() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    ap.add_argument("--precompute-only", action="store_true", help="stop after the precompute, rays and Mitsuba")
+    ap.add_argument(
+        "--baseline", action="store_true", help="also time the precompute with tiles in one process (processes=1)"
+    )
+    ap.add_argument(
+        "--torch-path", action="store_true", help="also time the precompute with the compiled kernel off (torch path)"
+    )
+    ap.add_argument("--memory", action="store_true", help="also measure peak RSS per stage (subprocesses)")
+    ap.add_argument("--memory-only", action="store_true", help="only the peak RSS per stage")
+    return ap.parse_args()
+
+
+#: record sizes (GB) of the scenes the memory keys predict for (series 64,1,1,1; the 1024-spp
+#: size from the entries' growth with spp measured on the glossy Cornell box)
+RECORD_GB = {"512_spp64": 0.26, "1024_spp64": 1.05, "1024_spp1024": 4.2}
+
+
+def _memory_keys(quick: bool) -> dict:
+    from torch_brdf.report.benchmarks._memory import stage_peaks
+
+    small, large = (64, 128) if quick else (128, 256)
+    return memory_model(stage_peaks(small, 8), stage_peaks(large, 8), os.getloadavg()[0])
+
+
+def memory_model(a: dict, b: dict, load: float) -> dict:
+    """The memory keys from two :func:`_memory.stage_peaks` results (see the module docstring)."""
+    out: dict = {"small": a, "large": b, "load": load}
+    grow_file = b["file_mb"] - a["file_mb"]
+    grow_pixels = b["resolution"] ** 2 - a["resolution"] ** 2
+    for stage in ("precompute", "freeze", "denoise"):
+        grow = max(0.0, b[stage]["peak_mb"] - a[stage]["peak_mb"])
+        k, per_pixel = grow / grow_file, grow * 2**20 / grow_pixels
+        pred = {}
+        for name, gb in RECORD_GB.items():
+            pixels = int(name.split("_")[0]) ** 2
+            if stage == "precompute":
+                more = k * (gb * 1024 - b["file_mb"])
+            else:
+                more = per_pixel * (pixels - b["resolution"] ** 2) / 2**20
+            pred[name] = round((b[stage]["peak_mb"] + more) / 1024, 2)
+        out[stage] = {"growth_over_file": round(k, 2), "growth_bytes_per_pixel": round(per_pixel), "predicted_gb": pred}
+    return out
+
+
+def _same(one, other) -> bool:
+    """The two records' arrays are equal."""
+    a, b = one.to_arrays()[0], other.to_arrays()[0]
+    return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def _timeline(out: dict, tl: list) -> None:
+    """The tiles' timeline ([tile, process, start, end, CPU s], s after the call began) into ``out``."""
+    out["tile_timeline"] = tl
+    out["serial_before_tiles_s"] = min(r[2] for r in tl)
+    out["serial_after_tiles_s"] = out["precompute_s"] - max(r[3] for r in tl)
+    out["tiles_cpu_s"] = sum(r[4] for r in tl)
+    out["tiles_parallelism"] = out["tiles_cpu_s"] / out["precompute_s"]
+
+
+def _native_load(out: dict) -> None:
+    t0 = time.perf_counter()  # the kernel's first-use build (or load), outside precompute_s
+    out["native"] = _native.library() is not None
+    out["native_load_s"], out["native_build_s"] = time.perf_counter() - t0, _native.build_seconds()
+
+
+def _prologue(args, out: dict) -> bool:
+    """The memory keys (``--memory``, ``--memory-only``: then printed, True), else the kernel's load."""
+    if args.memory or args.memory_only:
+        out["memory"] = _memory_keys(args.quick)
+        if args.memory_only:
+            print(json.dumps(out))
+            return True
+    _native_load(out)
+    return False
+
+
+def main() -> None:
+    args = _args()
+    q = args.quick
+    out: dict = {"quick": q}
+    if _prologue(args, out):  # --memory-only: printed, nothing else to run
+        return
+
+    # -- precomputation at 256^2, 64 spp (and rays, Mitsuba) -----------------------------------
+    res, spp = (64, 8) if q else (256, 64)
+    sc = cornell_box_glossy(res)
+    t0 = time.perf_counter()
+    forked = {"processes": usable_cores()} if args.baseline else {}  # else the default (load-aware)
+    T = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **forked)
+    out["precompute_s"] = time.perf_counter() - t0
+    out["precompute_processes"] = T.meta["processes"]
+    if T.meta["timeline"]:
+        _timeline(out, T.meta["timeline"])
+
+    def again(**kw):
+        """The same precompute once more -> (tensors, seconds); CPU seconds in ``cpu[0]``."""
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        T_ = precompute_polynomial(sc, PolynomialSettings("64,1,1,1", spp=spp), seed=0, progress=True, **kw)
+        cpu[0] = _cpu_seconds() - c0
+        return T_, time.perf_counter() - t0
+
+    cpu = [0.0]
+    if args.baseline:  # the same precompute with its tiles in this process, one after another
+        T1, out["one_process_s"] = again(processes=1)
+        out["speedup_over_one_process"] = out["one_process_s"] / out["precompute_s"]
+        out["equals_one_process"] = _same(T, T1)
+        out["one_process_split_s"] = {k: round(v, 4) for k, v in T1.meta["split"].items()}
+        del T1
+    if args.torch_path:  # the same precompute with the kernel off, same processes
+        os.environ[_native.ENV_VAR] = "0"
+        T2, out["torch_path_s"] = again(**forked)
+        out["torch_path_cpu_s"] = cpu[0]
+        del os.environ[_native.ENV_VAR]
+        _, out["native_again_s"] = again(**forked)  # the kernel once more: both warm
+        out["native_again_cpu_s"] = cpu[0]
+        out["kernel_speedup"] = out["torch_path_s"] / out["native_again_s"]
+        out["kernel_cpu_speedup"] = out["torch_path_cpu_s"] / out["native_again_cpu_s"]
+        out["equals_torch_path"] = _same(T, T2)
+        out["torch_path_split_s"] = {k: round(v, 4) for k, v in T2.meta["split"].items()}
+        del T2
+    # embree alone: the rays of a run in this process (tiles may run in forked processes),
+    # recorded after the timed run (which stays the first call in the process)
+    rec_spp = max(1, spp // 8)
+    rsc = cornell_box_glossy(res)
+    with _recording_rays(rsc, limit=1 << 20 if q else 1 << 22) as log:
+        precompute_polynomial(
+            rsc, PolynomialSettings("64,1,1,1", spp=rec_spp, guides=False), seed=1, progress=False, processes=1
+        )
+    out["precompute_resolution"], out["precompute_spp"] = res, spp
+    out["precompute_paths_per_s"] = res * res * spp / out["precompute_s"]
+    out["rays"] = T.meta["rays"]
+    alone = _embree_seconds(sc, log, T.meta["rays"])
+    out["rays_s"], out["rays_embreex_s"], out["rays_c_s"] = alone["fastest"], alone["embreex"], alone.get("c")
+    out["precompute_over_rays"] = out["precompute_s"] / out["rays_s"]
+    # where the time went (exclusive seconds per stage, summed over tiles; meta["split"])
+    out["split_s"] = {k: round(v, 4) for k, v in T.meta["split"].items()}
+    out["split_other_s"] = out["precompute_s"] - sum(T.meta["split"].values())
+    out["mb_per_bounce"] = {str(k): v / 2**20 for k, v in T.memory_per_bounce().items()}
+    out["mb_variance_per_bounce"] = {
+        str(k): (v - T.memory_per_bounce()[k]) / 2**20 for k, v in T.memory_per_bounce(variance=True).items()
+    }
+    print(f"precompute {out['precompute_s']:.1f} s, rays alone {out['rays_s']:.1f} s", flush=True)
+    mi = _mitsuba(sc, spp, 4)
+    if mi is not None:
+        out["mitsuba_s"], out["mitsuba_variant"] = mi["seconds"], mi["variant"]
+        out["precompute_over_mitsuba"] = out["precompute_s"] / mi["seconds"]
+        print(f"mitsuba {mi['seconds']:.2f} s ({mi['variant']})", flush=True)
+    del T
+    if args.precompute_only:
+        out["load_avg"] = list(os.getloadavg())
+        print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()}))
+        return
+
+    # -- freezing and frames at 512^2 ------------------------------------------------------------
+    _freeze_and_frames(q, out)
+
     # -- accuracy against the full-BRDF reference --------------------------------------------
     # The high-spp reference is Mitsuba 3 (llvm) when it runs here -- our reference_path_trace
     # agrees with it within noise (tests/transport/test_mitsuba.py and the figures at the end)
@@ -359,34 +471,7 @@ def main() -> None:
         "direct_only": relative_rmse(apx["direct"], ref, mask),
     }
     print("ordering", out["approximation_rel_rmse"], flush=True)
-    rel, refs = {}, {}
-    runs = [(s, 64, s) for s in ("128,1,1,1", "16,8,1,1", "128,8,1", "64,16")]
-    runs += [("64,1,1,1", n, f"spp{n}") for n in ((16, 64) if q else (16, 64, 256))]
-    for series, n, key in runs:
-        t0 = time.perf_counter()
-        Tk = precompute_polynomial(sca, series, spp=n, seed=2, progress=False)
-        secs = time.perf_counter() - t0
-        img = PolynomialRenderer(Tk, _materials(sca)).evaluate()
-        bounces = Tk.series.bounces
-        r = ref
-        if bounces != 4:  # the teatray series with fewer bounces: a reference of that depth
-            r = refs.get(bounces)
-            if r is None:
-                hi = _mitsuba(sca, rspp, bounces, quiet=True) if out["reference"].startswith("mitsuba") else None
-                r = (
-                    hi["image"]
-                    if hi is not None
-                    else reference_path_trace(sca, spp=rspp, max_bounces=bounces, seed=124, progress=False)
-                )
-                refs[bounces] = r
-        rel[key] = {
-            "rel_rmse": relative_rmse(img, r, mask),
-            "seconds": secs,
-            "mb": sum(Tk.memory_per_bounce().values()) / 2**20,
-            "bounces": bounces,
-        }
-        print(key, rel[key], flush=True)
-    out["rel_rmse"] = rel
+    _series_errors(q, sca, ref, mask, rspp, out)
 
     # -- our reference against Mitsuba (equal spp) ----------------------------------------------
     n = 64 if q else 256

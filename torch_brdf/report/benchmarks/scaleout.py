@@ -60,7 +60,7 @@ import numpy as np
 from torch_brdf.errors import TorchBRDFError
 from torch_brdf.parallel.tiles import connect_ray
 from torch_brdf.scene.builtin import cornell_box_glossy
-from torch_brdf.transport.polynomial import precompute_polynomial
+from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
 from ._timing import best_of
 
@@ -117,7 +117,7 @@ def main() -> None:
 
     res, spp, rows = (64, 8, 8) if args.quick else (128, 16, 8)
     sc = cornell_box_glossy(res)
-    kw = {"series": "64,1,1,1", "spp": spp, "seed": 0, "tile_rows": rows, "progress": False}
+    kw = {"settings": PolynomialSettings("64,1,1,1", spp=spp, tile_rows=rows), "seed": 0, "progress": False}
     tiles = -(-res // rows)
     out: dict = {"quick": args.quick, "resolution": res, "spp": spp, "tiles": tiles, "cpus": os.cpu_count()}
     out["load_avg_start"] = os.getloadavg()[0]

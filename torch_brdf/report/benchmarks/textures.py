@@ -66,8 +66,8 @@ def main() -> None:
     from torch_brdf.render.polynomial import emitter_mask
     from torch_brdf.scene import Scene
     from torch_brdf.scene.textures import surface_mean
-    from torch_brdf.transport.pathtrace import path_trace
-    from torch_brdf.transport.polynomial import precompute_polynomial
+    from torch_brdf.transport.pathtrace import PathTraceSettings, path_trace
+    from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 
     size, spp, ref_spp, series, bounces = (24, 16, 64, "8,1,1", 3) if args.quick else (64, 64, 1024, "16,1,1", 3)
     t0 = time.perf_counter()
@@ -82,8 +82,8 @@ def main() -> None:
     out = {"size": size, "spp": spp, "reference_spp": ref_spp, "series": series, "bounces": bounces}
     for name, scene, textured in (("textured", sc, True), ("untextured", flat, False)):
         print(f"{name}: reference path trace ...", flush=True)
-        ref = path_trace(scene, spp=ref_spp, max_bounces=bounces, seed=1, progress=False).double()
-        T = precompute_polynomial(scene, series, spp=spp, seed=2, progress=False)
+        ref = path_trace(scene, PathTraceSettings(spp=ref_spp, max_bounces=bounces), seed=1, progress=False).double()
+        T = precompute_polynomial(scene, PolynomialSettings(series, spp=spp), seed=2, progress=False)
         mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
         R = PolynomialRenderer(T, mats, dtype=torch.float64, max_bounces=bounces)
         if textured:
@@ -92,7 +92,9 @@ def main() -> None:
         mask = emitter_mask(T)
         out[f"{name}_rel_rmse"] = float(relative_rmse(img[mask], ref[mask]))
         if textured:
-            ref2 = path_trace(scene, spp=ref_spp, max_bounces=bounces, seed=3, progress=False).double()
+            ref2 = path_trace(
+                scene, PathTraceSettings(spp=ref_spp, max_bounces=bounces), seed=3, progress=False
+            ).double()
             out["reference_noise_rel_rmse"] = float(relative_rmse(ref2[mask], ref[mask])) / 2**0.5
             out["mean_ratio_textured"] = float(img[mask].mean() / ref[mask].mean())
             floor_px = torch.zeros(T.height * T.width, dtype=torch.bool)

@@ -40,6 +40,13 @@ progress, then one JSON object as the last line:
   bit); ``visibility_bytes_per_vertex`` (varint stream) beside ``dense_bytes_per_vertex``
   (one bit per texel) and the seed's ~1 KB goal; ``lighting_s`` (a lighting update);
   ``cull_s`` (primary rays + culling).
+* ``visibility_load_s`` and ``visibility_load_peak_over_file``: ``VertexVisibility.load`` of
+  the precomputed record's file (``visibility_file_bytes``) in a fresh process (after a load
+  of a tiny record, so that code paths are paged in), its seconds and its peak resident memory
+  above the start over the file's size; ``visibility_load_kept_over_file`` is what stays
+  resident (the decoded record), ``visibility_load_transient_over_file`` the peak above that
+  (the decode's temporaries), ``visibility_load_mb_per_s`` the file's MB per second. Linux only
+  (the peak is reset through ``/proc/self/clear_refs``).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
   texel sum; visibility expanded beforehand, as a standard-basis system stores it),
   ``haar_frame_s`` (Ng et al.'s product on 1% of the lighting and BRDF wavelet coefficients;
@@ -63,6 +70,9 @@ import multiprocessing
 import os
 import resource
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 
@@ -80,7 +90,13 @@ from torch_brdf.scene.embree import CHUNK
 from torch_brdf.scene.envmap import EnvironmentMap
 from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native
-from torch_brdf.transport.visibility import HORIZON_EPS, _chunk_entries, precompute_visibility, scene_vertices
+from torch_brdf.transport.visibility import (
+    HORIZON_EPS,
+    VisibilitySettings,
+    _chunk_entries,
+    precompute_visibility,
+    scene_vertices,
+)
 
 from ._timing import best_of
 
@@ -203,6 +219,54 @@ def _visible_texels(vis) -> int:
     return int((b.values(torch.float64) * (256 - b.index.double())).sum())
 
 
+# a fresh process: warm the load path on a tiny record, reset the peak resident memory (VmHWM),
+# load the record, then report the peak and what stays resident above the start, and the seconds
+_LOAD_CHILD = """
+import json, sys, tempfile, time
+import torch
+from torch_brdf.records import BlockVisibility
+from torch_brdf.records.visibility import VertexVisibility
+
+def status():
+    with open("/proc/self/status") as f:
+        return {k: int(v.split()[0]) * 1024 for k, v in (line.split(":", 1) for line in f) if k in ("VmHWM", "VmRSS")}
+
+with tempfile.TemporaryDirectory() as tmp:
+    BlockVisibility.load(BlockVisibility.encode(torch.ones(2, 4, 256, dtype=torch.bool)).save(tmp + "/warm.npz"))
+with open("/proc/self/clear_refs", "w") as f:
+    f.write("5")
+before = status()["VmRSS"]
+t = time.perf_counter()
+rec = VertexVisibility.load(sys.argv[1])
+seconds = time.perf_counter() - t
+after = status()
+print(json.dumps({"peak": after["VmHWM"] - before, "kept": after["VmRSS"] - before, "seconds": seconds}))
+"""
+
+
+def _load_memory(vis) -> dict:
+    """Peak memory and seconds of ``VertexVisibility.load`` of ``vis``'s file, in a fresh process
+    (Linux: needs ``/proc/self/clear_refs``; else empty)."""
+    if not os.path.exists("/proc/self/clear_refs"):
+        return {}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = vis.save(os.path.join(tmp, "visibility.npz"))
+        size = os.path.getsize(path)
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        run = subprocess.run([sys.executable, "-c", _LOAD_CHILD, str(path)], capture_output=True, text=True, env=env)
+    if run.returncode:
+        raise RuntimeError(f"visibility load measurement failed: {run.stderr.strip().splitlines()[-1:]}")
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    return {
+        "visibility_file_bytes": size,
+        "visibility_load_s": got["seconds"],
+        "visibility_load_mb_per_s": size / 1e6 / got["seconds"],
+        "visibility_load_peak_over_file": got["peak"] / size,
+        "visibility_load_kept_over_file": got["kept"] / size,
+        "visibility_load_transient_over_file": (got["peak"] - got["kept"]) / size,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene and image")
@@ -263,11 +327,13 @@ def main() -> None:
         for what in order[r % len(order) :] + order[: r % len(order)]:  # each goes first in turn
             t, c = time.perf_counter(), _cpu_seconds()
             if what == "precompute":
-                vis = precompute_visibility(scene, res, checkpoint=args.checkpoint, chunk=chunk, processes=procs)
+                vis = precompute_visibility(
+                    scene, VisibilitySettings(resolution=res, chunk=chunk), checkpoint=args.checkpoint, processes=procs
+                )
             elif what == "precompute_numpy":  # the numpy path (before the compiled loop), same run
                 os.environ[_native.ENV_VAR] = "0"
                 try:
-                    precompute_visibility(scene, res, chunk=chunk, processes=procs)
+                    precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=procs)
                 finally:
                     del os.environ[_native.ENV_VAR]
             elif what == "embree_c":
@@ -334,10 +400,16 @@ def main() -> None:
                 split_alone = split["embree"]
         figures["split_overhead_over_embree"] = (sum(split.values()) - split_alone) / split_alone
     del fans
+    figures.update(_load_memory(vis))
+    print(
+        f"load: {figures.get('visibility_load_s', float('nan')):.3f} s, peak "
+        f"{figures.get('visibility_load_peak_over_file', float('nan')):.2f}x the file",
+        flush=True,
+    )
     baseline = {}
     if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
         t = time.perf_counter()
-        vis1 = precompute_visibility(scene, res, chunk=chunk, processes=1)
+        vis1 = precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=1)
         baseline["one_process_s"] = time.perf_counter() - t
         baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
         a, b = vis1.blocks, vis.blocks

@@ -44,9 +44,10 @@ accumulate per tile; a tile's entries become one block per (eye object, bounce) 
 the terms and pixels occurring in that tile and stores only the entries that occur, sparse
 (:class:`TensorBlock`). A pixel whose jittered samples see two objects has a record under each.
 
-Layout: :mod:`.plan` (the series and each object's basis), :mod:`.sampler` (the direction
-mixture), :mod:`.tracer` (the symbolic path tracer), :mod:`.reduce` (entries to sparse blocks)
-and :mod:`.driver` (:func:`precompute_polynomial`); the record itself is
+Layout: :mod:`.bases` (the series and each object's basis), :mod:`.settings` (what decides a
+run: :class:`PolynomialSettings`), :mod:`.sampler` (the direction mixture), :mod:`.tracer`
+(the symbolic path tracer), :mod:`.reduce` (entries to sparse blocks) and :mod:`.driver`
+(:func:`precompute_polynomial`); the record itself is
 :class:`~torch_brdf.records.polynomial.PolynomialTensors`.
 
 Reproducibility. Tile ``k`` with pass group ``g`` draws from its own generator seeded by
@@ -57,9 +58,10 @@ run bit for bit (at most one tile of work is lost).
 
 from ...records.polynomial import PolynomialTensors, TensorBlock, TermTable
 from ...scene.lights import PointLights
-from .driver import plan_polynomial, precompute_polynomial, spp_map_of
-from .plan import ObjectBasis, Series, plan_bases
+from .bases import ObjectBasis, Series, plan_bases, with_fixed
+from .driver import precompute_polynomial, spp_map_of
 from .sampler import EyeStrata, LobeMixture, Mixture
+from .settings import PolynomialSettings
 
 __all__ = [
     "EyeStrata",
@@ -67,12 +69,13 @@ __all__ = [
     "Mixture",
     "ObjectBasis",
     "PointLights",
+    "PolynomialSettings",
     "PolynomialTensors",
     "Series",
     "TensorBlock",
     "TermTable",
     "plan_bases",
-    "plan_polynomial",
     "precompute_polynomial",
     "spp_map_of",
+    "with_fixed",
 ]

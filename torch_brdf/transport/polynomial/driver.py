@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -9,17 +10,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from ..._checks import MAX_BANDS, check_count, check_seed
+from ..._checks import check_seed
 from ...data import progress_default
-from ...errors import ShapeError, ValueRangeError
+from ...errors import FileFormatError, ShapeError, ValueRangeError
 from ...parallel.threads import available_memory, tile_processes
 from ...parallel.tiles import run_tiles, single_process, tile_tick
-from ...planner.gi import GIPlan, plan_from_pilots, planned_bases, with_fixed
-from ...records.cache import TileCache, settings_key
+from ...records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ...records.guides import GUIDE_VERSION
-from ...records.polynomial import ObjectBasis, PolynomialTensors, Series
+from ...records.polynomial import ObjectBasis, PolynomialTensors
 from ...scene.camera import Camera
 from ...scene.envmap import EnvironmentMap
 from ...scene.lights import Light
@@ -28,7 +29,7 @@ from .._native import Accumulator, TileSums, library
 from .._native import ptr as _p
 from ..guides import guide_buffers
 from ..pathtrace import seeded_generator
-from .plan import plan_bases
+from .bases import plan_bases, with_fixed
 from .reduce import (
     NativeEntries,
     TermNumbering,
@@ -39,10 +40,11 @@ from .reduce import (
     tile_accumulator,
 )
 from .sampler import EyeStrata, LobeMixture, Mixture
+from .settings import PolynomialSettings, _run_lengths
 from .tracer import _Tracer
 from .vertex import c_rand_matches
 
-__all__ = ["TILE_KIND", "TILE_PIXELS", "plan_polynomial", "precompute_polynomial", "spp_map_of"]
+__all__ = ["TILE_KIND", "TILE_PIXELS", "precompute_polynomial", "spp_map_of"]
 
 TILE_KIND = "multibounce-tile"
 
@@ -278,12 +280,6 @@ def _tiles(spp_map: torch.Tensor, tile_pixels: int) -> tuple[list[torch.Tensor],
     return tiles, counts
 
 
-def _run_lengths(x: torch.Tensor) -> list[list[int]]:
-    """[[value, run length], ...] of ``x`` (1-D int) in order: a compact, exact copy of an spp map."""
-    vals, counts = torch.unique_consecutive(x, return_counts=True)
-    return [[int(v), int(c)] for v, c in zip(vals.tolist(), counts.tolist(), strict=True)]
-
-
 def spp_map_of(tensors: PolynomialTensors) -> torch.Tensor:
     """(H, W) int64: the paths per pixel of a record (adaptive or uniform)."""
     runs = tensors.meta.get("spp_map")
@@ -295,6 +291,49 @@ def spp_map_of(tensors: PolynomialTensors) -> torch.Tensor:
 
 #: names of a tile's block arrays: ``b{g}_{name}`` for the g-th block of :func:`_local_blocks`
 _BLOCK_ARRAYS = ("head", "upix", "tw", "tc", "key", "vals", "var")
+
+
+def _tile_schema(plan: Sequence, bounces: int) -> CacheSchema:
+    """What a finished tile file must hold: the ``emission`` of its ``P`` pixels and blocks
+    ``b0..b{n-1}`` whose heads name an object, a bounce and that object's basis size, whose
+    pixels lie in the tile and whose entry keys lie in their (term, basis, pixel) table."""
+    m = len(plan)
+    arrays = {"emission": ArraySpec("float64", ("P", 3), low=0.0)}
+    patterns = {
+        r"b\d+_head": ArraySpec("int64", (3,)),
+        r"b\d+_upix": ArraySpec("int64", (None,), low=0),
+        r"b\d+_tw": ArraySpec("int64", (None,), low=-1),
+        r"b\d+_tc": ArraySpec("int8", (None, m), low=0),
+        r"b\d+_key": ArraySpec("int64", (None,), low=0),
+        r"b\d+_vals": ArraySpec("float32", (3, None)),
+        r"b\d+_var": ArraySpec("float32", (3, None), low=0.0),
+    }
+    meta = {"rays": MetaSpec(dict, items=int), "split": MetaSpec(dict, required=False, items=(int, float))}
+
+    def check(arrays: dict, meta: dict, sizes: dict) -> None:
+        nblocks = sum(k.endswith("_head") for k in arrays)
+        if len(arrays) != 1 + nblocks * len(_BLOCK_ARRAYS) or any(
+            f"b{g}_{n}" not in arrays for g in range(nblocks) for n in _BLOCK_ARRAYS
+        ):
+            raise FileFormatError("tile blocks are incomplete (every block holds " + ", ".join(_BLOCK_ARRAYS) + ")")
+        for g in range(nblocks):
+            b = {n: arrays[f"b{g}_{n}"] for n in _BLOCK_ARRAYS}
+            obj, bounce, size = (int(v) for v in b["head"])
+            if not (0 <= obj < m and 1 <= bounce <= bounces) or size != (1 if plan[obj] is None else plan[obj].size):
+                raise FileFormatError(f"tile block {g} has head {b['head'].tolist()}; not of this run's objects")
+            p, z, e = b["upix"].size, b["tw"].size, b["key"].size
+            if b["tc"].shape[0] != z or b["vals"].shape[1] != e or b["var"].shape[1] != e:
+                raise FileFormatError(f"tile block {g}: term or entry tables of different lengths")
+            key, upix = b["key"], b["upix"]
+            if (p and int(upix.max()) >= sizes["P"]) or (e and int(key.max()) >= size * z * p):
+                raise FileFormatError(f"tile block {g}: a pixel or entry outside its tables")
+            # as written: pixels and entry keys ascending, every pixel and term used by an entry
+            if (np.diff(upix) <= 0).any() or (np.diff(key) <= 0).any():
+                raise FileFormatError(f"tile block {g}: pixels or entries not in ascending order")
+            if p and (np.unique(key % p).size != p or np.unique((key // p) % z).size != z):
+                raise FileFormatError(f"tile block {g}: a pixel or term that no entry uses")
+
+    return CacheSchema(arrays=arrays, patterns=patterns, meta=meta, check=check)
 
 
 def _polynomial_tile(work: _TileWork, k: int):
@@ -323,19 +362,6 @@ def _polynomial_tile(work: _TileWork, k: int):
     return arrays, {"rays": rays, "split": split, "clock": clock}
 
 
-def _check_spp(spp, height: int, width: int) -> torch.Tensor:
-    """(H, W) int64 paths per pixel from an int or an (H, W) integer map (every value >= 1)."""
-    if not isinstance(spp, torch.Tensor) or spp.ndim == 0:
-        return torch.full((height, width), check_count(spp, "spp"), dtype=torch.long)
-    if spp.shape != (height, width) or spp.dtype.is_floating_point or spp.dtype.is_complex or spp.dtype == torch.bool:
-        raise ShapeError(
-            f"Expected an spp map of integers with shape ({height}, {width}); got {spp.dtype} {tuple(spp.shape)}"
-        )
-    if int(spp.min()) < 1:
-        raise ValueRangeError(f"every pixel needs spp >= 1; the map's least is {int(spp.min())}")
-    return spp.long()
-
-
 def _lights(scene: Scene, env_point_lights: int | None) -> list[Light]:
     if env_point_lights is None:
         return list(scene.lights)
@@ -350,343 +376,247 @@ def _lights(scene: Scene, env_point_lights: int | None) -> list[Light]:
     return out
 
 
-def precompute_polynomial(
-    scene: Scene,
-    series: str | Sequence[int] | Series = "64,1,1,1",
-    spp: int | torch.Tensor = 64,
-    seed: int = 0,
-    bases: list[ObjectBasis | None] | dict[str, dict[str, Any]] | None = None,
-    mixture: Mixture | LobeMixture | None = None,
-    env_point_lights: int | None = None,
-    light_samples: int = 1,
-    tile_rows: int | None = None,
-    group: int | None = None,
-    checkpoint: str | Path | None = None,
-    progress: bool | None = None,
-    paths: dict | None = None,
-    keep_checkpoint: bool = False,
-    plan: str | GIPlan | None = None,
-    error: float | None = None,
-    time_budget: float | None = None,
-    executor: str = "local",
-    address: str | None = None,
-    max_retries: int = 3,
-    guides: bool = True,
-    processes: int | None = None,
-) -> PolynomialTensors:
-    """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
+#: the keywords ``precompute_polynomial`` took before its settings were one object
+_SETTING_KEYWORDS = {f.name for f in dataclasses.fields(PolynomialSettings)}
+_PLAN_KEYWORDS = {"plan", "error", "time_budget"}
 
-    Args:
-        scene: the scene; objects with ``editable=False`` are fixed.
-        series: the BRDF series, e.g. ``"64,1,1,1"``; its length is the number of bounces.
-        spp: paths per pixel, or an (H, W) integer map of them (adaptive sampling: each pixel
-            is the average over its own paths, so every pixel stays unbiased; tiles are row
-            bands whatever the map, pass ``s`` tracing the pixels with more than ``s`` paths,
-            see :func:`_tiles`).
-        seed: the result is a deterministic function of (scene, settings, seed).
-        bases: per-object :class:`ObjectBasis` list, or overrides for :func:`plan_bases`.
-        mixture: direction sampling (default 70% cosine, 30% Blinn 200); a
-            :class:`LobeMixture` samples its objects (the glossy ones by default) from a
-            defensive mixture of lobe widths, for edits sharper than the material (the torch
-            steps run then, not the compiled vertex kernel); ``LobeMixture(stratified=True)``
-            also stratifies the eye vertex's light and direction samples over each pixel's
-            paths (:class:`~.sampler.EyeStrata`).
-        env_point_lights: replace the environment by its K median-cut point lights for NEE.
-        light_samples: next-event samples per light at the eye vertex, each weighted 1/k
-            (the same polynomial with less direct-light noise for k - 1 more shadow rays per
-            path; later vertices take one).
-        tile_rows: image rows per tile (default: about :data:`TILE_PIXELS` pixels per tile).
-        group: passes traced together (default: enough for >= 64k rays per batch, which
-            lets embree use both cores).
-        checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`);
-            an interrupted run resumes from it; removed on success unless ``keep_checkpoint``.
-        progress: tqdm bar over finished tiles (None: on when attached to a terminal or
-            notebook, see :func:`~torch_brdf.records.cache.progress_default`).
-        paths: tests only: a dict that receives the raw path records (exactness oracle;
-            local executor only).
-        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
-        plan: ``"auto"``: :func:`plan_polynomial` chooses series, bases, spp and fixed objects
-            for ``error`` / ``time_budget`` (then ``series``, ``spp`` and ``bases`` are
-            ignored); or a :class:`~torch_brdf.planner.GIPlan` to carry out.
-        error: relative RMSE budget of ``plan="auto"``.
-        time_budget: seconds budget of ``plan="auto"``.
-        executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
-            :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
-        address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
-            cluster address.
-        max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
-        guides: attach the view's denoiser guides (:func:`torch_brdf.transport.guides.guide_buffers`:
-            one pixel-centre ray and its mirror ray per pixel, saved with the record and
-            versioned by :data:`~torch_brdf.records.guides.GUIDE_VERSION`, also in
-            ``meta["guides"]``), so that :func:`torch_brdf.denoise.denoise` needs nothing else;
-            False: no guides (``meta["guides"]`` None).
-        processes: ``local`` only: tiles computed at once in forked processes (None: one per
-            usable core, 1 on a busy machine, while that many tiles fit in the available memory at
-            :data:`TILE_BYTES_PER_PATH`; 1: in this process, as ``paths`` needs); the tensors
-            are the same.
-    Returns:
-        :class:`PolynomialTensors` (with ``plan="auto"`` its ``meta["plan"]`` prints the plan);
-        ``meta["split"]`` holds the profile split in seconds
-        (``rays``, ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles
-        computed in this call, wherever they ran; ``assemble`` and ``write`` on the driver) and
-        ``meta["timeline"]`` the tiles computed in this call as [tile, process id, start, end
-        (wall seconds after the call began), CPU seconds], ``meta["tiles_cached"]`` the tiles
-        loaded from ``checkpoint``, ``meta["ray_nodes"]`` the
-        Ray nodes that computed tiles (0 for ``local``), ``meta["processes"]`` the local
-        processes that computed tiles at once (0 for Ray).
-    """
-    if plan is not None:
-        if isinstance(plan, str):
-            if plan != "auto":
-                raise ValueRangeError(f"plan must be 'auto' or a GIPlan; got {plan!r}")
-            plan = plan_polynomial(
-                scene, error=error, seconds=time_budget, seed=seed, env_point_lights=env_point_lights, progress=progress
-            )
-        scene = with_fixed(scene, plan.fixed)
-        out = precompute_polynomial(
-            scene,
-            **plan.kwargs(),
-            seed=seed,
-            mixture=mixture,
-            env_point_lights=env_point_lights,
-            tile_rows=tile_rows,
-            group=group,
-            checkpoint=checkpoint,
-            progress=progress,
-            paths=paths,
-            keep_checkpoint=keep_checkpoint,
-            executor=executor,
-            address=address,
-            max_retries=max_retries,
-            guides=guides,
-            processes=processes,
-        )
-        out.meta["plan"] = str(plan)
-        return out
-    series = Series.parse(series)
-    check_count(series.eye, "series bands per bounce", MAX_BANDS)
-    seed = check_seed(seed)
-    spp_map = _check_spp(spp, scene.camera.height, scene.camera.width)
-    tile_rows, group, env_point_lights = (
-        None if v is None else check_count(v, k)
-        for v, k in ((tile_rows, "tile_rows"), (group, "group"), (env_point_lights, "env_point_lights"))
+
+def _old_call(settings: Any, old: dict[str, Any]) -> TypeError:
+    """The error for a call that passes settings one by one (or a plan) instead of an object."""
+    given = sorted(old) + ([] if isinstance(settings, (PolynomialSettings, type(None))) else [repr(settings)])
+    planned = _PLAN_KEYWORDS & set(old)
+    where = "the planner (torch_brdf.planner.precompute_planned)" if planned else "a PolynomialSettings"
+    return TypeError(
+        f"precompute_polynomial(scene, settings, *, seed, progress, checkpoint, ...) takes its settings from {where}, "
+        f"e.g. precompute_polynomial(scene, PolynomialSettings(series='64,1,1,1', spp=64), seed=0); "
+        f"got {', '.join(given)} (settings fields: {', '.join(sorted(_SETTING_KEYWORDS))})"
     )
-    if isinstance(bases, list):
-        if len(bases) != len(scene.objects):
-            raise ShapeError(f"expected {len(scene.objects)} bases (one per object); got {len(bases)}")
-        plan = bases
-    else:
-        plan = plan_bases(scene, series, bases)
-    mixture = mixture or Mixture()
-    if isinstance(mixture, LobeMixture):  # its object names -> ids
-        mixture = mixture.resolve(scene, plan)
-    lights = _lights(scene, env_point_lights)
-    if paths is not None and executor != "local":
-        raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
+
+
+@dataclasses.dataclass
+class _Prepared:
+    """What a run derives from (scene, settings, seed) before any tracing: bases, sampler,
+    lights, tiles, the record's settings (its ``meta``) and the resume key."""
+
+    bases: list[ObjectBasis | None]
+    mixture: Mixture | LobeMixture
+    lights: list[Light]
+    tiles: list[torch.Tensor]
+    tile_spp: list[torch.Tensor | int]
+    group_of: list[int | None]
+    record: dict[str, Any]
+    key: str
+
+
+def _prepare(scene: Scene, s: PolynomialSettings, seed: int) -> _Prepared:
+    """Resolve ``s`` on ``scene`` (bases, sampler ids, lights, tiles, pass groups)."""
     cam = scene.camera
     h, w = cam.height, cam.width
-    tile_rows = tile_rows or max(1, min(h, TILE_PIXELS // w))
+    spp_map = s.spp_map(h, w)
+    if isinstance(s.bases, tuple):
+        if len(s.bases) != len(scene.objects):
+            raise ShapeError(f"expected {len(scene.objects)} bases (one per object); got {len(s.bases)}")
+        bases = list(s.bases)
+    else:
+        bases = plan_bases(scene, s.series, s.bases)
+    mixture = s.mixture.resolve(scene, bases) if isinstance(s.mixture, LobeMixture) else s.mixture  # names -> ids
+    lights = _lights(scene, s.env_point_lights)
+    tile_rows = s.tile_rows or max(1, min(h, TILE_PIXELS // w))
     tiles, tile_spp = _tiles(spp_map.reshape(-1), tile_rows * w)
     uniform = bool((spp_map == spp_map.flatten()[0]).all())
     # passes traced together: >= 64k rays per batch; a tile of equal spp counts tile_rows x
     # width pixels per pass (as a uniform run always did), a tile of several spp its passes'
     # own rays (None, see _pass_groups)
     group_of = [
-        group or (max(1, min(s, math.ceil(65536 / (tile_rows * w)))) if isinstance(s, int) else None) for s in tile_spp
+        s.group or (max(1, min(n, math.ceil(65536 / (tile_rows * w)))) if isinstance(n, int) else None)
+        for n in tile_spp
     ]
-    num_tiles = len(tiles)
-    light_samples = check_count(light_samples, "light_samples", 1024)
-    work = _TileWork(scene, plan, series, mixture, lights, tiles, tile_spp, group_of, seed, paths, light_samples)
-    settings = {
+    record = {
         "scene": scene.name,
         "width": w,
         "height": h,
-        "series": list(series.bands),
+        "series": list(s.series.bands),
         "spp": int(spp_map.flatten()[0]) if uniform else float(spp_map.double().mean()),
         "seed": seed,
-        "bases": [None if b is None else b.spec() for b in plan],
+        "bases": [None if b is None else b.spec() for b in bases],
         "mixture": mixture.spec(),
-        "env_point_lights": env_point_lights,
+        "env_point_lights": s.env_point_lights,
         "tile_rows": tile_rows,
-        "group": group_of[0] if uniform else group,
+        "group": group_of[0] if uniform else s.group,
     }
-    if not uniform:  # a uniform run keeps the key it always had; a map enters it as run lengths
-        settings["spp_map"] = _run_lengths(spp_map.reshape(-1))
-        settings["adaptive_tiles"] = "rows"  # row bands of mixed spp (before: a tile per spp level)
-    if light_samples != 1:  # likewise
-        settings["light_samples"] = light_samples
-    # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries
-    key = settings_key({**settings, "tile_format": 2}, scene)  # scene content in the key
-    cache = TileCache(checkpoint, TILE_KIND, key)
-    # paths per tile: its expected cost (the executor starts the longest first) and memory
-    tile_paths = [t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in zip(tiles, tile_spp, strict=True)]
-    if processes is None:  # the largest tile's paths (k light samples: k x the eye entries)
-        processes = _default_processes(max(tile_paths) * light_samples)
-    # Ray tasks and forked tile processes trace in their own process (one per CPU)
-    ray_work = _TileWork(
-        single_process(scene), plan, series, mixture, lights, tiles, tile_spp, group_of, seed, None, light_samples
-    )
-    numbering = TermNumbering(len(scene.objects), series.bounces)
-    emission = torch.zeros(3, h * w)
-    rays = {"closest": 0, "shadow": 0}
-    split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "blocks": 0.0}
-    split["assemble"] = 0.0
-    cached = [0]
-    timeline: list[list] = []
+    if not uniform:  # a uniform run's meta has no map; a map enters it as run lengths
+        record["spp_map"] = _run_lengths(spp_map.reshape(-1))
+        record["adaptive_tiles"] = "rows"  # row bands of mixed spp
+    if s.light_samples != 1:  # likewise
+        record["light_samples"] = s.light_samples
+    # tile format 2: tiles hold their blocks (tile-local numbers), not the reduced entries; the
+    # scene's content (meshes, materials, lights, camera) is in the key too
+    key = settings_key({"settings": s.key(), "scene": scene.name, "seed": seed, "tile_format": 2}, scene)
+    return _Prepared(bases, mixture, lights, tiles, tile_spp, group_of, record, key)
 
-    def consume(ti: int, arrays: dict, meta: dict) -> None:
+
+class _Assembly:
+    """The record's driver side: tiles in (tile order), their terms numbered once every tile is in."""
+
+    def __init__(self, work: _TileWork, height: int, width: int, num_objects: int, bounces: int):
+        self.work = work
+        self.numbering = TermNumbering(num_objects, bounces)
+        self.emission = torch.zeros(3, height * width)
+        self.rays = {"closest": 0, "shadow": 0}
+        self.split: dict[str, float] = {"rays": 0.0, "sampling": 0.0, "brdf": 0.0, "bookkeeping": 0.0, "blocks": 0.0}
+        self.split["assemble"] = 0.0
+        self.cached = 0
+        self.timeline: list[list] = []
+        self.epoch0 = time.time()
+
+    def consume(self, ti: int, arrays: dict, meta: dict) -> None:
         """Tile ``ti`` into the record (in tile order; its terms are numbered once every tile is in)."""
         t = time.perf_counter()
-        pix = work.pixels(ti)
+        pix = self.work.pixels(ti)
         nblocks = sum(k.endswith("_head") for k in arrays)
         local = [{n: torch.from_numpy(arrays[f"b{g}_{n}"]) for n in _BLOCK_ARRAYS} for g in range(nblocks)]
         emis = torch.from_numpy(arrays["emission"])
         for k, v in meta.get("rays", {}).items():
-            rays[k] += int(v)
+            self.rays[k] += int(v)
         if meta.get("cached"):
-            cached[0] += 1
+            self.cached += 1
         else:
             for k, v in meta.get("split", {}).items():
-                split[k] = split.get(k, 0.0) + float(v)
+                self.split[k] = self.split.get(k, 0.0) + float(v)
             if "clock" in meta:  # [tile, process, start, end (s after the call's start), CPU s]
                 pid, start, end, cpu = meta["clock"]
-                timeline.append([ti, int(pid), round(start - epoch0, 4), round(end - epoch0, 4), round(cpu, 4)])
-        n = tile_spp[ti]
-        emission[:, pix] = (emis / (n if isinstance(n, int) else n[:, None])).float().T
-        numbering.add(local, pix)
-        split["assemble"] += time.perf_counter() - t
+                e0 = self.epoch0
+                self.timeline.append([ti, int(pid), round(start - e0, 4), round(end - e0, 4), round(cpu, 4)])
+        n = self.work.counts[ti]
+        self.emission[:, pix] = (emis / (n if isinstance(n, int) else n[:, None])).float().T
+        self.numbering.add(local, pix)
+        self.split["assemble"] += time.perf_counter() - t
 
+    def finish(self) -> tuple[list, list]:
+        """The global term ids and blocks, once every tile is in."""
+        t = time.perf_counter()
+        terms, blocks = self.numbering.finish()
+        self.split["assemble"] += time.perf_counter() - t
+        return terms, blocks
+
+
+def precompute_polynomial(
+    scene: Scene,
+    settings: PolynomialSettings | None = None,
+    *,
+    seed: int = 0,
+    progress: bool | None = None,
+    checkpoint: str | Path | None = None,
+    keep_checkpoint: bool = False,
+    executor: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
+    processes: int | None = None,
+    paths: dict | None = None,
+    **old: Any,
+) -> PolynomialTensors:
+    """Precompute the multibounce tensors of ``scene``'s view (Sec. 5.1).
+
+    Args:
+        scene: the scene; objects with ``editable=False`` (or named in ``settings.fixed``) are fixed.
+        settings: :class:`~.settings.PolynomialSettings` (series, spp or spp map, bases,
+            sampler, light samples, tiles, guides; None: its defaults); the planner
+            (:func:`torch_brdf.planner.plan_polynomial`) returns one for an error or time budget.
+        seed: the result is a deterministic function of (scene, settings, seed).
+        progress: tqdm bar over finished tiles (None: on when attached to a terminal or
+            notebook, see :func:`~torch_brdf.records.cache.progress_default`).
+        checkpoint: folder for finished tiles (a :class:`~torch_brdf.records.cache.TileCache`
+            keyed by ``settings.key()``, the seed and the scene's content); an interrupted run
+            resumes from it; removed on success unless ``keep_checkpoint``.
+        keep_checkpoint: keep the finished tiles after success (e.g. to extend the run).
+        executor: ``"local"`` (this process) or ``"ray"`` (one Ray task per tile, see
+            :mod:`torch_brdf.parallel.tiles`); the tensors are the same bit for bit.
+        address: Ray only: None / ``"auto"`` (the running or a new local instance) or a
+            cluster address.
+        max_retries: Ray only: reruns of a tile whose worker died before :class:`TileError`.
+        processes: ``local`` only: tiles computed at once in forked processes (None: one per
+            usable core, 1 on a busy machine, while that many tiles fit in the available memory at
+            :data:`TILE_BYTES_PER_PATH`; 1: in this process, as ``paths`` needs); the tensors
+            are the same.
+        paths: tests only: a dict that receives the raw path records (exactness oracle;
+            local executor only).
+    Returns:
+        :class:`PolynomialTensors`; ``meta`` holds the resolved settings (series, spp, bases,
+        sampler, tiles...), ``meta["split"]`` the profile split in seconds (``rays``,
+        ``sampling``, ``brdf``, ``bookkeeping``, ``blocks`` summed over the tiles computed in
+        this call; ``assemble`` and ``write`` on the driver), ``meta["timeline"]`` those tiles
+        as [tile, process id, start, end (wall seconds after the call began), CPU seconds],
+        ``meta["tiles_cached"]``, ``meta["ray_nodes"]``, ``meta["processes"]`` and
+        ``meta["guides"]`` the version of the view's denoiser guides
+        (:func:`~torch_brdf.transport.guides.guide_buffers`; None without guides).
+    Raises:
+        TypeError: settings given one by one (``spp=``, ``series=``...) or a plan (``plan=``).
+    """
+    if old or not isinstance(settings, (PolynomialSettings, type(None))):
+        raise _old_call(settings, old)
+    s = PolynomialSettings() if settings is None else settings
+    seed = check_seed(seed)
+    if paths is not None and executor != "local":
+        raise ValueRangeError("paths (the exactness oracle) needs executor='local'")
+    scene = with_fixed(scene, s.fixed)
+    run = _prepare(scene, s, seed)
+    schema = _tile_schema(run.bases, s.series.bounces)
+    cache = TileCache(checkpoint, TILE_KIND, run.key, schema=schema, sizes=lambda k: {"P": int(run.tiles[k].numel())})
+    h, w = scene.camera.height, scene.camera.width
+    # paths per tile: its expected cost (the executor starts the longest first) and memory
+    tile_paths = [
+        t.numel() * n if isinstance(n, int) else int(n.sum()) for t, n in zip(run.tiles, run.tile_spp, strict=True)
+    ]
+    if processes is None:  # the largest tile's paths (k light samples: k x the eye entries)
+        processes = _default_processes(max(tile_paths) * s.light_samples)
+    common = (run.bases, s.series, run.mixture, run.lights, run.tiles, run.tile_spp, run.group_of, seed)
+    work = _TileWork(scene, *common, paths, s.light_samples)
+    # Ray tasks and forked tile processes trace in their own process (one per CPU)
+    ray_work = _TileWork(single_process(scene), *common, None, s.light_samples)
+    asm = _Assembly(work, h, w, len(scene.objects), s.series.bounces)
     view_guides = None
 
     def make_guides() -> None:  # independent of the tiles: computed while they run
         nonlocal view_guides
         # traced in this process (the tiles have the cores): no trace worker to start
-        view_guides = guide_buffers(ray_work.scene) if guides else None
+        view_guides = guide_buffers(ray_work.scene) if s.guides else None
 
     if executor == "local":
         library()  # build (or load) the compiled kernel once, before tiles fork
-    t0, epoch0 = time.perf_counter(), time.time()
+    t0, asm.epoch0 = time.perf_counter(), time.time()
     results = run_tiles(
         _polynomial_tile,
         work,
-        num_tiles,
+        len(run.tiles),
         cache,
         executor=executor,
         address=address,
         max_retries=max_retries,
-        desc=f"precompute {scene.name} ({series.key})",
+        desc=f"precompute {scene.name} ({s.series.key})",
         progress=progress_default(progress),
         ray_context=ray_work,
-        meta={"settings": settings},
-        consume=consume,
+        meta={"settings": run.record},
+        consume=asm.consume,
         processes=1 if paths is not None else processes,
-        steps_per_tile=[work.steps(k) for k in range(num_tiles)],
+        steps_per_tile=[work.steps(k) for k in range(len(run.tiles))],
         idle=make_guides,
         cost=tile_paths,
     )
-    t = time.perf_counter()
-    terms, blocks = numbering.finish()  # the global term ids, once every tile is in
-    split["assemble"] += time.perf_counter() - t
-    split["write"] = results.write_seconds
+    terms, blocks = asm.finish()
+    asm.split["write"] = results.write_seconds
     meta = {
-        **settings,
-        "rays": rays,
+        **run.record,
+        "rays": asm.rays,
         "seconds": time.perf_counter() - t0,
-        "split": split,
-        "timeline": timeline,
-        "tiles_cached": cached[0],
+        "split": asm.split,
+        "timeline": asm.timeline,
+        "tiles_cached": asm.cached,
         "executor": executor,
         "ray_nodes": len(results.nodes),
         "processes": results.processes,
     }
-    meta["guides"] = GUIDE_VERSION if guides else None
+    meta["guides"] = GUIDE_VERSION if s.guides else None
     if not keep_checkpoint:
         cache.remove()
     names = [o.name for o in scene.objects]
-    return PolynomialTensors(h, w, series, names, plan, emission, terms, blocks, meta, guides=view_guides)
-
-
-def plan_polynomial(
-    scene: Scene,
-    error: float | None = 0.03,
-    seconds: float | None = None,
-    edit: list[str] | None = None,
-    pilot_spp: int = 4,
-    pilot_bounces: int = 8,
-    seed: int = 0,
-    env_point_lights: int | None = None,
-    progress: bool | None = None,
-    pilot_runs: int = 4,
-    adaptive: bool = True,
-    max_light_samples: int = 16,
-) -> GIPlan:
-    """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
-
-    Bands per object come from projection errors (no tracing); ``pilot_runs`` independent pilot
-    runs of ``pilot_spp`` x 1, 2, 2, 4, 1, 2, 2, 4, ... spp and ``pilot_bounces`` bounces (seeds
-    independent of ``seed``'s final run) measure the bounce tail, glossy-to-glossy transport,
-    the per-pixel Monte Carlo noise and the cost; the decisions are
-    :func:`torch_brdf.planner.plan_from_pilots`'s.
-
-    Args:
-        scene: the scene.
-        error: relative RMSE budget (against the converged polynomial model).
-        seconds: precompute time budget.
-        edit: the objects to keep editable (default every editable object); the others are fixed.
-        pilot_spp: the pilots' samples per pixel.
-        pilot_bounces: the pilots' bounces (all 1-band after the eye).
-        seed: the pilots use seeds derived from it, independent of the final run's ``seed``.
-        env_point_lights: as :func:`precompute_polynomial` (the pilots light the scene the same way).
-        progress: a tqdm bar per pilot run (None: on when attached to a terminal or notebook).
-        pilot_runs: independent pilot runs (>= 2; more give a steadier per-pixel noise estimate).
-        adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
-        max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
-            two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
-    Returns:
-        :class:`~torch_brdf.planner.GIPlan` (``print(plan)`` shows choices, cost and error).
-    """
-    if check_count(pilot_runs, "pilot_runs") < 2:
-        raise ValueRangeError(f"the planner needs at least two pilot runs; got {pilot_runs}")
-    bases, errors, fixed = planned_bases(scene, error if error is not None else 0.03, edit)
-    scene = with_fixed(scene, fixed)
-    eye = max([1] + [b.J for b in bases if b is not None])
-    series = Series((eye,) + (1,) * (pilot_bounces - 1))
-    pilots = [
-        precompute_polynomial(
-            scene,
-            series,
-            spp=pilot_spp * (1, 2, 2, 4)[k % 4],
-            seed=seed + 7919 * (k + 1),
-            bases=bases,
-            env_point_lights=env_point_lights,
-            progress=progress,
-        )
-        for k in range(pilot_runs)
-    ]
-    split = []
-    if check_count(max_light_samples, "max_light_samples") > 1:
-        split = [
-            precompute_polynomial(
-                scene,
-                series,
-                spp=pilot_spp * (k + 1),
-                seed=seed + 7919 * (pilot_runs + k + 1),
-                bases=bases,
-                env_point_lights=env_point_lights,
-                light_samples=4,
-                progress=progress,
-            )
-            for k in range(2)
-        ]
-    return plan_from_pilots(
-        scene,
-        bases,
-        errors,
-        fixed,
-        pilots,
-        error=error,
-        seconds=seconds,
-        adaptive=adaptive,
-        split_pilots=split,
-        max_light_samples=max_light_samples,
-    )
+    return PolynomialTensors(h, w, s.series, names, run.bases, asm.emission, terms, blocks, meta, guides=view_guides)

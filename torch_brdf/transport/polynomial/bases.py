@@ -1,4 +1,4 @@
-"""Planning the precomputation: the BRDF series and each object's editable basis.
+"""The BRDF series and each object's editable basis of the multibounce precomputation.
 
 :class:`Series` and :class:`ObjectBasis` travel with the saved record
 (:mod:`torch_brdf.records.polynomial`); :func:`plan_bases` chooses the bases of a scene.
@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from ..._checks import MAX_BANDS, check_int
@@ -13,7 +14,7 @@ from ...errors import SceneError, ValueRangeError
 from ...records.polynomial import ObjectBasis, Series
 from ...scene.scene import Scene
 
-__all__ = ["OVERRIDE_KEYS", "ObjectBasis", "Series", "check_basis_overrides", "plan_bases"]
+__all__ = ["OVERRIDE_KEYS", "ObjectBasis", "Series", "check_basis_overrides", "plan_bases", "with_fixed"]
 
 #: the :class:`ObjectBasis` fields a basis override may set (``second`` follows the series)
 OVERRIDE_KEYS = ("J", "spacing", "quotient", "fresnel", "variable")
@@ -90,3 +91,11 @@ def plan_bases(
         spec["second"] = min(series.second, spec["J"])
         out.append(ObjectBasis(**spec))
     return out
+
+
+def with_fixed(scene: Scene, fixed: tuple[str, ...]) -> Scene:
+    """A copy of ``scene`` whose objects named in ``fixed`` are not editable (same tracer)."""
+    if not fixed:
+        return scene
+    objs = [dataclasses.replace(o, editable=False) if o.name in fixed else o for o in scene.objects]
+    return dataclasses.replace(scene, objects=objs)

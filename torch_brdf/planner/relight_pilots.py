@@ -2,9 +2,9 @@ r"""The relighting planner's pilots: cubemap resolution, graded-visibility bits 
 the BRDF-sampling rule for a PSNR target, measured on a sample of the seen vertices.
 
 The decision (the error metric, the cost model, the choice) is
-:mod:`torch_brdf.planner.relight`'s; the pilots live here because they shade with
-:class:`~torch_brdf.render.triple.TripleProductRenderer` (the render layer sits above the
-planners). ``plan_relighting(scene, psnr=40)`` returns a printed
+:mod:`torch_brdf.planner.relight`'s; the pilots shade with
+:class:`~torch_brdf.render.triple.TripleProductRenderer` (the render layer sits below the
+planner). ``plan_relighting(scene, psnr=40)`` returns a printed
 :class:`~torch_brdf.planner.table.Plan`; :func:`planned_renderer` carries it out.
 
 Pilots, all on the vertices the camera sees:
@@ -46,19 +46,28 @@ from collections.abc import Sequence
 import torch
 
 from ..errors import ValueRangeError
-from ..planner.relight import RelightPilot, error_from_psnr, plan_from_relight_pilots
-from ..planner.table import Plan
 from ..records.visibility import VertexVisibility, scene_vertices
 from ..records.visibility_codec import BlockVisibility
+from ..render.triple import FixedRule, GenericRule, PhongRule, SamplingRule, TripleProductRenderer, View
 from ..scene.camera import Camera
 from ..scene.envmap import EnvironmentMap
 from ..scene.gbuffer import GBuffer, trace_gbuffer
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
-from ..transport.visibility import BITS, precompute_visibility, visibility_fraction
-from .triple import FixedRule, GenericRule, PhongRule, SamplingRule, TripleProductRenderer, View
+from ..transport.visibility import BITS, VisibilitySettings, precompute_visibility, visibility_fraction
+from .relight import RelightPilot, error_from_psnr, plan_from_relight_pilots
+from .table import Plan
 
-__all__ = ["DEFAULT_RULE", "RULES", "frame_units", "make_rule", "plan_relighting", "planned_renderer", "shade_vertices"]
+__all__ = [
+    "DEFAULT_RULE",
+    "RULES",
+    "frame_units",
+    "make_rule",
+    "plan_relighting",
+    "planned_renderer",
+    "shade_vertices",
+    "visibility_settings",
+]
 
 #: the candidate BRDF-sampling rules: ``kind:factor``; fixed:l = l x l samples everywhere,
 #: appendix-a:f = :class:`PhongRule` with its angles x f (other models: :class:`GenericRule`),
@@ -297,6 +306,12 @@ def planned_renderer(
     """Carry out a relighting plan: the visibility at its settings
     (:func:`~torch_brdf.transport.visibility.precompute_visibility`, ``visibility_kwargs`` passed
     on, e.g. ``checkpoint=``) and a renderer with its rule (lit by ``envmap``, default the scene's)."""
+    vis = precompute_visibility(scene, visibility_settings(plan), **visibility_kwargs)
+    return TripleProductRenderer(scene, vis, envmap, rule=make_rule(plan.settings["rule"]))
+
+
+def visibility_settings(plan: Plan) -> VisibilitySettings:
+    """The :class:`~torch_brdf.transport.visibility.VisibilitySettings` of a relighting plan
+    (its cubemap, supersampling and bits)."""
     s = plan.settings
-    vis = precompute_visibility(scene, s["cubemap"], 16, s["supersample"], s["bits"], **visibility_kwargs)
-    return TripleProductRenderer(scene, vis, envmap, rule=make_rule(s["rule"]))
+    return VisibilitySettings(resolution=s["cubemap"], block=16, supersample=s["supersample"], bits=s["bits"])
