@@ -81,7 +81,7 @@ TABLE_SIZE = 64
 QUADRATURE_ORDER = 64
 _DISTRIBUTIONS = ("beckmann", "ggx")
 _CACHE_SIZE = 16
-_FD_STEP = 1e-5
+_FD_STEP = 1e-3  # wide: steps over the kinks of the internal reflectance's quadrature
 #: (distribution, smooth, alpha, eta) -> (tables, their Jacobian): shared by every model, so
 #: that copies and re-created materials do not integrate again
 _TABLE_CACHE: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
