@@ -24,6 +24,14 @@ GOLD = {"type": "metallic_roughness", "base_color": [1.0, 0.78, 0.34], "metallic
 FLOOR = {"type": "lambert", "albedo": [0.6, 0.6, 0.5]}
 PLASTIC = {"type": "metallic_roughness", "base_color": [0.2, 0.4, 0.7], "metallic": 0.0, "roughness": 0.6}
 CONDUCTOR = {"type": "cook_torrance", "distribution": "ggx", "roughness": 0.3, "f0": 1.0}
+ROUGH_PLASTIC = {
+    "type": "rough_plastic",
+    "distribution": "ggx",
+    "roughness": 0.3,
+    "eta": 1.5,
+    "diffuse_reflectance": 0.4,
+}
+BECKMANN_PLASTIC = {**ROUGH_PLASTIC, "distribution": "beckmann", "roughness": 0.1, "nonlinear": True}
 
 
 @pytest.mark.parametrize(
@@ -31,6 +39,8 @@ CONDUCTOR = {"type": "cook_torrance", "distribution": "ggx", "roughness": 0.3, "
     [
         (CONDUCTOR, "roughconductor", {"alpha": 0.3}),
         (FLOOR, "diffuse", None),
+        (ROUGH_PLASTIC, "roughplastic", {"alpha": 0.3}),
+        (BECKMANN_PLASTIC, "roughplastic", {"alpha": 0.1}),
     ],
 )
 def test_exact_mappings_evaluate_as_ours_in_mitsuba(material, model, params):

@@ -37,6 +37,7 @@ from .base import BRDF, Clamped, Lambert, Positive, available, create, register
 from .gltf import MetallicRoughness
 from .measured import NBRDF, MERLTabulated, tabulate_nbrdf
 from .microfacet import GGXNDF, AnisotropicPhongNDF, BeckmannNDF, BlinnNDF, CookTorrance, MicrofacetDistribution
+from .plastic import RoughPlastic
 from .srbf import SRBFBasis, SRBFDistribution, hemicube_centers, lambda_from_sigma, sigma_from_lambda
 
 __all__ = [
@@ -67,6 +68,7 @@ __all__ = [
     "Positive",
     "Projector",
     "Quotient",
+    "RoughPlastic",
     "SRBFBasis",
     "SRBFDistribution",
     "SchlickFresnel",

@@ -32,6 +32,7 @@ _DIFFUSE_ATTR = {
     "ward": "kd",
     "ward_aniso": "kd",
     "cook_torrance": "kd",
+    "rough_plastic": "diffuse_reflectance",  # scaled by its own rule (TEXTURE_RULES)
 }
 
 #: models with their own rule: name -> f(brdf, wi, wo, scale (n, 3)) -> (n, 3)
