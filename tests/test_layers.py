@@ -278,12 +278,6 @@ def test_the_folder_check_finds_a_producer_asking_the_planner(tmp_path):
 
 #: the longest function the library may have (lines from ``def`` to its last line)
 MAX_FUNCTION_LINES = 120
-#: benchmark runs shipped with the package (for ``torch-brdf report``) still longer than that:
-#: each is one script's sequence of measurements; this list may only shrink
-LONG_BENCHMARK_RUNS = {
-    "torch_brdf.report.benchmarks.denoise.run_scene",
-    "torch_brdf.report.benchmarks.triple_product.main",
-}
 
 
 def _long_functions(root: Path) -> list[str]:
@@ -298,8 +292,7 @@ def _long_functions(root: Path) -> list[str]:
 
 
 def test_no_function_is_over_120_lines(tmp_path):
-    long = [f for f in _long_functions(PACKAGE) if f.split(" (")[0] not in LONG_BENCHMARK_RUNS]
-    assert {f.split(" (")[0] for f in _long_functions(PACKAGE)} >= LONG_BENCHMARK_RUNS, "split: shrink the list"
+    long = _long_functions(PACKAGE)
     assert not long, f"functions over {MAX_FUNCTION_LINES} lines (split them):\n  " + "\n  ".join(long)
     body = "".join("    x = 1\n" for _ in range(MAX_FUNCTION_LINES))
     root = _write(tmp_path, {"torch_brdf/__init__.py": "", "torch_brdf/m.py": f"def f():\n{body}"})

@@ -429,10 +429,28 @@ def _regions(object_id: torch.Tensor, depth: torch.Tensor, glossy: list[int], ma
     return {"glossy": gl, "contact": contact, "rest": mask & ~gl & ~contact & (object_id >= 0)}
 
 
-def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
+@dataclasses.dataclass
+class _SceneRun:
+    """One scene's run: its settings, scenes (default and edited material), references and
+    the figures gathered so far (``out``)."""
+
+    name: str
+    cfg: dict
+    folder: Path
+    obj: str
+    edited: dict
+    bounces: int
+    scene: object
+    mats: dict
+    ref: torch.Tensor
+    ref_e: torch.Tensor
+    out: dict
+
+
+def _start_scene(name: str, cfg: dict, folder: Path) -> _SceneRun:
+    """The scene's references (cached) and its figures' skeleton."""
     build, obj, edited = SCENES[name]
-    res, series, spps, hi_spp = cfg["res"], cfg["series"], cfg["spp"], cfg["hi_spp"]
-    mid = str(cfg["mid"])
+    res, series = cfg["res"], cfg["series"]
     bounces = len(series.split(","))
     scene = build(res)
     mats = _materials(scene)
@@ -448,7 +466,6 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     refs, rmeta = _cached(
         folder, "reference", {"ref_spp": cfg["ref_spp"], "edited": edited, "b": bounces}, scene, reference
     )
-    ref, ref_e = refs["ref"], refs["ref_e"]
     out: dict = {
         "resolution": res,
         "series": series,
@@ -462,26 +479,181 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         out[k] = {m: {} for m in METHODS}
     for k in ("precompute_s", "frame_s_after", "frame_ratio", "frozen_ratio", "mean_ratio", "frozen_mb"):
         out[k] = {}
-    step = cfg["hi_step"]
+    return _SceneRun(name, cfg, folder, obj, edited, bounces, scene, mats, refs["ref"], refs["ref_e"], out)
+
+
+def _run_order(cfg: dict) -> list[tuple[int, int]]:
+    """The (spp, seed) precomputes in the order they run."""
+    spps, mid, step = cfg["spp"], str(cfg["mid"]), cfg["hi_step"]
     runs = [(spp, k) for k, spp in enumerate(spps)]
-    runs += [(step, len(spps) + k) for k in range(hi_spp // step - 1)]  # seeds for the hi-spp mean
+    runs += [(step, len(spps) + k) for k in range(cfg["hi_spp"] // step - 1)]  # seeds for the hi-spp mean
     # what the goals need first (the middle spp's full unit, then the hi-spp runs), then the
     # other full units from the smallest spp up, so a run cut short leaves the parts that
     # matter cached; the seeds stay the positions in the full list (cached parts are reused)
     runs.sort(key=lambda r: (0 if str(r[0]) == mid and r[1] < len(spps) else 1 if r[1] >= len(spps) else 2, r[0]))
-    runs = [r for r in runs if r[0] not in cfg["skip"]]
-    if cfg["only_hi"]:  # a second process beside a full run: the hi-spp runs from the last
-        for spp, seed in reversed([r for r in runs if r[1] >= len(spps)]):
-            print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
-            settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": False}
-            settings.update(PRECOMPUTE_KEY)
-            _cached(
-                folder,
-                "unit",
-                settings,
-                scene,
-                lambda s=spp, k=seed: _unit(scene, obj, mats, edited, series, s, k, False),
-            )
+    return [r for r in runs if r[0] not in cfg["skip"]]
+
+
+def _unit_settings(s: _SceneRun, spp: int, seed: int, full: bool) -> dict:
+    settings = {"series": s.cfg["series"], "spp": spp, "seed": seed, "edited": s.edited, "obj": s.obj, "full": full}
+    settings.update(PRECOMPUTE_KEY)
+    return settings
+
+
+def _only_hi(s: _SceneRun, runs: list[tuple[int, int]]) -> None:
+    """A second process beside a full run: the hi-spp runs from the last."""
+    for spp, seed in reversed([r for r in runs if r[1] >= len(s.cfg["spp"])]):
+        print(f"[{s.name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
+        _cached(
+            s.folder,
+            "unit",
+            _unit_settings(s, spp, seed, False),
+            s.scene,
+            lambda sp=spp, k=seed: _unit(s.scene, s.obj, s.mats, s.edited, s.cfg["series"], sp, k, False),
+        )
+
+
+def _other_parts(s: _SceneRun, settings: dict, a: dict, keep: dict) -> tuple:
+    """A full unit's extra, halves and cumulative parts (cached): (x, xmeta, h, hmeta, c, cmeta)."""
+    scene, obj, mats, edited, series = s.scene, s.obj, s.mats, s.edited, s.cfg["series"]
+    spp, seed = settings["spp"], settings["seed"]
+    x, xmeta = _cached(
+        s.folder,
+        "extra",
+        {**settings, "methods": [RegressionFilter.__name__, repr(RegressionSettings())]},
+        scene,
+        lambda: _extra_unit(scene, obj, mats, edited, series, spp, seed, a["none"], keep.pop("T", None)),
+    )
+    keep.clear()
+    h, hmeta = _cached(
+        s.folder,
+        "halves",
+        {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings()), *_shares(), _cov()]},
+        scene,
+        lambda: _halves_unit(scene, obj, mats, edited, series, spp, seed),
+    )
+    c, cmeta = _cached(
+        s.folder,
+        "cumulative",
+        {
+            **settings,
+            "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
+            + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16", *_shares(), _cov()],
+        },
+        scene,
+        lambda: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, s.folder),
+    )
+    return x, xmeta, h, hmeta, c, cmeta
+
+
+def _record_parts(s: _SceneRun, spp: int, seed: int, a: dict, parts: tuple) -> None:
+    """The other parts' own figures at ``spp``: loads, the cumulative variants, same samples."""
+    out, ref, ref_e = s.out, s.ref, s.ref_e
+    _, xmeta, h, hmeta, c, cmeta = parts
+    out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
+    out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
+    out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
+    out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
+    out.setdefault("lobes_s", {})[str(spp)] = cmeta["lobes_s"]
+    for key in ("oidn_cumulative_mix_half", "oidn_cumulative_raw", "oidn_cumulative_no_lobes"):
+        out.setdefault(key, {})[str(spp)] = [
+            relative_rmse(c[key], ref, a["emitter_free"].bool()),
+            relative_rmse(c[key + "_e"], ref_e, a["emitter_free"].bool()),
+        ]
+    for m in ("none", "regression", "selected"):
+        k = m if m == "selected" else m + "_h"
+        pair = [
+            relative_rmse(h[k], ref, a["emitter_free"].bool()),
+            relative_rmse(h[k + "_e"], ref_e, a["emitter_free"].bool()),
+        ]
+        out.setdefault("same_samples", {}).setdefault(m, {})[str(spp)] = pair
+    out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
+
+
+def _record_methods(s: _SceneRun, key: str, a: dict, meta: dict, mask: torch.Tensor) -> None:
+    """Every method's errors and denoise seconds at spp ``key``."""
+    out = s.out
+    out["precompute_s"][key] = meta["precompute_s"]
+    for m in METHODS:
+        img, img_e = a[m], a[m + "_e"]
+        out["rel_rmse"][m][key] = relative_rmse(img, s.ref, mask)
+        out["rel_rmse_edited"][m][key] = relative_rmse(img_e, s.ref_e, mask)
+        out["flip"][m][key] = hdr_flip(img, s.ref, mask)
+        out["flip_edited"][m][key] = hdr_flip(img_e, s.ref_e, mask)
+        out["denoise_s"][m][key] = meta["denoise_s"][m]
+
+
+def _record_mid(s: _SceneRun, a: dict, meta: dict, parts: tuple, mask: torch.Tensor, figure: str | None) -> dict:
+    """The middle spp's figures (sizes, frame times, means, regions; the figure): returns the regions."""
+    out, ref, ref_e = s.out, s.ref, s.ref_e
+    _, xmeta, _, hmeta, _, cmeta = parts
+    out["record_mb"] = meta["record_mb"]
+    out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
+    out["frozen_mb"]["selected"] = hmeta["frozen_mb"]["selected"]
+    out["frozen_mb"]["oidn_cumulative"] = cmeta["frozen_mb"]["oidn_cumulative"]
+    out["regression_settings"] = xmeta["settings_regression"]
+    out["selected_settings"] = hmeta["settings_selected"]
+    out["selected_pick_s"] = hmeta["pick_s"]
+    out["coverage_s"] = hmeta["coverage_s"]
+    out["frame_s_before"] = meta["frame_s"]["none"]
+    part_of = {**dict.fromkeys(EXTRA, xmeta), **dict.fromkeys(HALVES, hmeta), **dict.fromkeys(CUMULATIVE, cmeta)}
+    for m in METHODS:
+        fs = part_of.get(m, meta)["frame_s"]
+        # ratio to the same run's noisy frame
+        out["frame_s_after"][m] = fs[m]
+        out["frame_ratio"][m] = fs[m] / fs["none"]
+        out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
+    for m in ("none", *DENOISERS, *EXTRA, *HALVES, *CUMULATIVE):
+        # the frame's cost is its frozen tensor's size (same pixels, same matmuls): the
+        # goal reads this ratio; the timings above are figures (load-noisy at ms scale)
+        part = part_of.get(m, meta)
+        out["frozen_ratio"][m] = part["frozen_mb"][m] / part["frozen_mb"]["none"]
+    regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
+    out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
+    out["regions"] = {r: {m: relative_rmse(a[m], ref, v) for m in METHODS} for r, v in regions.items() if int(v.sum())}
+    out["regions_edited"] = {
+        r: {m: relative_rmse(a[m + "_e"], ref_e, v) for m in METHODS} for r, v in regions.items() if int(v.sum())
+    }
+    if figure:
+        _figure(
+            figure, ref, *(a[m] for m in ("none", "linear", "oidn_basis", "regression", "selected", "oidn_cumulative"))
+        )
+    return regions
+
+
+def _finish(s: _SceneRun, hi: dict, mask, at_mid: dict, mid_meta: dict, regions: dict) -> None:
+    """Sorted tables, the hi-spp figures, the goals and the error budget."""
+    out, ref, ref_e, cfg = s.out, s.ref, s.ref_e, s.cfg
+    for k in ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s", "same_samples"):
+        out[k] = {m: dict(sorted(d.items(), key=lambda kv: int(kv[0]))) for m, d in out.get(k, {}).items()}
+    out["precompute_s"] = dict(sorted(out["precompute_s"].items(), key=lambda kv: int(kv[0])))
+    top = str(cfg["hi_spp"])
+    a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
+    out["rel_rmse"]["none"][top] = relative_rmse(a, ref, mask)
+    out["rel_rmse_edited"]["none"][top] = relative_rmse(b, ref_e, mask)
+    out["flip"]["none"][top] = hdr_flip(a, ref, mask)
+    out["flip_edited"]["none"][top] = hdr_flip(b, ref_e, mask)
+    out["goals"] = _goals(out, str(cfg["mid"]), top)
+
+    def check():  # a second, independent reference at a quarter of the spp: the reference's own noise
+        img, label = _reference(s.scene, cfg["ref_spp"] // 4, cfg["ref_spp_ours"] // 4, s.bounces, seed=8)
+        return {"ref": img}, {"label": label}
+
+    second, _ = _cached(s.folder, "reference_check", {"ref_spp": cfg["ref_spp"], "b": s.bounces}, s.scene, check)
+    g, gl = guide_buffers(s.scene), mid_meta["glossy"]
+    filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
+    pilots = (at_mid["half_a"].permute(2, 0, 1), at_mid["half_b"].permute(2, 0, 1))
+    cov = pixel_coverage(s.scene, COVERAGE_SAMPLES, g.object_id)
+    filters["selected"] = SelectedRegressionFilter(g, [pilots], glossy=gl, coverage=cov)  # the mid unit's pick
+    out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
+
+
+def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
+    s = _start_scene(name, cfg, folder)
+    out, spps, mid, step = s.out, cfg["spp"], str(cfg["mid"]), cfg["hi_step"]
+    runs = _run_order(cfg)
+    if cfg["only_hi"]:
+        _only_hi(s, runs)
         return out
     hi = {"none": [], "none_e": []}
     mask = None
@@ -489,15 +661,16 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
     for spp, seed in runs:
         full = seed < len(spps)
         print(f"[{name}] precompute {spp} spp seed {seed} (load {_load()}) ...", flush=True)
-        settings = {"series": series, "spp": spp, "seed": seed, "edited": edited, "obj": obj, "full": full}
-        settings.update(PRECOMPUTE_KEY)
+        settings = _unit_settings(s, spp, seed, full)
         keep.clear()
         a, meta = _cached(
             folder,
             "unit",
             settings,
-            scene,
-            lambda spp=spp, seed=seed, full=full: _unit(scene, obj, mats, edited, series, spp, seed, full, keep),
+            s.scene,
+            lambda spp=spp, seed=seed, full=full: _unit(
+                s.scene, s.obj, s.mats, s.edited, cfg["series"], spp, seed, full, keep
+            ),
         )
         out["load"][f"{spp}_{seed}"] = meta["load"]
         if spp == step:
@@ -505,53 +678,10 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
             hi["none_e"].append(a["none_e"])
         if not full:
             continue
-        x, xmeta = _cached(
-            folder,
-            "extra",
-            {**settings, "methods": [RegressionFilter.__name__, repr(RegressionSettings())]},
-            scene,
-            lambda spp=spp, seed=seed, a=a: _extra_unit(
-                scene, obj, mats, edited, series, spp, seed, a["none"], keep.pop("T", None)
-            ),
-        )
-        keep.clear()
-        h, hmeta = _cached(
-            folder,
-            "halves",
-            {**settings, "methods": [SelectedRegressionFilter.__name__, repr(SelectionSettings()), *_shares(), _cov()]},
-            scene,
-            lambda spp=spp, seed=seed: _halves_unit(scene, obj, mats, edited, series, spp, seed),
-        )
-        c, cmeta = _cached(
-            folder,
-            "cumulative",
-            {
-                **settings,
-                "methods": [CumulativeOIDN.__name__, "default mix", SelectedRegressionFilter.__name__]
-                + [repr(SelectionSettings()), f"keep_mean {KEEP_MEAN_SIGMA}", "light lobes 16", *_shares(), _cov()],
-            },
-            scene,
-            lambda spp=spp, seed=seed, h=h: _cumulative_unit(scene, obj, mats, edited, series, spp, seed, h, folder),
-        )
+        parts = _other_parts(s, settings, a, keep)
+        x, xmeta, h, hmeta, c, cmeta = parts
         a = {**a, **x, **h, **c}
-        out["load"][f"{spp}_{seed}_extra"] = xmeta["load"]
-        out["load"][f"{spp}_{seed}_halves"] = hmeta["load"]
-        out["load"][f"{spp}_{seed}_cumulative"] = cmeta["load"]
-        out.setdefault("cumulative_same_as_halves", {})[str(spp)] = cmeta["same_as_halves_part"]
-        out.setdefault("lobes_s", {})[str(spp)] = cmeta["lobes_s"]
-        for key in ("oidn_cumulative_mix_half", "oidn_cumulative_raw", "oidn_cumulative_no_lobes"):
-            out.setdefault(key, {})[str(spp)] = [
-                relative_rmse(c[key], ref, a["emitter_free"].bool()),
-                relative_rmse(c[key + "_e"], ref_e, a["emitter_free"].bool()),
-            ]
-        for m in ("none", "regression", "selected"):
-            k = m if m == "selected" else m + "_h"
-            pair = [
-                relative_rmse(h[k], ref, a["emitter_free"].bool()),
-                relative_rmse(h[k + "_e"], ref_e, a["emitter_free"].bool()),
-            ]
-            out.setdefault("same_samples", {}).setdefault(m, {})[str(spp)] = pair
-        out.setdefault("extra_same_as_cached_unit", {})[str(spp)] = xmeta["same_as_cached_unit"]
+        _record_parts(s, spp, seed, a, parts)
         meta["denoise_s"] = {
             **meta["denoise_s"],
             **xmeta["denoise_s"],
@@ -560,85 +690,12 @@ def run_scene(name: str, cfg: dict, folder: Path, figure: str | None) -> dict:
         }
         key = str(spp)
         mask = a["emitter_free"].bool()
-        out["precompute_s"][key] = meta["precompute_s"]
-        for m in METHODS:
-            img, img_e = a[m], a[m + "_e"]
-            out["rel_rmse"][m][key] = relative_rmse(img, ref, mask)
-            out["rel_rmse_edited"][m][key] = relative_rmse(img_e, ref_e, mask)
-            out["flip"][m][key] = hdr_flip(img, ref, mask)
-            out["flip_edited"][m][key] = hdr_flip(img_e, ref_e, mask)
-            out["denoise_s"][m][key] = meta["denoise_s"][m]
+        _record_methods(s, key, a, meta, mask)
         if key == mid:
             at_mid, mid_meta = a, meta
-            out["record_mb"] = meta["record_mb"]
-            out["frozen_mb"] = {**meta["frozen_mb"], **{m: xmeta["frozen_mb"][m] for m in EXTRA}}
-            out["frozen_mb"]["selected"] = hmeta["frozen_mb"]["selected"]
-            out["frozen_mb"]["oidn_cumulative"] = cmeta["frozen_mb"]["oidn_cumulative"]
-            out["regression_settings"] = xmeta["settings_regression"]
-            out["selected_settings"] = hmeta["settings_selected"]
-            out["selected_pick_s"] = hmeta["pick_s"]
-            out["coverage_s"] = hmeta["coverage_s"]
-            out["frame_s_before"] = meta["frame_s"]["none"]
-            for m in METHODS:
-                parts = {
-                    **dict.fromkeys(EXTRA, xmeta),
-                    **dict.fromkeys(HALVES, hmeta),
-                    **dict.fromkeys(CUMULATIVE, cmeta),
-                }
-                fs = parts.get(m, meta)["frame_s"]
-                # ratio to the same run's noisy frame
-                out["frame_s_after"][m] = fs[m]
-                out["frame_ratio"][m] = fs[m] / fs["none"]
-                out["mean_ratio"][m] = float(a[m][mask].double().mean() / ref[mask].double().mean())
-            for m in ("none", *DENOISERS, *EXTRA, *HALVES, *CUMULATIVE):
-                # the frame's cost is its frozen tensor's size (same pixels, same matmuls): the
-                # goal reads this ratio; the timings above are figures (load-noisy at ms scale)
-                part = {
-                    **dict.fromkeys(EXTRA, xmeta),
-                    **dict.fromkeys(HALVES, hmeta),
-                    **dict.fromkeys(CUMULATIVE, cmeta),
-                }
-                part = part.get(m, meta)
-                out["frozen_ratio"][m] = part["frozen_mb"][m] / part["frozen_mb"]["none"]
-            regions = _regions(a["object_id"].long(), a["depth"], meta["glossy"], mask)
-            out["region_pixels"] = {r: int(v.sum()) for r, v in regions.items()}
-            out["regions"] = {
-                r: {m: relative_rmse(a[m], ref, v) for m in METHODS} for r, v in regions.items() if int(v.sum())
-            }
-            out["regions_edited"] = {
-                r: {m: relative_rmse(a[m + "_e"], ref_e, v) for m in METHODS}
-                for r, v in regions.items()
-                if int(v.sum())
-            }
-            if figure:
-                _figure(
-                    figure,
-                    ref,
-                    *(a[m] for m in ("none", "linear", "oidn_basis", "regression", "selected", "oidn_cumulative")),
-                )
+            regions = _record_mid(s, a, meta, parts, mask, figure)
         print(f"[{name}] {spp} spp rel_rmse", {m: round(out["rel_rmse"][m][key], 4) for m in METHODS}, flush=True)
-    for k in ("rel_rmse", "rel_rmse_edited", "flip", "flip_edited", "denoise_s", "same_samples"):
-        out[k] = {m: dict(sorted(d.items(), key=lambda kv: int(kv[0]))) for m, d in out.get(k, {}).items()}
-    out["precompute_s"] = dict(sorted(out["precompute_s"].items(), key=lambda kv: int(kv[0])))
-    top = str(hi_spp)
-    a, b = torch.stack(hi["none"]).mean(0), torch.stack(hi["none_e"]).mean(0)
-    out["rel_rmse"]["none"][top] = relative_rmse(a, ref, mask)
-    out["rel_rmse_edited"]["none"][top] = relative_rmse(b, ref_e, mask)
-    out["flip"]["none"][top] = hdr_flip(a, ref, mask)
-    out["flip_edited"]["none"][top] = hdr_flip(b, ref_e, mask)
-    out["goals"] = _goals(out, mid, top)
-
-    def check():  # a second, independent reference at a quarter of the spp: the reference's own noise
-        img, label = _reference(scene, cfg["ref_spp"] // 4, cfg["ref_spp_ours"] // 4, bounces, seed=8)
-        return {"ref": img}, {"label": label}
-
-    second, _ = _cached(folder, "reference_check", {"ref_spp": cfg["ref_spp"], "b": bounces}, scene, check)
-    g, gl = guide_buffers(scene), mid_meta["glossy"]
-    filters = {"linear": EdgeAwareFilter(g, glossy=gl), "regression": RegressionFilter(g, glossy=gl)}
-    pilots = (at_mid["half_a"].permute(2, 0, 1), at_mid["half_b"].permute(2, 0, 1))
-    cov = pixel_coverage(scene, COVERAGE_SAMPLES, g.object_id)
-    filters["selected"] = SelectedRegressionFilter(g, [pilots], glossy=gl, coverage=cov)  # the mid unit's pick
-    out["budget"] = _budget(hi, at_mid, ref, ref_e, second["ref"], regions, mask, filters)
+    _finish(s, hi, mask, at_mid, mid_meta, regions)
     return out
 
 

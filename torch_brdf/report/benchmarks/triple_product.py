@@ -64,6 +64,7 @@ progress, then one JSON object as the last line:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -267,7 +268,7 @@ def _load_memory(vis) -> dict:
     }
 
 
-def main() -> None:
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small scene and image")
     ap.add_argument("--checkpoint", default=None, help="folder for resumable visibility chunks")
@@ -288,21 +289,37 @@ def main() -> None:
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     ap.add_argument("--frames", type=int, default=3, choices=(1, 2, 3), help="frames shaded (the first N of three)")
     ap.add_argument("--plane-quads", type=int, default=None, help="plane quads a side (default 96; quick 32)")
-    args = ap.parse_args()
-    torch.manual_seed(0)
-    sun = None if args.quick else data_path("envmaps", "quarry_01_sun_512x256.exr", required=False)
-    env = EnvironmentMap.from_exr(sun) if sun is not None else None  # else the procedural sun and sky
-    if args.quick:
-        scene = bunny_relight((160, 120), plane_quads=args.plane_quads or 32, use_data=False)
-    else:
-        scene = bunny_relight((320, 240), plane_quads=args.plane_quads or 96, envmap=env)
-    res = 64
-    print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
+    return ap.parse_args()
 
-    # the visibility precompute against embree alone on the very rays it casts, with as many
-    # processes over the same chunks of vertices, interleaved (embree's own time varies most)
+
+@dataclasses.dataclass
+class _Rounds:
+    """What the visibility precompute and embree alone share across the interleaved rounds."""
+
+    scene: object
+    res: int
+    chunk: int
+    procs: int
+    verts: object
+    geom: CubemapBlocks
+    rays: list | None  # the embreex variants' (n, 3) arrays, dropped after the rounds
+    n_rays: int  # the rays those arrays hold
+    all_rays: int  # every ray the precompute casts
+    native: bool
+    fans: list | None  # the compiled loop's compact rays, dropped after the split
+    texel_dirs: np.ndarray
+    order: list[str]  # the variants timed in each round
+    alone: list[str]  # the embree-alone variants among them
+    vis: object = None
+    runs: list = dataclasses.field(default_factory=list)
+    occluded: int | None = None  # the last embreex variant's occluded rays
+    occluded_c: int | None = None  # the compiled loop's occluded rays
+
+
+def _prepare_rounds(scene, args) -> _Rounds:
+    """The rays the embree-alone variants cast (built once, untimed) and the variants to time."""
     procs = args.processes or usable_cores()
-    chunk = 512
+    chunk, res = 512, 64
     verts, geom = scene_vertices(scene), CubemapBlocks(res)
     # the rays as (n, 3) arrays, built once (24 B a ray: the full scene's 544 M would not fit, the
     # embreex runs time the first --embree-chunks chunks and scale by the ray count); compactly
@@ -316,135 +333,140 @@ def main() -> None:
     all_rays = n_rays if limit == n_chunks else _ray_count(geom, verts)
     native = _native.library() is not None and scene.tracer._kernel.native() is not None
     fans = _chunk_fans(scene, geom, verts, chunk) if native else None
-    texel_dirs = _texel_directions(geom)
-    vis, runs, occluded_c = None, [], None
     order = ("precompute", "embree", "embree_fans", "embree_c", "precompute_numpy")
     order = [w for w in order if (w != "embree_c" or native) and (w != "precompute_numpy" or args.compare_numpy)]
     order = [w for w in order if limit or w not in ("embree", "embree_fans")]
     alone = [w for w in order if w.startswith("embree")]
-    for r in range(args.rounds):
+    return _Rounds(
+        scene,
+        res,
+        chunk,
+        procs,
+        verts,
+        geom,
+        rays,
+        n_rays,
+        all_rays,
+        native,
+        fans,
+        _texel_directions(geom),
+        order,
+        alone,
+    )
+
+
+def _run_variant(st: _Rounds, what: str, checkpoint: str | None) -> None:
+    """One timed variant of a round: a precompute (kept in ``st.vis``) or embree alone."""
+    settings = VisibilitySettings(resolution=st.res, chunk=st.chunk)
+    if what == "precompute":
+        st.vis = precompute_visibility(st.scene, settings, checkpoint=checkpoint, processes=st.procs)
+    elif what == "precompute_numpy":  # the numpy path (before the compiled loop), same run
+        os.environ[_native.ENV_VAR] = "0"
+        try:
+            precompute_visibility(st.scene, settings, processes=st.procs)
+        finally:
+            del os.environ[_native.ENV_VAR]
+    elif what == "embree_c":
+        st.occluded_c = _embree_alone(st.scene, st.fans, st.procs, fans="c", dirs=st.texel_dirs)
+    else:
+        st.occluded = _embree_alone(st.scene, st.rays, st.procs, fans=what == "embree_fans")
+
+
+def _run_rounds(st: _Rounds, rounds: int, checkpoint: str | None) -> None:
+    """``rounds`` interleaved rounds of every variant (each goes first in turn), into ``st.runs``."""
+    order, alone = st.order, st.alone
+    for r in range(rounds):
         pair = {}
         for what in order[r % len(order) :] + order[: r % len(order)]:  # each goes first in turn
             t, c = time.perf_counter(), _cpu_seconds()
-            if what == "precompute":
-                vis = precompute_visibility(
-                    scene, VisibilitySettings(resolution=res, chunk=chunk), checkpoint=args.checkpoint, processes=procs
-                )
-            elif what == "precompute_numpy":  # the numpy path (before the compiled loop), same run
-                os.environ[_native.ENV_VAR] = "0"
-                try:
-                    precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=procs)
-                finally:
-                    del os.environ[_native.ENV_VAR]
-            elif what == "embree_c":
-                occluded_c = _embree_alone(scene, fans, procs, fans="c", dirs=texel_dirs)
-            else:
-                occluded = _embree_alone(scene, rays, procs, fans=what == "embree_fans")
+            _run_variant(st, what, checkpoint)
             pair[what] = time.perf_counter() - t
             pair[f"{what}_cpu"] = _cpu_seconds() - c
         for k in ("embree", "embree_fans"):
             if k in pair:
-                pair[k] *= all_rays / n_rays
-                pair[f"{k}_cpu"] *= all_rays / n_rays
+                pair[k] *= st.all_rays / st.n_rays
+                pair[f"{k}_cpu"] *= st.all_rays / st.n_rays
         pair["ratio"] = pair["precompute"] / min(pair[k] for k in alone)
         pair["cpu_ratio"] = pair["precompute_cpu"] / min(pair[f"{k}_cpu"] for k in alone)
         if "precompute_numpy" in pair:
             pair["numpy_ratio"] = pair["precompute_numpy"] / min(pair[k] for k in alone)
             pair["numpy_cpu_ratio"] = pair["precompute_numpy_cpu"] / min(pair[f"{k}_cpu"] for k in alone)
         pair["load_avg"] = list(os.getloadavg())
-        runs.append(pair)
+        st.runs.append(pair)
         times = ", ".join(f"{k} {pair[k]:.2f} s ({pair[k + '_cpu']:.2f} CPU-s)" for k in order)
         print(f"round {r}: {times}; ratio {pair['ratio']:.3f} (CPU time {pair['cpu_ratio']:.3f}), "
               f"load {pair['load_avg'][0]:.1f}", flush=True)  # fmt: skip
-    del rays
-    precompute_s = statistics.median(p["precompute"] for p in runs)
-    rays_s = statistics.median(min(p[k] for k in alone) for p in runs)
-    visible = _visible_texels(vis)
-    if native:
-        same_rays = visible == all_rays - occluded_c
+    st.rays = None
+
+
+def _rounds_figures(st: _Rounds, compare_numpy: bool) -> dict:
+    """The medians of the rounds and whether the record's visible texels are embree's escaping rays."""
+    runs, alone = st.runs, st.alone
+    visible = _visible_texels(st.vis)
+    if st.native:
+        same_rays = visible == st.all_rays - st.occluded_c
     else:
-        same_rays = visible == n_rays - occluded if n_rays == all_rays else None
+        same_rays = visible == st.n_rays - st.occluded if st.n_rays == st.all_rays else None
     figures = {
-        "processes": procs,
+        "processes": st.procs,
         "rounds": runs,
-        "precompute_s": precompute_s,
+        "precompute_s": statistics.median(p["precompute"] for p in runs),
         "precompute_cpu_s": statistics.median(p["precompute_cpu"] for p in runs),
-        "rays": all_rays,
-        "rays_s": rays_s,
+        "rays": st.all_rays,
+        "rays_s": statistics.median(min(p[k] for k in alone) for p in runs),
         "rays_cpu_s": statistics.median(min(p[f"{k}_cpu"] for k in alone) for p in runs),
         "embree_alone": {k: statistics.median(p[k] for p in runs) for k in alone},
-        "embree_timed_rays": n_rays,
-        "native": native,
+        "embree_timed_rays": st.n_rays,
+        "native": st.native,
         "precompute_over_rays": statistics.median(p["ratio"] for p in runs),
         "precompute_over_rays_cpu": statistics.median(p["cpu_ratio"] for p in runs),
         # the record's visible texels = embree's escaping rays (when embree cast them all)
         "same_rays": same_rays,
     }
-    if args.compare_numpy:
+    if compare_numpy:
         figures["numpy_path_s"] = statistics.median(p["precompute_numpy"] for p in runs)
         figures["numpy_path_over_rays"] = statistics.median(p["numpy_ratio"] for p in runs)
         figures["numpy_path_over_rays_cpu"] = statistics.median(p["numpy_cpu_ratio"] for p in runs)
-    if args.split:  # CPU seconds per stage, every chunk in this process (load barely changes CPU time)
-        one, split = single_process(scene), {}
-        dirs = geom.supersampled_directions(1).reshape(-1, 1, 3).float()
-        with single_thread():
-            for s in range(0, len(verts), chunk):
-                pos, nrm = verts.positions[s : s + chunk], verts.normals[s : s + chunk]
-                _chunk_entries(one, geom, pos, nrm, dirs, 0, split=split)
-            figures["split_cpu_s"] = split
-            if native:  # embree alone in the compiled loop, this process, the same rays
-                c = time.process_time()
-                _embree_alone(scene, fans, 1, fans="c", dirs=texel_dirs)
-                split_alone = figures["split_embree_alone_cpu_s"] = time.process_time() - c
-            else:
-                split_alone = split["embree"]
-        figures["split_overhead_over_embree"] = (sum(split.values()) - split_alone) / split_alone
-    del fans
-    figures.update(_load_memory(vis))
-    print(
-        f"load: {figures.get('visibility_load_s', float('nan')):.3f} s, peak "
-        f"{figures.get('visibility_load_peak_over_file', float('nan')):.2f}x the file",
-        flush=True,
-    )
-    baseline = {}
-    if args.baseline:  # chunks one after another in this process, rays on the scene's trace pool
-        t = time.perf_counter()
-        vis1 = precompute_visibility(scene, VisibilitySettings(resolution=res, chunk=chunk), processes=1)
-        baseline["one_process_s"] = time.perf_counter() - t
-        baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
-        a, b = vis1.blocks, vis.blocks
-        names = ("counts", "offsets", "index", "states")
-        baseline["equals_one_process"] = all(torch.equal(getattr(a, n), getattr(b, n)) for n in names) and (
-            (a.delta is None and b.delta is None) or torch.equal(a.delta, b.delta)
-        )
-        del vis1
-    if args.precompute_only:
-        print(json.dumps({"vertices": len(vis.vertices), **figures, **baseline, "load_avg": list(os.getloadavg())}))
-        return
-    r = TripleProductRenderer(scene, vis)
-    env = r.envmap
-    lighting_s, _ = best_of(lambda: r.set_lighting(env), 3)
+    return figures
 
-    frames = [
-        ("camera", scene.camera, 0.0),
-        ("rotated_map", scene.camera, 2.0),
-        ("orbit", _orbit(scene.camera, 0.7), 0.0),
-    ][: args.frames]
-    out: dict = {
-        "scene": scene.name,
-        "quick": args.quick,
-        "vertices": len(vis.vertices),
-        "cubemap": f"{res}x{res}x6",
-        "blocks_per_vertex": vis.geometry.block_count,
-        "envmap": str(sun.name) if sun is not None else "procedural sky",
-        **figures,
-        **baseline,
-        "visibility_bytes_per_vertex": vis.bytes_per_vertex,
-        "dense_bytes_per_vertex": CubemapBlocks(res).texel_count / 8,
-        "seed_bytes_per_vertex": 1024,
-        "lighting_s": lighting_s,
-        "haar_fraction": args.haar_fraction,
-    }
+
+def _split_figures(st: _Rounds) -> dict:
+    """CPU seconds per stage, every chunk in this process (load barely changes CPU time)."""
+    one, split, figures = single_process(st.scene), {}, {}
+    dirs = st.geom.supersampled_directions(1).reshape(-1, 1, 3).float()
+    with single_thread():
+        for s in range(0, len(st.verts), st.chunk):
+            pos, nrm = st.verts.positions[s : s + st.chunk], st.verts.normals[s : s + st.chunk]
+            _chunk_entries(one, st.geom, pos, nrm, dirs, 0, split=split)
+        figures["split_cpu_s"] = split
+        if st.native:  # embree alone in the compiled loop, this process, the same rays
+            c = time.process_time()
+            _embree_alone(st.scene, st.fans, 1, fans="c", dirs=st.texel_dirs)
+            split_alone = figures["split_embree_alone_cpu_s"] = time.process_time() - c
+        else:
+            split_alone = split["embree"]
+    figures["split_overhead_over_embree"] = (sum(split.values()) - split_alone) / split_alone
+    return figures
+
+
+def _one_process_baseline(st: _Rounds, precompute_s: float) -> dict:
+    """The chunks one after another in this process (rays on the scene's trace pool)."""
+    baseline = {}
+    t = time.perf_counter()
+    vis1 = precompute_visibility(st.scene, VisibilitySettings(resolution=st.res, chunk=st.chunk), processes=1)
+    baseline["one_process_s"] = time.perf_counter() - t
+    baseline["speedup_over_one_process"] = baseline["one_process_s"] / precompute_s
+    a, b = vis1.blocks, st.vis.blocks
+    names = ("counts", "offsets", "index", "states")
+    baseline["equals_one_process"] = all(torch.equal(getattr(a, n), getattr(b, n)) for n in names) and (
+        (a.delta is None and b.delta is None) or torch.equal(a.delta, b.delta)
+    )
+    return baseline
+
+
+def _shade_frames(r, env, frames, args, out: dict):
+    """Every frame by ours, the standard basis and Haar: the means into ``out``; returns the
+    first frame's (view, reference, mask, stats)."""
     per = {k: [] for k in ("frame_s", "standard_frame_s", "haar_frame_s", "haar_brdf_s", "cull_s", "shaded_vertices")}
     per.update({k: [] for k in ("psnr", "psnr_display", "haar_psnr", "haar_psnr_display")})
     first = None
@@ -486,16 +508,11 @@ def main() -> None:
         out[k] = sum(v) / len(v)
     out["psnr_frames"] = per["psnr"]
     out["haar_psnr_frames"] = per["haar_psnr"]
-    out["speedup_vs_standard"] = out["standard_frame_s"] / out["frame_s"]
-    out["haar_speedup_vs_standard"] = out["standard_frame_s"] / out["haar_frame_s"]
-    view, ref, mask, stats = first
-    pct = stats.percentages()
-    out["cases"] = {**pct["cases"], "occluded_of_all": pct["occluded"]}
-    out["sampling"] = pct["sampling"]
-    out["brdf_evals"] = stats.brdf_evals
-    out["brdf_evals_per_vertex"] = stats.brdf_evals / max(1, stats.vertices)
+    return first
 
-    # the speed/accuracy curve of the BRDF-sampling thresholds (frame 1)
+
+def _threshold_curve(r, env, vis, view, ref, mask, repeat: int) -> dict:
+    """The speed/accuracy curve of the BRDF-sampling thresholds (frame 1)."""
     r.set_lighting(env)
     base = GenericRule()
     auto = vis.geometry.angular_radius / CubemapBlocks(64).angular_radius  # PhongRule's default scale
@@ -507,7 +524,7 @@ def main() -> None:
     rules.update({f"fixed_{l * l}": FixedRule(l) for l in (1, 2, 4, 16)})
     curve = {}
     for key, rule in rules.items():
-        s, (rad, st) = best_of(lambda rule=rule: r.shade(view, rule=rule), args.repeat)
+        s, (rad, st) = best_of(lambda rule=rule: r.shade(view, rule=rule), repeat)
         curve[key] = {
             "frame_s": s,
             "psnr": psnr(r.image(view, rad), ref, mask),
@@ -515,7 +532,78 @@ def main() -> None:
             "brdf_evals_per_vertex": st.brdf_evals / max(1, st.vertices),
         }
         print(f"curve {key}: {s:.3f} s, {curve[key]['psnr']:.2f} dB", flush=True)
-    out["curve"] = curve
+    return curve
+
+
+def _precompute_figures(scene, args) -> tuple[_Rounds, dict, dict]:
+    """The visibility precompute against embree alone on the very rays it casts, with as many
+    processes over the same chunks of vertices, interleaved (embree's own time varies most),
+    then the optional split and one-process baseline and the record's load: (state, figures,
+    baseline)."""
+    st = _prepare_rounds(scene, args)
+    _run_rounds(st, args.rounds, args.checkpoint)
+    figures = _rounds_figures(st, args.compare_numpy)
+    if args.split:
+        figures.update(_split_figures(st))
+    st.fans = None
+    figures.update(_load_memory(st.vis))
+    print(
+        f"load: {figures.get('visibility_load_s', float('nan')):.3f} s, peak "
+        f"{figures.get('visibility_load_peak_over_file', float('nan')):.2f}x the file",
+        flush=True,
+    )
+    baseline = _one_process_baseline(st, figures["precompute_s"]) if args.baseline else {}
+    return st, figures, baseline
+
+
+def main() -> None:
+    args = _parse_args()
+    torch.manual_seed(0)
+    sun = None if args.quick else data_path("envmaps", "quarry_01_sun_512x256.exr", required=False)
+    env = EnvironmentMap.from_exr(sun) if sun is not None else None  # else the procedural sun and sky
+    if args.quick:
+        scene = bunny_relight((160, 120), plane_quads=args.plane_quads or 32, use_data=False)
+    else:
+        scene = bunny_relight((320, 240), plane_quads=args.plane_quads or 96, envmap=env)
+    print(f"scene {scene.name}: {[len(o.mesh.vertices) for o in scene.objects]} vertices", flush=True)
+    st, figures, baseline = _precompute_figures(scene, args)
+    vis, res = st.vis, st.res
+    if args.precompute_only:
+        print(json.dumps({"vertices": len(vis.vertices), **figures, **baseline, "load_avg": list(os.getloadavg())}))
+        return
+    r = TripleProductRenderer(scene, vis)
+    env = r.envmap
+    lighting_s, _ = best_of(lambda: r.set_lighting(env), 3)
+
+    frames = [
+        ("camera", scene.camera, 0.0),
+        ("rotated_map", scene.camera, 2.0),
+        ("orbit", _orbit(scene.camera, 0.7), 0.0),
+    ][: args.frames]
+    out: dict = {
+        "scene": scene.name,
+        "quick": args.quick,
+        "vertices": len(vis.vertices),
+        "cubemap": f"{res}x{res}x6",
+        "blocks_per_vertex": vis.geometry.block_count,
+        "envmap": str(sun.name) if sun is not None else "procedural sky",
+        **figures,
+        **baseline,
+        "visibility_bytes_per_vertex": vis.bytes_per_vertex,
+        "dense_bytes_per_vertex": CubemapBlocks(res).texel_count / 8,
+        "seed_bytes_per_vertex": 1024,
+        "lighting_s": lighting_s,
+        "haar_fraction": args.haar_fraction,
+    }
+    view, ref, mask, stats = _shade_frames(r, env, frames, args, out)
+    out["speedup_vs_standard"] = out["standard_frame_s"] / out["frame_s"]
+    out["haar_speedup_vs_standard"] = out["standard_frame_s"] / out["haar_frame_s"]
+    pct = stats.percentages()
+    out["cases"] = {**pct["cases"], "occluded_of_all": pct["occluded"]}
+    out["sampling"] = pct["sampling"]
+    out["brdf_evals"] = stats.brdf_evals
+    out["brdf_evals_per_vertex"] = stats.brdf_evals / max(1, stats.vertices)
+    out["curve"] = _threshold_curve(r, env, vis, view, ref, mask, args.repeat)
     print(json.dumps(out))
 
 
