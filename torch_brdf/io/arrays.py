@@ -122,15 +122,19 @@ def save_arrays(
     """
     arrays, blob = _prepare(arrays, kind, meta, kind_version)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with replacing(path) as tmp:
-        with open(tmp, "w+b") as f:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with replacing(path) as tmp, open(tmp, "w+b") as f:
             _write_zip(f, arrays, blob, compress)
             if compress and _has_bomb_like(f):  # would be refused as a zip bomb: store instead
                 f.seek(0)
                 f.truncate()
                 _write_zip(f, arrays, blob, False)
             _append_digest(f)
+    except WriteError:
+        raise
+    except OSError as exc:
+        raise _write_error(path, exc) from exc
     return path
 
 
@@ -231,10 +235,14 @@ def write_encoded(path: str | Path, data: bytes) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         with replacing(path) as tmp, open(tmp, "wb") as f:
             f.write(data)
-    except OSError as exc:  # a full disk's error names no file: say which one was being written
-        reason = exc.strerror or type(exc).__name__
-        raise WriteError(exc.errno, f"cannot write {path}: {reason}", str(path)) from exc
+    except OSError as exc:
+        raise _write_error(path, exc) from exc
     return path
+
+
+def _write_error(path: Path, exc: OSError) -> WriteError:
+    """A full disk's error names no file (or a temporary one): say which file was being written."""
+    return WriteError(exc.errno, f"cannot write {path}: {exc.strerror or type(exc).__name__}", str(path))
 
 
 def _verify_file_digest(path: Path) -> bool:
