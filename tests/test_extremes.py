@@ -413,6 +413,7 @@ _MODELS = (
     "metallic_roughness",
     "nbrdf",
     "phong",
+    "rough_plastic",
     "ward",
     "ward_aniso",
 )

@@ -172,6 +172,18 @@ KINDS = ["exact-whole", "exact-half", "ward-whole", "ward-half", "few-pixels", "
 KINDS += ["shared", "kd-extreme"]
 
 
+#: On a target the basis reproduces exactly (zero residual) the optimal sum of squares is 0 and
+#: every solver stops at its own tolerance: 1e-10 of the target's weighted energy k is where two
+#: such answers count as the same optimum (the relative gap's floor, 1e-6 k, is then 1e-12 k).
+ZERO_RESIDUAL = 1e-10
+
+
+def _same_optimum(pr, x, ref) -> bool:
+    """Within 1e-6 relative of the reference's objective, or both at a zero-residual optimum."""
+    close = abs(objective_gap(pr, x, ref)) <= 1e-6
+    return close or abs(pr.sum_of_squares(x) - pr.sum_of_squares(ref)) <= ZERO_RESIDUAL * pr.k
+
+
 @pytest.mark.reference
 @pytest.mark.parametrize("method", ["interior_point", "admm"])
 @pytest.mark.parametrize("kind", KINDS)
@@ -181,7 +193,7 @@ def test_qp_set_against_reference(problems, kind, method):
     reach it through its interior point fallback (tested on its own in test_qp)."""
     for pr, ref in problems[kind]:
         r = solve_qp(pr.H, pr.f, pr.G, pr.h, method=method)
-        assert abs(objective_gap(pr, r.x, ref)) <= 1e-6, (kind, pr.channels)
+        assert _same_optimum(pr, r.x, ref), (kind, pr.channels, objective_gap(pr, r.x, ref))
         assert violation(pr, r.x) <= 1e-8
         assert bool((r.x >= 0).all())
 
@@ -196,7 +208,7 @@ def test_fit_with_and_without_ridge_against_reference(view, problems, kind):
     ref = sum(pr.sum_of_squares(x) for pr, x in problems[kind])
     k = sum(pr.k for pr, _ in problems[kind])
     plain = fit(rec, target, kd=kd, shared=shared, ridge=0.0)
-    assert abs(plain.objective - ref) <= 1e-6 * max(ref, 1e-6 * k)
+    assert abs(plain.objective - ref) <= max(1e-6 * max(ref, 1e-6 * k), ZERO_RESIDUAL * k)
     default = fit(rec, target, kd=kd, shared=shared)
     assert default.meta["ridge"] == 1e-8
     assert ref - 1e-12 * k <= default.objective <= ref + 1e-9 * k
