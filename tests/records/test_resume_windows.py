@@ -21,20 +21,9 @@ from torch_brdf.transport import _native, visibility
 from torch_brdf.transport.polynomial import PolynomialSettings, PolynomialTensors, driver, precompute_polynomial
 from torch_brdf.transport.visibility import VertexVisibility
 
+from .test_stale_resume import _interrupt_after
+
 runner = CliRunner()
-
-
-def _interrupt_after(module, name: str, n: int, monkeypatch) -> None:
-    """Make ``module.name`` raise KeyboardInterrupt on its ``n``-th call (a killed run)."""
-    real, calls = getattr(module, name), {"n": 0}
-
-    def flaky(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == n:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(module, name, flaky)
 
 
 def _never(module, name: str, monkeypatch) -> None:
