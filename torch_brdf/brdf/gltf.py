@@ -70,7 +70,8 @@ def ggx_correlated_visibility(wi: torch.Tensor, wo: torch.Tensor, alpha: torch.T
     specification's ``V_GGX``), finite at grazing angles (floored denominator).
 
     Args:
-        wi, wo: (*B, 3) local directions with :math:`z \ge 0`.
+        wi: (*B, 3) local incident directions with :math:`z \ge 0`.
+        wo: (*B, 3) local outgoing directions with :math:`z \ge 0`.
         alpha: () or (*B,) GGX roughness :math:`\alpha`.
     Returns:
         (*B,).

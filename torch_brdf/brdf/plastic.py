@@ -150,7 +150,8 @@ def coat_albedo(
 
     Args:
         distribution: ``"ggx"`` or ``"beckmann"``.
-        alpha, eta: () roughness and relative IOR.
+        alpha: () roughness.
+        eta: () relative IOR.
         mu: (K,) cosines in (0, 1].
     Returns:
         (K,).
@@ -173,7 +174,8 @@ def coat_transmittance(
 
     Args:
         distribution: ``"ggx"`` or ``"beckmann"``.
-        alpha, eta: () roughness and relative IOR (> 1).
+        alpha: () roughness.
+        eta: () relative IOR (> 1).
         mu: (K,) cosines in (0, 1].
     Returns:
         (K,).

@@ -82,7 +82,8 @@ def textured_eval_local(brdf: BRDF, wi: torch.Tensor, wo: torch.Tensor, scale: t
 
     Args:
         brdf: the untextured model (its factor).
-        wi, wo: (n, 3) local directions.
+        wi: (n, 3) local incident directions.
+        wo: (n, 3) local outgoing directions.
         scale: (n, 3) texel values (1 = untextured).
     Returns:
         (n, 3) f without the cosine.

@@ -85,7 +85,8 @@ class ArraySpec:
             ``sizes`` given to :meth:`CacheSchema.check` or by the first array that uses it, so
             that arrays agree), or None (any length). None: any shape.
         finite: every value finite (floating dtypes).
-        low, high: inclusive bounds of every value (None: unbounded).
+        low: inclusive lower bound of every value (None: unbounded).
+        high: inclusive upper bound of every value (None: unbounded).
     """
 
     dtype: str | tuple[str, ...]

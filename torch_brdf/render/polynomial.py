@@ -484,7 +484,8 @@ def apply_scene_textures(renderer: PolynomialRenderer, scene, samples: int = 16,
     Args:
         renderer: a :class:`PolynomialRenderer` of tensors precomputed from ``scene``.
         scene: the scene (any resolution: its camera is resized to the tensors').
-        samples, seed: of the weight maps.
+        samples: samples of the weight maps.
+        seed: seed of the weight maps.
     Returns:
         The names of the objects given a weight map.
     """

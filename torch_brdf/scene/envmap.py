@@ -205,7 +205,8 @@ class EnvironmentMap(Light):
         Args:
             path: the ``.exr`` file.
             scale: factor applied to the radiance (finite, >= 0).
-            rotation_y, lookup: see the class.
+            rotation_y: see the class.
+            lookup: see the class.
         Raises:
             FileFormatError: missing or unreadable file, or channels other than R, G, B (+A).
             ShapeError / ValueRangeError: as for the constructor; messages name the file.

@@ -209,7 +209,9 @@ def texture_at_hits(scene, key: str, object_id: torch.Tensor, prim_id: torch.Ten
     Args:
         scene: a :class:`~torch_brdf.scene.scene.Scene`.
         key: the material parameter (``"albedo"``, ``"kd"``, ``"base_color"`` ...).
-        object_id, prim_id: (n,) int64; barycentrics: (n, 2).
+        object_id: (n,) int64 object of each hit (-1: a miss).
+        prim_id: (n,) int64 triangle of each hit within its object.
+        barycentrics: (n, 2) embree's (b1, b2).
     Returns:
         (n, 3) float32: the texel where the object has a texture for ``key``, 1 elsewhere
         (and on misses); or None when no object has such a texture.
