@@ -191,6 +191,22 @@ def set_variant(variant: str | None = None):
 
 
 # -------------------------------------------------------------------------- Blinn-Phong BSDF
+def _lobe_mixture_sample(mi, dr, bsdf, wi, spec, wo_s, wo_d, active, f_cos):
+    """The BSDF sample of a diffuse + glossy mixture, once its two candidate directions are drawn:
+    the glossy one where ``spec``, its mixture pdf, its flags and the weight f cos / pdf."""
+    bs = mi.BSDFSample3f()
+    bs.wo = dr.select(spec, wo_s, wo_d)
+    bs.pdf = bsdf._pdf(wi, bs.wo)
+    bs.eta = 1.0
+    bs.sampled_type = dr.select(
+        spec, mi.UInt32(+mi.BSDFFlags.GlossyReflection), mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+    )
+    bs.sampled_component = dr.select(spec, mi.UInt32(1), mi.UInt32(0))
+    ok = active & (mi.Frame3f.cos_theta(wi) > 0) & (bs.pdf > 0)
+    weight = f_cos(bs.wo) / dr.maximum(bs.pdf, 1e-30)
+    return bs, dr.select(ok, weight, 0.0)
+
+
 def _blinn_phong_class(mi):
     import drjit as dr
 
@@ -249,17 +265,7 @@ def _blinn_phong_class(mi):
             s, c = dr.sincos(2.0 * dr.pi * sample2.y)
             h = mi.Vector3f(sin_h * c, sin_h * s, cos_h)
             wo_s = 2.0 * dr.dot(wi, h) * h - wi
-            bs = mi.BSDFSample3f()
-            bs.wo = dr.select(spec, wo_s, wo_d)
-            bs.pdf = self._pdf(wi, bs.wo)
-            bs.eta = 1.0
-            bs.sampled_type = dr.select(
-                spec, mi.UInt32(+mi.BSDFFlags.GlossyReflection), mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
-            )
-            bs.sampled_component = dr.select(spec, mi.UInt32(1), mi.UInt32(0))
-            ok = active & (mi.Frame3f.cos_theta(wi) > 0) & (bs.pdf > 0)
-            weight = self._f_cos(wi, bs.wo) / dr.maximum(bs.pdf, 1e-30)
-            return bs, dr.select(ok, weight, 0.0)
+            return _lobe_mixture_sample(mi, dr, self, wi, spec, wo_s, wo_d, active, lambda wo: self._f_cos(wi, wo))
 
         def eval(self, ctx, si, wo, active=True):
             return dr.select(active, self._f_cos(si.wi, wo), 0.0)
@@ -337,17 +343,7 @@ def _metallic_roughness_class(mi):
             wo_d = mi.warp.square_to_cosine_hemisphere(sample2)
             h, _ = self.dist.sample(wi, sample2)
             wo_s = 2.0 * dr.dot(wi, h) * h - wi
-            bs = mi.BSDFSample3f()
-            bs.wo = dr.select(spec, wo_s, wo_d)
-            bs.pdf = self._pdf(wi, bs.wo)
-            bs.eta = 1.0
-            bs.sampled_type = dr.select(
-                spec, mi.UInt32(+mi.BSDFFlags.GlossyReflection), mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
-            )
-            bs.sampled_component = dr.select(spec, mi.UInt32(1), mi.UInt32(0))
-            ok = active & (mi.Frame3f.cos_theta(wi) > 0) & (bs.pdf > 0)
-            weight = self._f_cos(wi, bs.wo, si) / dr.maximum(bs.pdf, 1e-30)
-            return bs, dr.select(ok, weight, 0.0)
+            return _lobe_mixture_sample(mi, dr, self, wi, spec, wo_s, wo_d, active, lambda wo: self._f_cos(wi, wo, si))
 
         def eval(self, ctx, si, wo, active=True):
             return dr.select(active, self._f_cos(si.wi, wo, si), 0.0)
