@@ -76,6 +76,7 @@ __all__ = [
     "DEFAULT_SECONDS",
     "GIPlan",
     "allocate_spp",
+    "check_variance",
     "choose_bands",
     "pilot_images",
     "plan_from_pilots",
@@ -376,6 +377,12 @@ class GIPlan:
         last_bounce_light: the planned last bounce's light (relative to the image).
         banded_noise: the factor a banded second bounce put on the predicted noise variance
             (measured with banded pilots, :func:`banded_noise_scale`; 1 without one).
+        noise_map: (H, W) each pixel's predicted noise variance over the image's squared norm
+            (its sum is ``noise_error`` squared); how far one run's noise may fall from the
+            prediction follows from it (a sum of P independent squares whose effective count
+            is ``noise_map.sum()**2 / (noise_map**2).sum()``).
+        checked: the noise was measured with check pilots of the planned settings
+            (:func:`check_variance`), not modelled from the 1-band pilots.
     """
 
     series: Series
@@ -398,6 +405,8 @@ class GIPlan:
     needed_bounces: int = 0
     last_bounce_light: float = 0.0
     banded_noise: float = 1.0
+    noise_map: torch.Tensor | None = None
+    checked: bool = False
 
     @property
     def predicted_error(self) -> float:
@@ -426,6 +435,8 @@ class GIPlan:
         lines.append(f"  glossy-to-glossy bounce-2 light {self.glossy_to_glossy:.4f} of the image")
         if self.series.two_level:
             lines.append(f"  the banded second bounce multiplies the noise variance by {self.banded_noise:.2f}")
+        if self.checked:
+            lines.append("  noise measured with check runs of the planned settings")
         lines.append(
             f"  the light needs {self.needed_bounces} bounce{'s' if self.needed_bounces > 1 else ''}"
             f" (the planned last bounce carries {self.last_bounce_light:.4f} of the image)"
@@ -458,6 +469,7 @@ class GIPlan:
             "needed_bounces": self.needed_bounces,
             "last_bounce_light": self.last_bounce_light,
             "banded_noise": self.banded_noise,
+            "checked": self.checked,
         }
 
     def settings(self, base: PolynomialSettings | None = None) -> PolynomialSettings:
@@ -667,6 +679,7 @@ def plan_from_pilots(
     split_pilots: list[PolynomialTensors] | None = None,
     max_light_samples: int = max(LIGHT_SAMPLES),
     banded_noise: dict[int, float] | None = None,
+    check: tuple[int, int, torch.Tensor] | None = None,
 ) -> GIPlan:
     """Decide bounces, second bounce and spp from independent pilot records (see the module).
 
@@ -686,6 +699,10 @@ def plan_from_pilots(
             noise they take away.
         banded_noise: bounces -> the factor a banded second bounce puts on the noise variance
             of the first n bounces (:func:`banded_noise_scale`; absent: 1).
+        check: (bounces, light samples, (H, W) per-path variance) measured by check pilots run
+            with the planned settings themselves (:func:`check_variance`): the plan keeps
+            those bounces and light samples and takes its spp and predicted noise from this
+            variance (the allocation's shape still from ``pilots``, so the two are independent).
     Returns:
         :class:`GIPlan`.
     """
@@ -715,7 +732,9 @@ def plan_from_pilots(
     hit = (cost[1] > 1).double()  # the eye ray found a surface (a pilot path got light there)
     extra = EXTRA_SAMPLE_COST * len(scene.lights)
 
-    def spp_for(n: int, k: int = 1) -> tuple[float, torch.Tensor | None, float, float, float]:
+    def spp_for(
+        n: int, k: int = 1, checked: torch.Tensor | None = None
+    ) -> tuple[float, torch.Tensor | None, float, float, float]:
         # the cheapest spp (map) with n bounces and k eye light samples for the error within the
         # time budget: its mean spp, map, seconds, error and ray units per pixel (the cost the
         # plan minimises: the pilots' seconds are too short to rank options on a loaded machine)
@@ -724,6 +743,11 @@ def plan_from_pilots(
         scale = banded_noise.get(n, 1.0) if _two_level(bases, n, g2g, budget) else 1.0
         var = pixvar[n] * ratios[n][k] * scale
         sigma = sigmas[n] * (ratios[n][k] * scale) ** 0.5
+        # the allocation's shape comes from the pilots; the noise it predicts, from ``checked``
+        # when given (measured with the planned settings, independent of the shape)
+        nvar = var if checked is None else checked * keep
+        if checked is not None:
+            sigma = float(nvar.sum()) ** 0.5 / norm
         bias2 = band_error_at(n) ** 2 + tails[n] ** 2
         share2 = None
         if error is not None:
@@ -734,22 +758,33 @@ def plan_from_pilots(
         if adaptive:
             noise = None if share2 is None else share2 * norm**2
             shape = (_smoothed(var, keep) + DEFENSIVE * float(var[keep].mean())).sqrt() * keep
-            m = allocate_spp(var, shape, c, noise=noise, mean_cost=spp_time)
+            m = allocate_spp(nvar, shape, c, noise=noise, mean_cost=spp_time)
             eff = float((c * m).sum() / c.sum())
             return (
                 float(m.double().mean()),
                 m,
                 fixed_s + rate * eff,
-                math.sqrt(bias2 + float((var / m).sum()) / norm**2),
+                math.sqrt(bias2 + float((nvar / m).sum()) / norm**2),
                 float((c * m).mean()),
+                nvar / m / norm**2,
             )
         spp_err = None if share2 is None else max(1, math.ceil(sigma**2 / share2))
         spp = min(x for x in (spp_err, None if spp_time is None else max(1, int(spp_time))) if x is not None)
-        return spp, None, fixed_s + rate * spp, math.sqrt(bias2 + sigma**2 / spp), float(c.mean()) * spp
+        return (
+            spp,
+            None,
+            fixed_s + rate * spp,
+            math.sqrt(bias2 + sigma**2 / spp),
+            float(c.mean()) * spp,
+            nvar / spp / norm**2,
+        )
 
     options = {(n, k): spp_for(n, k) for n in range(1, n_max + 1) for k in ratios[n]}
     bounces, light_samples = _choose(options, tails, needed, budget, error is not None)
-    spp, spp_map, predicted_seconds, predicted, _ = options[bounces, light_samples]
+    if check is not None:
+        bounces, light_samples = check[0], check[1]
+        options[bounces, light_samples] = spp_for(bounces, light_samples, check[2].to(torch.float64))
+    spp, spp_map, predicted_seconds, predicted, _, noise_map = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series, bases = _planned_series(bases, bounces, g2g, budget)
     return GIPlan(
@@ -773,6 +808,8 @@ def plan_from_pilots(
         needed_bounces=needed,
         last_bounce_light=lasts[bounces],
         banded_noise=banded_noise.get(bounces, 1.0) if series.two_level else 1.0,
+        noise_map=noise_map,
+        checked=check is not None,
     )
 
 
@@ -789,6 +826,7 @@ def plan_polynomial(
     pilot_runs: int = 4,
     adaptive: bool = True,
     max_light_samples: int = 16,
+    check_runs: int = 4,
 ) -> GIPlan:
     """Plan the precomputation for a relative-RMSE ``error`` and/or ``seconds``.
 
@@ -814,6 +852,9 @@ def plan_polynomial(
         adaptive: plan a per-pixel spp map (adaptive sampling); False: one spp for all pixels.
         max_light_samples: the most light samples per eye vertex the plan may choose; above 1,
             two more pilots (``pilot_spp`` x 1 and 2 spp) with 4 samples measure what they buy.
+        check_runs: independent runs of the planned settings (``pilot_spp`` x 1, 2, 2, 4, ...
+            spp) whose variance gives the final spp and predicted noise (:func:`check_variance`);
+            0 keeps the noise modelled from the pilots alone.
     Returns:
         :class:`GIPlan` (``print(plan)`` shows choices, cost and error).
     """
@@ -845,24 +886,75 @@ def plan_polynomial(
     args = (scene, bases, errors, fixed, pilots)
     kw = {"error": error, "seconds": seconds, "adaptive": adaptive, "split_pilots": split}
     plan = plan_from_pilots(*args, **kw, max_light_samples=max_light_samples)
-    if not plan.series.two_level:
+    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
+    scale = None
+    if plan.series.two_level:
+        # a banded second bounce: its noise is measured with two pilots that have it (the
+        # 1-band pilots under-predict it), and the choice of bounces is made again with it
+        banded_series = Series((eye, plan.series.second) + (1,) * (pilot_bounces - 2))
+        second = [None if b is None else dataclasses.replace(b, second=min(plan.series.second, b.J)) for b in bases]
+        banded = [
+            precompute_polynomial(
+                scene,
+                pilot.replace(series=banded_series, bases=tuple(second), spp=pilot_spp * (k + 1)),
+                seed=seed + 7919 * (pilot_runs + 3 + k),
+                progress=progress,
+            )
+            for k in range(2)
+        ]
+        scale = banded_noise_scale(banded, pilots, mats)
+        plan = plan_from_pilots(*args, **kw, max_light_samples=max_light_samples, banded_noise=scale)
+    if check_runs < 2:
         return plan
-    # a banded second bounce: its noise is measured with two pilots that have it (the 1-band
-    # pilots under-predict it), and the plan is made again with that noise
-    banded_series = Series((eye, plan.series.second) + (1,) * (pilot_bounces - 2))
-    second = [None if b is None else dataclasses.replace(b, second=min(plan.series.second, b.J)) for b in bases]
-    banded = [
+    # check pilots: the planned settings themselves (series, second-bounce bands, light samples)
+    # at uniform pilot spp; the noise the plan predicts comes from their variance, not from the
+    # 1-band pilots scaled by modelled factors (see check_variance)
+    checks = [
         precompute_polynomial(
             scene,
-            pilot.replace(series=banded_series, bases=tuple(second), spp=pilot_spp * (k + 1)),
-            seed=seed + 7919 * (pilot_runs + 3 + k),
+            plan.settings(pilot).replace(spp=pilot_spp * (1, 2, 2, 4)[k % 4], fixed=()),
+            seed=seed + 7919 * (pilot_runs + 5 + k),
             progress=progress,
         )
-        for k in range(2)
+        for k in range(check_runs)
     ]
-    mats = {o.name: scene.materials[o.material] for o in scene.objects if o.editable}
-    scale = banded_noise_scale(banded, pilots, mats)
-    return plan_from_pilots(*args, **kw, max_light_samples=max_light_samples, banded_noise=scale)
+    var = check_variance(checks, mats)
+    return plan_from_pilots(
+        *args,
+        **kw,
+        max_light_samples=max_light_samples,
+        banded_noise=scale,
+        check=(plan.series.bounces, plan.light_samples, var),
+    )
+
+
+def check_variance(records: list[PolynomialTensors], mats: dict[str, dict[str, Any]]) -> torch.Tensor:
+    r"""(H, W) per-path variance of the image at the scene's materials, pooled per pixel
+    (:func:`_pooled_variance`) over independent runs of the *planned* settings at uniform spp.
+
+    Why: the pilots run a 1-band series with one light sample, and the noise of a plan with a
+    banded second bounce and several light samples was predicted from them by factors each
+    measured on other pilots (the banded noise scale, the light-sample ratio). On glossy
+    floors reflecting glossy objects those factors came out low (the banded bounce's glossy
+    quotients are heavy-tailed, and a ratio of two noisy sums is biased), and the achieved
+    noise exceeded the prediction. Measuring the planned estimator itself removes the model;
+    and since these runs are independent of the pilots that shape the spp map, the predicted
+    noise :math:`\sum_i \sigma_i^2 / n_i` is unbiased for that map (the same pilots for both
+    favour pixels whose variance came out high and under-predict).
+
+    Args:
+        records: at least two runs of the same settings (different seeds, uniform spp).
+        mats: object name -> material of every editable object.
+    Returns:
+        (H, W) float64.
+    """
+    from ..render.polynomial import PolynomialRenderer
+
+    if len(records) < 2:
+        raise ValueRangeError(f"check_variance needs at least two runs; got {len(records)}")
+    imgs = torch.stack([PolynomialRenderer(t, mats, dtype=torch.float64)().double() for t in records])
+    s = torch.tensor([float(t.meta["spp"]) for t in records], dtype=torch.float64)
+    return _pooled_variance(imgs, s)
 
 
 def precompute_planned(

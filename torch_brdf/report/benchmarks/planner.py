@@ -600,7 +600,9 @@ def main() -> None:
     ap.add_argument("--error", type=float, default=None, help="requested relative RMSE (default 0.1; quick 0.2)")
     ap.add_argument("--resolution", type=int, default=None, help="image size (default 32; quick 24)")
     ap.add_argument(
-        "--capabilities", default="gi,inverse,relight,manifold", help="comma-separated: gi, inverse, relight, manifold"
+        "--capabilities",
+        default="gi,inverse,relight,manifold",
+        help="comma-separated: gi, inverse, relight, manifold, validation (the generated scenes)",
     )
     ap.add_argument("--psnr", type=float, default=None, help="relighting target in dB (default 50; quick 45)")
     ap.add_argument("--families", default=None, help="manifold: analytic family seeds (default 7,11,13; quick 7)")
@@ -620,6 +622,12 @@ def main() -> None:
     ap.add_argument("--scores", default=None, help="manifold: save the per-material scores to this .npz")
     ap.add_argument("--max-spp", type=int, default=512, help="largest spp tried for a default series")
     ap.add_argument("--repeats", type=int, default=3, help="timings of the planned run and best defaults (least)")
+    ap.add_argument(
+        "--validation-errors",
+        default="0.05,0.03",
+        help="validation: error targets (comma-separated; 0.03 = the default)",
+    )
+    ap.add_argument("--validation-size", type=int, default=None, help="validation: image size (default 48; quick 24)")
     args = ap.parse_args()
     q = args.quick
     error = args.error or (0.2 if q else 0.1)
@@ -634,12 +642,21 @@ def main() -> None:
         out["inverse"] = run_inverse(0.06 if q else 0.05, (40, 30) if q else (64, 48), 2048 if q else 4096)
     if "relight" in caps:
         out["relight"] = run_relight(args.psnr or (45.0 if q else 50.0), q)
+    if "validation" in caps:
+        from .planner_validation import QUICK_SET, run_validation
+
+        out["validation"] = run_validation(
+            args.validation_size or (24 if q else 48),
+            tuple(float(e) for e in args.validation_errors.split(",")),
+            subset=QUICK_SET if q else None,
+            pt_spp=64 if q else 256,
+        )
     if "manifold" in caps:
         families = tuple(int(f) for f in args.families.split(",")) if args.families else (7,) if q else (7, 11, 13)
         orders = tuple(range(args.orders or (2 if q else 8)))
         out["manifold"] = run_manifold(0.01, families, orders, args.heldout, args.statistic, args.scores, args.pool)
     out["load_end"] = os.getloadavg()[0]
-    others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold") if k in out]
+    others = [out[k]["prediction_ratio"] for k in ("inverse", "relight", "manifold", "validation") if k in out]
     if not out["scenes"]:
         if others:
             out["prediction_ratio"] = max(others)
