@@ -743,8 +743,6 @@ def plan_from_pilots(
         scale = banded_noise.get(n, 1.0) if _two_level(bases, n, g2g, budget) else 1.0
         var = pixvar[n] * ratios[n][k] * scale
         sigma = sigmas[n] * (ratios[n][k] * scale) ** 0.5
-        # the allocation's shape comes from the pilots; the noise it predicts, from ``checked``
-        # when given (measured with the planned settings, independent of the shape)
         nvar = var if checked is None else checked * keep
         if checked is not None:
             sigma = float(nvar.sum()) ** 0.5 / norm
@@ -787,29 +785,36 @@ def plan_from_pilots(
     spp, spp_map, predicted_seconds, predicted, _, noise_map = options[bounces, light_samples]
     band_error = band_error_at(bounces)
     series, bases = _planned_series(bases, bounces, g2g, budget)
+    return _assemble_plan(locals())
+
+
+def _assemble_plan(v: dict[str, Any]) -> GIPlan:
+    """The :class:`GIPlan` of :func:`plan_from_pilots`'s decisions (its local values ``v``)."""
+    n, names, bases, series = v["bounces"], v["names"], v["bases"], v["series"]
+    bias2 = v["band_error"] ** 2 + v["tails"][n] ** 2
     return GIPlan(
         series=series,
         bases=tuple(bases),
         object_names=tuple(names),
-        spp=spp,
-        fixed=tuple(fixed),
-        error=error,
-        seconds=seconds,
-        band_error=band_error,
-        bounce_error=tails[bounces],
-        noise_error=math.sqrt(max(0.0, predicted**2 - (band_error**2 + tails[bounces] ** 2))),
-        projection_errors=tuple((n, bases[names.index(n)].J, e) for n, e in projection_errors.items()),
-        glossy_to_glossy=g2g,
-        predicted_seconds=predicted_seconds,
-        pilot_seconds=sum(float(p.meta["seconds"]) for p in pilots),
-        spp_map=spp_map,
-        light_samples=light_samples,
-        eye_light_share=shares[bounces],
-        needed_bounces=needed,
-        last_bounce_light=lasts[bounces],
-        banded_noise=banded_noise.get(bounces, 1.0) if series.two_level else 1.0,
-        noise_map=noise_map,
-        checked=check is not None,
+        spp=v["spp"],
+        fixed=tuple(v["fixed"]),
+        error=v["error"],
+        seconds=v["seconds"],
+        band_error=v["band_error"],
+        bounce_error=v["tails"][n],
+        noise_error=math.sqrt(max(0.0, v["predicted"] ** 2 - bias2)),
+        projection_errors=tuple((o, bases[names.index(o)].J, e) for o, e in v["projection_errors"].items()),
+        glossy_to_glossy=v["g2g"],
+        predicted_seconds=v["predicted_seconds"],
+        pilot_seconds=sum(float(p.meta["seconds"]) for p in v["pilots"]),
+        spp_map=v["spp_map"],
+        light_samples=v["light_samples"],
+        eye_light_share=v["shares"][n],
+        needed_bounces=v["needed"],
+        last_bounce_light=v["lasts"][n],
+        banded_noise=v["banded_noise"].get(n, 1.0) if series.two_level else 1.0,
+        noise_map=v["noise_map"],
+        checked=v["check"] is not None,
     )
 
 
