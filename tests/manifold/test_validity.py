@@ -120,6 +120,7 @@ def test_nbrdf_model_default_is_valid_at_random_latents(tmp_path):
     obs = nbrdf_observations(weights, MERLGrid.strided(15, 15, 30), names, cache=tmp_path / "obs.npz", progress=False)
     z = obs.z.double()
     albedo = directional_albedo(z, obs.grid)
+    assert float(albedo.max()) > 1  # so the default's bound is tested, not inherited from the rows
     s, d = gram(obs.z, obs.cosine_weights())
     fit = fit_gplvm(s, d, 2, max_iter=80, names=names, generator=torch.Generator().manual_seed(0), progress=False)
     model = GPLVM(fit, z, albedo=albedo)
