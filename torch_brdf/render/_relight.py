@@ -25,6 +25,7 @@ import ctypes
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 
 import torch
 
@@ -103,7 +104,7 @@ def level_table(renderer, rule) -> tuple[torch.Tensor, float, float]:
     geom = renderer.geometry
     scale = rule.scale
     if scale is None:
-        scale = geom.angular_radius / CubemapBlocks(64, geom.block).angular_radius
+        scale = geom.angular_radius / _reference_radius(geom.block)
     a0, a1 = (min(a * scale, math.pi) for a in rule.angles)
     for b in renderer.brdfs:
         if isinstance(b, Lambert) or float(b.ks.detach().max()) == 0.0:
@@ -112,6 +113,12 @@ def level_table(renderer, rule) -> tuple[torch.Tensor, float, float]:
         s = float(b.exponent.detach().max())
         rows.append((2, 2, 1) if s < rule.cuts[0] else (4, 2, 1) if s < rule.cuts[1] else (16, 4, 1))
     return torch.tensor(rows, dtype=torch.int32), a0, a1
+
+
+@lru_cache(maxsize=4)
+def _reference_radius(block: int) -> float:
+    """The angular radius of a block of a 64x64x6 map (the rule's reference, as PhongRule's)."""
+    return CubemapBlocks(64, block).angular_radius
 
 
 def _brdf_params(brdfs) -> torch.Tensor:
@@ -135,26 +142,30 @@ class NativeLighting:
         G: per level l in (1, 2, 4) the (NB, l^2, 3, C) lighting per sample, ``R_l^T D_l``.
         M: (NB, 3, C, 256) the moments, texels last.
         I: (NB, 256, 3, C) suffix sums (line 9).
-        W: per level l in (2, 4) the (l^2, 256) sample-to-texel weights ``R_l^T B_l``.
+        J: per level l in (2, 4) the (NB, 256, l^2, 3, C) suffix sums over texels of
+            :math:`W_{l,st} M_t`, with :math:`W_l = R_l^T B_l` taking samples to texels (line 11:
+            :math:`\sum_t V_t f_t M_t = \sum_e v_e \sum_s f_s J_{l, t_e s}` over the flips).
     """
 
     G: tuple[torch.Tensor, ...]
     M: torch.Tensor
     I: torch.Tensor
-    W: tuple[torch.Tensor, ...]
+    J: tuple[torch.Tensor, ...]
 
     @classmethod
     def of(cls, lighting, block: int) -> NativeLighting:
         """From a :class:`~torch_brdf.render.triple.BlockLighting` (float64 products, then float32)."""
-        dct = lighting.dct.double()
-        G, W = [], []
+        dct, moments = lighting.dct.double(), lighting.moments.double()
+        G, J = [], []
         for l in (1, 2, 4):
             R = subsampled_inverse(l, block)  # (k, s) float64
             G.append(torch.einsum("ks,bkjc->bsjc", R, dct[:, low_indices(l, LOW)]).float().contiguous())
             if l > 1:
-                W.append((R.T @ dct_basis(block, l)).float().contiguous())
+                W = R.T @ dct_basis(block, l)  # (s, t)
+                WM = torch.einsum("st,btjc->btsjc", W, moments)
+                J.append(WM.flip(1).cumsum(1).flip(1).float().contiguous())
         M = lighting.moments.float().permute(0, 2, 3, 1).contiguous()
-        return cls(tuple(G), M, lighting.integral.float().contiguous(), tuple(W))
+        return cls(tuple(G), M, lighting.integral.float().contiguous(), tuple(J))
 
 
 def _points(geom: CubemapBlocks) -> tuple[torch.Tensor, ...]:
@@ -193,9 +204,11 @@ def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor
     if "points" not in cache:
         cache["points"] = _points(geom)
     lit: NativeLighting = cache["arrays"]
-    nrm, fr, wo, oid = frames if frames is not None else renderer._frames(view)
-    f32 = [x.to(torch.float32).contiguous() for x in (nrm, fr.s, fr.t, fr.n, wo)]
-    obj = oid.to(torch.int32).contiguous()
+    if frames is not None or cache.get("view") is not view:  # a view's frames, kept until it changes
+        nrm, fr, wo, oid = frames if frames is not None else renderer._frames(view)
+        f32 = [x.to(torch.float32).contiguous() for x in (nrm, fr.s, fr.t, fr.n, wo)]
+        cache["view"], cache["frames"] = view, (f32, oid.to(torch.int32).contiguous())
+    f32, obj = cache["frames"]
     prm = _brdf_params(renderer.brdfs)
     lv, a0, a1 = level_table(renderer, rule)
     blocks: BlockVisibility = view.blocks
@@ -206,7 +219,7 @@ def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor
     out = torch.zeros(P, 3, dtype=torch.float32)
     pts = _array([p.data_ptr() for p in cache["points"]])
     G = _array([g.data_ptr() for g in lit.G])
-    W = _array([w.data_ptr() for w in lit.W])
+    J = _array([j.data_ptr() for j in lit.J])
     keep = (f32, obj, prm, lv, states, offsets, index, delta, lit)  # alive until every call returns
     starts = list(range(0, P, CHUNK))
     stats = torch.zeros(len(starts), len(STAT_KEYS), dtype=torch.int64)
@@ -233,7 +246,7 @@ def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor
             G,
             lit.M.data_ptr(),
             lit.I.data_ptr(),
-            W,
+            J,
             out.data_ptr() + 12 * s,
             stats[i].data_ptr(),
         )

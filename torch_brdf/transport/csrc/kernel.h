@@ -272,6 +272,6 @@ TB_API int tb_relight(int64_t P, int NB, const float *nrm, const float *fs, cons
                       const float *wo, const int32_t *obj, const float *prm, const int32_t *lv, float a0, float a1,
                       const uint8_t *states, const int64_t *offsets, const uint8_t *index, const int16_t *delta,
                       float levels, const float *const *pts, const float *const *G, const float *M, const float *I,
-                      const float *const *W, float *out, int64_t *stats);
+                      const float *const *J, float *out, int64_t *stats);
 
 #endif

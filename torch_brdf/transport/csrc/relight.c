@@ -12,8 +12,9 @@
  * block centre reflected about the normal); (2) every sample direction of those blocks in one
  * array; (3) the BRDF at all of them in one branch-free loop (TB_SIMD: vectorised, the AVX2 copy
  * picked at load time); (4) the block products: line 6 (unoccluded: f . (n . G_l), or the texel
- * sum with the 256 samples), line 9 (constant BRDF: f (n . sum_e v_e I_e)) and line 11 (the
- * visibility expanded from its flips, the BRDF on texels through W_l). Vertices are independent:
+ * sum with the 256 samples), line 9 (constant BRDF: f (n . sum_e v_e I_e)) and line 11 (at 4 or
+ * 16 samples the same sum over the flips with J_l, the suffix sums of W_l M, W_l taking samples to
+ * texels; at 256 samples the visibility expanded from its flips and the texel sum). Vertices are independent:
  * callers split them over threads (ctypes releases the GIL).
  *
  * The Phong lobe cos^n(alpha) = exp(n log1p(-omc)) uses its own log and exp (polynomials on a
@@ -145,14 +146,15 @@ static inline int rl_level_index(int l) { return l == 1 ? 0 : l == 2 ? 1 : l == 
  *   pts: 4 pointers, (NB, l^2, 3) world sample directions for l = 1, 2, 4, 16
  *   G: 3 pointers, (NB, l^2, 3, C) lighting per sample for l = 1, 2, 4 (line 6)
  *   M: (NB, 3, C, 256) moments (line 6 at 256 samples, line 11); I: (NB, 256, 3, C) suffix sums
- *   (line 9); W: 2 pointers, (l^2, 256) sample-to-texel weights for l = 2, 4 (line 11)
+ *   (line 9); J: 2 pointers, (NB, 256, l^2, 3, C) for l = 2, 4: the suffix sums over texels of
+ *   W_l[s, t] M_t, W_l the sample-to-texel weights (line 11 at 4 and 16 samples)
  *   out: (P, 3); stats: 10 int64 added to: occluded, line6, line9, line11, sampling 1/4/16/256,
  *   brdf evaluations, visibility entries read */
 TB_API int tb_relight(int64_t P, int NB, const float *nrm, const float *fs, const float *ft, const float *fn,
                       const float *wo, const int32_t *obj, const float *prm, const int32_t *lv, float a0, float a1,
                       const uint8_t *states, const int64_t *offsets, const uint8_t *index, const int16_t *delta,
                       float levels, const float *const *pts, const float *const *G, const float *M, const float *I,
-                      const float *const *W, float *out, int64_t *stats) {
+                      const float *const *J, float *out, int64_t *stats) {
     int64_t room = (int64_t)NB * RL_S;
     float *buf = malloc(sizeof(float) * (size_t)(room * 6 + RL_S * 4));
     int *lev = malloc(sizeof(int) * (size_t)NB * 2);
@@ -254,28 +256,32 @@ TB_API int tb_relight(int64_t P, int NB, const float *nrm, const float *fs, cons
             for (int64_t e = e0; e < e1; e++)
                 V[index[e]] += delta ? (float)delta[e] / levels : ((e - e0) & 1 ? -1.0f : 1.0f);
             for (int i = 1; i < RL_S; i++) V[i] += V[i - 1];
-            if (l == 16) {
-                for (int i = 0; i < RL_S; i++) {
-                    T0[i] = V[i] * f0[i];
-                    T1[i] = V[i] * f1[i];
-                    T2[i] = V[i] * f2[i];
+            if (l < 16) { /* sum_e v_e sum_s f_s (n . J_l[b, idx_e, s]): V never expanded */
+                int K = n2 * 3 * RL_CH;
+                float Q[16 * 3 * RL_CH];
+                for (int i = 0; i < K; i++) Q[i] = 0.0f;
+                const float *Jb = J[k - 1] + (int64_t)b * RL_S * K;
+                for (int64_t e = e0; e < e1; e++) {
+                    float v = delta ? (float)delta[e] / levels : ((e - e0) & 1 ? -1.0f : 1.0f);
+                    const float *je = Jb + (int64_t)index[e] * K;
+                    for (int i = 0; i < K; i++) Q[i] += v * je[i];
                 }
-            } else {
-                const float *Wl = W[k - 1];
-                for (int i = 0; i < RL_S; i++) T0[i] = T1[i] = T2[i] = 0.0f;
-                for (int j = 0; j < n2; j++) {
-                    const float *wj = Wl + j * RL_S;
-                    for (int i = 0; i < RL_S; i++) {
-                        T0[i] += f0[j] * wj[i];
-                        T1[i] += f1[j] * wj[i];
-                        T2[i] += f2[j] * wj[i];
-                    }
+                for (int i = 0; i < n2; i++) {
+                    const float *qi = Q + i * 3 * RL_CH;
+                    acc[0] += f0[i] * (nv[0] * qi[0] + nv[1] * qi[3] + nv[2] * qi[6]);
+                    acc[1] += f1[i] * (nv[0] * qi[1] + nv[1] * qi[4] + nv[2] * qi[7]);
+                    acc[2] += f2[i] * (nv[0] * qi[2] + nv[1] * qi[5] + nv[2] * qi[8]);
                 }
-                for (int i = 0; i < RL_S; i++) {
-                    T0[i] *= V[i];
-                    T1[i] *= V[i];
-                    T2[i] *= V[i];
-                }
+                continue;
+            }
+            memset(V, 0, sizeof(float) * RL_S);
+            for (int64_t e = e0; e < e1; e++)
+                V[index[e]] += delta ? (float)delta[e] / levels : ((e - e0) & 1 ? -1.0f : 1.0f);
+            for (int i = 1; i < RL_S; i++) V[i] += V[i - 1];
+            for (int i = 0; i < RL_S; i++) {
+                T0[i] = V[i] * f0[i];
+                T1[i] = V[i] * f1[i];
+                T2[i] = V[i] * f2[i];
             }
             rl_dot_table(RL_S, T0, T1, T2, Mb, nv, acc);
         }
