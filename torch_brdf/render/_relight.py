@@ -136,7 +136,7 @@ def _brdf_params(brdfs) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class NativeLighting:
-    """The block lighting as the kernel reads it (recomputed when the lighting changes).
+    r"""The block lighting as the kernel reads it (recomputed when the lighting changes).
 
     Attributes:
         G: per level l in (1, 2, 4) the (NB, l^2, 3, C) lighting per sample, ``R_l^T D_l``.
