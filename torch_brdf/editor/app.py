@@ -54,6 +54,9 @@ DEFAULTS: dict[str, Any] = {
     "relight_scene": None,
     "relight_visibility": None,
     "relight_resolution": None,
+    # frame messages carry a CRC-32 of the whole frame and the page checks the frame it assembled
+    # from the changed tiles (the browser tests; costs ~1 ms a 512² frame)
+    "verify_frames": False,
 }
 
 
@@ -112,12 +115,15 @@ class EditorApp:
         self.title = W.HTML("<h3 style='margin:4px 0'>torch_brdf material editor</h3>")
         self.status = W.HTML("", layout=W.Layout(min_height="20px"))
         self.message = W.HTML("", layout=W.Layout(min_height="20px"))
-        self.frame = FrameView(role="tb-main", measure=True, display_width=dw)
+        self.frame = FrameView(
+            role="tb-main", measure=True, display_width=dw, verify=bool(self.config["verify_frames"])
+        )
         self.frame.on_msg(self._on_frame_msg)
         self.view = W.Dropdown(options=["image"], value="image", description="view")
         self.bounces = W.IntSlider(value=1, min=1, max=1, description="bounces", continuous_update=False)
         self.exposure = W.FloatSlider(value=0.0, min=-4, max=4, step=0.25, description="exposure")
-        for w in (self.view, self.bounces, self.exposure):
+        self.exposure.add_class("tb-exposure")
+        for w in (self.view, self.bounces):
             w.observe(lambda _c: self._redraw(), "value")
         self.selected = W.HTML("<b>click an object</b> in the frame to edit its material")
         bands = Bands(
@@ -189,9 +195,18 @@ class EditorApp:
             ]
         )
         self.tabs = W.Tab([main, self._build_relight()])
+        # the page tone maps the linear frames: an exposure change repaints there, in the browser
+        # (jslink) and in the kernel's copy of the value
+        for view in (self.frame, self.ref_image, self.rl_frame):
+            W.jslink((self.exposure, "value"), (view, "exposure"))
+        self.exposure.observe(self._on_exposure, "value")
         self.tabs.set_title(0, "multibounce")
         self.tabs.set_title(1, "relighting")
         self.root = W.VBox([self.title, self.status, self.message, self.tabs])
+
+    def _on_exposure(self, change) -> None:
+        for view in (self.frame, self.ref_image, self.rl_frame):
+            view.exposure = float(change["new"])
 
     # -- undo, A/B, save, export -------------------------------------------------------------------
     def _build_keep(self) -> None:
@@ -289,7 +304,9 @@ class EditorApp:
         al.) on a scene with a visibility record (``relight_scene`` + ``relight_visibility``)."""
         c = self.config
         self.relight = None
-        self.rl_frame = FrameView(role="tb-relight", display_width=int(c["display_width"]))
+        self.rl_frame = FrameView(
+            role="tb-relight", display_width=int(c["display_width"]), verify=bool(c["verify_frames"])
+        )
         self.rl_frame.on_msg(lambda _w, m, _b: self._guard(self._on_relight_click, m))
         wide = {"description_width": "initial"}
         self.rl_rotation = W.FloatSlider(0.0, min=0.0, max=360.0, step=5.0, description="environment °", style=wide)
@@ -365,11 +382,10 @@ class EditorApp:
         rl = self.relight
         t0 = time.perf_counter()
         img = rl.render()
-        rgb = _rgb8(img, self.exposure.value)
         st = rl.stats
         extra = f" · {st.vertices} vertices" if st is not None else ""
-        self.rl_frame.show(
-            rgb,
+        self.rl_frame.show_linear(
+            img,
             f"triple products {rl.last_frame_s * 1e3:.1f} ms · kernel {(time.perf_counter() - t0) * 1e3:.1f} ms{extra}"
             f" · environment {rl.rotation_deg:.0f}° · orbit {rl.orbit_deg:.0f}°",
         )
@@ -592,13 +608,9 @@ class EditorApp:
         img = self._guard(s.render, self.view.value, self.bounces.value)
         if img is None:
             return
-        rgb = _rgb8(img, self.exposure.value)
-        total = time.perf_counter() - t0
-        info = (
-            f"frame {s.last_frame_s * 1e3:.1f} ms · projection {s.last_set_s * 1e3:.1f} ms · "
-            f"kernel {total * 1e3 + s.last_set_s * 1e3:.1f} ms"
-        )
-        self.frame.show(rgb, info)
+        head = f"frame {s.last_frame_s * 1e3:.1f} ms · projection {s.last_set_s * 1e3:.1f} ms · "
+        # the caption's kernel time includes the encoding (the caption is made right before sending)
+        self.frame.show_linear(img, lambda: head + f"kernel {(time.perf_counter() - t0 + s.last_set_s) * 1e3:.1f} ms")
 
     def _draw_lobe(self) -> None:
         s = self.session
@@ -650,7 +662,7 @@ class EditorApp:
 
         rmse = relative_rmse(editor_image, job.image, self.session.mask)
         diff = editor_image - job.image
-        self.ref_image.show(_rgb8(job.image, self.exposure.value), f"reference {job.spp} spp, {job.seconds:.1f} s")
+        self.ref_image.show_linear(job.image, f"reference {job.spp} spp, {job.seconds:.1f} s")
         self.diff_image.show(_rgb8(_difference_rgb(diff)), "difference (red: editor brighter)")
         self.ref_result.value = (
             f"<span class='tb-rmse'>relative RMSE {rmse:.4f}</span> (pixels that see no emitter; "
