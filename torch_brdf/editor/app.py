@@ -57,6 +57,9 @@ DEFAULTS: dict[str, Any] = {
     # frame messages carry a CRC-32 of the whole frame and the page checks the frame it assembled
     # from the changed tiles (the browser tests; costs ~1 ms a 512² frame)
     "verify_frames": False,
+    # memory bound of the frozen states kept per object, so that switching back to an object
+    # costs no new freeze (EditorSession's FrozenCache)
+    "frozen_cache_mb": 2048,
 }
 
 
@@ -424,7 +427,7 @@ class EditorApp:
             tensors, sc, note = load_source(
                 source, scene, c["resolution"], c["series"], c["spp"], c["seed"], c["cache_dir"], progress=False
             )
-            session = EditorSession(tensors, sc)
+            session = EditorSession(tensors, sc, frozen_cache_mb=float(c["frozen_cache_mb"]))
         except TorchBRDFError as exc:
             self.status.value = "" if self.session is None else self.status.value
             self.error(f"could not open {source!r}: {exc}")
@@ -536,23 +539,54 @@ class EditorApp:
         if obj is None:
             self.info(f"nothing at pixel ({x}, {y})")
             return
-        self.select(obj)
+        self.select(obj, redraw=True)
 
-    def select(self, obj: str) -> None:
+    def select(self, obj: str, redraw: bool = False) -> None:
+        """Select (and freeze) ``obj``; with ``redraw`` a frame answers first, then the form follows."""
         s = self.session
         secs = s.select(obj)  # SceneError for fixed objects -> message
+        if redraw:
+            self._redraw()
+        self._watch_refreeze()
         self.message.value = ""
         mat = s.materials[obj]
         b = s.basis(obj)
         bands = f"{b.J} band{'s' if b.J > 1 else ''} over {b.variable}"
         hint = " (one band: glossy models show as their diffuse equivalent)" if b.J == 1 else ""
+        how = {
+            "frozen": f"frozen in {secs * 1e3:.0f} ms",
+            "cached": f"its frozen state kept ({secs * 1e3:.0f} ms)",
+            "kept": "frozen",
+            "stale+correction": f"kept state corrected in {secs * 1e3:.0f} ms, refreezing in the background",
+        }[s.last_select]
         self.selected.value = (
-            f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
-            f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
+            f"<span class='tb-selected' data-object='{html.escape(obj)}' data-how='{s.last_select}'>"
+            f"selected: <b>{html.escape(obj)}</b></span> · {bands}{hint} · {how}"
         )
         self.panel.show(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
-        self._draw_lobe()
+        self._schedule_lobe(0.0)
+
+    def _watch_refreeze(self, every: float = 0.1) -> None:
+        """While a fresh frozen state is made in the background, look every ``every`` s; when it
+        is there, draw the exact frame (the stale state's frames are exact only until the
+        first edit). Nothing outside a kernel's event loop (the next frame installs it)."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return
+        s = self.session
+
+        def check() -> None:
+            if s is not self.session:
+                return
+            if s.refreezing:
+                loop.call_later(every, check)
+            elif s._correction is not None or s._jobs:
+                self._redraw()
+
+        if s.refreezing:
+            loop.call_later(every, check)
 
     # -- the material form (see .form) ------------------------------------------------------------
     @property
