@@ -251,6 +251,31 @@ def test_a_latent_map_click_changes_the_material(page, ids, small_fit, shots):
     page.screenshot(path=str(shots / "editor_latent.png"), full_page=True)
 
 
+def test_the_latent_map_shades_the_trusted_region_and_snaps_a_click_outside(page, small_fit, shots):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz (the latent map's materials)")
+    from torch_brdf.editor.latent import LatentMap
+
+    lm = LatentMap(small_fit)  # the page's map, made the same way
+    w, h, data = page.eval_on_selector(
+        "canvas.tb-latent",
+        "c => [c.width, c.height, Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data)]",
+    )
+    shown = torch.tensor(data, dtype=torch.uint8).reshape(h, w, 4)[..., :3]
+    assert torch.equal(shown, lm.image())  # the shading on the page is the map's, pixel for pixel
+    assert bool(lm.untrusted.any()) and "trusted" in page.inner_text(".tb-frame-wrap:has(canvas.tb-latent) .tb-caption")
+    ys, xs = torch.nonzero(lm.untrusted, as_tuple=True)
+    x, y = int(xs[len(xs) // 2]), int(ys[len(ys) // 2])
+    box = page.query_selector("canvas.tb-latent").bounding_box()
+    page.mouse.click(box["x"] + (x + 0.5) * box["width"] / w, box["y"] + (y + 0.5) * box["height"] / h)
+    warning = page.wait_for_selector(".tb-latent-warning")
+    assert "snapped" in warning.inner_text() and "variance" in warning.inner_text()
+    px, py = int(warning.get_attribute("data-x")), int(warning.get_attribute("data-y"))
+    assert bool(lm.trusted[py, px]) and (px, py) == lm.snap(x, y)[:2]
+    assert "nearest materials" in page.inner_text(".tb-latent-pick")
+    page.screenshot(path=str(shots / "editor_latent_snap.png"), full_page=True)
+
+
 RELIGHT = ".tb-frame-wrap:has(canvas.tb-relight)"
 
 

@@ -221,7 +221,7 @@ def test_latent_pick_blends_the_materials_projections(session, small_fit):
     assert lm.image().shape == (32, 32, 3)
     session.select("back")
     c, info = lm.pick(session, "back", 5, 20)
-    b = lm.model.weights(lm.latent(5, 20))
+    b = lm.model.weights(lm.latent(*info["picked"]))
     own = torch.stack([session.coefficients("back", NBRDF(n, lm.nbrdf)) for n in lm.names])
     assert torch.allclose(c, torch.einsum("n,njc->jc", b, own).clamp_min(0), rtol=1e-12, atol=0)
     assert len(info["heaviest"]) == 3 and info["variance"] >= 0
@@ -321,3 +321,43 @@ def test_frozen_cache_keeps_the_recently_used_within_its_bound():
     big = FrozenCache(max_bytes=10)
     big.put(5, (), state)  # larger than the bound alone: kept (it is the one in use)
     assert 5 in big and len(big) == 1
+
+
+def test_latent_map_marks_where_the_model_is_trusted_and_snaps_outside(small_fit):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    from torch_brdf.brdf import NBRDF
+    from torch_brdf.editor.latent import NEGATIVE_TOLERANCE, LatentMap, validity_pairs
+
+    lm = LatentMap(small_fit, resolution=32)
+    r, limit = 32, lm.trust * (1 + lm.model.mu)
+    var = torch.stack([torch.stack([lm.model.variance(lm.latent(x, y)) for x in range(r)]) for y in range(r)])
+    assert torch.equal(lm.untrusted, var > limit)  # the mask is the predictive variance, pixel by pixel
+    assert bool(lm.untrusted.any()) and bool(lm.trusted.any())
+    img = lm.image().int()
+    assert bool((img[lm.untrusted][:, 2] > img[lm.untrusted][:, 0]).all())  # untrusted: dimmed, blue
+    # a click outside snaps to the nearest trusted pixel and says why; inside it stays
+    ys, xs = torch.nonzero(lm.untrusted, as_tuple=True)
+    x, y = int(xs[0]), int(ys[0])
+    sx, sy, why = lm.snap(x, y)
+    ty, tx = torch.nonzero(lm.trusted, as_tuple=True)
+    assert bool(lm.trusted[sy, sx]) and (sx - x) ** 2 + (sy - y) ** 2 == int(((tx - x) ** 2 + (ty - y) ** 2).min())
+    assert "variance" in why and "snapped" in why
+    assert lm.snap(int(tx[0]), int(ty[0])) == (int(tx[0]), int(ty[0]), None)
+    # the seed's unconstrained weights: the validity mask against the blend evaluated directly
+    raw = LatentMap(small_fit, resolution=16, valid="none")
+    wi, wo, w = validity_pairs()
+    wi, wo = wi.expand(-1, wo.shape[1], 3), wo.expand(wi.shape[0], -1, 3)
+    mats = [NBRDF(n, raw.nbrdf) for n in raw.names]
+    checked = {True: 0, False: 0}
+    for y in range(0, 16, 3):
+        for x in range(0, 16, 3):
+            b = raw.model.weights(raw.latent(x, y))
+            f = sum(float(b[i]) * m.eval(wi.float(), wo.float()).double() for i, m in enumerate(mats))  # (A, M, 3)
+            albedo = (f * w[None, :, None]).sum(1)
+            bad = bool(f.min() < -NEGATIVE_TOLERANCE * f.abs().max()) or bool(albedo.max() > 1)
+            assert bool(raw.invalid[y, x]) == bad
+            checked[bad] += 1
+    assert checked[True] and checked[False]  # both kinds occur between 8 materials
+    with pytest.raises(ValueRangeError):
+        LatentMap(small_fit, resolution=16, trust=0.0)

@@ -175,7 +175,11 @@ class EditorApp:
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
         self.latent_box.children = [
-            W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            W.HTML(
+                "<b>measured materials</b> (GPLVM latent map; white: near the measured materials, "
+                "blue: uncertain, red: the model's prediction is not a valid BRDF): click to blend; "
+                "a click outside the yellow edge snaps to the nearest trusted point"
+            ),
             self.latent_dims,
             W.HBox([self.latent_view, self.latent_info]),
         ]
@@ -490,8 +494,11 @@ class EditorApp:
 
     def _show_latent(self) -> None:
         a, b = self.latent.dims
+        trusted = float(self.latent.trusted.float().mean())
         self.latent_view.show(
-            self.latent.image(), f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q}"
+            self.latent.image(),
+            f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q} · "
+            f"trusted {trusted:.0%} (edge yellow; blue: uncertain, red: invalid prediction)",
         )
 
     def _on_latent_dims(self) -> None:
@@ -517,10 +524,20 @@ class EditorApp:
         c, info = self.latent.pick(s, s.selected, x, y)
         s.set_material(s.selected, self.latent.material(s, s.selected, c))
         heavy = ", ".join(f"{n} {w:+.2f}" for n, w in info["heaviest"])
-        self.latent_info.value = html.escape(
+        near = ", ".join(n for n, _ in info["nearest"])
+        text = html.escape(
             f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
+            f" · nearest materials: {near}"
         )
-        self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
+        px, py = info["picked"]
+        warn = info["warning"]
+        note = (
+            f"<div class='tb-latent-warning' data-x='{px}' data-y='{py}' style='color:#b36b00'>"
+            f"{html.escape(warn)}</div>"
+            if warn
+            else ""
+        )
+        self.latent_info.value = f"{note}<span class='tb-latent-pick' data-x='{px}' data-y='{py}'>{text}</span>"
         self.panel.show(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
         self.message.value = ""
         self._redraw()
