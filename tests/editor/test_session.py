@@ -301,6 +301,22 @@ def test_switching_objects_reuses_frozen_states_and_stays_exact(small_tensors_fi
     assert s.last_select == "cached" and _close(s.render(), full())
     s.select("back")
     assert s.last_select == "kept"
+    # switching again before the fresh state is ready: no full evaluation at the switch; the
+    # next object starts from the frame on screen and is exact once its own fresh state is in
+    s.set_material("back", {**wall, "exponent": 120.0})
+    s.render()
+    s.select("left")
+    s.set_material("left", {"type": "lambert", "albedo": [0.2, 0.7, 0.1]})
+    s.render()
+    s.select("back")  # stale: its correction starts now
+    s.set_material("back", wall)
+    s.render()
+    evaluate, s.renderer.evaluate = s.renderer.evaluate, None  # a full evaluation would fail here
+    s.select("left")
+    s.renderer.evaluate = evaluate
+    assert s.last_select == "stale+correction"
+    s._settle_refreeze(wait=True)
+    assert _close(s.render(), full())
     # an edit of an object that is not selected (undo of left's edit) keeps the frame exact
     s.select("left")
     s.set_material("back", wall)  # back is not the selected object now

@@ -397,7 +397,8 @@ class EditorSession:
         self._frozen_stamp: tuple | None = None  # the stamp the renderer's frozen state was made with
         self._correction: torch.Tensor | None = None  # (H, W, 3) added to stale frozen frames
         self._jobs: list[_Refreeze] = []  # background freezes under way or not yet collected
-        self._exact: tuple[tuple, torch.Tensor] | None = None  # (versions, the last exact full frame)
+        # (versions, the last full frame): exact, or corrected while a fresh state was being made
+        self._last_full: tuple[tuple, torch.Tensor] | None = None
         #: how the last select got its frozen state: "frozen", "cached", "stale+correction", "kept"
         self.last_select = ""
 
@@ -446,17 +447,17 @@ class EditorSession:
             return "kept"
         if fz is not None and self._correction is None and self._frozen_stamp is not None:
             self.frozen_cache.put(fz["object"], self._frozen_stamp, fz)
-        exact = self._exact_image()  # before the renderer changes state
+        shown = self._shown_image()  # before the renderer changes state
         hit = self.frozen_cache.get(m)
         stamp = self._stamp(m)
         if hit is not None and hit[0] == stamp:
             r._frozen, self._frozen_stamp, self._correction = hit[1], stamp, None
             return "cached"
-        if hit is not None:  # stale: serve it corrected to the exact image, refreeze meanwhile
-            if exact is None:
-                exact = r.evaluate()
+        if hit is not None:  # stale: serve it corrected to the image on screen, refreeze meanwhile
+            if shown is None:
+                shown = r.evaluate()
             r._frozen, self._frozen_stamp = hit[1], hit[0]
-            self._correction = exact - r()
+            self._correction = shown - r()
             if not any(j.m == m and j.stamp == stamp for j in self._jobs):
                 self._jobs.append(_Refreeze(r, m, stamp))
             return "stale+correction"
@@ -465,10 +466,13 @@ class EditorSession:
         self.frozen_cache.put(m, stamp, r._frozen)
         return "frozen"
 
-    def _exact_image(self) -> torch.Tensor | None:
-        """The last full frame if it is exact for the current constants (else None)."""
-        if self._exact is not None and self._exact[0] == tuple(self._versions):
-            return self._exact[1]
+    def _shown_image(self) -> torch.Tensor | None:
+        """The last full frame if it was made with the current constants (else None): exact, or
+        the corrected frame of a stale state when the user switches again before its fresh state
+        is ready (then the next object starts from that frame and becomes exact when its own
+        fresh state arrives, instead of paying a full evaluation at the switch)."""
+        if self._last_full is not None and self._last_full[0] == tuple(self._versions):
+            return self._last_full[1]
         return None
 
     def _settle_refreeze(self, wait: bool = False) -> None:
@@ -737,8 +741,7 @@ class EditorSession:
                 img = self.renderer()
                 if self._correction is not None:  # a stale state while the fresh one is made
                     img = img + self._correction
-                else:
-                    self._exact = (tuple(self._versions), img)
+                self._last_full = (tuple(self._versions), img)
             else:
                 parts = self.renderer.evaluate(per_bounce=True)
                 img = sum(parts[1 : nb + 1], parts[0]) if view == "image" else parts[self.views().index(view) - 1]
