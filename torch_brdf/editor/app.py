@@ -24,12 +24,11 @@ from IPython.display import display
 
 from ..brdf import Factored1D, create
 from ..errors import TorchBRDFError
-from ..io.png import to_srgb8
 from .form import Bands, MaterialForm
 from .lobe import lit_sphere, lobe_svg
 from .params import model_choices
 from .session import EditorSession, ReferenceJob, checked_create, load_source
-from .widgets import FrameView
+from .widgets import FrameView, srgb8_fast
 
 DEFAULTS: dict[str, Any] = {
     "source": "cornell_box_glossy",
@@ -60,25 +59,11 @@ DEFAULTS: dict[str, Any] = {
     # memory bound of the frozen states kept per object, so that switching back to an object
     # costs no new freeze (EditorSession's FrozenCache)
     "frozen_cache_mb": 2048,
+    # "messages": RGBE frames in binary messages, tone mapped on the page (FrameView); "state":
+    # the earlier transport, kernel-side 8-bit sRGB in the widget's synced state and the page's
+    # latency sent back per frame (the benchmark's baseline)
+    "frame_transport": "messages",
 }
-
-
-_LUT_SIZE = 65536
-_lut: torch.Tensor | None = None
-
-
-def srgb8_fast(img: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
-    """(H, W, 3) linear radiance -> uint8 sRGB, as :func:`~torch_brdf.io.to_srgb8` (clip tone
-    map) within one level: a 65,536-entry table made once by ``to_srgb8`` itself, indexed by
-    the clipped value. ``to_srgb8`` computes the curve in float64 by colour-science, 0.34 s
-    for a 512² frame on a loaded machine; the table ~3 ms."""
-    global _lut
-    if _lut is None:
-        ramp = torch.linspace(0, 1, _LUT_SIZE, dtype=torch.float64).reshape(1, -1, 1).expand(1, _LUT_SIZE, 3)
-        _lut = to_srgb8(ramp.contiguous())[0, :, 0].contiguous()
-    n = _LUT_SIZE - 1  # index_select of a flat index: 6x faster than lut[idx] (advanced indexing)
-    idx = img.detach().to(torch.float32).mul(n * 2.0**exposure).clamp_(0, n).add_(0.5).long()
-    return _lut.index_select(0, idx.reshape(-1)).reshape(idx.shape)
 
 
 def _rgb8(img: torch.Tensor, exposure: float = 0.0):
@@ -119,7 +104,11 @@ class EditorApp:
         self.status = W.HTML("", layout=W.Layout(min_height="20px"))
         self.message = W.HTML("", layout=W.Layout(min_height="20px"))
         self.frame = FrameView(
-            role="tb-main", measure=True, display_width=dw, verify=bool(self.config["verify_frames"])
+            role="tb-main",
+            measure=True,
+            display_width=dw,
+            verify=bool(self.config["verify_frames"]),
+            transport=self.config["frame_transport"],
         )
         self.frame.on_msg(self._on_frame_msg)
         self.view = W.Dropdown(options=["image"], value="image", description="view")
@@ -214,6 +203,8 @@ class EditorApp:
     def _on_exposure(self, change) -> None:
         for view in (self.frame, self.ref_image, self.rl_frame):
             view.exposure = float(change["new"])
+        if self.frame.transport == "state":  # the baseline tone maps in the kernel
+            self._redraw()
 
     # -- undo, A/B, save, export -------------------------------------------------------------------
     def _build_keep(self) -> None:

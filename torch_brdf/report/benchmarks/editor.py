@@ -26,7 +26,11 @@ Prints progress, then one JSON object as the last line: ``latency_ms_<size>`` (m
 (projection + frame + encoding), ``draw_ms_<size>`` (the page decoding, tone mapping and
 drawing a message), ``message_kb_<size>`` (median bytes of a frame message: RGBE, 4 bytes a
 pixel, or only the changed tiles) and ``rgb8_kb_<size>`` (the raw 8-bit RGB frame, what was
-sent before), the switch keys above, the kernel's parts measured in-process right after with
+sent before), the switch keys above, the baseline in the same run: the earlier transport (8-bit
+sRGB made by the kernel in the widget's synced state, the latency synced back per frame:
+``frame_transport="state"``) over the same steps, ``latency_ms_state_<size>``,
+``p95_ms_state_<size>``, ``draw_ms_state_<size>`` and ``speedup_vs_state_<size>`` (its median
+over the new median; ``--no-baseline`` skips it), the kernel's parts measured in-process right after with
 their baseline in the same run (``inproc_{project,frame,frame_dense,srgb,rgbe}_ms_<size>``,
 ``frame_speedup_vs_dense_<size>``: the frame over F's non-zeros against the dense F), and the
 load average at the start and end (``load_avg_start``, ``load_avg_end``: the page's figures
@@ -100,7 +104,7 @@ def _p95(xs: list[float]) -> float:
     return s[min(len(s) - 1, round(0.95 * (len(s) - 1)))]
 
 
-def measure(size: int, steps: int, spp: int, workdir: Path, threads, n_switch: int = 0) -> dict:
+def measure(size: int, steps: int, spp: int, workdir: Path, threads, n_switch: int = 0, transport="messages") -> dict:
     from playwright.sync_api import sync_playwright
 
     from torch_brdf.editor.server import EditorServer, launch_chromium
@@ -118,7 +122,7 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads, n_switch: i
     tensors = PolynomialTensors.load(path)
     ids, _ = object_id_buffer(tensors, cornell_box_glossy(size))
     names = list(tensors.object_names)
-    config = {"source": str(path), "display_width": 512, "threads": threads}
+    config = {"source": str(path), "display_width": 512, "threads": threads, "frame_transport": transport}
     with EditorServer(config, timeout=300) as server, sync_playwright() as p:
         browser = launch_chromium(p)
         try:
@@ -143,6 +147,12 @@ def measure(size: int, steps: int, spp: int, workdir: Path, threads, n_switch: i
             sent = page.evaluate("() => window.__torch_brdf.bytes || []")
             exponent = page.input_value(".tb-typed-exponent input")
             sw = switches(page, ids, names, n_switch) if n_switch else None
+            if transport != "messages":
+                steps_lat = {f"latency_ms_{transport}_{size}": round(statistics.median(lat), 1)}
+                steps_lat[f"p95_ms_{transport}_{size}"] = round(_p95(lat), 1)
+                steps_lat[f"draw_ms_{transport}_{size}"] = round(statistics.median(draws), 2) if draws else None
+                print(f"{size}² ({transport} transport): {steps_lat}", file=sys.stderr)
+                return steps_lat
             status = page.inner_text("body")
             m = re.search(r"(\d) torch threads? \(timed\)", status)
             chosen = int(m.group(1)) if m else None
@@ -216,6 +226,7 @@ def breakdown(path: Path, size: int, threads: int, steps: int = 15) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="256² and 512², 20 steps, 2 switches, 1 spp")
+    ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the earlier transport's run")
     ap.add_argument("--switches", type=int, default=None, help="rounds of back/left clicks (default 5, quick 2)")
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--spp", type=int, default=None)
@@ -236,6 +247,10 @@ def main() -> None:
     args.tensors.mkdir(parents=True, exist_ok=True)
     for size in sizes:
         result.update(measure(size, steps, spp, args.tensors.resolve(), threads, n_switch))
+        if args.baseline:  # the earlier transport, same tensors, same load
+            result.update(measure(size, steps, spp, args.tensors.resolve(), threads, 0, "state"))
+            new, old = result[f"latency_ms_{size}"], result[f"latency_ms_state_{size}"]
+            result[f"speedup_vs_state_{size}"] = round(old / new, 2)
     result["load_avg_end"] = round(os.getloadavg()[0], 2)
     worst = [result.get(f"switch_worst_ms_{s}") for s in sizes]
     result["switch_worst_ms"] = max(w for w in worst if w is not None) if any(w is not None for w in worst) else None
