@@ -249,6 +249,7 @@ function render({ model, el }) {
     });
   };
   model.on("change:pixels_state", drawState);
+  drawState();  // a frame already in the state when the view appears
   model.send({ event: "resend" });  // a new view: the kernel sends the current frame
   return () => { if (measure) for (const t of kinds) document.removeEventListener(t, mark, true); };
 }
@@ -409,7 +410,8 @@ class FrameView(anywidget.AnyWidget):
         self.send({**head, "full": True}, [payload])
 
     def _on_view_msg(self, _widget, content, _buffers) -> None:
-        if isinstance(content, dict) and content.get("event") == "resend" and self._frame is not None:
+        resend = isinstance(content, dict) and content.get("event") == "resend"
+        if resend and self._frame is not None and self.transport == "messages":
             head = {"event": "frame", "w": self.width, "h": self.height, "enc": self._enc, "seq": self._seq}
             if self.verify:
                 head["crc"] = zlib.crc32(self._frame.tobytes())
