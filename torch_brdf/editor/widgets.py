@@ -392,9 +392,14 @@ class FrameView(anywidget.AnyWidget):
             self._last_enc_sent = enc
             return self._send_full(head)
         ny, nx = -(-h // TILE), -(-w // TILE)
-        changed = np.zeros((ny * TILE, nx * TILE), dtype=bool)
-        changed[:h, :w] = (frame != prev).any(-1)
-        tiles = np.flatnonzero(changed.reshape(ny, TILE, nx, TILE).any((1, 3)))
+        # one 32-bit word a pixel: a single pass over the frame (a per-byte compare and a reduction
+        # over the channels took ~5 ms at 512²)
+        diff = frame.view(np.uint32)[..., 0] != prev.view(np.uint32)[..., 0]
+        if h % TILE or w % TILE:
+            pad = np.zeros((ny * TILE, nx * TILE), dtype=bool)
+            pad[:h, :w] = diff
+            diff = pad
+        tiles = np.flatnonzero(diff.reshape(ny, TILE, nx, TILE).any((1, 3)))
         if len(tiles) > FULL_FRACTION * ny * nx:
             return self._send_full(head)
         parts = [frame[(t // nx) * TILE : (t // nx + 1) * TILE, (t % nx) * TILE : (t % nx + 1) * TILE] for t in tiles]
