@@ -584,12 +584,16 @@ class PolynomialRenderer(nn.Module):
                     )
                     self._add(st, F, V, kidx, bl, j, t, pix, contrib)
                     continue
-                if not bool(inv[n][bl.terms].any()):
+                moved = inv[n][bl.terms]
+                if not bool(moved.any()):
                     continue
                 j, t, pix = self._coords[q]
-                keep = inv[n][t].nonzero().squeeze(1)
-                j, t, pix = j[keep], t[keep], pix[keep]
-                contrib = getattr(self, f"block{q}")[:, keep] * delta[n][:, t]
+                contrib = getattr(self, f"block{q}")
+                if float(moved.float().mean()) < 0.5:  # few moved: select them
+                    keep = inv[n][t].nonzero().squeeze(1)
+                    j, t, pix, contrib = j[keep], t[keep], pix[keep], contrib[:, keep]
+                # (else every entry: the others' delta is exactly zero, the same products of the same factors)
+                contrib = contrib * delta[n][:, t]
                 f = None if o == i else self._seen_factor(new, o, j, pix)
                 self._add(st, F, V, kidx, bl, j, t, pix, contrib if f is None else contrib * f)
         st["snap"] = new

@@ -53,7 +53,10 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
   ``PolynomialRenderer.frame_arrays``: ``stream_bytes``, ``stream_gb_per_s``) are each the
   fastest of 7 calls, each right after touching a buffer of twice the last-level cache
   (``cache_flush_mb``), so both read from memory; ``frame_warm_s`` without the flush.
-  ``frame_over_stream``: the goal is <= 2 (memory bandwidth).
+  ``frame_over_stream``: the goal is <= 2 (memory bandwidth). ``frame_1thread_s``,
+  ``stream_1thread_s`` and ``frame_over_stream_1thread``: the same pair on one thread each
+  (the frame's thread count is otherwise tuned per call, the stream's torch's default; on a
+  busy machine the one-thread pair is the steadier comparison).
 * Several objects frozen: ``freeze_left_s`` (first visit of the left wall), ``switch_s`` (the
   median of four switches between the wall and the left wall, each after an edit of the other:
   the kept state is updated, not rebuilt), ``switch_over_freeze``, ``switch_unchanged_s`` (a
@@ -306,6 +309,14 @@ def _freeze_and_frames(q: bool, out: dict) -> None:
     out["stream_bytes"] = sum(a.numel() * a.element_size() for a in R.frame_arrays())
     out["stream_gb_per_s"] = out["stream_bytes"] / out["stream_s"] / 1e9
     out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
+    # the same pair on one thread each: on a shared machine the least disturbed comparison
+    R.threads = 1
+    with _threads.single_thread():
+        edit("back")()
+        out["frame_1thread_s"] = _cold(edit("back"), flush, 7)
+        out["stream_1thread_s"] = _cold(R.stream, flush, 7)
+    R.threads = None
+    out["frame_over_stream_1thread"] = out["frame_1thread_s"] / out["stream_1thread_s"]
     out["frozen_mb"] = R.frozen_nbytes / 2**20
     # several objects: first visits contract, later visits reuse or update the kept state
     t0 = time.perf_counter()
