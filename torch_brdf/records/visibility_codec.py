@@ -40,9 +40,15 @@ Nothing here loops in Python over vertices, blocks or entries: encoding works on
 ``_CHUNK_PAIRS`` vertex-block pairs at a time (to bound the temporaries; each chunk is one
 set of numpy array operations, several times faster than the torch equivalents for the
 byte-sized masks and ``nonzero``), and parsing a stream finds the block starts by pointer
-doubling (``ceil(log2 NB)`` vectorised steps), a run of whole vertices (1/128 of the stream,
-16 KB to 1 MB) at a time, into arrays allocated once: a load's temporaries stay below the
-stream's size, where one parse of the whole stream held ~70 bytes per stream byte.
+doubling (``ceil(log2 NB)`` vectorised steps), a run of whole vertices (1/1024 of the
+stream, 16 KB to 1 MB) at a time: a parse's temporaries (~70 bytes per stream byte of the
+run) stay below a tenth of the stream's size, where one parse of the whole stream held ~70
+times the stream.
+
+A record of a whole scene keeps the stream itself (:class:`PackedBlockVisibility`, what a
+load and the precompute give): about the file's size, where the CSR arrays of
+:class:`BlockVisibility` take 11 bytes per vertex-block pair beside the entries; the
+vertices a renderer shades are unpacked from it (:meth:`PackedBlockVisibility.select`).
 """
 
 from __future__ import annotations
@@ -66,7 +72,7 @@ OCCLUDED, UNOCCLUDED, PARTIAL = 0, 1, 2
 _CHUNK_PAIRS = 1 << 16
 #: stream bytes parsed at once when decoding: a 1/_DECODE_CHUNK_DIVISOR part of the stream,
 #: within [_DECODE_MIN_BYTES, _DECODE_MAX_BYTES] (see ``_decode_stream``)
-_DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES, _DECODE_MAX_BYTES = 128, 1 << 14, 1 << 20
+_DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES, _DECODE_MAX_BYTES = 1024, 1 << 14, 1 << 20
 _MAX_BITS = 8
 _MAX_VARINT_BYTES = 10  # 64-bit values
 

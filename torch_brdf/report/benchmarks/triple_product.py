@@ -44,7 +44,7 @@ progress, then one JSON object as the last line:
   the precomputed record's file (``visibility_file_bytes``) in a fresh process (after a load
   of a tiny record, so that code paths are paged in), its seconds and its peak resident memory
   above the start over the file's size; ``visibility_load_kept_over_file`` is what stays
-  resident (the decoded record), ``visibility_load_transient_over_file`` the peak above that
+  resident (the record: the file's varint stream and vertices), ``visibility_load_transient_over_file`` the peak above that
   (the decode's temporaries), ``visibility_load_mb_per_s`` the file's MB per second. Linux only
   (the peak is reset through ``/proc/self/clear_refs``).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
@@ -227,14 +227,18 @@ _LOAD_CHILD = """
 import json, sys, tempfile, time
 import torch
 from torch_brdf.records import BlockVisibility
-from torch_brdf.records.visibility import VertexVisibility
+from torch_brdf.records.visibility import SceneVertices, VertexVisibility
+from torch_brdf.sphere.cubemap import CubemapBlocks
 
 def status():
     with open("/proc/self/status") as f:
         return {k: int(v.split()[0]) * 1024 for k, v in (line.split(":", 1) for line in f) if k in ("VmHWM", "VmRSS")}
 
-with tempfile.TemporaryDirectory() as tmp:
-    BlockVisibility.load(BlockVisibility.encode(torch.ones(2, 4, 256, dtype=torch.bool)).save(tmp + "/warm.npz"))
+with tempfile.TemporaryDirectory() as tmp:  # the code of a vertex record's load paged in
+    normals = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64)
+    verts = SceneVertices(normals * 2, normals, torch.zeros(2, dtype=torch.int64), torch.tensor([0, 2]))
+    blocks = BlockVisibility.encode(torch.ones(2, 6, 256, dtype=torch.bool))
+    VertexVisibility.load(VertexVisibility(CubemapBlocks(16, 16), verts, blocks).save(tmp + "/warm.npz"))
 with open("/proc/self/clear_refs", "w") as f:
     f.write("5")
 before = status()["VmRSS"]
