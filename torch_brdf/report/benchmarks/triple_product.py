@@ -44,9 +44,18 @@ progress, then one JSON object as the last line:
   the precomputed record's file (``visibility_file_bytes``) in a fresh process (after a load
   of a tiny record, so that code paths are paged in), its seconds and its peak resident memory
   above the start over the file's size; ``visibility_load_kept_over_file`` is what stays
-  resident (the record: the file's varint stream and vertices), ``visibility_load_transient_over_file`` the peak above that
-  (the decode's temporaries), ``visibility_load_mb_per_s`` the file's MB per second. Linux only
-  (the peak is reset through ``/proc/self/clear_refs``).
+  resident (the record: the file's varint stream and vertices),
+  ``visibility_load_transient_over_file`` the peak above that (the parse's temporaries),
+  ``visibility_load_mb_per_s`` the file's MB per second. Linux only (the peak is reset
+  through ``/proc/self/clear_refs``).
+* ``--large`` runs only the scene of the paper's size (the bunny on a plane of
+  ``--plane-quads``, default 720, quads a side: 555,788 vertices with the shared bunny;
+  ``--large-resolution`` cubemap side, default 32) and prints ``{"large": {...}}``:
+  ``precompute_s``, ``precompute_peak_over_record`` (this process's peak resident memory
+  above its start, over the record's file), ``record_bytes``, ``load_s``,
+  ``load_peak_over_file`` / ``load_kept_over_file`` (a fresh process, as above),
+  ``shaded_vertices``, ``view_s`` (culling and unpacking the visible vertices), ``frame_s``
+  (ours), ``frame_peak_bytes`` (load, view and frame in this process).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
   texel sum; visibility expanded beforehand, as a standard-basis system stores it),
   ``haar_frame_s`` (Ng et al.'s product on 1% of the lighting and BRDF wavelet coefficients;
