@@ -830,8 +830,12 @@ class PackedBlockVisibility:
         Args:
             stream: ``(S,)`` uint8 (or ``bytes``).
             vertex_offsets: ``(P+1,)`` integer byte offsets of the vertices, from 0 to ``S``.
-            block_count: ``NB``. bits: 0 (binary) or the quantisation bits, as written.
+            block_count: ``NB``.
+            bits: 0 (binary) or the quantisation bits, as written.
             meta: provenance for the record.
+
+        Returns:
+            The record, holding the stream (not copied when it is a C-contiguous uint8 array).
 
         Raises:
             FileFormatError: everything :meth:`BlockVisibility.from_bytes` refuses.
@@ -850,7 +854,11 @@ class PackedBlockVisibility:
 
     @classmethod
     def pack(cls, record: BlockVisibility) -> PackedBlockVisibility:
-        """The packed form of an in-memory record (its :meth:`BlockVisibility.to_bytes`)."""
+        """The packed form of an in-memory record (its :meth:`BlockVisibility.to_bytes`).
+
+        Args:
+            record: the in-memory record.
+        """
         stream, vo = record.to_bytes()
         return cls(
             record.block_count,
@@ -913,8 +921,15 @@ class PackedBlockVisibility:
         return self._unpacked[0]
 
     def decode(self, vertices=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """Dense visibility ``(P', NB, 256)`` of some vertices (default all), as
-        :meth:`BlockVisibility.decode`."""
+        """Dense visibility of some vertices, as :meth:`BlockVisibility.decode`.
+
+        Args:
+            vertices: ``(P',)`` vertex ids (default all).
+            dtype: floating dtype of the result.
+
+        Returns:
+            ``(P', NB, 256)``.
+        """
         rec = self.unpack() if vertices is None else self.select(vertices)
         return rec.decode(dtype=dtype)
 
@@ -944,7 +959,11 @@ class PackedBlockVisibility:
         return self.unpack().states
 
     def values(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """``(F,)`` derivative values of the whole record, as :meth:`BlockVisibility.values`."""
+        """``(F,)`` derivative values of the whole record, as :meth:`BlockVisibility.values`.
+
+        Args:
+            dtype: floating dtype of the result.
+        """
         return self.unpack().values(dtype)
 
     def pair_of_entry(self) -> torch.Tensor:

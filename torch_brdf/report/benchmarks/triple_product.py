@@ -93,7 +93,6 @@ from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
 from torch_brdf.parallel.threads import single_thread, usable_cores
 from torch_brdf.parallel.tiles import single_process
-from torch_brdf.records.visibility import VertexVisibility
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
@@ -103,6 +102,7 @@ from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native
 from torch_brdf.transport.visibility import (
     HORIZON_EPS,
+    VertexVisibility,
     VisibilitySettings,
     _chunk_entries,
     precompute_visibility,
