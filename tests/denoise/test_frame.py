@@ -107,15 +107,7 @@ def test_mean_within_one_percent_of_the_reference(sweep, case):
 
 
 @pytest.mark.skipif(not oidn_available(), reason="the figures are OIDN's (optional extra 'denoise')")
-@pytest.mark.parametrize(
-    "case",
-    [
-        pytest.param("default", marks=pytest.mark.xfail(strict=True, reason="OIDN's frame: 1.08x the 16x frame's")),
-        pytest.param("one", marks=pytest.mark.xfail(strict=True, reason="OIDN's frame: 1.07x the 16x frame's")),
-        "two",
-        "all",
-    ],
-)
+@pytest.mark.parametrize("case", list(EDIT_CASES))
 def test_error_at_most_sixteen_times_the_samples(sweep, case):
     r = sweep[case]
     assert r["error_ratio"]["frame"] <= 1.0, r["error_ratio"]
