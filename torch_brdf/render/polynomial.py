@@ -112,6 +112,7 @@ class PolynomialRenderer(nn.Module):
         self._albedo_weights: dict[int, list[torch.Tensor]] = {}
         self._projectors: dict[int, MaterialProjector] = {}
         self._frozen: dict[str, Any] | None = None
+        self.frame_denoiser = None
         materials = dict(materials or {})
         for k, b in enumerate(tensors.bases):
             if b is None:
@@ -448,12 +449,32 @@ class PolynomialRenderer(nn.Module):
         img = self.emission.index_add(1, fz["pix_i"], own).index_add(1, fz["pix_r"], other)
         return img.T.reshape(self.height, self.width, 3)
 
+    def denoise_frames(self, denoiser="oidn", **options) -> None:
+        """Denoise every frame :meth:`forward` returns, after any edits of any objects, keeping
+        each object region's mean (:class:`torch_brdf.denoise.FrameDenoiser`).
+
+        Args:
+            denoiser: ``"oidn"``, ``"regression"``, ``"linear"`` (built on the guides the tensors
+                carry), a :class:`~torch_brdf.denoise.FrameDenoiser`, or None to stop denoising.
+            **options: passed to :class:`~torch_brdf.denoise.FrameDenoiser` with a method name
+                (``keep_mean``, ``mean_tolerance``, ``quality``).
+        Raises:
+            ValueRangeError: a method name while the tensors carry no guides.
+        """
+        if isinstance(denoiser, str):
+            from ..denoise import FrameDenoiser, glossy_objects
+
+            if self.tensors.guides is None:
+                raise ValueRangeError("the tensors carry no guides (precomputed with guides=False); pass a denoiser")
+            denoiser = FrameDenoiser(self.tensors.guides, denoiser, glossy_objects(self.tensors), **options)
+        self.frame_denoiser = denoiser
+
     def forward(self) -> torch.Tensor:
         """The current image (H, W, C): the frozen fast path when an object is frozen and only
-        its material changed since (Eq. 28), else the full evaluation."""
-        if self._frozen is not None:
-            return self._frozen_frame()
-        return self.evaluate()
+        its material changed since (Eq. 28), else the full evaluation; denoised by
+        :attr:`frame_denoiser` when :meth:`denoise_frames` set one."""
+        img = self._frozen_frame() if self._frozen is not None else self.evaluate()
+        return img if self.frame_denoiser is None else self.frame_denoiser(img)
 
     def stream(self) -> torch.Tensor:
         """One pass over what a frame reads (F or its non-zeros, and V; their sum): the
