@@ -118,6 +118,7 @@ class PolynomialRenderer(nn.Module):
         self._active: int | None = None  # whose state frames read
         self._versions = [0] * m  # bumped whenever an object's coefficients or weight map change
         self._last_edited: int | None = None
+        self.frame_denoiser = None
         materials = dict(materials or {})
         for k, b in enumerate(tensors.bases):
             if b is None:
@@ -717,13 +718,33 @@ class PolynomialRenderer(nn.Module):
             own = own * w
         return img.index_add(1, fz["pix_i"], own).T.reshape(self.height, self.width, 3)
 
+    def denoise_frames(self, denoiser="oidn", **options) -> None:
+        """Denoise every frame :meth:`forward` returns, after any edits of any objects, keeping
+        each object region's mean (:class:`torch_brdf.denoise.FrameDenoiser`).
+
+        Args:
+            denoiser: ``"oidn"``, ``"regression"``, ``"linear"`` (built on the guides the tensors
+                carry), a :class:`~torch_brdf.denoise.FrameDenoiser`, or None to stop denoising.
+            **options: passed to :class:`~torch_brdf.denoise.FrameDenoiser` with a method name
+                (``keep_mean``, ``mean_tolerance``, ``quality``).
+        Raises:
+            ValueRangeError: a method name while the tensors carry no guides.
+        """
+        if isinstance(denoiser, str):
+            from ..denoise import FrameDenoiser, glossy_objects
+
+            if self.tensors.guides is None:
+                raise ValueRangeError("the tensors carry no guides (precomputed with guides=False); pass a denoiser")
+            denoiser = FrameDenoiser(self.tensors.guides, denoiser, glossy_objects(self.tensors), **options)
+        self.frame_denoiser = denoiser
+
     def forward(self) -> torch.Tensor:
         """The current image (H, W, C): the frozen fast path when a frozen state is kept for the
         object edited last (or the one frozen last), brought up to date if other objects changed
-        (Eq. 28); else the full evaluation."""
-        if self._frame_state() is not None:
-            return self._frozen_frame()
-        return self.evaluate()
+        (Eq. 28); else the full evaluation; denoised by :attr:`frame_denoiser` when
+        :meth:`denoise_frames` set one."""
+        img = self._frozen_frame() if self._frame_state() is not None else self.evaluate()
+        return img if self.frame_denoiser is None else self.frame_denoiser(img)
 
     def frame_arrays(self) -> list[torch.Tensor]:
         """The frozen arrays a frame reads (the CSR matrices' values and indices, or F; V; the
