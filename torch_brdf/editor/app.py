@@ -56,8 +56,8 @@ DEFAULTS: dict[str, Any] = {
     # frame messages carry a CRC-32 of the whole frame and the page checks the frame it assembled
     # from the changed tiles (the browser tests; costs ~1 ms a 512² frame)
     "verify_frames": False,
-    # memory bound of the frozen states kept per object, so that switching back to an object
-    # costs no new freeze (EditorSession's FrozenCache)
+    # memory bound of the frozen states the renderer keeps per object, so that switching back to
+    # an object costs no new freeze (PolynomialRenderer.max_frozen_bytes)
     "frozen_cache_mb": 2048,
     # "messages": RGBE frames in binary messages, tone mapped on the page (FrameView); "state":
     # the earlier transport, kernel-side 8-bit sRGB in the widget's synced state and the page's
@@ -555,7 +555,6 @@ class EditorApp:
         secs = s.select(obj)  # SceneError for fixed objects -> message
         if redraw:
             self._redraw()
-        self._watch_refreeze()
         self.message.value = ""
         mat = s.materials[obj]
         b = s.basis(obj)
@@ -563,9 +562,9 @@ class EditorApp:
         hint = " (one band: glossy models show as their diffuse equivalent)" if b.J == 1 else ""
         how = {
             "frozen": f"frozen in {secs * 1e3:.0f} ms",
-            "cached": f"its frozen state kept ({secs * 1e3:.0f} ms)",
-            "kept": "frozen",
-            "stale+correction": f"kept state corrected in {secs * 1e3:.0f} ms, refreezing in the background",
+            "kept": f"its kept frozen state ({secs * 1e3:.0f} ms)",
+            "refreshed": f"its kept frozen state brought up to date in {secs * 1e3:.0f} ms",
+            "active": "frozen",
         }[s.last_select]
         self.selected.value = (
             f"<span class='tb-selected' data-object='{html.escape(obj)}' data-how='{s.last_select}'>"
@@ -574,27 +573,6 @@ class EditorApp:
         self.panel.show(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
         self._schedule_lobe(0.0)
-
-    def _watch_refreeze(self, every: float = 0.1) -> None:
-        """While a fresh frozen state is made in the background, look every ``every`` s; when it
-        is there, draw the exact frame (the stale state's frames are exact only until the
-        first edit). Nothing outside a kernel's event loop (the next frame installs it)."""
-        try:
-            loop = asyncio.get_running_loop()
-        except RuntimeError:
-            return
-        s = self.session
-
-        def check() -> None:
-            if s is not self.session:
-                return
-            if s.refreezing:
-                loop.call_later(every, check)
-            elif s._correction is not None or s._jobs:
-                self._redraw()
-
-        if s.refreezing:
-            loop.call_later(every, check)
 
     # -- the material form (see .form) ------------------------------------------------------------
     @property

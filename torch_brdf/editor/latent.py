@@ -24,8 +24,8 @@ Where the map can be trusted. Two tests, shown on the map and applied to a click
   :func:`~torch_brdf.manifold.simplex_projection`, a convex blend) only materials whose own
   albedo exceeds 1 can make a point invalid (``"energy"`` rescales those); with ``"none"`` (the
   seed's unconstrained :math:`K^{-1}k(x_*)`) most of a slice between few materials is invalid:
-  on 8 NBRDF materials the raw weights reach -47 and 90 % of the slice predicts negative values
-  or albedos above 1.
+  in a test fit of 8 NBRDF materials the raw weights reached -47 and 90 % of the slice predicted
+  negative values or albedos above 1.
 
 Untrusted pixels are dimmed and blue, invalid ones red, the trusted region's edge is drawn in
 yellow. A click outside it snaps to the nearest trusted pixel and says so (no trusted pixel in

@@ -41,7 +41,7 @@ from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
 from ..transport import PathTraceSettings, PolynomialSettings, path_trace, precompute_polynomial
 
-#: memory bound of the per-object frozen states kept for switching (:class:`FrozenCache`)
+#: memory bound of the frozen states the renderer keeps for switching (its ``max_frozen_bytes``)
 FROZEN_CACHE_MB = 2048
 
 #: the coarse pair quadrature of interactive projection (see the module docstring)
@@ -87,99 +87,6 @@ def scene_with_materials(scene, materials: dict[str, dict[str, Any]]):
         objects.append(o)
     out.objects = objects
     return out
-
-
-def _frozen_nbytes(fz: dict[str, Any]) -> int:
-    """Bytes held by a frozen state (its tensors and the cached non-zeros of F)."""
-    n = sum(v.numel() * v.element_size() for v in fz.values() if isinstance(v, torch.Tensor))
-    nz = fz.get("nonzeros")
-    if nz is not None and nz[1] is not None:
-        n += sum(t.numel() * t.element_size() for t in nz[1])
-    return n
-
-
-class FrozenCache:
-    """Frozen renderer states of several objects, least recently used first out, within a
-    memory bound.
-
-    An object's frozen state (:meth:`~torch_brdf.render.polynomial.PolynomialRenderer.freeze`)
-    holds the other objects' constants (their diffuse equivalents, second-bounce and eye
-    coefficients) folded in, so each entry carries the ``stamp`` of those constants it was made
-    with: the caller looks an entry up with the current stamp and learns whether it is fresh
-    (exact) or stale (made before another object changed).
-
-    Args:
-        max_bytes: the bound; the least recently used entries leave first (the entry just put
-            stays even when it alone is larger).
-    """
-
-    def __init__(self, max_bytes: int):
-        self.max_bytes = int(max_bytes)
-        self._entries: dict[int, tuple[tuple, dict[str, Any], int]] = {}  # insertion order = use order
-
-    def put(self, obj: int, stamp: tuple, fz: dict[str, Any]) -> None:
-        self._entries.pop(obj, None)
-        self._entries[obj] = (stamp, fz, _frozen_nbytes(fz))
-        while self.nbytes > self.max_bytes and len(self._entries) > 1:
-            self._entries.pop(next(iter(self._entries)))
-
-    def get(self, obj: int) -> tuple[tuple, dict[str, Any]] | None:
-        """(stamp, frozen state) of ``obj`` (now the most recently used), or None."""
-        e = self._entries.pop(obj, None)
-        if e is None:
-            return None
-        self._entries[obj] = e
-        return e[0], e[1]
-
-    def discard(self, obj: int) -> None:
-        self._entries.pop(obj, None)
-
-    @property
-    def nbytes(self) -> int:
-        return sum(e[2] for e in self._entries.values())
-
-    def __contains__(self, obj: int) -> bool:
-        return obj in self._entries
-
-    def __len__(self) -> int:
-        return len(self._entries)
-
-
-class _Refreeze:
-    """A frozen state of one object computed on a worker thread from a snapshot of the other
-    objects' constants (the renderer's tensors are only read; the snapshot's dicts are copies,
-    so edits made meanwhile do not reach it)."""
-
-    def __init__(self, renderer: PolynomialRenderer, m: int, stamp: tuple):
-        self.m, self.stamp = m, stamp
-        r = copy.copy(renderer)  # shares the tensors; the coefficient dicts are copied below
-        for name in ("c", "c_hat", "d", "weight_maps", "_map_means"):
-            setattr(r, name, copy.copy(getattr(renderer, name)))  # lists and dicts of tensors
-        r._frozen = None
-        self._renderer = r
-        self.frozen: dict[str, Any] | None = None
-        self.error: BaseException | None = None
-        self.seconds = 0.0
-        self._thread = threading.Thread(target=self._run, name="torch_brdf-refreeze", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        t0 = time.perf_counter()
-        try:
-            with torch.no_grad():
-                self._renderer._freeze(self.m)
-            self.frozen = self._renderer._frozen
-        except BaseException as exc:  # reported by the session, which then freezes in the foreground
-            self.error = exc
-        self.seconds = time.perf_counter() - t0
-        self._renderer = None
-
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def wait(self) -> None:
-        self._thread.join()
 
 
 class ReferenceJob:
@@ -389,17 +296,12 @@ class EditorSession:
         # the A/B toggle compares the current edit with the last saved (or opened) materials
         self.saved = {n: self._snapshot(n) for n in self.editable}
         self._ab_stash: dict[str, tuple] | None = None
-        # switching objects: every object's frozen state is kept (an LRU within a memory bound);
-        # a state made before another object changed serves at once with a correction while a
-        # fresh one is computed on a worker thread (see select)
-        self.frozen_cache = FrozenCache(int(frozen_cache_mb * 2**20))
-        self._versions = [0] * tensors.num_objects  # bumped whenever an object's constants change
-        self._frozen_stamp: tuple | None = None  # the stamp the renderer's frozen state was made with
-        self._correction: torch.Tensor | None = None  # (H, W, 3) added to stale frozen frames
-        self._jobs: list[_Refreeze] = []  # background freezes under way or not yet collected
-        # (versions, the last full frame): exact, or corrected while a fresh state was being made
-        self._last_full: tuple[tuple, torch.Tensor] | None = None
-        #: how the last select got its frozen state: "frozen", "cached", "stale+correction", "kept"
+        # switching objects: the renderer keeps every object's frozen state (least recently used
+        # out past the bound) and brings a state made before another object changed up to date
+        # exactly when the object is selected again
+        self.renderer.max_frozen_bytes = int(frozen_cache_mb * 2**20)
+        #: how the last select got its frozen state: "frozen" (first visit), "kept" (its state
+        #: was current), "refreshed" (its state was brought up to date), "active" (already on)
         self.last_select = ""
 
     # -- selection ----------------------------------------------------------------------------
@@ -430,78 +332,14 @@ class EditorSession:
         self.selected = obj
         return time.perf_counter() - t0
 
-    # -- frozen states per object (switching without a pause) ----------------------------------
-    def _stamp(self, m: int) -> tuple:
-        """The versions of every other object's constants (what ``m``'s frozen state depends on)."""
-        return tuple(v for k, v in enumerate(self._versions) if k != m)
-
-    def _touched(self, obj: str) -> None:
-        """``obj``'s constants changed: every other object's frozen state is now stale."""
-        self._versions[self.tensors.object_id(obj)] += 1
-
     def _switch(self, m: int) -> str:
         r = self.renderer
-        self._settle_refreeze()
         fz = r._frozen
-        if fz is not None and fz["object"] == m:  # fresh, or stale with its correction and a job
-            return "kept"
-        if fz is not None and self._correction is None and self._frozen_stamp is not None:
-            self.frozen_cache.put(fz["object"], self._frozen_stamp, fz)
-        shown = self._shown_image()  # before the renderer changes state
-        hit = self.frozen_cache.get(m)
-        stamp = self._stamp(m)
-        if hit is not None and hit[0] == stamp:
-            r._frozen, self._frozen_stamp, self._correction = hit[1], stamp, None
-            return "cached"
-        if hit is not None:  # stale: serve it corrected to the image on screen, refreeze meanwhile
-            if shown is None:
-                shown = r.evaluate()
-            r._frozen, self._frozen_stamp = hit[1], hit[0]
-            self._correction = shown - r()
-            if not any(j.m == m and j.stamp == stamp for j in self._jobs):
-                self._jobs.append(_Refreeze(r, m, stamp))
-            return "stale+correction"
-        r.freeze(m)
-        self._frozen_stamp, self._correction = stamp, None
-        self.frozen_cache.put(m, stamp, r._frozen)
-        return "frozen"
-
-    def _shown_image(self) -> torch.Tensor | None:
-        """The last full frame if it was made with the current constants (else None): exact, or
-        the corrected frame of a stale state when the user switches again before its fresh state
-        is ready (then the next object starts from that frame and becomes exact when its own
-        fresh state arrives, instead of paying a full evaluation at the switch)."""
-        if self._last_full is not None and self._last_full[0] == tuple(self._versions):
-            return self._last_full[1]
-        return None
-
-    def _settle_refreeze(self, wait: bool = False) -> None:
-        """Keep the background freezes that finished (``wait``: wait for them first): a result
-        still fresh goes into the cache and, for the object on screen, replaces its stale state
-        and correction. Results made before another object changed are dropped."""
-        if wait:
-            for job in self._jobs:
-                job.wait()
-        r = self.renderer
-        for job in [j for j in self._jobs if j.done]:
-            self._jobs.remove(job)
-            if job.frozen is None or job.stamp != self._stamp(job.m):
-                continue
-            self.frozen_cache.put(job.m, job.stamp, job.frozen)
-            fz = r._frozen
-            if fz is not None and fz["object"] == job.m and self._correction is not None:
-                r._frozen, self._frozen_stamp, self._correction = job.frozen, job.stamp, None
-        fz = r._frozen
-        if self._correction is not None and fz is not None and not self._jobs:
-            # the job failed or went stale while this object stayed on screen: freeze it now
-            r.freeze(fz["object"])
-            self._frozen_stamp, self._correction = self._stamp(fz["object"]), None
-            self.frozen_cache.put(fz["object"], self._frozen_stamp, r._frozen)
-
-    @property
-    def refreezing(self) -> bool:
-        """True while a fresh frozen state is being computed in the background."""
-        return any(not j.done for j in self._jobs)
+        if fz is not None and fz["object"] == m and r.is_fresh(m):
+            return "active"
+        kept, fresh = m in r._states, r.is_fresh(m)
+        r.freeze(m)  # a kept state is reused (and refreshed exactly when stale)
+        return "kept" if fresh else ("refreshed" if kept else "frozen")
 
     def basis(self, obj: str):
         return self.tensors.bases[self.tensors.object_id(obj)]
@@ -572,7 +410,6 @@ class EditorSession:
     def _restore(self, obj: str, snap: tuple) -> None:
         material, f0, c, c_hat, d, projected = snap
         self.renderer.set_coefficients(obj, c, d, c_hat)
-        self._touched(obj)
         self.materials[obj], self.f0[obj] = dict(material), f0
         if projected is None:
             self.projected.pop(obj, None)
@@ -585,7 +422,6 @@ class EditorSession:
         t0 = time.perf_counter()
         c, base = self.projector(obj)(checked_create(material), f0, obj)
         self.renderer.set_coefficients(obj, c)
-        self._touched(obj)
         self.materials[obj], self.f0[obj] = dict(material), f0
         self.projected[obj] = base
         if self.selected is not None and self.renderer.frozen_object is None:
@@ -712,9 +548,6 @@ class EditorSession:
         self.scene = scene
         self.renderer.weight_maps.pop(self.tensors.object_id(obj), None)
         self.textured = apply_scene_textures(self.renderer, scene)
-        self._touched(obj)
-        self._frozen_stamp = None  # the weight maps changed: the frozen state is rebuilt
-        self.renderer._frozen = None
         if self.selected is not None:
             self.select(self.selected)
         self.last_set_s = time.perf_counter() - t0
@@ -737,11 +570,7 @@ class EditorSession:
         t0 = time.perf_counter()
         with torch.no_grad():
             if view == "image" and nb == self.bounces:
-                self._settle_refreeze()
                 img = self.renderer()
-                if self._correction is not None:  # a stale state while the fresh one is made
-                    img = img + self._correction
-                self._last_full = (tuple(self._versions), img)
             else:
                 parts = self.renderer.evaluate(per_bounce=True)
                 img = sum(parts[1 : nb + 1], parts[0]) if view == "image" else parts[self.views().index(view) - 1]

@@ -17,8 +17,8 @@ Then the switch between two objects: the left wall is clicked (its first visit f
 counted) and given Blinn-Phong, and ``--switches`` times the back wall and the left wall are
 clicked in turn, each click followed by three exponent steps; ``switch_worst_ms_<size>`` is the
 worst latency of those clicks and steps (a click is answered by a frame), ``switch_ms_<size>``
-the median of the clicks alone. After the first visits every switch finds a frozen state (kept,
-or stale and corrected while a fresh one is made in the background).
+the median of the clicks alone. After the first visits every switch finds a frozen state the
+renderer kept (current, or brought up to date exactly).
 
 Prints progress, then one JSON object as the last line: ``latency_ms_<size>`` (median),
 ``p95_ms_<size>``, ``updates_per_s_<size>`` (1000 / median latency: sequential steps),
