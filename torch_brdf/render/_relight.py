@@ -65,9 +65,9 @@ def phong_lobe(omc: torch.Tensor, exponent: float) -> torch.Tensor:
 
 
 def _rule_kind(rule) -> str | None:
-    from .triple import FixedRule, PhongRule  # the module that defines the rules imports this one
-
-    return "phong" if type(rule) is PhongRule else "fixed" if type(rule) is FixedRule else None
+    """``"phong"`` or ``"fixed"`` for the rules the kernel has: the class's own ``native_kind``
+    (a subclass, which may override ``project``, does not inherit it)."""
+    return type(rule).__dict__.get("native_kind")
 
 
 def unsupported(renderer, rule) -> str | None:

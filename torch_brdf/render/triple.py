@@ -52,6 +52,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -232,6 +233,8 @@ class FixedRule(SamplingRule):
     """The same number of samples per side ``l`` in every block (16 = the standard basis)."""
 
     level: int = 16
+    #: the compiled frame's name of this rule (see ``render/_relight.py``)
+    native_kind: ClassVar[str] = "fixed"
 
     def __post_init__(self):
         if self.level not in LEVELS:
@@ -266,6 +269,8 @@ class PhongRule(SamplingRule):
     cuts: tuple[float, float] = (30.0, 250.0)
     scale: float | None = None
     fallback: SamplingRule | None = None
+    #: the compiled frame's name of this rule (see ``render/_relight.py``)
+    native_kind: ClassVar[str] = "phong"
 
     def project(self, brdf, pairs, sampler):
         if not isinstance(brdf, Lambert | Phong):
