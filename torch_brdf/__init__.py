@@ -36,7 +36,7 @@ one; ``tests/test_layers.py`` keeps it so):
 from . import errors, parallel  # noqa: F401  (parallel sets OMP_WAIT_POLICY before torch loads; errors imports no torch)
 from .errors import TorchBRDFError
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 __all__ = ["TorchBRDFError", "__version__", "errors", "load_scene"]
 
 

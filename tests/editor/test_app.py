@@ -22,7 +22,7 @@ def app(small_tensors_file):
 
 def test_start_selects_the_back_wall_and_shows_a_frame(app):
     assert app.session.selected == "back" and "data-object='back'" in app.selected.value
-    assert (app.frame.width, app.frame.height) == (32, 32) and len(app.frame.pixels) == 32 * 32 * 3
+    assert (app.frame.width, app.frame.height) == (32, 32) and len(app.frame.pixels) == 32 * 32 * 4
     assert "frame" in app.frame.info and "primary rays" in app.status.value
     assert "<svg" in app.lobe.value and app.sphere.width == 96
 
@@ -191,3 +191,36 @@ def test_relighting_tab_rotates_orbits_and_edits(small_tensors_file, relight_fil
     )
     assert broken.relight is None and "could not open the relighting scene" in broken.rl_selected.value
     assert broken.session is not None  # the multibounce tab works
+
+
+def test_frame_messages_send_the_changed_tiles_and_rebuild_the_frame():
+    import numpy as np
+    import torch
+
+    from torch_brdf.editor.widgets import TILE, FrameView, decode_rgbe
+
+    view, sent = FrameView(), []
+    view.send = lambda content, buffers=None: sent.append((content, bytes(buffers[0])))
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(2 * TILE + 5, 3 * TILE, 3, generator=g) * 4  # edge tiles are cut short
+    view.show_linear(img)
+    view.show_linear(img)  # nothing changed: an empty patch
+    img[TILE + 3, 2 * TILE + 1] += 1.0  # one pixel in tile (1, 2), one in the short bottom row
+    img[-1, 0] = 0.0
+    view.show_linear(img)
+    (full, data), (empty, none), (patch, tiles) = sent
+    assert full["full"] and len(data) == img.shape[0] * img.shape[1] * 4
+    assert not empty["full"] and empty["tiles"] == [] and none == b""
+    assert not patch["full"] and patch["base"] == full["seq"] + 1 == patch["seq"] - 1
+    nx = 3
+    assert patch["tiles"] == [1 * nx + 2, 2 * nx + 0]
+    page = np.frombuffer(data, np.uint8).reshape(*img.shape[:2], 4).copy()  # what the page does
+    off = 0
+    for t in patch["tiles"]:
+        y0, x0 = (t // nx) * TILE, (t % nx) * TILE
+        th, tw = min(TILE, page.shape[0] - y0), min(TILE, page.shape[1] - x0)
+        page[y0 : y0 + th, x0 : x0 + tw] = np.frombuffer(tiles[off : off + th * tw * 4], np.uint8).reshape(th, tw, 4)
+        off += th * tw * 4
+    assert off == len(tiles) and np.array_equal(page, view.frame)
+    err = (decode_rgbe(page) - img).abs()
+    assert bool((err <= img.amax(-1, keepdim=True) / 256).all())  # RGBE's stated precision

@@ -52,7 +52,7 @@ def page(small_tensors_file, small_fit, relight_files):
 
     from torch_brdf.editor.server import EditorServer
 
-    config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2}
+    config = {"source": str(small_tensors_file[0]), "display_width": 320, "reference_spp": 2, "verify_frames": True}
     config.update(relight_scene=str(relight_files[0]), relight_visibility=str(relight_files[1]))
     if small_fit is not None:  # the measured-material map needs the shared NBRDF data
         config["gplvm"] = str(small_fit)
@@ -129,6 +129,49 @@ def test_page_loads_and_shows_the_frame(page, shots):
     page.screenshot(path=str(shots / "editor_loaded.png"), full_page=True)
 
 
+def received(pg, role: str = "tb-main") -> dict:
+    """What the page holds of the last frame: encoding, size, bytes, counts of whole frames,
+    tile messages and checksums that matched / did not."""
+    got = pg.evaluate(
+        "r => { const g = window.__torch_brdf.received[r]; return {...g, data: Array.from(g.data)}; }", role
+    )
+    got["data"] = torch.tensor(got["data"], dtype=torch.uint8).reshape(got["h"], got["w"], 4)
+    return got
+
+
+def test_the_page_receives_the_renderers_frame_and_tone_maps_it(page, small_tensors_file):
+    from torch_brdf.editor import EditorSession, load_source
+    from torch_brdf.editor.widgets import decode_rgbe
+    from torch_brdf.io import to_srgb8
+
+    session = EditorSession(*load_source(str(small_tensors_file[0]), progress=False)[:2])  # as the page loads it
+    session.select("back")
+    want = session.render().clamp_min(0)  # the page's first frame: the back wall selected, as loaded
+    got = received(page)
+    assert got["enc"] == "rgbe" and got["mismatches"] == 0
+    linear = decode_rgbe(got["data"])
+    # RGBE's stated precision: each channel within max(R, G, B) / 256 (plus float noise of the sum order)
+    bound = want.amax(-1, keepdim=True) / 256 * 1.001 + 1e-7
+    assert bool(((linear - want).abs() <= bound).all())
+    # the page's tone mapping (its table) is to_srgb8 of what it received, within one level
+    for stops in (0.0, 1.0):
+        shown = pixels(page).int()
+        assert int((shown - to_srgb8(linear, exposure=stops).int()).abs().max()) <= 1
+        if stops == 0.0:  # one step up the exposure slider: repainted on the page (no new frame)
+            n = frames(page)
+            page.focus(".tb-exposure .noUi-handle")
+            for _ in range(4):
+                page.keyboard.press("ArrowRight")  # 4 x 0.25 stops
+            page.wait_for_function(f"() => Number(document.querySelector('{MAIN}').dataset.frames) > {n}")
+            page.wait_for_function(
+                "() => document.querySelector('.tb-exposure .widget-readout').textContent.trim() === '1.00'"
+            )
+            time.sleep(0.5)
+    for _ in range(4):
+        page.keyboard.press("ArrowLeft")
+    page.wait_for_function("() => document.querySelector('.tb-exposure .widget-readout').textContent.trim() === '0.00'")
+
+
 def test_clicking_the_back_wall_selects_it(page, ids):
     buf, names = ids
     click_pixel(page, *interior_pixel(buf, names.index("left")))
@@ -163,6 +206,8 @@ def test_dragging_the_exponent_changes_the_wall(page, ids, shots):
     # the wall's light reaches the rest of the box only through its diffuse equivalent d
     assert float(change[~wall & ~light].mean()) < 0.25 * float(change[wall].mean())
     page.screenshot(path=str(shots / "editor_exponent.png"), full_page=True)
+    got = received(page)  # every frame of the drag, whole or as changed tiles, assembled exactly
+    assert got["verified"] >= 2 and got["mismatches"] == 0
 
 
 def test_switching_to_ggx_shows_its_sliders(page, shots):
@@ -204,6 +249,31 @@ def test_a_latent_map_click_changes_the_material(page, ids, small_fit, shots):
     wall = buf == names.index("back")
     assert float((pixels(page).float() - before).abs().amax(-1)[wall].mean()) > 1.0
     page.screenshot(path=str(shots / "editor_latent.png"), full_page=True)
+
+
+def test_the_latent_map_shades_the_trusted_region_and_snaps_a_click_outside(page, small_fit, shots):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz (the latent map's materials)")
+    from torch_brdf.editor.latent import LatentMap
+
+    lm = LatentMap(small_fit)  # the page's map, made the same way
+    w, h, data = page.eval_on_selector(
+        "canvas.tb-latent",
+        "c => [c.width, c.height, Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data)]",
+    )
+    shown = torch.tensor(data, dtype=torch.uint8).reshape(h, w, 4)[..., :3]
+    assert torch.equal(shown, lm.image())  # the shading on the page is the map's, pixel for pixel
+    assert bool(lm.untrusted.any()) and "trusted" in page.inner_text(".tb-frame-wrap:has(canvas.tb-latent) .tb-caption")
+    ys, xs = torch.nonzero(lm.untrusted, as_tuple=True)
+    x, y = int(xs[len(xs) // 2]), int(ys[len(ys) // 2])
+    box = page.query_selector("canvas.tb-latent").bounding_box()
+    page.mouse.click(box["x"] + (x + 0.5) * box["width"] / w, box["y"] + (y + 0.5) * box["height"] / h)
+    warning = page.wait_for_selector(".tb-latent-warning")
+    assert "snapped" in warning.inner_text() and "variance" in warning.inner_text()
+    px, py = int(warning.get_attribute("data-x")), int(warning.get_attribute("data-y"))
+    assert bool(lm.trusted[py, px]) and (px, py) == lm.snap(x, y)[:2]
+    assert "nearest materials" in page.inner_text(".tb-latent-pick")
+    page.screenshot(path=str(shots / "editor_latent_snap.png"), full_page=True)
 
 
 RELIGHT = ".tb-frame-wrap:has(canvas.tb-relight)"

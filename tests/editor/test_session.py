@@ -221,7 +221,7 @@ def test_latent_pick_blends_the_materials_projections(session, small_fit):
     assert lm.image().shape == (32, 32, 3)
     session.select("back")
     c, info = lm.pick(session, "back", 5, 20)
-    b = lm.model.weights(lm.latent(5, 20))
+    b = lm.model.weights(lm.latent(*info["picked"]))
     own = torch.stack([session.coefficients("back", NBRDF(n, lm.nbrdf)) for n in lm.names])
     assert torch.allclose(c, torch.einsum("n,njc->jc", b, own).clamp_min(0), rtol=1e-12, atol=0)
     assert len(info["heaviest"]) == 3 and info["variance"] >= 0
@@ -261,3 +261,72 @@ def test_latent_map_shows_any_pair_of_dimensions(tmp_path):
     for bad in ((1, 1), (0, 3)):
         with pytest.raises(ValueRangeError):
             lm.set_dims(bad)
+
+
+# -- switching the edited object ---------------------------------------------------------------
+def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
+
+
+def test_switching_objects_reuses_kept_states_and_stays_exact(small_tensors_file, small_scene):
+    s = EditorSession(small_tensors_file[1], small_scene, frozen_cache_mb=64)
+    assert s.renderer.max_frozen_bytes == 64 * 2**20
+    full = s.renderer.evaluate
+    wall = {"type": "blinn_phong", "kd": 0.2, "ks": 0.6, "exponent": 300.0}
+    s.select("back")
+    assert s.last_select == "frozen"
+    s.set_material("back", wall)
+    s.select("left")  # first visit: frozen now
+    assert s.last_select == "frozen" and set(s.renderer.frozen_objects) == {"back", "left"}
+    s.select("back")  # nothing changed since: its kept state as it is
+    assert s.last_select == "kept" and _close(s.render(), full())
+    s.select("back")
+    assert s.last_select == "active"
+    s.set_material("back", {**wall, "exponent": 60.0})
+    s.select("left")  # back changed since left's state was made: brought up to date, exact
+    assert s.last_select == "refreshed" and _close(s.render(), full())
+    s.set_material("left", {"type": "lambert", "albedo": [0.7, 0.1, 0.1]})
+    assert _close(s.render(), full())
+    s.set_material("back", wall)  # an object that is not selected
+    assert _close(s.render(), full())
+    assert s.undo() == "back" and _close(s.render(), full())
+
+
+def test_latent_map_marks_where_the_model_is_trusted_and_snaps_outside(small_fit):
+    if small_fit is None:
+        pytest.skip("shared data not found: merl/nbrdf_merl100_weights.npz")
+    from torch_brdf.brdf import NBRDF
+    from torch_brdf.editor.latent import NEGATIVE_TOLERANCE, LatentMap, validity_pairs
+
+    lm = LatentMap(small_fit, resolution=32)
+    r, limit = 32, lm.trust * (1 + lm.model.mu)
+    var = torch.stack([torch.stack([lm.model.variance(lm.latent(x, y)) for x in range(r)]) for y in range(r)])
+    assert torch.equal(lm.untrusted, var > limit)  # the mask is the predictive variance, pixel by pixel
+    assert bool(lm.untrusted.any()) and bool(lm.trusted.any())
+    img = lm.image().int()
+    assert bool((img[lm.untrusted][:, 2] > img[lm.untrusted][:, 0]).all())  # untrusted: dimmed, blue
+    # a click outside snaps to the nearest trusted pixel and says why; inside it stays
+    ys, xs = torch.nonzero(lm.untrusted, as_tuple=True)
+    x, y = int(xs[0]), int(ys[0])
+    sx, sy, why = lm.snap(x, y)
+    ty, tx = torch.nonzero(lm.trusted, as_tuple=True)
+    assert bool(lm.trusted[sy, sx]) and (sx - x) ** 2 + (sy - y) ** 2 == int(((tx - x) ** 2 + (ty - y) ** 2).min())
+    assert "variance" in why and "snapped" in why
+    assert lm.snap(int(tx[0]), int(ty[0])) == (int(tx[0]), int(ty[0]), None)
+    # the seed's unconstrained weights: the validity mask against the blend evaluated directly
+    raw = LatentMap(small_fit, resolution=16, valid="none")
+    wi, wo, w = validity_pairs()
+    wi, wo = wi.expand(-1, wo.shape[1], 3), wo.expand(wi.shape[0], -1, 3)
+    mats = [NBRDF(n, raw.nbrdf) for n in raw.names]
+    checked = {True: 0, False: 0}
+    for y in range(0, 16, 3):
+        for x in range(0, 16, 3):
+            b = raw.model.weights(raw.latent(x, y))
+            f = sum(float(b[i]) * m.eval(wi.float(), wo.float()).double() for i, m in enumerate(mats))  # (A, M, 3)
+            albedo = (f * w[None, :, None]).sum(1)
+            bad = bool(f.min() < -NEGATIVE_TOLERANCE * f.abs().max()) or bool(albedo.max() > 1)
+            assert bool(raw.invalid[y, x]) == bad
+            checked[bad] += 1
+    assert checked[True]  # the seed's raw weights between 8 materials predict invalid BRDFs somewhere
+    with pytest.raises(ValueRangeError):
+        LatentMap(small_fit, resolution=16, trust=0.0)

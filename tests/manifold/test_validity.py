@@ -93,3 +93,39 @@ def test_bad_validity_options_are_refused(family):
         GPLVM(model.fit, obs.z, valid="energy")
     with pytest.raises(ValueRangeError, match="valid must be one of"):
         model.weights(model.latents[:2], valid="clamp")
+
+
+def test_default_with_albedos_bounds_energy_and_without_is_simplex(family):
+    model, obs, train_albedo = family
+    assert GPLVM(model.fit, obs.z).valid == "simplex"
+    z = obs.z.double() * 2.5
+    albedo = train_albedo * 2.5
+    default = GPLVM(model.fit, z, albedo=albedo)  # no valid=: the default with albedos
+    assert default.valid == "energy"
+    xs = _inside_hull(model.latents, 1000, seed=2)
+    pred = default.predict(xs)
+    assert int((pred < 0).sum()) == 0
+    assert _max_albedo(default, xs, albedo, pred, obs.grid) <= 1 + 1e-3
+    # the simplex alone would have let the blends exceed 1 (what the bound is for)
+    assert float(torch.einsum("mn,nkc->mkc", default.weights(xs, valid="simplex"), albedo).max()) > 1.1
+
+
+def test_nbrdf_model_default_is_valid_at_random_latents(tmp_path):
+    """Data-backed: a q = 2 model of a few NBRDF fits (chrome's albedo exceeds 1 on this grid)."""
+    from tests.conftest import shared_file
+    from torch_brdf.manifold import MERLGrid, fit_gplvm, gram, nbrdf_observations
+
+    weights = shared_file("merl", "nbrdf_merl100_weights.npz")
+    names = ["blue-acrylic", "chrome", "gold-metallic-paint", "pink-fabric", "red-plastic", "steel", "white-paint"]
+    obs = nbrdf_observations(weights, MERLGrid.strided(15, 15, 30), names, cache=tmp_path / "obs.npz", progress=False)
+    z = obs.z.double()
+    albedo = directional_albedo(z, obs.grid)
+    assert float(albedo.max()) > 1  # so the default's bound is tested, not inherited from the rows
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(s, d, 2, max_iter=80, names=names, generator=torch.Generator().manual_seed(0), progress=False)
+    model = GPLVM(fit, z, albedo=albedo)
+    xs = _inside_hull(model.latents, 2000, seed=3)
+    pred = model.predict(xs)
+    assert float(z.min()) >= 0 and int((pred < 0).sum()) == 0
+    assert _max_albedo(model, xs, albedo, pred, obs.grid) <= 1 + 1e-3
+    assert float((model.weights(xs, valid="none") @ z < 0).double().mean()) > 0  # the seed's has negatives

@@ -1,7 +1,9 @@
 """Loading a visibility record costs memory in proportion to its file: a record of a few MB
 (real-like maps: a tilted horizon and spherical caps per vertex) is loaded in a fresh process
-whose peak resident memory is reset first; the peak may exceed what the loaded record keeps
-by at most twice the file (it once reached ~70 times the file while parsing)."""
+whose peak resident memory is reset first (after a load of a tiny record, so that the code
+the load runs is paged in); the record keeps the file's stream, so the whole peak stays
+within a generous multiple of the file (measured ~1.5x; the CSR layout kept ~4x the file
+after the load and its parse once reached ~70 times the file)."""
 
 from __future__ import annotations
 
@@ -25,6 +27,8 @@ CLEAR_REFS = Path("/proc/self/clear_refs")
 CHILD = """
 import json, sys
 from torch_brdf.records.visibility import VertexVisibility
+
+VertexVisibility.load(sys.argv[2])
 
 def status():
     with open("/proc/self/status") as f:
@@ -69,10 +73,13 @@ def test_load_peak_is_proportional_to_the_file(tmp_path):
     size = path.stat().st_size
     assert size > 1 << 21  # large enough that page and allocator granularity do not matter
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-c", CHILD, str(path)], capture_output=True, text=True, env=env, check=True)
+    tiny = VertexVisibility(
+        geom,
+        SceneVertices(pos[:2], normals[:2], torch.zeros(2, dtype=torch.int64), torch.tensor([0, 2])),
+        blocks.select([0, 1]),
+    ).save(tmp_path / "tiny.npz")
+    cmd = [sys.executable, "-c", CHILD, str(path), str(tiny)]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=True)
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["vertices"] == p
-    transient = got["peak"] - got["kept"]
-    assert transient <= 2 * size, f"load peak {got['peak']:,} B, kept {got['kept']:,} B, file {size:,} B"
-    # what stays is the in-memory record (int64 offsets per vertex-block pair): bounded too
-    assert got["peak"] <= 16 * size, f"load peak {got['peak']:,} B for a file of {size:,} B"
+    assert got["peak"] <= 2.5 * size, f"load peak {got['peak']:,} B, kept {got['kept']:,} B, file {size:,} B"

@@ -13,6 +13,7 @@ from torch_brdf.render.polynomial import PolynomialRenderer
 from torch_brdf.render.triple import PhongRule
 from torch_brdf.scene.builtin import cornell_box
 from torch_brdf.scene.envmap import EnvironmentMap
+from torch_brdf.transport import _native
 from torch_brdf.transport.polynomial import PolynomialSettings, precompute_polynomial
 from torch_brdf.transport.visibility import VisibilitySettings, precompute_visibility
 
@@ -75,11 +76,12 @@ def test_triple_product_frame_is_bitwise_equal_for_any_thread_count():
     sc = ball_on_plane(quads=24)  # ~15k (vertex, block) pairs: parallel kernels
     sc.lights[:] = [EnvironmentMap.sky(height=32, sun_radiance=(400.0, 380.0, 350.0), sun_angular_radius_deg=4.0)]
     vis = precompute_visibility(sc, VisibilitySettings(resolution=32, chunk=64), progress=False)
-    out = []
-    for n in COUNTS:
-        r = triple_renderer(sc, vis, dtype=torch.float32)
-        r.threads = n
-        v = r.view()
-        out.append(r.shade(v, PhongRule())[0])
-    for x in out[1:]:
-        assert torch.equal(x, out[0])
+    for path in ("shade_torch", "shade_compiled") if _native.library() is not None else ("shade_torch",):
+        out = []
+        for n in COUNTS:
+            r = triple_renderer(sc, vis, dtype=torch.float32)
+            r.threads = n
+            v = r.view()
+            out.append(getattr(r, path)(v, PhongRule())[0])
+        for x in out[1:]:
+            assert torch.equal(x, out[0]), path

@@ -265,3 +265,14 @@ def test_quick_report_passes_its_options_to_the_scripts(tmp_path):
         text = (REPO / "torch_brdf" / "report" / "benchmarks" / f"{name}.py").read_text()
         for opt in (o for o in opts if o.startswith("--")):
             assert f'add_argument("{opt}"' in text or f'add_argument(\n        "{opt}"' in text, (name, opt)
+
+
+def test_manifold_default_figures_draw_each_heldout_case_against_the_required_margin():
+    case = {"2": {"margin": 0.12, "interpolation_share": 0.5}, "5": {"margin": 0.2, "interpolation_share": 0.7}}
+    result = {"default_heldout": {"split0": case, "metals": case}, "default_families": ["metals", "woods"]}
+    figs = {f.key: f for f in {s.key: s for s in sections({"manifold": {"result": result}})}["manifold"].figures}
+    margin = {s.label: s for s in figs["manifold_default_margin"].series}
+    assert margin["split0"].points == [(2.0, 0.12), (5.0, 0.2)] and margin["required margin (10%)"].hline == 0.10
+    assert "metals, woods" in figs["manifold_default_margin"].caption
+    assert {s.label: s.points for s in figs["manifold_interpolation"].series}["metals"] == [(2.0, 0.5), (5.0, 0.7)]
+    assert sections({"manifold": {"result": {}}})  # an older run without the study: no crash

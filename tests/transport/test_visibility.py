@@ -247,8 +247,9 @@ def test_compiled_loop_casts_the_tracer_rays(scene):
 
 @pytest.mark.parametrize("bits", [0, 6])
 def test_joined_chunks_equal_the_record_of_all_entries(bits):
-    """The precompute's assembly (chunks copied into arrays allocated once, each chunk dropped
-    once copied) gives the record of the concatenated entries, bit for bit."""
+    """The precompute's assembly (chunks' varint streams copied into one stream allocated once,
+    each chunk dropped once copied) gives the record of the concatenated entries, bit for bit,
+    and the very stream the whole record encodes to."""
     gen = torch.Generator().manual_seed(3)
     v = torch.rand(23, 6, 256, generator=gen) < 0.5
     maps = v.float() * torch.rand(23, 6, 1, generator=gen) if bits else v
@@ -259,9 +260,13 @@ def test_joined_chunks_equal_the_record_of_all_entries(bits):
         entries = {"counts": r.counts.numpy(), "index": r.index.numpy()}
         if bits:
             entries["delta"] = r.delta.numpy()
-        tiles.append((entries, {"chunk": s}))
+        arrays, n_entries = visibility._chunk_stream(entries, 6, bits)
+        tiles.append((arrays, {"chunk": s, "entries": n_entries}))
     joined = visibility._join_tiles(tiles, 6, bits)
     assert all(t is None for t in tiles)
+    assert joined.num_entries == whole.num_entries
+    for got, want in zip(joined.to_bytes(), whole.to_bytes(), strict=True):
+        assert np.array_equal(got, want)
     for name in ("counts", "offsets", "index", "states"):
         assert torch.equal(getattr(joined, name), getattr(whole, name)), name
     assert (joined.delta is None) == (bits == 0) and (bits == 0 or torch.equal(joined.delta, whole.delta))

@@ -10,7 +10,8 @@
   half-sample buffers (NFOR's selection; linear once picked);
 * :mod:`.oidn`: Intel Open Image Denoise per grouped basis image, per cumulative band sum and
   per frame (optional extra ``denoise``);
-* :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor.
+* :mod:`.tensors`: apply a denoiser to the multibounce tensors or a frozen tensor;
+* :mod:`.frame`: denoise the final edited frame and keep each object's mean (any edits).
 
 HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.metrics.hdr_flip`.
 """
@@ -18,6 +19,7 @@ HDR-FLIP, the perceptual error of the denoising benchmark, is :func:`torch_brdf.
 from ..records.guides import GuideBuffers
 from ..transport.guides import guide_buffers, light_lobe_images, pixel_coverage
 from .atrous import AtrousSettings, EdgeAwareFilter, GuideSigmas, GuideWeights, glossy_objects
+from .frame import FrameDenoiser, keep_region_means, region_mean_error
 from .oidn import KEEP_MEAN_SIGMA, CumulativeOIDN, OIDNBasis, oidn_available, oidn_frame, oidn_image
 from .regression import RegressionFilter, RegressionSettings
 from .selection import SelectedRegressionFilter, SelectionSettings, silhouette_signature
@@ -28,6 +30,7 @@ __all__ = [
     "AtrousSettings",
     "CumulativeOIDN",
     "EdgeAwareFilter",
+    "FrameDenoiser",
     "GuideBuffers",
     "GuideSigmas",
     "GuideWeights",
@@ -42,6 +45,7 @@ __all__ = [
     "denoise_tensors",
     "glossy_objects",
     "guide_buffers",
+    "keep_region_means",
     "light_lobe_images",
     "make_denoiser",
     "mean_tensors",
@@ -49,5 +53,6 @@ __all__ = [
     "oidn_frame",
     "oidn_image",
     "pixel_coverage",
+    "region_mean_error",
     "silhouette_signature",
 ]

@@ -84,13 +84,16 @@ def oidn_available() -> bool:
     return True
 
 
-def oidn_image(image: torch.Tensor, guides: GuideBuffers | None = None, quality: str = "high") -> torch.Tensor:
+def oidn_image(
+    image: torch.Tensor, guides: GuideBuffers | None = None, quality: str = "high", normal: bool = True
+) -> torch.Tensor:
     """OIDN's ``RT`` filter in HDR mode on one image.
 
     Args:
         image: (H, W, 3) linear radiance, >= 0 (negative values are clamped).
         guides: albedo proxy and normals as clean auxiliary images (None: colour only).
         quality: ``"high"``, ``"balanced"`` or ``"fast"``.
+        normal: with ``guides``, also pass the normals (False: the albedo proxy alone).
     Returns:
         (H, W, 3) float32.
     """
@@ -102,9 +105,10 @@ def oidn_image(image: torch.Tensor, guides: GuideBuffers | None = None, quality:
     if guides is not None:
         kw = {
             "albedo": np.ascontiguousarray(guides.albedo.numpy(), dtype=np.float32),
-            "normal": np.ascontiguousarray(guides.normal.numpy(), dtype=np.float32),
             "clean_aux": True,
         }
+        if normal:
+            kw["normal"] = np.ascontiguousarray(guides.normal.numpy(), dtype=np.float32)
     out = oidn.denoise(color, hdr=True, quality=quality, **kw)
     return torch.from_numpy(np.array(out, dtype=np.float32))
 

@@ -24,12 +24,11 @@ from IPython.display import display
 
 from ..brdf import Factored1D, create
 from ..errors import TorchBRDFError
-from ..io.png import to_srgb8
 from .form import Bands, MaterialForm
 from .lobe import lit_sphere, lobe_svg
 from .params import model_choices
 from .session import EditorSession, ReferenceJob, checked_create, load_source
-from .widgets import FrameView
+from .widgets import FrameView, srgb8_fast
 
 DEFAULTS: dict[str, Any] = {
     "source": "cornell_box_glossy",
@@ -54,25 +53,17 @@ DEFAULTS: dict[str, Any] = {
     "relight_scene": None,
     "relight_visibility": None,
     "relight_resolution": None,
+    # frame messages carry a CRC-32 of the whole frame and the page checks the frame it assembled
+    # from the changed tiles (the browser tests; costs ~1 ms a 512² frame)
+    "verify_frames": False,
+    # memory bound of the frozen states the renderer keeps per object, so that switching back to
+    # an object costs no new freeze (PolynomialRenderer.max_frozen_bytes)
+    "frozen_cache_mb": 2048,
+    # "messages": RGBE frames in binary messages, tone mapped on the page (FrameView); "state":
+    # the earlier transport, kernel-side 8-bit sRGB in the widget's synced state and the page's
+    # latency sent back per frame (the benchmark's baseline)
+    "frame_transport": "messages",
 }
-
-
-_LUT_SIZE = 65536
-_lut: torch.Tensor | None = None
-
-
-def srgb8_fast(img: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
-    """(H, W, 3) linear radiance -> uint8 sRGB, as :func:`~torch_brdf.io.to_srgb8` (clip tone
-    map) within one level: a 65,536-entry table made once by ``to_srgb8`` itself, indexed by
-    the clipped value. ``to_srgb8`` computes the curve in float64 by colour-science, 0.34 s
-    for a 512² frame on a loaded machine; the table ~3 ms."""
-    global _lut
-    if _lut is None:
-        ramp = torch.linspace(0, 1, _LUT_SIZE, dtype=torch.float64).reshape(1, -1, 1).expand(1, _LUT_SIZE, 3)
-        _lut = to_srgb8(ramp.contiguous())[0, :, 0].contiguous()
-    n = _LUT_SIZE - 1  # index_select of a flat index: 6x faster than lut[idx] (advanced indexing)
-    idx = img.detach().to(torch.float32).mul(n * 2.0**exposure).clamp_(0, n).add_(0.5).long()
-    return _lut.index_select(0, idx.reshape(-1)).reshape(idx.shape)
 
 
 def _rgb8(img: torch.Tensor, exposure: float = 0.0):
@@ -112,12 +103,19 @@ class EditorApp:
         self.title = W.HTML("<h3 style='margin:4px 0'>torch_brdf material editor</h3>")
         self.status = W.HTML("", layout=W.Layout(min_height="20px"))
         self.message = W.HTML("", layout=W.Layout(min_height="20px"))
-        self.frame = FrameView(role="tb-main", measure=True, display_width=dw)
+        self.frame = FrameView(
+            role="tb-main",
+            measure=True,
+            display_width=dw,
+            verify=bool(self.config["verify_frames"]),
+            transport=self.config["frame_transport"],
+        )
         self.frame.on_msg(self._on_frame_msg)
         self.view = W.Dropdown(options=["image"], value="image", description="view")
         self.bounces = W.IntSlider(value=1, min=1, max=1, description="bounces", continuous_update=False)
         self.exposure = W.FloatSlider(value=0.0, min=-4, max=4, step=0.25, description="exposure")
-        for w in (self.view, self.bounces, self.exposure):
+        self.exposure.add_class("tb-exposure")
+        for w in (self.view, self.bounces):
             w.observe(lambda _c: self._redraw(), "value")
         self.selected = W.HTML("<b>click an object</b> in the frame to edit its material")
         bands = Bands(
@@ -166,7 +164,11 @@ class EditorApp:
         )
         lobe = W.VBox([W.HTML("<b>lobe</b> (plane of incidence) and lit sphere"), W.HBox([self.lobe, self.sphere])])
         self.latent_box.children = [
-            W.HTML("<b>measured materials</b> (GPLVM latent map, dark = uncertain): click to blend"),
+            W.HTML(
+                "<b>measured materials</b> (GPLVM latent map; white: near the measured materials, "
+                "blue: uncertain, red: the model's prediction is not a valid BRDF): click to blend; "
+                "a click outside the yellow edge snaps to the nearest trusted point"
+            ),
             self.latent_dims,
             W.HBox([self.latent_view, self.latent_info]),
         ]
@@ -189,9 +191,20 @@ class EditorApp:
             ]
         )
         self.tabs = W.Tab([main, self._build_relight()])
+        # the page tone maps the linear frames: an exposure change repaints there, in the browser
+        # (jslink) and in the kernel's copy of the value
+        for view in (self.frame, self.ref_image, self.rl_frame):
+            W.jslink((self.exposure, "value"), (view, "exposure"))
+        self.exposure.observe(self._on_exposure, "value")
         self.tabs.set_title(0, "multibounce")
         self.tabs.set_title(1, "relighting")
         self.root = W.VBox([self.title, self.status, self.message, self.tabs])
+
+    def _on_exposure(self, change) -> None:
+        for view in (self.frame, self.ref_image, self.rl_frame):
+            view.exposure = float(change["new"])
+        if self.frame.transport == "state":  # the baseline tone maps in the kernel
+            self._redraw()
 
     # -- undo, A/B, save, export -------------------------------------------------------------------
     def _build_keep(self) -> None:
@@ -289,7 +302,9 @@ class EditorApp:
         al.) on a scene with a visibility record (``relight_scene`` + ``relight_visibility``)."""
         c = self.config
         self.relight = None
-        self.rl_frame = FrameView(role="tb-relight", display_width=int(c["display_width"]))
+        self.rl_frame = FrameView(
+            role="tb-relight", display_width=int(c["display_width"]), verify=bool(c["verify_frames"])
+        )
         self.rl_frame.on_msg(lambda _w, m, _b: self._guard(self._on_relight_click, m))
         wide = {"description_width": "initial"}
         self.rl_rotation = W.FloatSlider(0.0, min=0.0, max=360.0, step=5.0, description="environment °", style=wide)
@@ -365,11 +380,10 @@ class EditorApp:
         rl = self.relight
         t0 = time.perf_counter()
         img = rl.render()
-        rgb = _rgb8(img, self.exposure.value)
         st = rl.stats
         extra = f" · {st.vertices} vertices" if st is not None else ""
-        self.rl_frame.show(
-            rgb,
+        self.rl_frame.show_linear(
+            img,
             f"triple products {rl.last_frame_s * 1e3:.1f} ms · kernel {(time.perf_counter() - t0) * 1e3:.1f} ms{extra}"
             f" · environment {rl.rotation_deg:.0f}° · orbit {rl.orbit_deg:.0f}°",
         )
@@ -408,7 +422,7 @@ class EditorApp:
             tensors, sc, note = load_source(
                 source, scene, c["resolution"], c["series"], c["spp"], c["seed"], c["cache_dir"], progress=False
             )
-            session = EditorSession(tensors, sc)
+            session = EditorSession(tensors, sc, frozen_cache_mb=float(c["frozen_cache_mb"]))
         except TorchBRDFError as exc:
             self.status.value = "" if self.session is None else self.status.value
             self.error(f"could not open {source!r}: {exc}")
@@ -471,8 +485,11 @@ class EditorApp:
 
     def _show_latent(self) -> None:
         a, b = self.latent.dims
+        trusted = float(self.latent.trusted.float().mean())
         self.latent_view.show(
-            self.latent.image(), f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q}"
+            self.latent.image(),
+            f"{len(self.latent.names)} materials, latent dims {a}-{b} of {self.latent.q} · "
+            f"trusted {trusted:.0%} (edge yellow; blue: uncertain, red: invalid prediction)",
         )
 
     def _on_latent_dims(self) -> None:
@@ -498,10 +515,20 @@ class EditorApp:
         c, info = self.latent.pick(s, s.selected, x, y)
         s.set_material(s.selected, self.latent.material(s, s.selected, c))
         heavy = ", ".join(f"{n} {w:+.2f}" for n, w in info["heaviest"])
-        self.latent_info.value = html.escape(
+        near = ", ".join(n for n, _ in info["nearest"])
+        text = html.escape(
             f"latent {info['latent']} · variance {info['variance']:.3f} · heaviest weights: {heavy}"
+            f" · nearest materials: {near}"
         )
-        self.latent_info.value = f"<span class='tb-latent-pick'>{self.latent_info.value}</span>"
+        px, py = info["picked"]
+        warn = info["warning"]
+        note = (
+            f"<div class='tb-latent-warning' data-x='{px}' data-y='{py}' style='color:#b36b00'>"
+            f"{html.escape(warn)}</div>"
+            if warn
+            else ""
+        )
+        self.latent_info.value = f"{note}<span class='tb-latent-pick' data-x='{px}' data-y='{py}'>{text}</span>"
         self.panel.show(s.materials[s.selected], note="measured blend on the bands: edit its curve or pick a model")
         self.message.value = ""
         self._redraw()
@@ -520,23 +547,32 @@ class EditorApp:
         if obj is None:
             self.info(f"nothing at pixel ({x}, {y})")
             return
-        self.select(obj)
+        self.select(obj, redraw=True)
 
-    def select(self, obj: str) -> None:
+    def select(self, obj: str, redraw: bool = False) -> None:
+        """Select (and freeze) ``obj``; with ``redraw`` a frame answers first, then the form follows."""
         s = self.session
         secs = s.select(obj)  # SceneError for fixed objects -> message
+        if redraw:
+            self._redraw()
         self.message.value = ""
         mat = s.materials[obj]
         b = s.basis(obj)
         bands = f"{b.J} band{'s' if b.J > 1 else ''} over {b.variable}"
         hint = " (one band: glossy models show as their diffuse equivalent)" if b.J == 1 else ""
+        how = {
+            "frozen": f"frozen in {secs * 1e3:.0f} ms",
+            "kept": f"its kept frozen state ({secs * 1e3:.0f} ms)",
+            "refreshed": f"its kept frozen state brought up to date in {secs * 1e3:.0f} ms",
+            "active": "frozen",
+        }[s.last_select]
         self.selected.value = (
-            f"<span class='tb-selected' data-object='{html.escape(obj)}'>selected: <b>{html.escape(obj)}</b></span>"
-            f" · {bands}{hint} · frozen in {secs * 1e3:.0f} ms"
+            f"<span class='tb-selected' data-object='{html.escape(obj)}' data-how='{s.last_select}'>"
+            f"selected: <b>{html.escape(obj)}</b></span> · {bands}{hint} · {how}"
         )
         self.panel.show(mat)
         self.f0_box.children = [self.f0] if s.has_fresnel(obj) else []
-        self._draw_lobe()
+        self._schedule_lobe(0.0)
 
     # -- the material form (see .form) ------------------------------------------------------------
     @property
@@ -592,13 +628,9 @@ class EditorApp:
         img = self._guard(s.render, self.view.value, self.bounces.value)
         if img is None:
             return
-        rgb = _rgb8(img, self.exposure.value)
-        total = time.perf_counter() - t0
-        info = (
-            f"frame {s.last_frame_s * 1e3:.1f} ms · projection {s.last_set_s * 1e3:.1f} ms · "
-            f"kernel {total * 1e3 + s.last_set_s * 1e3:.1f} ms"
-        )
-        self.frame.show(rgb, info)
+        head = f"frame {s.last_frame_s * 1e3:.1f} ms · projection {s.last_set_s * 1e3:.1f} ms · "
+        # the caption's kernel time includes the encoding (the caption is made right before sending)
+        self.frame.show_linear(img, lambda: head + f"kernel {(time.perf_counter() - t0 + s.last_set_s) * 1e3:.1f} ms")
 
     def _draw_lobe(self) -> None:
         s = self.session
@@ -650,7 +682,7 @@ class EditorApp:
 
         rmse = relative_rmse(editor_image, job.image, self.session.mask)
         diff = editor_image - job.image
-        self.ref_image.show(_rgb8(job.image, self.exposure.value), f"reference {job.spp} spp, {job.seconds:.1f} s")
+        self.ref_image.show_linear(job.image, f"reference {job.spp} spp, {job.seconds:.1f} s")
         self.diff_image.show(_rgb8(_difference_rgb(diff)), "difference (red: editor brighter)")
         self.ref_result.value = (
             f"<span class='tb-rmse'>relative RMSE {rmse:.4f}</span> (pixels that see no emitter; "

@@ -41,6 +41,9 @@ from ..render.polynomial import apply_scene_textures, emitter_mask
 from ..scene import trace_gbuffer
 from ..transport import PathTraceSettings, PolynomialSettings, path_trace, precompute_polynomial
 
+#: memory bound of the frozen states the renderer keeps for switching (its ``max_frozen_bytes``)
+FROZEN_CACHE_MB = 2048
+
 #: the coarse pair quadrature of interactive projection (see the module docstring)
 FAST_QUADRATURE = {"n_theta_d": 2, "n_phi_d": 4, "n_phi_h": 4, "order": 2}
 
@@ -266,7 +269,7 @@ class EditorSession:
             the starting materials and the reference); None: tensors only.
     """
 
-    def __init__(self, tensors: PolynomialTensors, scene=None):
+    def __init__(self, tensors: PolynomialTensors, scene=None, frozen_cache_mb: float = FROZEN_CACHE_MB):
         self.tensors, self.scene = tensors, scene
         names = list(tensors.object_names)
         self.editable = [n for n, b in zip(names, tensors.bases, strict=True) if b is not None]
@@ -293,6 +296,13 @@ class EditorSession:
         # the A/B toggle compares the current edit with the last saved (or opened) materials
         self.saved = {n: self._snapshot(n) for n in self.editable}
         self._ab_stash: dict[str, tuple] | None = None
+        # switching objects: the renderer keeps every object's frozen state (least recently used
+        # out past the bound) and brings a state made before another object changed up to date
+        # exactly when the object is selected again
+        self.renderer.max_frozen_bytes = int(frozen_cache_mb * 2**20)
+        #: how the last select got its frozen state: "frozen" (first visit), "kept" (its state
+        #: was current), "refreshed" (its state was brought up to date), "active" (already on)
+        self.last_select = ""
 
     # -- selection ----------------------------------------------------------------------------
     @property
@@ -318,9 +328,18 @@ class EditorSession:
             raise SceneError(f"{obj!r} is fixed: its BRDF was baked into the precomputation, it cannot be edited")
         t0 = time.perf_counter()
         with torch.no_grad():
-            self.renderer.freeze(obj)
+            self.last_select = self._switch(self.tensors.object_id(obj))
         self.selected = obj
         return time.perf_counter() - t0
+
+    def _switch(self, m: int) -> str:
+        r = self.renderer
+        fz = r._frozen
+        if fz is not None and fz["object"] == m and r.is_fresh(m):
+            return "active"
+        kept, fresh = m in r._states, r.is_fresh(m)
+        r.freeze(m)  # a kept state is reused (and refreshed exactly when stale)
+        return "kept" if fresh else ("refreshed" if kept else "frozen")
 
     def basis(self, obj: str):
         return self.tensors.bases[self.tensors.object_id(obj)]

@@ -58,6 +58,9 @@ MAX_COMPRESSION_RATIO = 200
 RATIO_FREE_BYTES = 1 << 20
 _MAX_NPY_HEADER = 1 << 16
 _CHUNK = 1 << 24
+#: bytes read at once into an array: a zip member's ``readinto`` reads them into a temporary
+#: bytes object first, so this bounds the transient beside the array
+_READ_CHUNK = 1 << 20
 #: everything the zip, inflate and .npy header layers raise on a damaged or crafted file
 _READ_ERRORS = (
     OSError, EOFError, ValueError, KeyError, IndexError, TypeError, AttributeError,
@@ -386,7 +389,7 @@ def _read_member(z: zipfile.ZipFile, info: zipfile.ZipInfo, path) -> np.ndarray:
         view = memoryview(out.view(np.uint8) if out.size else np.empty(0, np.uint8))
         pos = 0
         while pos < nbytes:
-            got = f.readinto(view[pos : pos + _CHUNK])
+            got = f.readinto(view[pos : pos + _READ_CHUNK])
             if not got:
                 raise FileFormatError(f"{path}: member {info.filename!r} ends early")
             pos += got

@@ -26,18 +26,33 @@ from .data import (
     split_names,
 )
 from .evaluate import HeldOut, heldout_reconstruction
-from .gplvm import GPLVM, VALIDITY, GPLVMFit, fit_gplvm, gram, log_likelihood, projection_terms, simplex_projection
+from .gplvm import (
+    GPLVM,
+    VALIDITY,
+    GPLVMFit,
+    default_validity,
+    fit_gplvm,
+    gram,
+    log_likelihood,
+    projection_terms,
+    simplex_projection,
+)
 from .kernel import JitterWarning, cholesky_jitter, kernel_matrix
 from .materials import material_record, merl_material, random_record, sphere_scene, with_material
 from .paths import (
+    Interpolation,
     LatentPath,
     LatentSlice,
+    PathProfile,
     best_path,
     directional_albedo,
+    highlight_width,
     interpolant_diagnostics,
+    interpolation_share,
     latent_points,
     latent_slice,
     resample_path,
+    straight_paths,
 )
 from .zh import ZHCoefficients, env_sh, rows_brdf, zh_coefficients, zh_shade
 
@@ -46,24 +61,29 @@ __all__ = [
     "VALIDITY",
     "GPLVMFit",
     "HeldOut",
+    "Interpolation",
     "JitterWarning",
     "LatentPath",
     "LatentSlice",
     "MERLGrid",
     "Observations",
+    "PathProfile",
     "ZHCoefficients",
     "analytic_observations",
     "best_path",
     "cholesky_jitter",
     "cosine_weighted_rmse",
     "default_grid",
+    "default_validity",
     "directional_albedo",
     "env_sh",
     "fit_gplvm",
     "fit_pca",
     "gram",
     "heldout_reconstruction",
+    "highlight_width",
     "interpolant_diagnostics",
+    "interpolation_share",
     "kernel_matrix",
     "latent_points",
     "latent_slice",
@@ -80,6 +100,7 @@ __all__ = [
     "simplex_projection",
     "sphere_scene",
     "split_names",
+    "straight_paths",
     "with_material",
     "zh_coefficients",
     "zh_shade",

@@ -13,7 +13,7 @@ from ..metrics import cosine_weighted_rmse, log_relative_rmse
 from .data import Observations, fit_pca
 from .gplvm import GPLVM, GPLVMFit, fit_gplvm, gram, projection_terms, small_matrix_mode
 from .kernel import se_kernel
-from .paths import directional_albedo
+from .paths import directional_albedo, interpolation_share
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,9 @@ class HeldOut:
             reconstructions projected onto the non-negative cone (``max(z, 0)``, no negative
             values left); their log-relative RMSE is ``gplvm_logrmse`` / ``pca_logrmse`` (that
             metric clamps at 0 already).
+        interpolation: (M,) distance of each placed latent to its nearest training latent over the
+            local spacing (:func:`~.paths.interpolation_share`: < 0.1 means "on" a training material).
+        top_weight: (M,) the largest blend weight of each reconstruction (1: one material alone).
     """
 
     names: tuple[str, ...]
@@ -49,6 +52,8 @@ class HeldOut:
     pca_negative: torch.Tensor | None = None
     gplvm_projected_cosrmse: torch.Tensor | None = None
     pca_projected_cosrmse: torch.Tensor | None = None
+    interpolation: torch.Tensor | None = None
+    top_weight: torch.Tensor | None = None
 
     def summary(self) -> dict[str, float]:
         return {
@@ -91,6 +96,12 @@ NEGATIVES = ("penalise", "free")
 NEGATIVE_WEIGHT = 100.0
 
 
+#: default number of nearest training materials between which :func:`project_perceptual` also starts
+NEIGHBOURS = 6
+#: fractions along each segment between two neighbours that are scored as candidate starts
+_SEGMENT = (0.15, 0.3, 0.5, 0.7, 0.85)
+
+
 def project_perceptual(
     model: GPLVM,
     z_train: torch.Tensor,
@@ -103,6 +114,7 @@ def project_perceptual(
     negative_weight: float = NEGATIVE_WEIGHT,
     max_columns: int | None = 8192,
     train_map: torch.Tensor | None = None,
+    neighbours: int = NEIGHBOURS,
 ) -> torch.Tensor:
     r"""Latent of a new BRDF that minimises the log-mapped error of :math:`b(x)^\top Z` against it.
 
@@ -120,9 +132,13 @@ def project_perceptual(
       a softplus surrogate of the clamp.
 
     L-BFGS (strong Wolfe) from the ``starts`` training latents whose rows have the smallest
-    error; the candidates (the training latents themselves included) are scored with the exact
-    error on every column and the best is kept. The search itself sees at most ``max_columns``
-    columns (every k-th, evenly spread over the grid and the colour channels): its cost is
+    error and, with ``neighbours > 1``, from the ``starts`` best of a scored set of points between
+    the ``neighbours`` nearest training latents (:func:`_between_starts`: the valid weights are
+    exactly :math:`e_i` around each training latent, so a search started there stays on the
+    material and only ever finds the nearest neighbour); the candidates (the training latents
+    themselves included) are scored with the exact error on every column and the best is kept.
+    The search itself sees at most ``max_columns`` columns (every k-th, evenly spread over the
+    grid and the colour channels): its cost is
     :math:`O(N \cdot \text{columns})` per evaluation, 8x fewer columns on the full MERL grid
     (d = 63,339): a placement there took half the CPU time (the exact scoring of the candidates
     stays O(N d)) with the same log-RMSE to 4 digits (``benchmarks/manifold.py``).
@@ -138,6 +154,7 @@ def project_perceptual(
         max_columns: columns the L-BFGS search evaluates (None = all).
         train_map: optional (N, d) :func:`_logmap` of ``z_train`` (computed when None; pass it
             when placing many materials against the same training rows).
+        neighbours: nearest training materials between which starts are scored (1: none).
     Returns:
         (Q,) float64 latent.
     """
@@ -165,11 +182,17 @@ def project_perceptual(
     if train_map is None:
         train_map = _logmap(z_train, cosine)
     n_starts = max(1, min(starts, z_train.shape[0]))
-    order = ((train_map - _logmap(z_new, cosine)) ** 2).mean(-1).argsort()[:n_starts]
+    near = ((train_map - _logmap(z_new, cosine)) ** 2).mean(-1).argsort()
+    order = near[:n_starts]
+    inits = [model.latents[i] + 1e-3 for i in order.tolist()]
+    if neighbours > 1:
+        inits += _between_starts(
+            model, near[: min(neighbours, z_train.shape[0])], zc_sub, c_sub, t_sub, n_starts, penalise, negative_weight
+        )
     best_x, best_e = None, math.inf
     with small_matrix_mode(z_train.shape[0]):
-        for i in order.tolist():
-            x = (model.latents[i] + 1e-3).clone().requires_grad_(True)
+        for i, x0 in enumerate(inits):
+            x = x0.clone().requires_grad_(True)
             opt = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe")
 
             def closure(x=x, opt=opt):
@@ -184,12 +207,42 @@ def project_perceptual(
                 return e
 
             opt.step(closure)
+            own = (model.latents[order[i]],) if i < len(order) else ()
             with torch.no_grad():  # a non-finite end (line search on a plateau of valid weights) is dropped
-                for cand in (x.detach(), model.latents[i]) if bool(torch.isfinite(x).all()) else (model.latents[i],):
+                for cand in (x.detach(), *own) if bool(torch.isfinite(x).all()) else own:
                     e = error(cand)
                     if e < best_e:
                         best_x, best_e = cand.clone(), e
     return best_x
+
+
+def _between_starts(
+    model: GPLVM, near: torch.Tensor, zc_sub, c_sub, t_sub, count: int, penalise: bool, negative_weight: float
+) -> list[torch.Tensor]:
+    r"""Up to ``count`` starts between the nearest training latents, the best of a scored candidate set.
+
+    Near a training latent the valid (simplex) weights are exactly :math:`e_i` on a small
+    neighbourhood: a search started there sees a zero gradient and stays on the material, so the
+    held-out material is only ever matched to its nearest neighbour. Candidates: points at
+    :data:`_SEGMENT` fractions of every segment between two of the ``near`` latents and the centroid
+    of every three; each is scored by the search's error on the subsampled columns (one batched
+    blend), and the best ``count`` start searches of their own.
+    """
+    lat = model.latents[near]
+    k = lat.shape[0]
+    pts = [lat[i] + t * (lat[j] - lat[i]) for i in range(k) for j in range(i + 1, k) for t in _SEGMENT]
+    pts += [(lat[i] + lat[j] + lat[m]) / 3 for i in range(k) for j in range(i + 1, k) for m in range(j + 1, k)]
+    if not pts:
+        return []
+    xs = torch.stack(pts)
+    with torch.no_grad():
+        p = model.weights(xs) @ zc_sub
+        if penalise:
+            m = _signed_logmap(p, c_sub, negative_weight=negative_weight)
+        else:
+            m = torch.log(p.clamp_min(0) * c_sub + 1e-3)
+        err = ((m - t_sub) ** 2).mean(-1)
+    return list(xs[err.argsort()[:count]])
 
 
 def _weights_differentiable(model: GPLVM, x: torch.Tensor) -> torch.Tensor:
@@ -212,8 +265,9 @@ def heldout_reconstruction(
     negatives: str = "penalise",
     negative_weight: float = NEGATIVE_WEIGHT,
     max_columns: int | None = 8192,
-    valid: str = "simplex",
+    valid: str | None = None,
     albedo: torch.Tensor | None = None,
+    neighbours: int = NEIGHBOURS,
     **fit_kwargs,
 ) -> HeldOut:
     r"""Fit the GPLVM on ``train``, then place every ``test`` material at its best manifold point.
@@ -241,8 +295,11 @@ def heldout_reconstruction(
         negative_weight: as ``negatives``.
         max_columns: as ``negatives``.
         valid: the blend weights of the reconstructions and of their placement (:class:`GPLVM`'s
-            ``valid``: ``"simplex"``, ``"energy"``, ``"none"`` = the seed's).
+            ``valid``: ``"simplex"``, ``"energy"``, ``"none"`` = the seed's; None = the model's
+            default with albedos, ``"energy"``).
         albedo: (N_train, K, C) training albedos, for ``valid="energy"`` (computed when None).
+        neighbours: :func:`project_perceptual` also starts between this many nearest training
+            materials (1: from the training latents only).
     """
     if metric not in ("log", "weighted"):
         raise ValueRangeError(f"metric must be 'log' or 'weighted'; got {metric!r}")
@@ -252,7 +309,7 @@ def heldout_reconstruction(
     z_te = obs.rows(test).to(torch.float64)
     s, d = gram(z_tr, w)
     fit = fit_gplvm(s, d, q, names=train, generator=generator, **fit_kwargs)
-    if valid == "energy" and albedo is None:
+    if valid in (None, "energy") and albedo is None:
         albedo = directional_albedo(z_tr, obs.grid)
     model = GPLVM(fit, z_tr, continuous=continuous, valid=valid, albedo=albedo)
     lat, var, preds, nearest = [], [], [], []
@@ -261,7 +318,7 @@ def heldout_reconstruction(
         if metric == "log":
             x = project_perceptual(
                 model, z_tr, z, cos, starts=starts, negatives=negatives, negative_weight=negative_weight,
-                max_columns=max_columns, train_map=train_map,
+                max_columns=max_columns, train_map=train_map, neighbours=neighbours,
             )  # fmt: skip
             nearest.append(z_tr[int(((train_map - _logmap(z, cos)) ** 2).mean(-1).argmin())])
         else:
@@ -272,6 +329,7 @@ def heldout_reconstruction(
         var.append(model.variance(x))
         preds.append(model.predict(x))
     pred = torch.stack(preds)
+    lat_t = torch.stack(lat)
     pca = fit_pca(z_tr, q, w)
     pred_pca = pca.reconstruct(z_te)
     return HeldOut(
@@ -281,7 +339,7 @@ def heldout_reconstruction(
         pca_logrmse=log_relative_rmse(pred_pca, z_te, cos),
         gplvm_cosrmse=cosine_weighted_rmse(pred, z_te, cos),
         pca_cosrmse=cosine_weighted_rmse(pred_pca, z_te, cos),
-        latents=torch.stack(lat),
+        latents=lat_t,
         variance=torch.stack(var),
         fit=fit,
         nearest_logrmse=log_relative_rmse(torch.stack(nearest), z_te, cos),
@@ -289,4 +347,6 @@ def heldout_reconstruction(
         pca_negative=(pred_pca < 0).double().mean(1),
         gplvm_projected_cosrmse=cosine_weighted_rmse(pred.clamp_min(0), z_te, cos),
         pca_projected_cosrmse=cosine_weighted_rmse(pred_pca.clamp_min(0), z_te, cos),
+        interpolation=interpolation_share(model.latents, lat_t).ratio,
+        top_weight=model.weights(lat_t).max(1).values,
     )

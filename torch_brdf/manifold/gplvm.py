@@ -698,7 +698,10 @@ class GPLVM(torch.nn.Module):
             return; every option keeps the BRDF a weighted blend of the training rows, so blended
             images stay blends of the per-material images.
 
-            * ``"simplex"`` (default): :math:`b(x_*)` projected onto the probability simplex
+            * None (default): ``"energy"`` when ``albedo`` is given, else ``"simplex"``
+              (:func:`default_validity`): every latent point non-negative, and with the
+              albedos also energy conserving (albedo <= 1), whatever the training rows' own albedo.
+            * ``"simplex"``: :math:`b(x_*)` projected onto the probability simplex
               (:func:`simplex_projection`: non-negative weights summing to one, the closest such
               vector in the Euclidean norm). A convex blend of non-negative BRDFs is non-negative
               and its directional albedo is at most the largest training albedo at every angle,
@@ -721,13 +724,13 @@ class GPLVM(torch.nn.Module):
         fit: GPLVMFit,
         z: torch.Tensor | None = None,
         continuous: bool = False,
-        valid: str = "simplex",
+        valid: str | None = None,
         albedo: torch.Tensor | None = None,
     ):
         super().__init__()
         self.fit = fit
         self.continuous = bool(continuous)
-        self.valid = _check_valid(valid, albedo)
+        self.valid = _check_valid(default_validity(albedo) if valid is None else valid, albedo)
         x = fit.latents.to(torch.float64)
         if not bool(torch.isfinite(x).all()):
             raise ValueRangeError("GPLVM latents hold NaN/Inf")
@@ -904,6 +907,17 @@ class GPLVM(torch.nn.Module):
     def _error(self, x, g_mat, g_vec) -> torch.Tensor:
         b = self.weights(x)
         return b @ g_mat @ b - 2 * b @ g_vec
+
+
+def default_validity(albedo: torch.Tensor | None) -> str:
+    """The blend weights of :class:`GPLVM` when ``valid`` is not given: ``"energy"`` with albedos, else ``"simplex"``.
+
+    ``"energy"`` bounds the blended albedo by 1 where the simplex alone bounds it by the largest
+    training albedo, which exceeds 1 for a few NBRDF fits of MERL (chrome, steel, tungsten
+    carbide: loose at grazing angles); it scales only the blends that exceed 1, so materials with
+    albedo <= 1 and their blends are unchanged.
+    """
+    return "simplex" if albedo is None else "energy"
 
 
 def _check_valid(valid: str, albedo: torch.Tensor | None) -> str:

@@ -27,6 +27,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from ..errors import ValueRangeError
+from ..io.merl import merl_index_to_angles
 from .data import MERLGrid, to_table
 from .gplvm import GPLVM
 
@@ -276,3 +277,142 @@ def interpolant_diagnostics(weights: torch.Tensor, z: torch.Tensor, albedo: torc
     neg = (zi < 0).double().mean(-1)
     alb = torch.einsum("mn,nkc->mkc", w, albedo.double()).flatten(1).max(-1).values
     return Diagnostics(neg, alb)
+
+
+# -- does a designer move *between* materials? ---------------------------------------------------------
+@dataclass(frozen=True)
+class Interpolation:
+    """Where latent points sit relative to the training latents.
+
+    Attributes:
+        ratio: (M,) distance of each point to its nearest training latent, divided by that training
+            latent's distance to its own nearest other training latent (the local spacing).
+        nearest: (M,) index of that training latent.
+        share: fraction of points with ``ratio >= threshold``: placed between materials, not on one.
+        threshold: the ratio above which a point counts as between materials.
+    """
+
+    ratio: torch.Tensor
+    nearest: torch.Tensor
+    share: float
+    threshold: float
+
+
+def interpolation_share(latents: torch.Tensor, xs: torch.Tensor, threshold: float = 0.1) -> Interpolation:
+    r"""How far points ``xs`` are from the training latents, relative to the neighbour spacing there.
+
+    A held-out material placed within ``threshold`` (default 0.1) of the local spacing from a
+    training latent is, for a blend, that training material (the valid weights are :math:`e_i`
+    on a neighbourhood of each latent): the manifold then only finds its nearest neighbour.
+
+    Args:
+        latents: (N, Q) training latents, N >= 2. xs: (M, Q) points. threshold: > 0.
+    Returns:
+        :class:`Interpolation`.
+    """
+    lat = torch.as_tensor(latents, dtype=torch.float64)
+    xs = torch.as_tensor(xs, dtype=torch.float64)
+    if lat.ndim != 2 or lat.shape[0] < 2 or xs.ndim != 2 or xs.shape[1] != lat.shape[1]:
+        raise ValueRangeError(
+            f"Expected latents (N >= 2, Q) and points (M, Q); got {tuple(lat.shape)}, {tuple(xs.shape)}"
+        )
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise ValueRangeError(f"threshold must be finite and > 0; got {threshold}")
+    own = torch.cdist(lat, lat)
+    own.fill_diagonal_(math.inf)
+    spacing = own.min(1).values.clamp_min(1e-300)
+    d, i = torch.cdist(xs, lat).min(1)
+    ratio = d / spacing[i]
+    share = float((ratio >= threshold).double().mean()) if xs.shape[0] else 0.0
+    return Interpolation(ratio, i, share, float(threshold))
+
+
+@dataclass(frozen=True)
+class PathProfile:
+    """Albedo and highlight width along straight latent paths (one row per path, ``steps`` points).
+
+    Attributes:
+        albedo: (P, S) mean directional albedo (over incidence angles and RGB) of the blends.
+        width: (P, S) highlight width (rad): :math:`\\sqrt{\\sum f \\theta_h^2 / \\sum f}` of the
+            blended BRDF at the smallest :math:`\\theta_d`, :math:`\\phi_d` of the grid (RGB mean).
+        jump: (P,) largest log-mapped RMS change between two consecutive points, as a share of the
+            change between the ends (a smooth path of S points: about 1/(S-1); a snap: near 1).
+        monotone: (P,) bool, albedo or width changes monotonically (up to ``tol`` of its range).
+    """
+
+    albedo: torch.Tensor
+    width: torch.Tensor
+    jump: torch.Tensor
+    monotone: torch.Tensor
+
+
+def _monotone(v: torch.Tensor, tol: float) -> torch.Tensor:
+    """(P, S) -> (P,) bool: every step has the sign of the overall change (up to ``tol`` of the range)."""
+    dv = v[:, 1:] - v[:, :-1]
+    slack = tol * (v.max(1).values - v.min(1).values)[:, None] + 1e-12
+    return ((dv >= -slack).all(1)) | ((dv <= slack).all(1))
+
+
+def highlight_width(z: torch.Tensor, grid: MERLGrid) -> torch.Tensor:
+    r"""(M,) highlight width :math:`\sqrt{\sum f\theta_h^2/\sum f}` (rad) of rows (M, 3 B) on ``grid``.
+
+    ``f``: the RGB mean at the grid's smallest :math:`\theta_d` and :math:`\phi_d`, clamped at 0,
+    over :math:`\theta_h` (the centres of MERL's bins).
+    A ratio of two linear functionals: monotone along a blend of two materials.
+    """
+    th = merl_index_to_angles(*grid.indices, at="centre")[0]
+    f = torch.stack(
+        [to_table(r, grid, missing=0.0)[:, :, 0, 0].mean(0) for r in torch.as_tensor(z, dtype=torch.float64)]
+    )
+    f = f.clamp_min(0)
+    return ((f * th**2).sum(1) / f.sum(1).clamp_min(1e-300)).sqrt()
+
+
+def straight_paths(
+    model: GPLVM,
+    pairs,
+    z: torch.Tensor,
+    albedo: torch.Tensor,
+    grid: MERLGrid,
+    steps: int = 33,
+    tol: float = 1e-3,
+    valid: str | None = None,
+) -> PathProfile:
+    r"""Albedo, highlight width and jumps along straight latent paths between pairs of materials.
+
+    A designer dragging from one material to another expects no sudden snap and a steady change
+    of what distinguishes them: :func:`_monotone` on the albedo (linear in the blend) or the
+    highlight width (:func:`highlight_width`). Jumps are measured on the whole row in the log
+    mapping of :func:`~torch_brdf.metrics.log_relative_rmse` (cosine-weighted, clamped at 0).
+
+    Args:
+        model: fitted :class:`GPLVM`. pairs: (P, 2) material indices or names.
+        z: (N, 3 B) the model's raw rows. albedo: (N, K, C) from :func:`directional_albedo`.
+        grid: the rows' grid. steps: points per path (>= 3). tol: monotonicity slack (share of range).
+        valid: blend weights (None = the model's).
+    Returns:
+        :class:`PathProfile`.
+    """
+    if steps < 3:
+        raise ValueRangeError(f"steps must be >= 3; got {steps}")
+    z = torch.as_tensor(z, dtype=torch.float64)
+    a_mean = torch.as_tensor(albedo, dtype=torch.float64).flatten(1).mean(1)
+    t = torch.linspace(0, 1, steps, dtype=torch.float64)[:, None]
+    cos = (
+        grid.cosine_map().repeat(3) if z.shape[1] == 3 * grid.num_valid else torch.ones(z.shape[1], dtype=torch.float64)
+    )
+    alb, wid, jump = [], [], []
+    for p0, p1 in pairs:
+        a, b = _as_point(model, p0), _as_point(model, p1)
+        xs = a + t * (b - a)
+        xs[0], xs[-1] = a, b  # the ends bit for bit: the materials themselves
+        w = model.weights(xs, valid)
+        rows = w @ z
+        alb.append(w @ a_mean)
+        wid.append(highlight_width(rows, grid))
+        m = torch.log(rows.clamp_min(0) * cos + 1e-3)
+        step = (m[1:] - m[:-1]).pow(2).mean(1).sqrt()
+        whole = (m[-1] - m[0]).pow(2).mean().sqrt().clamp_min(1e-300)
+        jump.append(step.max() / whole)
+    alb, wid = torch.stack(alb), torch.stack(wid)
+    return PathProfile(alb, wid, torch.stack(jump), _monotone(alb, tol) | _monotone(wid, tol))

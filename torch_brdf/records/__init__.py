@@ -8,7 +8,8 @@ The floor between the producers (:mod:`torch_brdf.transport`, :mod:`torch_brdf.m
   manifold's per-material images;
 - :class:`PolynomialTensors` (with :class:`Series`, :class:`ObjectBasis`, :class:`TermTable`,
   :class:`TensorBlock`): the multibounce tensors;
-- :class:`VertexVisibility` and :class:`BlockVisibility`: per-vertex differential visibility;
+- :class:`VertexVisibility`, :class:`BlockVisibility` and :class:`PackedBlockVisibility` (the
+  file's varint stream kept as it is): per-vertex differential visibility;
 - :class:`GuideBuffers`: a view's denoiser guides, saved with the multibounce tensors;
 - :class:`GPLVMFit`: a fitted BRDF manifold; :class:`FitResult`: an inverse-design SRBF fit.
 
@@ -34,7 +35,7 @@ from .fits import FitResult, GPLVMFit
 from .guides import GuideBuffers
 from .polynomial import ObjectBasis, PolynomialTensors, Series, TensorBlock, TermTable
 from .visibility import SceneVertices, VertexVisibility, scene_vertices
-from .visibility_codec import BlockVisibility
+from .visibility_codec import BlockVisibility, PackedBlockVisibility
 
 __all__ = [
     "ArraySpec",
@@ -49,6 +50,7 @@ __all__ = [
     "Member",
     "MetaSpec",
     "ObjectBasis",
+    "PackedBlockVisibility",
     "PolynomialTensors",
     "Record",
     "SceneVertices",

@@ -22,7 +22,7 @@ from ..errors import FileFormatError, SceneError
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from .codec import Member, Record
-from .visibility_codec import BlockVisibility
+from .visibility_codec import BlockVisibility, PackedBlockVisibility
 
 __all__ = ["KIND", "SceneVertices", "VertexVisibility", "scene_vertices"]
 
@@ -111,14 +111,19 @@ class VertexVisibility(Record):
     Attributes:
         geometry: the cubemap and block layout.
         vertices: the vertices the maps belong to.
-        blocks: (P vertices x NB blocks) differential visibility.
+        blocks: (P vertices x NB blocks) differential visibility: a
+            :class:`~torch_brdf.records.visibility_codec.PackedBlockVisibility` (the file's
+            varint stream, as :meth:`load` and the precompute give it: memory proportional
+            to the file) or an in-memory
+            :class:`~torch_brdf.records.visibility_codec.BlockVisibility`; a renderer reads
+            the vertices it shades through ``blocks.select(ids)`` either way.
         supersample: k, rays per texel side (1 = binary maps).
         bits: derivative quantisation (0 = binary).
     """
 
     geometry: CubemapBlocks
     vertices: SceneVertices
-    blocks: BlockVisibility
+    blocks: BlockVisibility | PackedBlockVisibility
     supersample: int = 1
     bits: int = 0
 
@@ -146,6 +151,7 @@ class VertexVisibility(Record):
             "bits": self.bits,
             "vertices": len(self.vertices),
             "fingerprint": self.vertices.fingerprint,
+            "entries": self.blocks.num_entries,
         }
 
     def check_scene(self, scene: Scene) -> None:
@@ -181,12 +187,18 @@ class VertexVisibility(Record):
             torch.from_numpy(arrays["object_ids"]),
             torch.from_numpy(arrays["object_offsets"]),
         )
-        blocks = BlockVisibility.from_bytes(
+        _check_vertices(verts)
+        if len(verts) != int(meta["vertices"]) or arrays["vertex_offsets"].shape != (len(verts) + 1,):
+            raise FileFormatError(
+                f"{arrays['vertex_offsets'].size - 1} maps for {len(verts)} vertices (header: {meta['vertices']})"
+            )
+        # kept as the file's stream (checked in full, a run of vertices at a time): memory about the
+        # file's size, where the CSR arrays took 11 bytes per vertex-block pair
+        blocks = PackedBlockVisibility.from_bytes(
             arrays["stream"], arrays["vertex_offsets"], geom.block_count, int(meta["bits"])
         )
-        _check_vertices(verts)
-        if len(verts) != int(meta["vertices"]) or blocks.counts.shape[0] != len(verts):
-            raise FileFormatError(f"{blocks.counts.shape[0]} maps for {len(verts)} vertices")
+        if "entries" in meta and blocks.num_entries != int(meta["entries"]):
+            raise FileFormatError(f"{blocks.num_entries} entries decoded, header says {meta['entries']}")
         if verts.fingerprint != meta["fingerprint"]:
             raise FileFormatError("vertex arrays do not match the stored fingerprint")
         supersample = check_count(meta["supersample"], "supersample", MAX_SUPERSAMPLE)  # the input's cap

@@ -40,9 +40,15 @@ Nothing here loops in Python over vertices, blocks or entries: encoding works on
 ``_CHUNK_PAIRS`` vertex-block pairs at a time (to bound the temporaries; each chunk is one
 set of numpy array operations, several times faster than the torch equivalents for the
 byte-sized masks and ``nonzero``), and parsing a stream finds the block starts by pointer
-doubling (``ceil(log2 NB)`` vectorised steps), a run of whole vertices (1/128 of the stream,
-16 KB to 1 MB) at a time, into arrays allocated once: a load's temporaries stay below the
-stream's size, where one parse of the whole stream held ~70 bytes per stream byte.
+doubling (``ceil(log2 NB)`` vectorised steps), a run of whole vertices (1/1024 of the
+stream, 16 KB to 1 MB) at a time: a parse's temporaries (~70 bytes per stream byte of the
+run) stay below a tenth of the stream's size, where one parse of the whole stream held ~70
+times the stream.
+
+A record of a whole scene keeps the stream itself (:class:`PackedBlockVisibility`, what a
+load and the precompute give): about the file's size, where the CSR arrays of
+:class:`BlockVisibility` take 11 bytes per vertex-block pair beside the entries; the
+vertices a renderer shades are unpacked from it (:meth:`PackedBlockVisibility.select`).
 """
 
 from __future__ import annotations
@@ -66,7 +72,7 @@ OCCLUDED, UNOCCLUDED, PARTIAL = 0, 1, 2
 _CHUNK_PAIRS = 1 << 16
 #: stream bytes parsed at once when decoding: a 1/_DECODE_CHUNK_DIVISOR part of the stream,
 #: within [_DECODE_MIN_BYTES, _DECODE_MAX_BYTES] (see ``_decode_stream``)
-_DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES, _DECODE_MAX_BYTES = 128, 1 << 14, 1 << 20
+_DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES, _DECODE_MAX_BYTES = 1024, 1 << 14, 1 << 20
 _MAX_BITS = 8
 _MAX_VARINT_BYTES = 10  # 64-bit values
 
@@ -651,6 +657,10 @@ class BlockVisibility(Record):
             dict(self.meta),
         )
 
+    def unpack(self) -> BlockVisibility:
+        """The record itself (as :meth:`PackedBlockVisibility.unpack` of a packed one)."""
+        return self
+
     # -- varint serialisation -----------------------------------------------------------
     def _tokens(self) -> tuple[np.ndarray, np.ndarray]:
         """Unsigned tokens of the stream ``(T,)`` uint64 and the token of each pair's count ``(P*NB,)``."""
@@ -714,34 +724,10 @@ class BlockVisibility(Record):
                 indices not increasing or above 255, counts that disagree with the stream,
                 zero or out-of-range graded deltas.
         """
-        bits = _check_bits(bits)
-        if isinstance(block_count, bool) or not isinstance(block_count, (int, np.integer)) or block_count < 1:
-            raise ShapeError(f"block_count must be a positive int; got {block_count!r}")
-        nb = int(block_count)
-        stream = _as_stream(stream)
-        vo = np.asarray(vertex_offsets)
-        if vo.ndim != 1 or vo.size < 1 or vo.dtype.kind not in "iu":
-            raise FileFormatError(f"vertex offsets must be a 1-D integer array (P+1,); got {vo.dtype} {vo.shape}")
-        vo = vo.astype(np.int64)
-        if vo[0] != 0 or vo[-1] != stream.size or bool((np.diff(vo) < 0).any()):
-            raise FileFormatError(
-                f"vertex offsets must rise from 0 to the stream length {stream.size}; "
-                f"got first {int(vo[0])}, last {int(vo[-1])}, {int((np.diff(vo) < 0).sum())} decreasing steps"
-            )
+        nb, bits, stream, vo = _check_stream(stream, vertex_offsets, block_count, bits)
         if vertices is not None:
-            ids = _check_ids(vertices, vo.size - 1)
-            lengths = vo[ids + 1] - vo[ids]
-            src = _gather_ranges(torch.from_numpy(vo[ids]), torch.from_numpy(lengths), int(lengths.sum())).numpy()
-            stream = stream[src]
-            vo = np.zeros(ids.size + 1, dtype=np.int64)
-            np.cumsum(lengths, out=vo[1:])
-        # every block starts with a count byte, so P x NB cannot exceed the stream's length: bound the
-        # (P, NB) tables before allocating them (small excesses go on to the parser's precise message)
-        if (vo.size - 1) * nb > stream.size + (1 << 16):
-            raise FileFormatError(
-                f"block visibility: {vo.size - 1} vertices x {nb} blocks need at least {(vo.size - 1) * nb:,} "
-                f"count bytes; the stream has {stream.size:,}"
-            )
+            stream, vo = _select_stream(stream, vo, vertices)
+        _check_pairs(stream, vo, nb)
         arrays = (torch.from_numpy(a) if a is not None else None for a in _decode_stream(stream, vo, nb, bits))
         counts, offsets, index, delta, states = arrays
         return cls(nb, bits, counts, offsets, index, delta, states, dict(meta or {}))
@@ -785,35 +771,267 @@ class BlockVisibility(Record):
         return rec
 
 
+@dataclass(frozen=True, eq=False)  # identity equality, as BlockVisibility's
+class PackedBlockVisibility:
+    r"""Block visibility kept in its file layout: the varint stream and per-vertex byte offsets.
+
+    What :meth:`~torch_brdf.records.visibility.VertexVisibility.load` and
+    :func:`~torch_brdf.transport.visibility.precompute_visibility` hold for a whole scene: one
+    byte per occluded block, two per unoccluded one, about one per flip of a partial one (the
+    module docstring's layout), where the CSR arrays of :class:`BlockVisibility` take 11 bytes
+    per vertex-block pair plus the entries. A renderer unpacks only the vertices it shades
+    (:meth:`select`, a :class:`BlockVisibility`); the stream was parsed once in full when the
+    record was made (:meth:`from_bytes` checks everything :meth:`BlockVisibility.from_bytes`
+    checks), so a selection of it parses without error.
+
+    The CSR attributes (``counts``, ``offsets``, ``index``, ``delta``, ``states``,
+    :meth:`values`, :meth:`pair_of_entry`) are those of the whole record, unpacked on first
+    use and kept (the 11 bytes per pair again): for small records, tests and tools; code
+    that works on large ones goes through :meth:`select`.
+
+    Attributes:
+        block_count: ``NB``, blocks per vertex.
+        bits: 0 for binary maps, else the quantisation bits of graded maps.
+        stream: ``(S,)`` uint8 varints; vertex ``p`` is ``stream[vertex_offsets[p]:vertex_offsets[p + 1]]``.
+        vertex_offsets: ``(P+1,)`` int64 byte offsets of the vertices, from 0 to ``S``.
+        entries: ``F``, the non-zero derivative entries the stream holds.
+        meta: JSON-serialisable provenance.
+    """
+
+    block_count: int
+    bits: int
+    stream: torch.Tensor
+    vertex_offsets: torch.Tensor
+    entries: int
+    meta: dict[str, Any] = field(default_factory=dict)
+    _unpacked: list = field(default_factory=list, repr=False)  # the whole CSR, once asked for
+
+    def __post_init__(self):
+        if self.stream.ndim != 1 or self.stream.dtype != torch.uint8:
+            raise ShapeError(
+                f"Expected a stream of shape (S,) and dtype uint8; got {self.stream.dtype} {tuple(self.stream.shape)}"
+            )
+        vo = self.vertex_offsets
+        if vo.ndim != 1 or vo.numel() < 1 or vo.dtype != torch.int64:
+            raise ShapeError(
+                f"Expected vertex offsets of shape (P+1,) and dtype int64; got {vo.dtype} {tuple(vo.shape)}"
+            )
+
+    @classmethod
+    def from_bytes(
+        cls, stream, vertex_offsets, block_count: int, bits: int = 0, meta: dict[str, Any] | None = None
+    ) -> PackedBlockVisibility:
+        """Check a stream written by :meth:`BlockVisibility.to_bytes` and keep it as it is.
+
+        The whole stream is parsed a run of vertices at a time, each run's results dropped
+        once checked: the temporaries stay a small fraction of the stream, and what is kept
+        is the stream itself (not copied when it is a C-contiguous uint8 array).
+
+        Args:
+            stream: ``(S,)`` uint8 (or ``bytes``).
+            vertex_offsets: ``(P+1,)`` integer byte offsets of the vertices, from 0 to ``S``.
+            block_count: ``NB``.
+            bits: 0 (binary) or the quantisation bits, as written.
+            meta: provenance for the record.
+
+        Returns:
+            The record, holding the stream (not copied when it is a C-contiguous uint8 array).
+
+        Raises:
+            FileFormatError: everything :meth:`BlockVisibility.from_bytes` refuses.
+        """
+        nb, bits, stream, vo = _check_stream(stream, vertex_offsets, block_count, bits)
+        _check_pairs(stream, vo, nb)
+        entries = sum(i.size for _, _, _, i, _ in _runs(stream, vo, nb, bits))
+        return cls(
+            nb,
+            bits,
+            torch.from_numpy(np.ascontiguousarray(stream)),
+            torch.from_numpy(np.ascontiguousarray(vo)),
+            int(entries),
+            dict(meta or {}),
+        )
+
+    @classmethod
+    def pack(cls, record: BlockVisibility) -> PackedBlockVisibility:
+        """The packed form of an in-memory record (its :meth:`BlockVisibility.to_bytes`).
+
+        Args:
+            record: the in-memory record.
+        """
+        stream, vo = record.to_bytes()
+        return cls(
+            record.block_count,
+            record.bits,
+            torch.from_numpy(stream),
+            torch.from_numpy(vo),
+            record.num_entries,
+            dict(record.meta),
+        )
+
+    # -- sizes ----------------------------------------------------------------------------
+    @property
+    def num_vertices(self) -> int:
+        """``P``."""
+        return self.vertex_offsets.numel() - 1
+
+    @property
+    def num_entries(self) -> int:
+        """``F``, stored non-zero derivative entries."""
+        return self.entries
+
+    @property
+    def levels(self) -> int:
+        """Largest quantisation level ``2**bits - 1`` (1 for binary maps)."""
+        return _levels(self.bits)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held: the stream and the vertex offsets."""
+        return self.stream.numel() + 8 * self.vertex_offsets.numel()
+
+    @property
+    def nbytes_per_vertex(self) -> float:
+        """Mean size of one vertex in the varint stream, in bytes."""
+        return self.stream.numel() / self.num_vertices if self.num_vertices else 0.0
+
+    # -- unpacking ------------------------------------------------------------------------
+    def select(self, vertices) -> BlockVisibility:
+        """The in-memory record (:class:`BlockVisibility`) of some vertices, in the order given
+        (repeats allowed); only their bytes are read.
+
+        Args:
+            vertices: ``(K,)`` integer vertex ids in ``[0, P)``.
+
+        Raises:
+            ShapeError: not a 1-D integer sequence. ValueRangeError: an id outside ``[0, P)``.
+        """
+        return BlockVisibility.from_bytes(
+            self.stream.numpy(), self.vertex_offsets.numpy(), self.block_count, self.bits, vertices, self.meta
+        )
+
+    def unpack(self) -> BlockVisibility:
+        """The whole record as a :class:`BlockVisibility` (made once and kept)."""
+        if not self._unpacked:
+            self._unpacked.append(
+                BlockVisibility.from_bytes(
+                    self.stream.numpy(), self.vertex_offsets.numpy(), self.block_count, self.bits, None, self.meta
+                )
+            )
+        return self._unpacked[0]
+
+    def decode(self, vertices=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """Dense visibility of some vertices, as :meth:`BlockVisibility.decode`.
+
+        Args:
+            vertices: ``(P',)`` vertex ids (default all).
+            dtype: floating dtype of the result.
+
+        Returns:
+            ``(P', NB, 256)``.
+        """
+        rec = self.unpack() if vertices is None else self.select(vertices)
+        return rec.decode(dtype=dtype)
+
+    @property
+    def counts(self) -> torch.Tensor:
+        """``(P, NB)`` int16 of the whole record (unpacks it, see the class docstring)."""
+        return self.unpack().counts
+
+    @property
+    def offsets(self) -> torch.Tensor:
+        """``(P*NB+1,)`` int64 CSR starts of the whole record (unpacks it)."""
+        return self.unpack().offsets
+
+    @property
+    def index(self) -> torch.Tensor:
+        """``(F,)`` uint8 texel positions of the whole record (unpacks it)."""
+        return self.unpack().index
+
+    @property
+    def delta(self) -> torch.Tensor | None:
+        """``(F,)`` int16 graded derivatives of the whole record, or None (unpacks it)."""
+        return self.unpack().delta
+
+    @property
+    def states(self) -> torch.Tensor:
+        """``(P, NB)`` uint8 block states of the whole record (unpacks it)."""
+        return self.unpack().states
+
+    def values(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """``(F,)`` derivative values of the whole record, as :meth:`BlockVisibility.values`.
+
+        Args:
+            dtype: floating dtype of the result.
+        """
+        return self.unpack().values(dtype)
+
+    def pair_of_entry(self) -> torch.Tensor:
+        """``(F,)`` pair ids of the whole record's entries, as :meth:`BlockVisibility.pair_of_entry`."""
+        return self.unpack().pair_of_entry()
+
+    # -- serialisation --------------------------------------------------------------------
+    def to_bytes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(stream, vertex_offsets)`` as :meth:`BlockVisibility.to_bytes` gives them (no copy)."""
+        return self.stream.numpy(), self.vertex_offsets.numpy()
+
+
+def _check_stream(stream, vertex_offsets, block_count, bits) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """``(NB, bits, stream, vertex_offsets)`` checked: a positive ``NB``, known bits, a byte
+    stream and int64 vertex offsets rising from 0 to its length (FileFormatError otherwise)."""
+    bits = _check_bits(bits)
+    if isinstance(block_count, bool) or not isinstance(block_count, (int, np.integer)) or block_count < 1:
+        raise ShapeError(f"block_count must be a positive int; got {block_count!r}")
+    stream = _as_stream(stream)
+    vo = np.asarray(vertex_offsets)
+    if vo.ndim != 1 or vo.size < 1 or vo.dtype.kind not in "iu":
+        raise FileFormatError(f"vertex offsets must be a 1-D integer array (P+1,); got {vo.dtype} {vo.shape}")
+    vo = vo.astype(np.int64, copy=False)
+    if vo[0] != 0 or vo[-1] != stream.size or bool((np.diff(vo) < 0).any()):
+        raise FileFormatError(
+            f"vertex offsets must rise from 0 to the stream length {stream.size}; "
+            f"got first {int(vo[0])}, last {int(vo[-1])}, {int((np.diff(vo) < 0).sum())} decreasing steps"
+        )
+    return int(block_count), bits, stream, vo
+
+
+def _check_pairs(stream: np.ndarray, vo: np.ndarray, nb: int) -> None:
+    """Every block starts with a count byte, so P x NB cannot exceed the stream's length: the
+    (P, NB) tables are bounded before they are allocated (small excesses go on to the
+    parser's precise message)."""
+    if (vo.size - 1) * nb > stream.size + (1 << 16):
+        raise FileFormatError(
+            f"block visibility: {vo.size - 1} vertices x {nb} blocks need at least {(vo.size - 1) * nb:,} "
+            f"count bytes; the stream has {stream.size:,}"
+        )
+
+
+def _select_stream(stream: np.ndarray, vo: np.ndarray, vertices) -> tuple[np.ndarray, np.ndarray]:
+    """The bytes and vertex offsets of some vertices of a stream, in the order given."""
+    ids = _check_ids(vertices, vo.size - 1)
+    lengths = vo[ids + 1] - vo[ids]
+    src = _gather_ranges(torch.from_numpy(vo[ids]), torch.from_numpy(lengths), int(lengths.sum())).numpy()
+    out = np.zeros(ids.size + 1, dtype=np.int64)
+    np.cumsum(lengths, out=out[1:])
+    return stream[src], out
+
+
 def _decode_chunk_bytes(size: int) -> int:
     """Stream bytes parsed at once for a stream of ``size`` bytes (see :func:`_decode_stream`)."""
     return int(min(max(size // _DECODE_CHUNK_DIVISOR, _DECODE_MIN_BYTES), _DECODE_MAX_BYTES))
 
 
-def _decode_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int):
-    """Counts, offsets, index, delta and states of a whole stream, parsed a run of vertices at a time.
+def _runs(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int):
+    """Parse a stream a run of whole vertices at a time: yields ``(v0, v1, counts, index, delta)``
+    of vertices ``v0:v1`` (numpy, as :func:`_parse_stream`).
 
     Parsing one run costs ~70 bytes of temporaries per stream byte (int64 tokens, shifts,
     pointer-doubling tables), so runs are kept to a small fraction of the stream (and at
-    most a few MB): the transient stays below the stream's own size. The results go into
-    arrays allocated once: ``index`` and ``delta`` at their upper bound (every entry costs at
-    least one stream byte, a graded one two), of which only the pages written become
-    resident, then shrunk in place to the entries found.
-
-    Returns:
-        numpy ``counts`` ``(P, NB)`` int16, ``offsets`` ``(P*NB+1,)`` int64, ``index`` ``(F,)``
-        uint8, ``delta`` ``(F,)`` int16 or None, ``states`` ``(P, NB)`` uint8: the arrays of
-        :class:`BlockVisibility`, the same as one parse of the whole stream.
+    most a few MB): the transient stays below the stream's own size.
     """
     n_vertices = vertex_offsets.size - 1
-    counts = np.empty((n_vertices, nb), dtype=np.int16)
-    states = np.empty((n_vertices, nb), dtype=np.uint8)
-    offsets = np.empty(n_vertices * nb + 1, dtype=np.int64)
-    offsets[0] = 0
-    index = np.empty(stream.size, dtype=np.uint8)
-    delta = np.empty(stream.size // 2, dtype=np.int16) if bits else None
     step = _decode_chunk_bytes(stream.size)
-    v0, n_entries = 0, 0
+    v0 = 0
     while v0 < n_vertices:
         # the run: whole vertices up to ``step`` bytes past its first byte (at least one vertex)
         v1 = max(int(np.searchsorted(vertex_offsets, vertex_offsets[v0] + step, side="right")) - 1, v0 + 1)
@@ -828,6 +1046,30 @@ def _decode_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits
                     "(its bytes end inside a varint)"
                 )
         c, i, d = _parse_stream(stream[b0:b1], vertex_offsets[v0 : v1 + 1] - b0, nb, bits, v0, b0)
+        yield v0, v1, c, i, d
+        v0 = v1
+
+
+def _decode_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits: int):
+    """Counts, offsets, index, delta and states of a whole stream, parsed a run of vertices at a
+    time (:func:`_runs`) into arrays allocated once: ``index`` and ``delta`` at their upper
+    bound (every entry costs at least one stream byte, a graded one two), of which only the
+    pages written become resident, then shrunk in place to the entries found.
+
+    Returns:
+        numpy ``counts`` ``(P, NB)`` int16, ``offsets`` ``(P*NB+1,)`` int64, ``index`` ``(F,)``
+        uint8, ``delta`` ``(F,)`` int16 or None, ``states`` ``(P, NB)`` uint8: the arrays of
+        :class:`BlockVisibility`, the same as one parse of the whole stream.
+    """
+    n_vertices = vertex_offsets.size - 1
+    counts = np.empty((n_vertices, nb), dtype=np.int16)
+    states = np.empty((n_vertices, nb), dtype=np.uint8)
+    offsets = np.empty(n_vertices * nb + 1, dtype=np.int64)
+    offsets[0] = 0
+    index = np.empty(stream.size, dtype=np.uint8)
+    delta = np.empty(stream.size // 2, dtype=np.int16) if bits else None
+    n_entries = 0
+    for v0, v1, c, i, d in _runs(stream, vertex_offsets, nb, bits):
         q0, q1, f = v0 * nb, v1 * nb, i.size
         counts[v0:v1] = c
         flat = c.reshape(-1)
@@ -838,7 +1080,6 @@ def _decode_stream(stream: np.ndarray, vertex_offsets: np.ndarray, nb: int, bits
             delta[n_entries : n_entries + f] = d
         states[v0:v1] = _states(flat, offsets[q0 : q1 + 1] - n_entries, i, d, bits).reshape(c.shape)
         n_entries += f
-        v0 = v1
     index.resize(n_entries, refcheck=False)  # in place: no copy, the untouched tail never was resident
     if bits:
         delta.resize(n_entries, refcheck=False)

@@ -52,6 +52,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -63,7 +64,7 @@ from ..data import progress_default
 from ..errors import SceneError, ShapeError, ValueRangeError
 from ..frame import Frame
 from ..metrics import psnr
-from ..parallel.threads import tuned_method
+from ..parallel.threads import tuned_method, usable_cores
 from ..records.visibility import VertexVisibility
 from ..records.visibility_codec import BlockVisibility
 from ..scene.camera import Camera
@@ -74,6 +75,7 @@ from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
 from ..sphere.haar import HaarTripleProduct
 from ..transport.pathtrace import material_brdfs
+from . import _relight
 
 __all__ = [
     "METHODS",
@@ -231,6 +233,8 @@ class FixedRule(SamplingRule):
     """The same number of samples per side ``l`` in every block (16 = the standard basis)."""
 
     level: int = 16
+    #: the compiled frame's name of this rule (see ``render/_relight.py``)
+    native_kind: ClassVar[str] = "fixed"
 
     def __post_init__(self):
         if self.level not in LEVELS:
@@ -265,6 +269,8 @@ class PhongRule(SamplingRule):
     cuts: tuple[float, float] = (30.0, 250.0)
     scale: float | None = None
     fallback: SamplingRule | None = None
+    #: the compiled frame's name of this rule (see ``render/_relight.py``)
+    native_kind: ClassVar[str] = "phong"
 
     def project(self, brdf, pairs, sampler):
         if not isinstance(brdf, Lambert | Phong):
@@ -456,11 +462,16 @@ class TripleProductRenderer(nn.Module):
         dtype: float32 (default) or float64 for the products.
         lighting_samples: k x k lat-long lookups averaged per cube texel.
 
-    ``threads``: torch threads of :meth:`shade`; None (default) uses the count measured
-    fastest for the number of vertices (:func:`torch_brdf.parallel.threads.tuned`).
+    ``threads``: threads of a frame: the compiled frame's (None, the default: the usable
+    cores) and the torch path's (None: the count measured fastest for the number of vertices,
+    :func:`torch_brdf.parallel.threads.tuned`). ``compiled``: None (default) shades with the
+    compiled frame where it supports the scene (float32, Lambert and Phong materials, the
+    Appendix A or a fixed rule; :meth:`frame_path`) and the torch path elsewhere; False always
+    the torch path; True the compiled frame or an error.
     """
 
     threads: int | None = None
+    compiled: bool | None = None
 
     def __init__(
         self,
@@ -576,14 +587,70 @@ class TripleProductRenderer(nn.Module):
         frames = Frame.from_normal(nrm)
         return nrm, frames, frames.to_local(wo), self.object_ids[vid]
 
-    @tuned_method("triple.frame", lambda r, view, *a, **k: len(view.vertex_ids))
+    def frame_path(self, rule: SamplingRule | None = None) -> str:
+        """The code path :meth:`shade` takes with ``rule`` (default the renderer's):
+        ``"compiled"`` or ``"torch"`` (see :attr:`compiled`)."""
+        rule = rule if rule is not None else self.rule
+        if self.compiled is False:
+            return "torch"
+        why = _relight.unsupported(self, rule)
+        if why is not None and self.compiled:
+            raise ValueRangeError(f"the compiled relighting frame cannot shade this: {why}")
+        return "torch" if why else "compiled"
+
     @torch.no_grad()
     def shade(
         self, view: View, rule: SamplingRule | None = None, progress: bool | None = None
     ) -> tuple[torch.Tensor, FrameStats]:
-        """Outgoing radiance of the view's vertices by Algorithm 1.
+        """Outgoing radiance of the view's vertices by Algorithm 1: the compiled frame when it
+        supports the scene (:meth:`frame_path`), else :meth:`shade_torch`.
 
         Args:
+            view: the vertices to shade.
+            rule: BRDF sampling rule (default the renderer's).
+            progress: tqdm bar (the torch path: over the (vertex, block) pairs; the compiled
+                frame runs without one, in a fraction of a second per 100k vertices).
+        Returns:
+            radiance (P, C) in the renderer's dtype, and :class:`FrameStats`.
+        """
+        rule = rule if rule is not None else self.rule
+        if self.frame_path(rule) == "torch":
+            return self.shade_torch(view, rule, progress)
+        return self.shade_compiled(view, rule)
+
+    @torch.no_grad()
+    def shade_compiled(self, view: View, rule: SamplingRule | None = None) -> tuple[torch.Tensor, FrameStats]:
+        """:meth:`shade_torch` by the compiled kernel (``transport/csrc/relight.c``) over
+        :attr:`threads` threads (None: the usable cores). Same rule, samples and block cases;
+        the sums in another order (float32 rounding apart, see :mod:`torch_brdf.render._relight`).
+
+        Raises:
+            ValueRangeError: the kernel does not support this renderer or rule.
+        """
+        rule = rule if rule is not None else self.rule
+        why = _relight.unsupported(self, rule)
+        if why is not None:
+            raise ValueRangeError(f"the compiled relighting frame cannot shade this: {why}")
+        threads = self.threads if self.threads is not None else usable_cores()
+        out, counts = _relight.shade(self, view, rule, max(1, int(threads)))
+        P = len(view.vertex_ids)
+        stats = FrameStats(vertices=P, blocks=P * self.geometry.block_count)
+        stats.cases = {k: counts[k] for k in stats.cases}
+        stats.sampling = {k: counts[k] for k in stats.sampling}
+        stats.brdf_evals, stats.visibility_entries = counts["brdf_evals"], counts["visibility_entries"]
+        return out, stats
+
+    @tuned_method("triple.frame", lambda r, view, *a, **k: len(view.vertex_ids))
+    @torch.no_grad()
+    def shade_torch(
+        self, view: View, rule: SamplingRule | None = None, progress: bool | None = None
+    ) -> tuple[torch.Tensor, FrameStats]:
+        """Outgoing radiance of the view's vertices by Algorithm 1 in torch (the reference of
+        the compiled frame; any BRDF, rule and dtype).
+
+        Args:
+            view: the vertices to shade.
+            rule: BRDF sampling rule (default the renderer's).
             progress: tqdm bar over the (vertex, block) pairs, a tick per object and sampling
                 level (None: on in a terminal or notebook).
         Returns:

@@ -511,13 +511,55 @@ def manifold(results: dict) -> Section:
         "scored by the same mean over its held-out materials; "
         "○ the same plan by the statistic it plans for (the interquartile mean of the log errors)",
     )
+    _manifold_default_figures(sec, r)
     return _finish(
         sec,
         (
             r,
             "interp_per_s predict_rows_per_s blend_fps_512 gi_blend_rel_l1 "
-            "time_ratio_gpytorch_over_ours loglik_ours_minus_gpytorch",
+            "time_ratio_gpytorch_over_ours loglik_ours_minus_gpytorch "
+            "default_validity negative_fraction_energy max_albedo_energy default_margin_ok default_below_pca_all "
+            "path_monotone_share path_jump_max",
         ),
+    )
+
+
+def _manifold_default_figures(sec: Section, r: _Reader) -> None:
+    """The default model (valid weights): margin over the nearest material and interpolation share
+    per held-out case (random splits, drawn family hold-outs) against q."""
+    cases = r("default_heldout") or {}
+
+    def by_q(case: dict, key: str) -> list[tuple[float, float]]:
+        return sorted(p for q, v in case.items() if str(q).isdigit() for p in pt(int(q), get(v, key)))
+
+    margin = [Series(str(tag), by_q(case, "margin")) for tag, case in cases.items()]
+    margin.append(Series("required margin (10%)", hline=0.10, style="default"))
+    fams = ", ".join(get(r.res, "default_families") or [])
+    sec.add(
+        "manifold_default_margin",
+        "Default model: held-out margin over the nearest training material",
+        "latent dimension q",
+        "1 - GPLVM log-RMSE / nearest material's",
+        margin,
+        "each curve one held-out case: a random 80/20 split or a family held out whole "
+        f"({fams or 'none'}; drawn with seed {get(r.res, 'default_family_seed')}); valid (energy-bounded) "
+        "weights, placement between the nearest materials",
+        xlog=False,
+        ylog=False,
+    )
+    share = [Series(str(tag), by_q(case, "interpolation_share")) for tag, case in cases.items()]
+    sec.add(
+        "manifold_interpolation",
+        "Default model: held-out materials placed between training materials",
+        "latent dimension q",
+        "share at >= 0.1 of the local spacing from every training latent",
+        share,
+        "interpolation share per held-out case (0: every held-out material sits on a training latent, "
+        f"i.e. is its nearest neighbour); straight paths between neighbours: "
+        f"{get(r.res, 'path_monotone_share')} monotone in albedo or highlight width, largest step "
+        f"{get(r.res, 'path_jump_max')} of the change between the ends",
+        xlog=False,
+        ylog=False,
     )
 
 

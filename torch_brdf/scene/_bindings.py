@@ -84,6 +84,9 @@ KERNEL: dict[str, Signature] = {
     "tb_trace_hits": (I64, [P, P, I64, P, P, P, P, P, P, P, P, P, P, P, P]),
     "tb_occluded_rays": (I64, [P, P, I64, P, P, I64, P, P, P]),
     "tb_intersect_only": (I64, [P, P, I64, P, P, P, P]),
+    # relight.c
+    "tb_phong_lobe": (None, [I64, P, F32, P]),
+    "tb_relight": (INT, [I64, INT, P, P, P, P, P, P, P, P, F32, F32, P, P, P, P, F32, P, P, P, P, P, P, P]),
 }
 
 #: embree functions called directly (scene/embree.py embree_entry) -> (restype, argtypes)

@@ -48,7 +48,7 @@ from ..parallel.threads import single_thread
 from ..parallel.tiles import TileWork, run_tiles
 from ..records.cache import ArraySpec, CacheSchema, MetaSpec, TileCache, settings_key
 from ..records.visibility import SceneVertices, VertexVisibility, scene_vertices
-from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, packed_entries
+from ..records.visibility_codec import BLOCK_TEXELS, BlockVisibility, PackedBlockVisibility, packed_entries
 from ..scene.scene import Scene
 from ..sphere.cubemap import CubemapBlocks
 from . import _native
@@ -219,58 +219,60 @@ def _chunk_entries(
     return {"counts": counts, "index": index}
 
 
+def _chunk_stream(entries: dict[str, np.ndarray], nb: int, bits: int) -> dict[str, np.ndarray]:
+    """A chunk's entries as the record file's varint ``stream`` and ``vertex_offsets`` (what the
+    record keeps and saves: the chunks are joined by copying bytes, never re-encoded whole)."""
+    rec = BlockVisibility.from_entries(nb, bits, entries["counts"], entries["index"], entries.get("delta"))
+    stream, vertex_offsets = rec.to_bytes()
+    return {"stream": stream, "vertex_offsets": vertex_offsets}, rec.num_entries
+
+
 def _chunk_schema(block_count: int, bits: int) -> CacheSchema:
-    """What a finished chunk file must hold: ``n`` vertices' ``counts`` (n, NB) int16 that add
-    up to the ``index`` entries (increasing within each pair), graded maps their ``delta``."""
-    levels = (1 << bits) - 1 if bits else 1
-    arrays = {
-        "counts": ArraySpec("int16", ("n", block_count), low=0, high=BLOCK_TEXELS),
-        "index": ArraySpec("uint8", ("F",)),
-    }
-    if bits:
-        arrays["delta"] = ArraySpec("int16", ("F",), low=-levels, high=levels)
+    """What a finished chunk file must hold: the varint ``stream`` of ``n`` vertices and their
+    ``vertex_offsets`` (n + 1,), a stream that parses in full (as a record file's) into the
+    ``entries`` its metadata states."""
+    arrays = {"stream": ArraySpec("uint8", (None,)), "vertex_offsets": ArraySpec("int64", (None,))}
 
     def check(arrays: dict, meta: dict, sizes: dict) -> None:
-        counts, index = arrays["counts"].astype(np.int64).reshape(-1), arrays["index"]
-        if int(counts.sum()) != index.size:
-            raise FileFormatError(f"chunk counts add up to {int(counts.sum())} entries; it holds {index.size}")
-        ends = np.cumsum(counts)[counts > 0] - 1  # each pair's last entry
-        rises = np.diff(index.astype(np.int16)) > 0
-        rises[ends[ends < index.size - 1]] = True  # a new pair may start anywhere
-        if not rises.all():
-            raise FileFormatError("chunk texel positions are not increasing within a pair")
+        vo = arrays["vertex_offsets"]
+        if "n" in sizes and vo.shape != (sizes["n"] + 1,):
+            raise FileFormatError(f"chunk vertex offsets {vo.shape}: expected ({sizes['n'] + 1},)")
+        got = PackedBlockVisibility.from_bytes(arrays["stream"], vo, block_count, bits).num_entries
+        if got != meta["entries"]:
+            raise FileFormatError(f"chunk stream holds {got} entries; its metadata says {meta['entries']}")
 
-    return CacheSchema(arrays=arrays, meta={"chunk": MetaSpec(int, 0)}, check=check)
+    return CacheSchema(arrays=arrays, meta={"chunk": MetaSpec(int, 0), "entries": MetaSpec(int, 0)}, check=check)
 
 
 def _visibility_chunk(work: TileWork, c: int):
-    """Chunk ``c``: its entries (a pure function of the work: scene, geom, positions, normals,
-    dirs, bits, chunk)."""
+    """Chunk ``c``: its varint stream (a pure function of the work: scene, geom, positions,
+    normals, dirs, bits, chunk)."""
     s = c * work.chunk
     e = min(s + work.chunk, work.positions.shape[0])
     entries = _chunk_entries(work.scene, work.geom, work.positions[s:e], work.normals[s:e], work.dirs, work.bits)
-    return entries, {"chunk": c}
+    arrays, n_entries = _chunk_stream(entries, work.geom.block_count, work.bits)
+    return arrays, {"chunk": c, "entries": n_entries}
 
 
-def _join_tiles(tiles: list, nb: int, bits: int) -> BlockVisibility:
-    """The record of the chunks' entries, in order, copied into arrays allocated once; each
-    chunk is dropped from ``tiles`` once copied, so the peak is the record plus the chunks
-    (not the chunks, their concatenation and the record's temporaries at once)."""
-    n_vertices = sum(a["counts"].shape[0] for a, _ in tiles)
-    n_entries = sum(a["index"].size for a, _ in tiles)
-    counts = np.empty((n_vertices, nb), dtype=np.int16)
-    index = np.empty(n_entries, dtype=np.uint8)
-    delta = np.empty(n_entries, dtype=np.int16) if bits else None
-    v, f = 0, 0
-    for i, (a, _) in enumerate(tiles):
-        m, k = a["counts"].shape[0], a["index"].size
-        counts[v : v + m] = a["counts"]
-        index[f : f + k] = a["index"]
-        if bits:
-            delta[f : f + k] = a["delta"]
-        v, f = v + m, f + k
+def _join_tiles(tiles: list, nb: int, bits: int) -> PackedBlockVisibility:
+    """The record of the chunks' streams, in order, copied into one stream allocated once; each
+    chunk is dropped from ``tiles`` once copied, so the resident peak is about the record
+    itself (the chunks' bytes move into pages of the stream as it fills): no CSR arrays (11
+    bytes per vertex-block pair) and no re-encoding of the whole record."""
+    n_vertices = sum(a["vertex_offsets"].size - 1 for a, _ in tiles)
+    n_bytes = sum(a["stream"].size for a, _ in tiles)
+    stream = np.empty(n_bytes, dtype=np.uint8)
+    vertex_offsets = np.empty(n_vertices + 1, dtype=np.int64)
+    vertex_offsets[0] = 0
+    v, b, entries = 0, 0, 0
+    for i, (a, meta) in enumerate(tiles):
+        m, k = a["vertex_offsets"].size - 1, a["stream"].size
+        stream[b : b + k] = a["stream"]
+        vertex_offsets[v + 1 : v + m + 1] = a["vertex_offsets"][1:] + b
+        entries += int(meta["entries"])
+        v, b = v + m, b + k
         tiles[i] = None
-    return BlockVisibility.from_entries(nb, bits, counts, index, delta)
+    return PackedBlockVisibility(nb, bits, torch.from_numpy(stream), torch.from_numpy(vertex_offsets), entries)
 
 
 @dataclass(frozen=True)
@@ -375,8 +377,8 @@ def precompute_visibility(
     geom = CubemapBlocks(s.resolution, s.block)
     resolution, supersample, bits, chunk = s.resolution, s.supersample, s.bits, s.chunk
     verts = scene_vertices(scene)
-    # chunk files hold counts/index(/delta), not the varint stream ("tile": "entries")
-    facts = {"vertices": len(verts), "fingerprint": verts.fingerprint, "tile": "entries"}
+    # chunk files hold the varint stream of their vertices ("tile": "stream")
+    facts = {"vertices": len(verts), "fingerprint": verts.fingerprint, "tile": "stream"}
     key = settings_key({**s.key(), **facts}, scene, parts=("geometry",))  # every mesh (occluders too), not lights
     schema = _chunk_schema(geom.block_count, bits)
     nv = len(verts)

@@ -3,6 +3,7 @@
     python benchmarks/denoise.py [--quick] [--res 256] [--series 64,1,1,1] [--spp 16,64,256]
         [--hi-spp 1024] [--ref-spp 4096] [--figure docs/denoise_cornell.png] [--cache DIR]
         [--lobe-mixture | --stratified] [--scenes cornell,teatray] [--skip-spp 16,256] [--only-hi]
+        [--edits-only]
 
 For the glossy Cornell box (back wall Blinn-Phong n = 100; frozen object: the back wall) and
 the teatray (glossy tray under sun and sky; frozen object: the tray), tensors of ``--series``
@@ -66,6 +67,12 @@ over that bias; see :func:`_budget`), ``load`` (1-min load average at the
 start and end of each part). Edited material: exponent 1000 and another colour, a material
 the denoisers never saw (they see only guides and basis images).
 
+``edits`` (also alone with ``--edits-only``): denoising under edits of one, two and all objects
+of a generated scene (glossy floor, diffuse and glossy spheres, sky), the frame denoiser that keeps
+each object's mean against the undenoised 16x-samples frame and the whole-record path; its keys
+are in :mod:`torch_brdf.report.benchmarks.denoise_edits` (``--quick``: 32², series 8,1,1, 16 spp;
+else 64², series 16,1,1).
+
 Order: the middle spp's parts first, then the hi-spp runs, then the other spps from the smallest
 up (``--skip-spp`` leaves some out), so a run cut short has cached what the goals need.
 ``--only-hi`` computes just the hi-spp runs, from the last: started beside a full run with the
@@ -107,6 +114,7 @@ from torch_brdf.metrics import hdr_flip, relative_rmse
 from torch_brdf.records.cache import Checkpoint, settings_key
 from torch_brdf.records.polynomial import PolynomialTensors
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask
+from torch_brdf.report.benchmarks.denoise_edits import run_edits
 from torch_brdf.scene.builtin import cornell_box_glossy, teatray
 from torch_brdf.transport.guides import light_lobe_images
 from torch_brdf.transport.pathtrace import reference_path_trace
@@ -819,7 +827,22 @@ def main() -> None:
         "samples stratified over each pixel's paths (EyeStrata)",
     )
     ap.add_argument("--cache", default=None, help="parts cache (default $TORCH_BRDF_CACHE/benchmarks/denoise)")
+    ap.add_argument(
+        "--edits-only",
+        action="store_true",
+        help="run only the edits part (denoise_edits: one, two and all objects edited on a generated scene)",
+    )
     args = ap.parse_args()
+    edits_cfg = (
+        {"size": 32, "spp": 16, "series": "8,1,1", "ref": 64}
+        if args.quick
+        else {"size": 64, "spp": 16, "series": "16,1,1", "ref": 256}
+    )
+    if args.edits_only:
+        result = {"quick": args.quick, "load_start": _load(), "edits": run_edits(**edits_cfg)}
+        result["load_end"] = _load()
+        print(json.dumps(result))
+        return
     if args.quick:
         args.res, args.series, args.spp, args.hi_spp, args.ref_spp = 48, "16,1,1", "4,16", 64, 512
     spps = [int(s) for s in args.spp.split(",")]
@@ -855,6 +878,8 @@ def main() -> None:
         result["scenes"][name] = run_scene(name, cfg, folder, args.figure if name == "cornell_box_glossy" else None)
     if args.only_hi:
         return
+    print("[edits] one, two and all objects edited", flush=True)
+    result["edits"] = run_edits(**edits_cfg)
     result["load_end"], result["seconds"] = _load(), time.perf_counter() - t0
     first = result["scenes"].get("cornell_box_glossy") or next(iter(result["scenes"].values()))
     result.update({k: v for k, v in first.items() if k not in ("edited_material",)})

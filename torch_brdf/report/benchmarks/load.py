@@ -155,7 +155,7 @@ def _frozen_renderer(q: bool, ctx: dict):
 def stage_freeze(q: bool, ctx: dict):
     r = _frozen_renderer(q, ctx)
     # warm-up: the tuner measures each thread count on the first calls
-    return (lambda: r.freeze("back")), 3, 2 * _threads.TRIALS
+    return (lambda: r.freeze("back", cached=False)), 3, 2 * _threads.TRIALS
 
 
 def stage_frame(q: bool, ctx: dict):

@@ -129,7 +129,13 @@ from torch_brdf.manifold.gplvm import (
     small_matrix_mode,
 )
 from torch_brdf.manifold.materials import material_record, random_record, sphere_scene
-from torch_brdf.manifold.paths import best_path, directional_albedo, interpolant_diagnostics, latent_slice
+from torch_brdf.manifold.paths import (
+    best_path,
+    directional_albedo,
+    interpolant_diagnostics,
+    latent_slice,
+    straight_paths,
+)
 from torch_brdf.render.manifold import blend, gi_blend_error, render_rows
 
 #: the repository checkout (its datasets/merl_split.txt), when the package runs from one
@@ -525,6 +531,14 @@ def _hull_points(latents: torch.Tensor, m: int, generator: torch.Generator) -> t
     return torch.cat(got)[:m]
 
 
+def _with_raw_tests(data: Observations, raw: Observations, test) -> Observations:
+    """``data`` with the rows of ``test`` put back to those of ``raw`` (held-out rows are never rescaled)."""
+    z = data.z.clone()
+    for n in test:
+        z[raw.names.index(n)] = raw.z[raw.names.index(n)]
+    return Observations(z, data.names, data.grid, data.source)
+
+
 def validity_study(obs: Observations, max_iter: int, splits: int, points: int = 10_000, **stop) -> dict:
     """Every latent point a valid BRDF: the blend-weight options of :class:`GPLVM` (``valid``) compared.
 
@@ -536,23 +550,30 @@ def validity_study(obs: Observations, max_iter: int, splits: int, points: int = 
     ``heldout_logrmse_*`` / ``heldout_negative_*`` / ``heldout_s_*`` (fit + placements, CPU wall)
     over ``splits`` random 80/20 splits (seeds 0..), each option placing with its own weights
     (:func:`heldout_reconstruction` ``valid=``); ``nearest_`` / ``pca_heldout_logrmse_valid_study``
-    on the same splits. Suffixes: ``unconstrained`` = ``"none"``, ``valid`` = ``"simplex"`` (the
-    default), ``energy``.
+    on the same splits. Suffixes: ``unconstrained`` = ``"none"``, ``valid`` = ``"simplex"``,
+    ``energy`` (the default with albedos, ``default_validity``), ``normalised`` = ``"simplex"`` on
+    training rows scaled to albedo <= 1 (``training_above_albedo_1`` the rows it scales; scored
+    against the raw held-out rows).
     """
-    options = {"unconstrained": "none", "valid": "simplex", "energy": "energy"}
+    options = {"unconstrained": "none", "valid": "simplex", "energy": "energy", "normalised": "simplex"}
     alb = directional_albedo(obs.z, obs.grid)
     z = obs.z.double()
+    # "normalised": the other answer to training rows of albedo > 1: scale those rows to albedo 1,
+    # then simplex weights (the rows every option predicts with and is scored against are raw)
+    row_scale = 1 / alb.flatten(1).max(1).values.clamp_min(1.0)
     s, d = gram(obs.z, obs.cosine_weights())
     fit = fit_gplvm(s, d, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0), **stop)
     model = GPLVM(fit, z, valid=SEED, albedo=alb)
     xs = _hull_points(model.latents, points, torch.Generator().manual_seed(4))
     out: dict = {"validity_points": points, "training_max_albedo_valid_study": float(alb.max())}
-    a_flat = alb.flatten(1)
+    out["training_above_albedo_1"] = [n for n, a in zip(obs.names, alb.flatten(1).max(1).values, strict=True) if a > 1]
+    out["default_validity"] = GPLVM(fit, z, albedo=alb).valid
     for key, valid in options.items():
-        w = model.weights(xs, valid=valid)
+        scale = row_scale if key == "normalised" else torch.ones_like(row_scale)
+        w = model.weights(xs, valid=valid) * scale
         neg = sum(int(((w[a : a + 1000] @ z) < 0).sum()) for a in range(0, points, 1000))
         out[f"negative_fraction_{key}"] = neg / (points * z.shape[1])
-        out[f"max_albedo_{key}"] = float((w @ a_flat).max())
+        out[f"max_albedo_{key}"] = float((w @ alb.flatten(1)).max())
         best = math.inf
         for _ in range(3):
             t0 = time.perf_counter()
@@ -571,8 +592,12 @@ def validity_study(obs: Observations, max_iter: int, splits: int, points: int = 
         train_alb = alb[[names.index(n) for n in train]]
         for key, valid in options.items():
             t0 = time.perf_counter()
+            data = obs
+            if key == "normalised":
+                data = Observations((obs.z.double() * row_scale[:, None]).float(), obs.names, obs.grid, obs.source)
+                data = _with_raw_tests(data, obs, test)
             h = heldout_reconstruction(
-                obs, train, test, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0),
+                data, train, test, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0),
                 valid=valid, albedo=train_alb, **stop,
             )  # fmt: skip
             per[f"s_{key}"].append(time.perf_counter() - t0)
@@ -589,6 +614,137 @@ def validity_study(obs: Observations, max_iter: int, splits: int, points: int = 
         out["nearest_heldout_logrmse_valid_study"] = float(np.mean(per["nearest"]))
         out["pca_heldout_logrmse_valid_study"] = float(np.mean(per["pca"]))
         out["validity_splits"] = splits
+    return out
+
+
+#: families of materials held out whole in the default configuration's study, by name: the pool
+#: the benchmark draws from leaves out the three families the placement was tuned on
+#: (``metallic-paint``, ``phenolic``, ``fabric``, in :func:`heldout_study`)
+FAMILIES = {
+    "metals": (
+        "alum-bronze", "aluminium", "black-oxidized-steel", "brass", "chrome", "chrome-steel",
+        "grease-covered-steel", "nickel", "ss440", "steel", "tungsten-carbide",
+    ),
+    "plastics": ("plastic",),
+    "acrylics": ("acrylic",),
+    "rubbers": ("rubber", "latex"),
+    "woods": ("cherry-235", "colonial-maple-223", "fruitwood-241", "ipswich-pine-221", "natural-209",
+              "pickled-oak-260", "special-walnut-224"),
+    "paints": ("dark-blue-paint", "dark-red-paint", "gold-paint", "light-red-paint", "orange-paint",
+               "pearl-paint", "purple-paint", "silver-paint", "white-paint", "yellow-paint"),
+}  # fmt: skip
+#: default seed of the draw of family hold-outs (printed with the result)
+FAMILY_SEED = 2017
+#: the margin over the nearest training material the default configuration is held to
+MARGIN = 0.10
+
+
+def family_members(names, family: str) -> list[str]:
+    """Materials of ``family`` (:data:`FAMILIES`): exact names, or substrings for one-word patterns."""
+    pats = FAMILIES[family]
+    return [n for n in names if n in pats or any("-" not in p and p in n for p in pats)]
+
+
+def pick_families(seed: int, count: int = 2) -> list[str]:
+    """``count`` families of :data:`FAMILIES` drawn with ``seed`` (the benchmark prints both)."""
+    order = torch.randperm(len(FAMILIES), generator=torch.Generator().manual_seed(seed)).tolist()
+    return [list(FAMILIES)[i] for i in order[:count]]
+
+
+def default_study(
+    obs: Observations, max_iter: int, splits: int, family_seed: int = FAMILY_SEED, qs=(2, 3, 5), **stop
+) -> dict:
+    """Held-out accuracy and placement of the DEFAULT model: valid weights (``GPLVM``'s default with
+    albedos), the seed's mu 1e-6 and exact interpolant, placement between neighbours.
+
+    Cases: ``splits`` random 80/20 splits (seeds 0..) and, on the NBRDF data, two families of
+    :data:`FAMILIES` held out whole, drawn with ``family_seed``. Per case and q (``default_heldout``):
+    mean log-RMSE of the GPLVM, the nearest training material and PCA; ``margin`` = 1 - GPLVM /
+    nearest; ``interpolation_share`` = share of held-out latents at >= 0.1 of the local spacing from
+    every training latent (:func:`interpolation_share`); ``top_weight`` the mean largest blend
+    weight. Summary: ``default_margin_min`` (by q, over cases), ``default_below_pca_all``,
+    ``default_margin_ok`` (every case and q at least :data:`MARGIN`), ``default_interpolation_share``
+    (by q, mean over cases), ``default_heldout_s``.
+    """
+    names = list(obs.names)
+    alb = directional_albedo(obs.z, obs.grid)
+    cases = []
+    for seed in range(splits):
+        perm = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
+        test = sorted(names[i] for i in perm[: len(names) // 5])
+        cases.append((f"split{seed}", test))
+    fams = pick_families(family_seed) if obs.source == "nbrdf" else []
+    _log(f"default study: family seed {family_seed} -> {fams}")
+    for f in fams:
+        cases.append((f, family_members(names, f)))
+    per: dict = {}
+    t0 = time.perf_counter()
+    for tag, test in cases:
+        train = [n for n in names if n not in test]
+        train_alb = alb[[names.index(n) for n in train]]
+        for q in qs:
+            h = heldout_reconstruction(
+                obs, train, test, q, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0),
+                albedo=train_alb, **stop,
+            )  # fmt: skip
+            g, n, p = (float(v.mean()) for v in (h.gplvm_logrmse, h.nearest_logrmse, h.pca_logrmse))
+            per.setdefault(tag, {})[q] = {
+                "n": len(test),
+                "gplvm": round(g, 4),
+                "nearest": round(n, 4),
+                "pca": round(p, 4),
+                "margin": round(1 - g / n, 4),
+                "interpolation_share": round(float((h.interpolation >= 0.1).double().mean()), 4),
+                "interpolation_ratio_median": round(float(h.interpolation.median()), 4),
+                "top_weight": round(float(h.top_weight.mean()), 4),
+                "negative": float(h.gplvm_negative.mean()),
+            }
+            _log(f"default {tag} q={q}: {per[tag][q]}")
+    out = {"default_heldout": per, "default_family_seed": family_seed, "default_families": fams}
+    out["default_families_members"] = {f: family_members(names, f) for f in fams}
+    out["default_margin_min"] = {q: min(per[t][q]["margin"] for t in per) for q in qs}
+    out["default_below_pca_all"] = all(v["gplvm"] < v["pca"] for t in per for v in per[t].values())
+    out["default_margin_ok"] = all(v["margin"] >= MARGIN for t in per for v in per[t].values())
+    out["default_interpolation_share"] = {
+        q: round(float(np.mean([per[t][q]["interpolation_share"] for t in per])), 4) for q in qs
+    }
+    out["default_heldout_s"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def path_study(obs: Observations, max_iter: int, pairs: int = 20, **stop) -> dict:
+    """Straight latent paths between neighbouring training materials (the default model, q = 2).
+
+    ``pairs`` materials drawn with seed 5, each paired with its nearest latent neighbour; along each
+    straight path (33 points, :func:`straight_paths`): ``path_monotone_share`` (share of paths whose
+    albedo or highlight width changes monotonically), ``path_jump_max`` / ``path_jump_median`` (the
+    largest step's share of the change between the ends; uniform steps: 1/32) and
+    ``path_jump_share`` (share of paths with a step above 0.25); ``*_unconstrained``: the same for
+    the seed's weights.
+    """
+    z = obs.z.double()
+    alb = directional_albedo(obs.z, obs.grid)
+    s, d = gram(obs.z, obs.cosine_weights())
+    fit = fit_gplvm(s, d, 2, max_iter=max_iter, mu=1e-6, generator=torch.Generator().manual_seed(0), **stop)
+    model = GPLVM(fit, z, albedo=alb)
+    lat = model.latents
+    dist = torch.cdist(lat, lat)
+    dist.fill_diagonal_(math.inf)
+    firsts = torch.randperm(lat.shape[0], generator=torch.Generator().manual_seed(5))[:pairs].tolist()
+    pp = [(i, int(dist[i].argmin())) for i in firsts]
+    out: dict = {"path_pairs": [[obs.names[i], obs.names[j]] for i, j in pp]}
+    for key, valid in (("", None), ("_unconstrained", "none")):
+        prof = straight_paths(model, pp, z, alb, obs.grid, valid=valid)
+        out[f"path_monotone_share{key}"] = float(prof.monotone.double().mean())
+        out[f"path_jump_max{key}"] = float(prof.jump.max())
+        out[f"path_jump_median{key}"] = float(prof.jump.median())
+        out[f"path_jump_share{key}"] = float((prof.jump > 0.25).double().mean())
+        if not key:
+            out["path_profiles"] = {
+                "albedo": [[round(float(v), 4) for v in row] for row in prof.albedo[:4]],
+                "width": [[round(float(v), 4) for v in row] for row in prof.width[:4]],
+            }
+    _log(f"paths: monotone {out['path_monotone_share']:.2f}, jump max {out['path_jump_max']:.3f}")
     return out
 
 
@@ -696,6 +852,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--valid", choices=VALIDITY, default=SEED, help="blend weights of the held-out study")
     ap.add_argument("--validity-only", action="store_true", help="the validity study only (no fits / peers)")
     ap.add_argument("--validity-splits", type=int, default=None, help="validity study splits (default 5, quick 2)")
+    ap.add_argument("--family-seed", type=int, default=FAMILY_SEED, help="draw of the default study's families")
+    ap.add_argument("--no-default-study", action="store_true", help="skip the default model's held-out study")
     args = ap.parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
     place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
@@ -711,6 +869,9 @@ def main(argv=None) -> dict:
     out["n_materials"], out["d"] = obs.z.shape
     vsplits = args.validity_splits if args.validity_splits is not None else (2 if quick else 5)
     out.update(validity_study(obs, max_iter, vsplits, **stop))
+    out.update(path_study(obs, max_iter, **stop))
+    if not args.no_default_study:
+        out.update(default_study(obs, max_iter, vsplits, args.family_seed, **stop))
     if args.validity_only:
         out["load_end"] = os.getloadavg()[0]
         print(json.dumps(out))

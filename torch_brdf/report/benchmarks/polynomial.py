@@ -47,8 +47,22 @@ coloured blocks, 7 editable objects). Prints progress, then one JSON object as t
 * ``freeze_s``, ``frame_s``, ``stream_s`` at 512x512, (64,1,1,1), 4 bounces, M = 7 editable
   objects, freezing the glossy back wall (``--quick``: 128x128); the tensors for this part use
   ``freeze_spp`` paths per pixel, and ``freeze_entries`` says how many entries freezing read
-  (``freeze_dense_entries``: what dense per-tile blocks would hold).
-  ``frame_over_stream``: the goal is <= 3 (memory bandwidth).
+  (``freeze_dense_entries``: what dense per-tile blocks would hold); ``freeze_load_avg`` (and
+  ``..._after``) the load average around this part. ``frame_s`` (an edit of the wall and its
+  frame) and ``stream_s`` (one pass summing every array the frame reads,
+  ``PolynomialRenderer.frame_arrays``: ``stream_bytes``, ``stream_gb_per_s``) are each the
+  fastest of 7 calls, each right after touching a buffer of twice the last-level cache
+  (``cache_flush_mb``), so both read from memory; ``frame_warm_s`` without the flush.
+  ``frame_over_stream``: the goal is <= 2 (memory bandwidth). ``frame_1thread_s``,
+  ``stream_1thread_s`` and ``frame_over_stream_1thread``: the same pair on one thread each
+  (the frame's thread count is otherwise tuned per call, the stream's torch's default; on a
+  busy machine the one-thread pair is the steadier comparison).
+* Several objects frozen: ``freeze_left_s`` (first visit of the left wall), ``switch_s`` (the
+  median of four switches between the wall and the left wall, each after an edit of the other:
+  the kept state is updated, not rebuilt), ``switch_over_freeze``, ``switch_unchanged_s`` (a
+  switch back when nothing the state depends on changed: reused as is), ``frame_2_frozen_s`` /
+  ``frame_3_frozen_s`` (cold frames with 2 and 3 states kept), ``frozen_objects``,
+  ``frozen_cache_mb`` and its bound ``max_frozen_mb``; ``full_evaluation_s`` (no state).
 * ``rel_rmse``: relative RMSE against a full-BRDF reference at ``reference_spp`` on 128x128
   (``--quick``: 32x32), pixels seeing the light excluded: Mitsuba 3's llvm variant at 4096
   spp when it runs here (``reference``), else ``reference_path_trace`` at 256 spp; keys
@@ -83,11 +97,13 @@ import os
 import resource
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from torch_brdf.metrics import relative_rmse
+from torch_brdf.parallel import threads as _threads
 from torch_brdf.parallel.threads import usable_cores
 from torch_brdf.parallel.tiles import wait_tile_processes
 from torch_brdf.render.polynomial import PolynomialRenderer, emitter_mask, series_approximations
@@ -223,8 +239,44 @@ def _mitsuba(scene, spp, max_bounces, quiet=False):
     return {"image": img, "seconds": secs, "variant": variant}
 
 
+def _llc_bytes() -> int:
+    """The largest CPU cache (bytes) sysfs reports for CPU 0; 32 MiB when it reports none."""
+    best = 0
+    for d in Path("/sys/devices/system/cpu/cpu0/cache").glob("index*"):
+        try:
+            size = (d / "size").read_text().strip()
+        except OSError:
+            continue
+        units = {"K": 2**10, "M": 2**20, "G": 2**30}
+        best = max(best, int(size[:-1]) * units[size[-1]] if size[-1] in units else int(size))
+    return best or 32 * 2**20
+
+
+class _CacheFlush:
+    """Touching (read and write) a buffer of twice the last-level cache pushes earlier data out
+    of every cache: a timing right after starts from memory."""
+
+    def __init__(self):
+        self.buffer = torch.zeros(2 * max(_llc_bytes(), 32 * 2**20) // 4)
+
+    def __call__(self):
+        self.buffer.add_(1.0)
+
+
+def _cold(fn, flush, repeats: int) -> float:
+    """Fastest of ``repeats`` calls of ``fn``, each right after a cache flush (seconds)."""
+    best = math.inf
+    for _ in range(repeats):
+        flush()
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
 def _freeze_and_frames(q: bool, out: dict) -> None:
-    """Freezing the back wall and its frames at 512² (128² quick) into ``out``."""
+    """Freezing the back wall and its frames at 512² (128² quick) into ``out``; then several
+    objects kept frozen: the switches between them and frames with 2 and 3 states kept."""
     fres, fspp = (128, 2) if q else (512, 4)
     sc5 = cornell_box_glossy(fres)
     T5 = precompute_polynomial(sc5, PolynomialSettings("64,1,1,1", spp=fspp), seed=1, progress=True)
@@ -232,27 +284,74 @@ def _freeze_and_frames(q: bool, out: dict) -> None:
     out["freeze_resolution"], out["freeze_spp"] = fres, fspp
     out["freeze_entries"] = T5.num_entries
     out["freeze_dense_entries"] = T5.num_dense_entries  # what dense per-tile blocks would hold
+    out["freeze_load_avg"] = list(os.getloadavg())
     t0 = time.perf_counter()
     R.freeze("back")
     out["freeze_s"] = time.perf_counter() - t0
-    c = R.c[T5.object_id("back")].clone()
-    frames, streams = [], []
-    for k in range(5):
-        R.set_coefficients("back", c * (1 + 0.1 * k))
-        t0 = time.perf_counter()
-        R()
-        frames.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        R.stream()
-        streams.append(time.perf_counter() - t0)
-    out["frame_s"], out["stream_s"] = min(frames), min(streams)
+    flush = _CacheFlush()
+    out["cache_flush_mb"] = flush.buffer.numel() * 4 / 2**20
+    base = {o: R.c[T5.object_id(o)].clone() for o in ("back", "left", "floor")}
+    k = [0]
+
+    def edit(obj):
+        def run():
+            k[0] += 1
+            R.set_coefficients(obj, base[obj] * (1 + 0.01 * (k[0] % 7)))
+            return R()
+
+        return run
+
+    for _ in range(4 * _threads.TRIALS):  # the CSR arrays are made on first use; the tuner measures thread counts
+        edit("back")()
+    out["frame_s"] = _cold(edit("back"), flush, 7)  # (the edit's own cost, Eq. 37, is inside)
+    out["frame_warm_s"] = min(_cold(edit("back"), lambda: None, 1) for _ in range(7))
+    out["stream_s"] = _cold(R.stream, flush, 7)
+    out["stream_bytes"] = sum(a.numel() * a.element_size() for a in R.frame_arrays())
+    out["stream_gb_per_s"] = out["stream_bytes"] / out["stream_s"] / 1e9
     out["frame_over_stream"] = out["frame_s"] / out["stream_s"]
+    # the same pair on one thread each: on a shared machine the least disturbed comparison
+    R.threads = 1
+    with _threads.single_thread():
+        edit("back")()
+        out["frame_1thread_s"] = _cold(edit("back"), flush, 7)
+        out["stream_1thread_s"] = _cold(R.stream, flush, 7)
+    R.threads = None
+    out["frame_over_stream_1thread"] = out["frame_1thread_s"] / out["stream_1thread_s"]
     out["frozen_mb"] = R.frozen_nbytes / 2**20
+    # several objects: first visits contract, later visits reuse or update the kept state
+    t0 = time.perf_counter()
+    R.freeze("left")
+    out["freeze_left_s"] = time.perf_counter() - t0
+    for _ in range(4 * _threads.TRIALS):
+        edit("left")()
+    out["frame_2_frozen_s"] = _cold(edit("left"), flush, 7)
+    switches = []
+    for obj in ("back", "left", "back", "left"):  # each switch follows an edit of the other object
+        t0 = time.perf_counter()
+        R.freeze(obj)
+        switches.append(time.perf_counter() - t0)
+        edit(obj)()
+    out["switch_s"] = sorted(switches)[len(switches) // 2]
+    out["switch_over_freeze"] = out["switch_s"] / out["freeze_s"]
+    R.freeze("back")  # (left was just edited: back's state is updated)
+    t0 = time.perf_counter()
+    R.freeze("left")  # back has not changed since left's last visit: its state is reused as is
+    out["switch_unchanged_s"] = time.perf_counter() - t0
+    R.freeze("floor")
+    R.freeze("back")
+    out["frame_3_frozen_s"] = _cold(edit("back"), flush, 7)
+    out["frozen_objects"] = R.frozen_objects
+    out["frozen_cache_mb"] = R.frozen_cache_nbytes / 2**20
+    out["max_frozen_mb"] = R.max_frozen_bytes / 2**20
     t0 = time.perf_counter()
     R.evaluate()
     out["full_evaluation_s"] = time.perf_counter() - t0
-    print(f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.1f} ms", flush=True)
-    del R, T5
+    out["freeze_load_avg_after"] = list(os.getloadavg())
+    print(
+        f"freeze {out['freeze_s']:.2f} s, frame {out['frame_s'] * 1e3:.2f} ms, stream {out['stream_s'] * 1e3:.2f} ms "
+        f"({out['stream_gb_per_s']:.1f} GB/s), switch {out['switch_s'] * 1e3:.1f} ms",
+        flush=True,
+    )
 
 
 def _series_errors(q: bool, sca, ref, mask, rspp: int, out: dict) -> None:

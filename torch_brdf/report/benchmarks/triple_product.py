@@ -44,9 +44,18 @@ progress, then one JSON object as the last line:
   the precomputed record's file (``visibility_file_bytes``) in a fresh process (after a load
   of a tiny record, so that code paths are paged in), its seconds and its peak resident memory
   above the start over the file's size; ``visibility_load_kept_over_file`` is what stays
-  resident (the decoded record), ``visibility_load_transient_over_file`` the peak above that
-  (the decode's temporaries), ``visibility_load_mb_per_s`` the file's MB per second. Linux only
-  (the peak is reset through ``/proc/self/clear_refs``).
+  resident (the record: the file's varint stream and vertices),
+  ``visibility_load_transient_over_file`` the peak above that (the parse's temporaries),
+  ``visibility_load_mb_per_s`` the file's MB per second. Linux only (the peak is reset
+  through ``/proc/self/clear_refs``).
+* ``--large`` runs only the scene of the paper's size (the bunny on a plane of
+  ``--plane-quads``, default 720, quads a side: 555,788 vertices with the shared bunny;
+  ``--large-resolution`` cubemap side, default 32) and prints ``{"large": {...}}``:
+  ``precompute_s``, ``precompute_peak_over_record`` (this process's peak resident memory
+  above its start, over the record's file), ``record_bytes``, ``load_s``,
+  ``load_peak_over_file`` / ``load_kept_over_file`` (a fresh process, as above),
+  ``shaded_vertices``, ``view_s`` (culling and unpacking the visible vertices), ``frame_s``
+  (ours), ``frame_peak_bytes`` (load, view and frame in this process).
 * ``frame_s`` (ours, default rule: Appendix A for Phong), ``standard_frame_s`` (dense
   texel sum; visibility expanded beforehand, as a standard-basis system stores it),
   ``haar_frame_s`` (Ng et al.'s product on 1% of the lighting and BRDF wavelet coefficients;
@@ -59,6 +68,19 @@ progress, then one JSON object as the last line:
 * ``cases`` / ``sampling``: the seed's Tables 1 and 2 (percent, frame 1), ``brdf_evals``.
 * ``curve``: frame time and PSNR as the BRDF-sampling thresholds vary (the generic rule's
   thresholds times 0.1..10, the Appendix A angles times 0.5..2, and fixed 1/4/16/256 samples).
+  ``frame_s``, ``psnr`` and ``curve`` time the frame users get (``shade``: the compiled frame
+  where it supports the rule, else the torch path).
+* ``vertex_rates`` (frame 1, the default rule): the compiled frame and the torch path in CPU
+  seconds per frame on one thread (best of ``--repeat``; CPU time is less load-dependent than
+  wall time), as scene vertices per second per core (all vertices, as the paper counts;
+  ``*_per_core``) and microseconds per shaded vertex; the paper's rates from its Table 3
+  (``paper``: fps x vertices / 4 cores of its i7-2600K, each scene, its median, Sappho and Round
+  Table) and ours over them (``over_paper_*``); ``max_rel_diff`` of the two paths (of each vertex's
+  largest channel) and ``same_stats`` (levels, cases, samples, entries); ``psnr_compiled`` /
+  ``psnr_torch`` against the standard basis; ``fps_2_threads`` (wall: the compiled frame on two
+  threads plus the image) and ``fps_150k_2_cores`` (projected: 2 cores x the per-core rate /
+  150k scene vertices); ``kernel_lighting_s``, the kernel's lighting tables (built on the first
+  frame after ``set_lighting``, beside ``lighting_s``); ``load_avg``.
 """
 
 from __future__ import annotations
@@ -84,6 +106,7 @@ from torch_brdf.data import data_path
 from torch_brdf.metrics import psnr
 from torch_brdf.parallel.threads import single_thread, usable_cores
 from torch_brdf.parallel.tiles import single_process
+from torch_brdf.render import _relight
 from torch_brdf.render.triple import FixedRule, GenericRule, PhongRule, TripleProductRenderer
 from torch_brdf.scene.builtin import bunny_relight
 from torch_brdf.scene.camera import Camera
@@ -93,6 +116,7 @@ from torch_brdf.sphere.cubemap import CubemapBlocks
 from torch_brdf.transport import _native
 from torch_brdf.transport.visibility import (
     HORIZON_EPS,
+    VertexVisibility,
     VisibilitySettings,
     _chunk_entries,
     precompute_visibility,
@@ -226,14 +250,18 @@ _LOAD_CHILD = """
 import json, sys, tempfile, time
 import torch
 from torch_brdf.records import BlockVisibility
-from torch_brdf.records.visibility import VertexVisibility
+from torch_brdf.records.visibility import SceneVertices, VertexVisibility
+from torch_brdf.sphere.cubemap import CubemapBlocks
 
 def status():
     with open("/proc/self/status") as f:
         return {k: int(v.split()[0]) * 1024 for k, v in (line.split(":", 1) for line in f) if k in ("VmHWM", "VmRSS")}
 
-with tempfile.TemporaryDirectory() as tmp:
-    BlockVisibility.load(BlockVisibility.encode(torch.ones(2, 4, 256, dtype=torch.bool)).save(tmp + "/warm.npz"))
+with tempfile.TemporaryDirectory() as tmp:  # the code of a vertex record's load paged in
+    normals = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64)
+    verts = SceneVertices(normals * 2, normals, torch.zeros(2, dtype=torch.int64), torch.tensor([0, 2]))
+    blocks = BlockVisibility.encode(torch.ones(2, 6, 256, dtype=torch.bool))
+    VertexVisibility.load(VertexVisibility(CubemapBlocks(16, 16), verts, blocks).save(tmp + "/warm.npz"))
 with open("/proc/self/clear_refs", "w") as f:
     f.write("5")
 before = status()["VmRSS"]
@@ -289,6 +317,13 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--haar-fraction", type=float, default=0.01)
     ap.add_argument("--frames", type=int, default=3, choices=(1, 2, 3), help="frames shaded (the first N of three)")
     ap.add_argument("--plane-quads", type=int, default=None, help="plane quads a side (default 96; quick 32)")
+    ap.add_argument(
+        "--large",
+        action="store_true",
+        help="only the scene of the paper's size (plane of --plane-quads, default 720: 500k+ vertices): "
+        "precompute, load and one frame, with their peak memory",
+    )
+    ap.add_argument("--large-resolution", type=int, default=32, help="cubemap side of --large (default 32)")
     return ap.parse_args()
 
 
@@ -535,6 +570,84 @@ def _threshold_curve(r, env, vis, view, ref, mask, repeat: int) -> dict:
     return curve
 
 
+#: Inger et al., Table 3 (Intel Core i7-2600K, four cores, vertices culled on the GPU): fps, vertices
+_PAPER_TABLE_3 = {
+    "bas_relief": (5, 506e3),
+    "round_table": (14, 280e3),
+    "sappho": (17, 113e3),
+    "david": (11, 293e3),
+    "piano": (14, 195e3),
+    "skeleton": (9, 635e3),
+    "dining_table": (17, 381e3),
+    "bicycle": (24, 206e3),
+    "museum": (22, 231e3),
+    "lucy": (9, 367e3),
+}
+_PAPER_CORES = 4
+
+
+def _cpu_best(fn, repeat: int) -> float:
+    """The least CPU seconds (this process) of ``repeat`` calls of ``fn`` (after one warm-up)."""
+    fn()
+    best = math.inf
+    for _ in range(max(1, repeat)):
+        c = time.process_time()
+        fn()
+        best = min(best, time.process_time() - c)
+    return best
+
+
+def _vertex_rates(r, view, ref, mask, scene_vertices: int, repeat: int) -> dict:
+    """Scene vertices per second per core of the compiled frame, the torch path and the paper."""
+    rule = r.rule
+    shaded = len(view.vertex_ids)
+    out: dict = {"scene_vertices": scene_vertices, "shaded_vertices": shaded, "path": r.frame_path(rule)}
+    if out["path"] != "compiled":
+        return out
+    threads = r.threads
+    try:
+        r.threads = 1
+        with single_thread():
+            out["compiled_cpu_s"] = _cpu_best(lambda: r.shade_compiled(view, rule), repeat * 3)
+            out["torch_cpu_s"] = _cpu_best(lambda: r.shade_torch(view, rule, progress=False), repeat)
+        r.threads = 2
+        wall, _ = best_of(lambda: r.image(view, r.shade_compiled(view, rule)[0]), repeat * 3)
+    finally:
+        r.threads = threads
+    a, sa = r.shade_compiled(view, rule)
+    b, sb = r.shade_torch(view, rule, progress=False)
+    for k in ("compiled", "torch"):
+        out[f"{k}_per_core"] = scene_vertices / out[f"{k}_cpu_s"]
+        out[f"{k}_us_per_shaded_vertex"] = out[f"{k}_cpu_s"] / max(1, shaded) * 1e6
+    rates = {k: fps * v / _PAPER_CORES for k, (fps, v) in _PAPER_TABLE_3.items()}
+    out["paper"] = {
+        "derivation": "Table 3: fps x scene vertices / 4 cores (i7-2600K); all vertices counted, culling included",
+        "per_core": rates,
+        "median": statistics.median(rates.values()),
+    }
+    for k in ("sappho", "round_table", "median"):
+        out[f"over_paper_{k}"] = out["compiled_per_core"] / (out["paper"]["median"] if k == "median" else rates[k])
+    out["speedup_over_torch"] = out["torch_cpu_s"] / out["compiled_cpu_s"]
+    scale = b.abs().amax(-1).clamp_min(1e-30)
+    out["max_rel_diff"] = float(((a - b).abs().amax(-1) / scale).max())
+    out["same_stats"] = sa.as_dict() == sb.as_dict()
+    out["psnr_compiled"] = psnr(r.image(view, a), ref, mask)
+    out["psnr_torch"] = psnr(r.image(view, b), ref, mask)
+    out["frame_2_threads_s"] = wall
+    out["fps_2_threads"] = 1.0 / wall
+    out["fps_150k_2_cores"] = 2 * out["compiled_per_core"] / 150e3
+    out["fps_150k_derivation"] = "2 cores x compiled_per_core / 150k scene vertices (this scene's culled share)"
+    out["kernel_lighting_s"], _ = best_of(lambda: _relight.NativeLighting.of(r.lighting, r.geometry.block), repeat)
+    out["load_avg"] = list(os.getloadavg())
+    print(
+        f"vertex rates: compiled {out['compiled_per_core'] / 1e3:.0f}k, torch {out['torch_per_core'] / 1e3:.0f}k, "
+        f"paper (median) {out['paper']['median'] / 1e3:.0f}k scene vertices/s/core; "
+        f"{out['fps_2_threads']:.1f} fps on 2 threads, load {out['load_avg'][0]:.1f}",
+        flush=True,
+    )
+    return out
+
+
 def _precompute_figures(scene, args) -> tuple[_Rounds, dict, dict]:
     """The visibility precompute against embree alone on the very rays it casts, with as many
     processes over the same chunks of vertices, interleaved (embree's own time varies most),
@@ -556,11 +669,87 @@ def _precompute_figures(scene, args) -> tuple[_Rounds, dict, dict]:
     return st, figures, baseline
 
 
+def _status() -> dict[str, int]:
+    """This process's peak (``VmHWM``) and current (``VmRSS``) resident bytes (Linux)."""
+    with open("/proc/self/status") as f:
+        return {k: int(v.split()[0]) * 1024 for k, v in (line.split(":", 1) for line in f) if k in ("VmHWM", "VmRSS")}
+
+
+def _reset_peak() -> int:
+    """Reset this process's peak resident memory (VmHWM, Linux); its resident bytes now."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    return _status()["VmRSS"]
+
+
+def _load_file(path) -> dict:
+    """``VertexVisibility.load`` of ``path`` in a fresh process: its peak and kept bytes above
+    the start and its seconds (as :func:`_load_memory`)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run([sys.executable, "-c", _LOAD_CHILD, str(path)], capture_output=True, text=True, env=env)
+    if run.returncode:
+        raise RuntimeError(f"visibility load measurement failed: {run.stderr.strip().splitlines()[-1:]}")
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def _large_case(args, env) -> dict:
+    """The scene of the paper's size (``--large``): the bunny on a plane of ``--plane-quads``
+    (default 720) quads a side, 500k+ vertices. Its visibility precompute (peak resident
+    memory of this process above its start, over the record's file: the chunks' streams and
+    their assembly; the forked ray casters are separate processes), the record's load in a
+    fresh process (peak and kept memory over the file, seconds), and one frame of ours (the
+    view: culling and unpacking the visible vertices; the shading; the peak of the load, view
+    and shading in this process above their start)."""
+    scene = bunny_relight((320, 240), plane_quads=args.plane_quads or 720, envmap=env)
+    n = sum(len(o.mesh.vertices) for o in scene.objects)
+    print(f"large scene: {n} vertices, cubemap {args.large_resolution}^2x6", flush=True)
+    settings = VisibilitySettings(resolution=args.large_resolution, chunk=512)
+    before = _reset_peak()
+    t = time.perf_counter()
+    vis = precompute_visibility(scene, settings, checkpoint=args.checkpoint, processes=args.processes)
+    precompute_s = time.perf_counter() - t
+    precompute_peak = _status()["VmHWM"] - before
+    with tempfile.TemporaryDirectory() as tmp:
+        path = vis.save(os.path.join(tmp, "visibility.npz"))
+        size = os.path.getsize(path)
+        del vis
+        got = _load_file(path)
+        print(f"large: record {size / 2**20:.1f} MB, load {got['seconds']:.2f} s", flush=True)
+        before = _reset_peak()
+        vis = VertexVisibility.load(path)
+    r = TripleProductRenderer(scene, vis)
+    view_s, view = best_of(lambda: r.view(), 1)
+    frame_s, _ = best_of(lambda: r.shade(view, progress=False), 1)
+    frame_peak = _status()["VmHWM"] - before
+    return {
+        "vertices": n,
+        "cubemap": f"{args.large_resolution}x{args.large_resolution}x6",
+        "blocks_per_vertex": vis.geometry.block_count,
+        "record_bytes": size,
+        "bytes_per_vertex": size / n,
+        "precompute_s": precompute_s,
+        "precompute_peak_bytes": precompute_peak,
+        "precompute_peak_over_record": precompute_peak / size,
+        "load_s": got["seconds"],
+        "load_peak_over_file": got["peak"] / size,
+        "load_kept_over_file": got["kept"] / size,
+        "shaded_vertices": len(view.vertex_ids),
+        "view_s": view_s,
+        "frame_s": frame_s,
+        "frame_peak_bytes": frame_peak,
+        "frame_peak_over_file": frame_peak / size,
+        "load_avg": list(os.getloadavg()),
+    }
+
+
 def main() -> None:
     args = _parse_args()
     torch.manual_seed(0)
     sun = None if args.quick else data_path("envmaps", "quarry_01_sun_512x256.exr", required=False)
     env = EnvironmentMap.from_exr(sun) if sun is not None else None  # else the procedural sun and sky
+    if args.large:
+        print(json.dumps({"large": _large_case(args, env)}))
+        return
     if args.quick:
         scene = bunny_relight((160, 120), plane_quads=args.plane_quads or 32, use_data=False)
     else:
@@ -603,6 +792,8 @@ def main() -> None:
     out["sampling"] = pct["sampling"]
     out["brdf_evals"] = stats.brdf_evals
     out["brdf_evals_per_vertex"] = stats.brdf_evals / max(1, stats.vertices)
+    r.set_lighting(env)
+    out["vertex_rates"] = _vertex_rates(r, view, ref, mask, len(vis.vertices), args.repeat)
     out["curve"] = _threshold_curve(r, env, vis, view, ref, mask, args.repeat)
     print(json.dumps(out))
 

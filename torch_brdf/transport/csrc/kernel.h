@@ -266,4 +266,12 @@ TB_API int64_t tb_occluded_rays(void *scene, void *fn, int64_t n, const float *o
 TB_API int64_t tb_intersect_only(void *scene, void *fn, int64_t n, const float *o, const float *d, const float *tfar,
                                  int32_t *geom);
 
+/* ---- relight.c ------------------------------------------------------------------------------- */
+TB_API TB_SIMD void tb_phong_lobe(int64_t n, const float *omc, float exponent, float *out);
+TB_API int tb_relight(int64_t P, int NB, const float *nrm, const float *fs, const float *ft, const float *fn,
+                      const float *wo, const int32_t *obj, const float *prm, const int32_t *lv, float a0, float a1,
+                      const uint8_t *states, const int64_t *offsets, const uint8_t *index, const int16_t *delta,
+                      float levels, const float *const *pts, const float *const *G, const float *M, const float *I,
+                      const float *const *J, float *out, int64_t *stats);
+
 #endif
