@@ -826,7 +826,8 @@ def _fit_section(obs: Observations, max_iter: int, stop: dict, out: dict) -> dic
     return ours_q2
 
 
-def main(argv=None) -> dict:
+def _parser() -> argparse.ArgumentParser:
+    """The benchmark's command-line options."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small grid and short fits")
     ap.add_argument("--cache", type=Path, default=None, help="observation-matrix cache file")
@@ -854,7 +855,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--validity-splits", type=int, default=None, help="validity study splits (default 5, quick 2)")
     ap.add_argument("--family-seed", type=int, default=FAMILY_SEED, help="draw of the default study's families")
     ap.add_argument("--no-default-study", action="store_true", help="skip the default model's held-out study")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> dict:
+    args = _parser().parse_args(argv)
     stop = {"tol": args.tol, "tol_window": args.tol_window}
     place = {"negatives": args.negatives, "negative_weight": args.negative_weight}
     place["max_columns"] = args.max_columns or None
