@@ -28,9 +28,11 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import torch
+from tqdm.auto import tqdm
 
 from ..brdf.analytic import Phong
 from ..brdf.base import Lambert
+from ..data import progress_default
 from ..records.visibility_codec import BlockVisibility
 from ..sphere.cubemap import CubemapBlocks
 from ..sphere.dct import LOW, dct_basis, low_indices, sample_positions, subsampled_inverse
@@ -183,7 +185,9 @@ def _array(ptrs) -> ctypes.Array:
     return (ctypes.c_void_p * len(ptrs))(*ptrs)
 
 
-def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor, dict[str, int]]:
+def shade(
+    renderer, view, rule, threads: int, frames=None, progress: bool | None = None
+) -> tuple[torch.Tensor, dict[str, int]]:
     """Per-vertex radiance of ``view`` by the kernel.
 
     Args:
@@ -193,6 +197,8 @@ def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor
         rule: :class:`PhongRule` or :class:`FixedRule`.
         threads: threads the vertex ranges are spread over.
         frames: ``renderer._frames(view)`` if already computed.
+        progress: tqdm bar over the ranges of :data:`CHUNK` vertices (None: on in a terminal or
+            notebook).
     Returns:
         (P, 3) float32 radiance and the counters (:data:`STAT_KEYS`).
     """
@@ -251,10 +257,10 @@ def shade(renderer, view, rule, threads: int, frames=None) -> tuple[torch.Tensor
             stats[i].data_ptr(),
         )
 
-    if threads <= 1 or len(starts) <= 1:
-        codes = [run(i) for i in range(len(starts))]
-    else:
-        codes = list(_pool(threads).map(run, range(len(starts))))
+    serial = threads <= 1 or len(starts) <= 1
+    calls = map(run, range(len(starts))) if serial else _pool(threads).map(run, range(len(starts)))
+    bar = tqdm(calls, total=len(starts), desc="shade compiled", unit="chunk", disable=not progress_default(progress))
+    codes = list(bar)
     del keep
     if any(codes):
         raise MemoryError("the relighting kernel could not allocate its per-call buffers")

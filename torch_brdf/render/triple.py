@@ -609,21 +609,29 @@ class TripleProductRenderer(nn.Module):
             view: the vertices to shade.
             rule: BRDF sampling rule (default the renderer's).
             progress: tqdm bar (the torch path: over the (vertex, block) pairs; the compiled
-                frame runs without one, in a fraction of a second per 100k vertices).
+                frame: over ranges of vertices).
         Returns:
             radiance (P, C) in the renderer's dtype, and :class:`FrameStats`.
         """
         rule = rule if rule is not None else self.rule
         if self.frame_path(rule) == "torch":
             return self.shade_torch(view, rule, progress)
-        return self.shade_compiled(view, rule)
+        return self.shade_compiled(view, rule, progress)
 
     @torch.no_grad()
-    def shade_compiled(self, view: View, rule: SamplingRule | None = None) -> tuple[torch.Tensor, FrameStats]:
+    def shade_compiled(
+        self, view: View, rule: SamplingRule | None = None, progress: bool | None = None
+    ) -> tuple[torch.Tensor, FrameStats]:
         """:meth:`shade_torch` by the compiled kernel (``transport/csrc/relight.c``) over
         :attr:`threads` threads (None: the usable cores). Same rule, samples and block cases;
         the sums in another order (float32 rounding apart, see :mod:`torch_brdf.render._relight`).
 
+        Args:
+            view: the vertices to shade.
+            rule: BRDF sampling rule (default the renderer's).
+            progress: tqdm bar over ranges of vertices (None: on in a terminal or notebook).
+        Returns:
+            radiance (P, C) float32, and :class:`FrameStats`.
         Raises:
             ValueRangeError: the kernel does not support this renderer or rule.
         """
@@ -632,7 +640,7 @@ class TripleProductRenderer(nn.Module):
         if why is not None:
             raise ValueRangeError(f"the compiled relighting frame cannot shade this: {why}")
         threads = self.threads if self.threads is not None else usable_cores()
-        out, counts = _relight.shade(self, view, rule, max(1, int(threads)))
+        out, counts = _relight.shade(self, view, rule, max(1, int(threads)), progress=progress)
         P = len(view.vertex_ids)
         stats = FrameStats(vertices=P, blocks=P * self.geometry.block_count)
         stats.cases = {k: counts[k] for k in stats.cases}
