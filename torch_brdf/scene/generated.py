@@ -113,23 +113,21 @@ def glossy_floor_diffuse(size: int = 48, seed: int = 0) -> Scene:
     return Scene(objects, materials, [_sky(rng)], _camera(_check(size), rng), name=f"glossy_floor_diffuse-{seed}")
 
 
+def _ball_and_box(rng: np.random.Generator, box_x: tuple[float, float]) -> list[SceneObject]:
+    """A smooth ball near the middle of the floor and a box whose x is drawn from ``box_x``
+    (drawn in that order from ``rng``)."""
+    ball = _ball(rng, rng.uniform(-0.4, 0.3), rng.uniform(-0.2, 0.4), rng.uniform(0.45, 0.7))
+    box = _box(rng.uniform(*box_x), rng.uniform(0.2, 0.9), rng.uniform(0.4, 0.7), rng.uniform(0, 1.5))
+    return [SceneObject("ball", ball, "ball", smooth=True), SceneObject("box", box, "box")]
+
+
 def glossy_floor_glossy(size: int = 48, seed: int = 0) -> Scene:
     """A glossy floor reflecting a glossy ball and a diffuse box, under a sky with a sun
     (glossy-to-glossy transport: the ball is seen in the floor, the floor in the ball)."""
     rng = np.random.default_rng(seed)
     objects = [
         SceneObject("floor", _floor(), "floor"),
-        SceneObject(
-            "ball",
-            _ball(rng, rng.uniform(-0.4, 0.3), rng.uniform(-0.2, 0.4), rng.uniform(0.45, 0.7)),
-            "ball",
-            smooth=True,
-        ),
-        SceneObject(
-            "box",
-            _box(rng.uniform(-1.3, -0.8), rng.uniform(0.2, 0.9), rng.uniform(0.4, 0.7), rng.uniform(0, 1.5)),
-            "box",
-        ),
+        *_ball_and_box(rng, (-1.3, -0.8)),
     ]
     materials = {
         "floor": _glossy(rng, 60.0, 200.0),
@@ -178,15 +176,7 @@ def textured_floor(size: int = 48, seed: int = 0) -> Scene:
     uv = (np.asarray(floor.vertices)[:, [0, 2]] + 4.0) / 8.0
     objects = [
         SceneObject("floor", floor, "floor", uv=uv, textures={"base_color": _checker(rng)}),
-        SceneObject(
-            "ball",
-            _ball(rng, rng.uniform(-0.4, 0.3), rng.uniform(-0.2, 0.4), rng.uniform(0.45, 0.7)),
-            "ball",
-            smooth=True,
-        ),
-        SceneObject(
-            "box", _box(rng.uniform(0.8, 1.3), rng.uniform(0.2, 0.9), rng.uniform(0.4, 0.7), rng.uniform(0, 1.5)), "box"
-        ),
+        *_ball_and_box(rng, (0.8, 1.3)),
     ]
     materials = {
         "floor": {"type": "lambert", "albedo": 1.0},
@@ -202,17 +192,7 @@ def env_lit(size: int = 48, seed: int = 0) -> Scene:
     rng = np.random.default_rng(seed)
     objects = [
         SceneObject("floor", _floor(), "floor"),
-        SceneObject(
-            "ball",
-            _ball(rng, rng.uniform(-0.4, 0.3), rng.uniform(-0.2, 0.4), rng.uniform(0.45, 0.7)),
-            "ball",
-            smooth=True,
-        ),
-        SceneObject(
-            "box",
-            _box(rng.uniform(-1.3, -0.8), rng.uniform(0.2, 0.9), rng.uniform(0.4, 0.7), rng.uniform(0, 1.5)),
-            "box",
-        ),
+        *_ball_and_box(rng, (-1.3, -0.8)),
     ]
     materials = {
         "floor": _glossy(rng, 40.0, 150.0),
